@@ -1,0 +1,1 @@
+"""gonio.capture: cameras, RAW linearisation, HDR, fiducials, calibration, sessions, reduction."""

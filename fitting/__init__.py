@@ -1,0 +1,1 @@
+"""gonio.fitting: objectives, the nlopt driver, uncertainty, model selection, exports."""

@@ -1,0 +1,1 @@
+"""BRDF models (analytic, by name) and measured BRDF files."""

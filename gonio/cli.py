@@ -1,0 +1,83 @@
+"""The ``gonio`` command line.
+
+Subcommand groups live beside the code they drive (``gonio.rig.cli`` and so on) and are
+imported only when used, which keeps ``gonio --help`` fast and lets the core stay free of
+imports from the subsystems.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+
+import click
+
+from gonio import __version__
+from gonio.errors import GonioError
+
+# command name -> "module:attribute" of a click command or group.  A group appears in
+# --help only once its module exists, so there are never placeholder commands.
+_SUBCOMMANDS: dict[str, str] = {
+    "brdf": "gonio.brdf.cli:brdf",
+    "sim": "gonio.simulator.cli:sim",
+    "rig": "gonio.rig.cli:rig",
+    "capture": "gonio.capture.cli:capture",
+    "fit": "gonio.fitting.cli:fit",
+    "demo": "gonio.demo:demo",
+}
+
+
+def _module_exists(name: str) -> bool:
+    try:
+        return importlib.util.find_spec(name) is not None
+    except ModuleNotFoundError:
+        return False
+
+
+class _LazyGroup(click.Group):
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        found = [n for n, t in _SUBCOMMANDS.items() if _module_exists(t.split(":")[0])]
+        return sorted(set(found) | set(super().list_commands(ctx)))
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        target = _SUBCOMMANDS.get(cmd_name)
+        if target is None or not _module_exists(target.split(":")[0]):
+            return super().get_command(ctx, cmd_name)
+        module_name, attr = target.split(":")
+        return getattr(importlib.import_module(module_name), attr)
+
+
+@click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="gonio")
+def cli() -> None:
+    """gonio: measure BRDFs with a Dynamixel gonioreflectometer, and fit them.
+
+    \b
+    Typical lab session:
+      gonio rig scan --port /dev/ttyUSB0     find the servos
+      gonio capture plan plan.toml --rig rig.toml   dry-run a plan
+      gonio capture run plan.toml --rig rig.toml --camera gphoto2 --out S/
+      gonio capture reduce S/                RAW brackets -> S/samples.h5
+      gonio fit S/samples.h5 --model auto --out fit/
+
+    Run any command with --help to learn its options.
+    """
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point: run the CLI and turn :class:`GonioError` into exit code 1."""
+    try:
+        cli.main(args=argv, prog_name="gonio", standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except GonioError as exc:
+        click.secho(f"error: {exc}", fg="red", err=True)
+        sys.exit(1)
+    except KeyboardInterrupt:
+        click.echo("interrupted", err=True)
+        sys.exit(130)

@@ -1,0 +1,35 @@
+"""Radiometry core: frames and angles, solid angles, irradiance, photometric conversion.
+
+Units: radians, metres, W/(sr m^2) for radiance, W/m^2 for irradiance, W/sr for
+intensity.  Every function is vectorised over leading array dimensions, in float64.
+"""
+
+from gonio.radiometry.frames import (
+    as_vectors,
+    cos_theta,
+    direction_to_spherical,
+    directions_from_half_diff,
+    dot,
+    frame_from_normal,
+    half_diff_from_directions,
+    normalize,
+    reflect,
+    spherical_to_direction,
+    to_local,
+    to_world,
+)
+
+__all__ = [
+    "as_vectors",
+    "cos_theta",
+    "direction_to_spherical",
+    "directions_from_half_diff",
+    "dot",
+    "frame_from_normal",
+    "half_diff_from_directions",
+    "normalize",
+    "reflect",
+    "spherical_to_direction",
+    "to_local",
+    "to_world",
+]

@@ -1,0 +1,1 @@
+"""gonio.rig: the Dynamixel servo transport, control table, kinematics and rig device."""

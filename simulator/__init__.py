@@ -1,0 +1,1 @@
+"""gonio.simulator: scene, renderer, sensor and DNG writer, virtual servo bus, simulated camera."""
