@@ -35,20 +35,37 @@ def _module_exists(name: str) -> bool:
         return False
 
 
-class _LazyGroup(click.Group):
+class LazyGroup(click.Group):
+    """A click group whose subcommands are imported on first use.
+
+    Parameters
+    ----------
+    lazy_commands
+        Command name -> ``"module:attribute"``.  Entries whose module does not exist are
+        hidden, so a group shows exactly the commands that are implemented.
+    """
+
+    def __init__(self, *args, lazy_commands: dict[str, str] | None = None, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.lazy_commands = dict(lazy_commands or {})
+
     def list_commands(self, ctx: click.Context) -> list[str]:
-        found = [n for n, t in _SUBCOMMANDS.items() if _module_exists(t.split(":")[0])]
+        found = [n for n, t in self.lazy_commands.items() if _module_exists(t.split(":")[0])]
         return sorted(set(found) | set(super().list_commands(ctx)))
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
-        target = _SUBCOMMANDS.get(cmd_name)
+        target = self.lazy_commands.get(cmd_name)
         if target is None or not _module_exists(target.split(":")[0]):
             return super().get_command(ctx, cmd_name)
         module_name, attr = target.split(":")
         return getattr(importlib.import_module(module_name), attr)
 
 
-@click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(
+    cls=LazyGroup,
+    lazy_commands=_SUBCOMMANDS,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
 @click.version_option(__version__, prog_name="gonio")
 def cli() -> None:
     """gonio: measure BRDFs with a Dynamixel gonioreflectometer, and fit them.

@@ -1,0 +1,18 @@
+"""``gonio sim``: the simulated rig (renderer, virtual servo bus)."""
+
+from __future__ import annotations
+
+import click
+
+from gonio.cli import LazyGroup
+
+
+@click.group(
+    cls=LazyGroup,
+    lazy_commands={
+        "render": "gonio.simulator.render_cli:render_cmd",
+        "bus": "gonio.simulator.bus_cli:bus_cmd",
+    },
+)
+def sim() -> None:
+    """Simulated hardware: render camera RAW files, serve a virtual Dynamixel bus."""
