@@ -4,6 +4,18 @@ Units: radians, metres, W/(sr m^2) for radiance, W/m^2 for irradiance, W/sr for
 intensity.  Every function is vectorised over leading array dimensions, in float64.
 """
 
+from gonio.radiometry.emitters import (
+    irradiance_disk,
+    irradiance_point,
+    irradiance_polygon,
+    irradiance_rectangle,
+    rectangle_vertices,
+    solid_angle_cap,
+    solid_angle_disk,
+    solid_angle_element,
+    solid_angle_polygon,
+    solid_angle_rectangle,
+)
 from gonio.radiometry.frames import (
     as_vectors,
     cos_theta,
@@ -20,6 +32,16 @@ from gonio.radiometry.frames import (
 )
 
 __all__ = [
+    "irradiance_disk",
+    "irradiance_point",
+    "irradiance_polygon",
+    "irradiance_rectangle",
+    "rectangle_vertices",
+    "solid_angle_cap",
+    "solid_angle_disk",
+    "solid_angle_element",
+    "solid_angle_polygon",
+    "solid_angle_rectangle",
     "as_vectors",
     "cos_theta",
     "direction_to_spherical",

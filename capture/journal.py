@@ -1,0 +1,204 @@
+"""The session journal: append-only JSON lines, each one on disk before the rig moves again.
+
+A session that runs for hours must lose nothing when the power goes, so every record is
+written, flushed and ``fsync``-ed before :meth:`Journal.append` returns.  A crash can then
+tear at most the line being written; :func:`read_journal` drops such a torn last line and
+:meth:`Journal.open` truncates it away before appending, so the file stays valid JSON
+lines.  RAW files are written atomically (:func:`write_atomic`) *before* their record, so a
+journal entry never points at a missing or half-written file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from gonio.errors import FileFormatError
+
+__all__ = [
+    "Journal",
+    "fsync_dir",
+    "read_journal",
+    "sha256_bytes",
+    "sha256_file",
+    "write_atomic",
+]
+
+
+def sha256_bytes(data: bytes) -> str:
+    """Hex sha256 of ``data``."""
+    return hashlib.sha256(data).hexdigest()
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    """Hex sha256 of the file at ``path`` (read in 1 MiB chunks)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def fsync_dir(path: str | os.PathLike) -> None:
+    """``fsync`` a directory so a rename or create inside it survives a power cut."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_atomic(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that the file is either absent/old or complete.
+
+    The bytes go to a temporary file in the same directory, which is flushed, ``fsync``-ed
+    and renamed over ``path``; then the directory is ``fsync``-ed.  A crash at any point
+    leaves at worst a ``.tmp`` file, never a truncated ``path``.
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
+
+
+def _parse_lines(path: Path, raw: bytes) -> tuple[list[dict[str, Any]], int, bool]:
+    """Parse journal bytes.
+
+    Returns the records, the byte length of the newline-terminated prefix, and whether the
+    unterminated tail (if any) was a complete record (cut just before its newline).
+    """
+    *complete, tail = raw.split(b"\n")
+    records: list[dict[str, Any]] = []
+    for n, line in enumerate(complete):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+        except ValueError as exc:
+            # A crash can only tear the final, unterminated line; a bad terminated line
+            # means the file was damaged by something else, which must not pass silently.
+            raise FileFormatError(path, f"line {n + 1} is not valid JSON ({exc})") from None
+        if not isinstance(rec, dict):
+            raise FileFormatError(path, f"line {n + 1} is not a JSON object")
+        records.append(rec)
+    good = len(raw) - len(tail)
+    tail_ok = False
+    if tail.strip():
+        try:
+            rec = json.loads(tail)
+            tail_ok = isinstance(rec, dict)
+        except ValueError:
+            tail_ok = False
+        if tail_ok:
+            records.append(rec)
+    return records, good, tail_ok
+
+
+def read_journal(path: str | os.PathLike) -> list[dict[str, Any]]:
+    """Read a session journal, ignoring a torn last line.
+
+    Parameters
+    ----------
+    path
+        ``journal.jsonl`` of a session (or its session directory).
+
+    Returns
+    -------
+    list of dict
+        The records in the order written.
+
+    Raises
+    ------
+    FileFormatError
+        A line other than the last is not a JSON object (the file was damaged by something
+        other than a crash while appending).
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / "journal.jsonl"
+    if not path.exists():
+        raise FileFormatError(path, "journal not found")
+    records, _, _ = _parse_lines(path, path.read_bytes())
+    return records
+
+
+class Journal:
+    """An open, append-only session journal.
+
+    Use :meth:`create` for a new session and :meth:`open` to append after a crash; every
+    :meth:`append` is durable when it returns.
+    """
+
+    def __init__(self, path: Path, fh) -> None:
+        self.path = path
+        self._fh = fh
+
+    @classmethod
+    def create(cls, path: str | os.PathLike) -> Journal:
+        """Create a new, empty journal; fails if ``path`` exists."""
+        path = Path(path)
+        fh = open(path, "xb")  # noqa: SIM115 - closed by Journal.close
+        fsync_dir(path.parent)
+        return cls(path, fh)
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> tuple[Journal, list[dict[str, Any]]]:
+        """Open an existing journal for appending, dropping a torn last line.
+
+        Returns
+        -------
+        journal, records
+            The open journal and the records it already holds.
+        """
+        path = Path(path)
+        raw = path.read_bytes()
+        records, good, tail_ok = _parse_lines(path, raw)
+        fh = open(path, "r+b")  # noqa: SIM115 - closed by Journal.close
+        if good < len(raw):
+            # Cut the torn tail, or re-terminate a complete last record that lost its "\n".
+            fh.seek(good)
+            if tail_ok:
+                fh.write(raw[good:] + b"\n")
+            fh.truncate()
+            fh.flush()
+            os.fsync(fh.fileno())
+        fh.seek(0, os.SEEK_END)
+        return cls(path, fh), records
+
+    def append(self, record: dict[str, Any]) -> dict[str, Any]:
+        """Write one record (adding ``time`` if missing), flush and fsync.
+
+        Returns the record as written.
+        """
+        rec = dict(record)
+        rec.setdefault("time", time.time())
+        line = json.dumps(rec, separators=(",", ":"), allow_nan=False).encode() + b"\n"
+        self._fh.write(line)
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+        return rec
+
+    def extend(self, records: Iterable[dict[str, Any]]) -> None:
+        """Append several records (each durable in turn)."""
+        for r in records:
+            self.append(r)
+
+    def close(self) -> None:
+        """Close the file (idempotent)."""
+        if not self._fh.closed:
+            self._fh.close()
+
+    def __enter__(self) -> Journal:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

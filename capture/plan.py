@@ -1,0 +1,486 @@
+"""Measurement plans: which directions to measure, which to skip and why, how to expose.
+
+A plan is a TOML file validated with pydantic (see ``examples/plan.toml``).  It expands to
+a list of poses (``wi``, ``wo`` in the sample frame) by
+
+1. a grid, either in incident/outgoing spherical angles (``theta_i``, ``phi_i``,
+   ``theta_o``, ``phi_o``) or in Rusinkiewicz half/difference angles;
+2. reductions that drop poses a symmetry makes redundant: *isotropic* (only the relative
+   azimuth ``phi_o - phi_i`` and its mirror matter) and *reciprocity* (``f(wi, wo) =
+   f(wo, wi)``);
+3. exclusions, each with a reason: below the horizon, grazing limits, the camera shadowing
+   the light's path (too small a separation between ``wi`` and ``wo``), and whatever the
+   rig's kinematics refuses (unreachable joint angles, arm collisions, arm shadowing).
+
+Degrees appear only in the file (``*_deg`` fields); :class:`Pose` holds unit vectors.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from gonio.errors import ConfigError
+from gonio.radiometry import (
+    direction_to_spherical,
+    directions_from_half_diff,
+    spherical_to_direction,
+)
+
+__all__ = [
+    "BracketPolicy",
+    "DarkFrames",
+    "Exclusions",
+    "Grid",
+    "Plan",
+    "Pose",
+    "ExcludedPose",
+    "ExpandedPlan",
+    "ReferenceShots",
+    "Reductions",
+    "expand_plan",
+    "load_plan",
+    "plan_from_dict",
+    "plan_digest",
+]
+
+SCHEMA_VERSION = 1
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Range(_Strict):
+    """An inclusive range ``start, start + step, ..., <= stop`` (degrees)."""
+
+    start: float
+    stop: float
+    step: float = Field(gt=0)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Range:
+        if self.stop < self.start:
+            raise ValueError(f"stop ({self.stop}) must not be below start ({self.start})")
+        if (self.stop - self.start) / self.step > 100_000:
+            raise ValueError("range has more than 100000 values; check step")
+        return self
+
+    def values(self) -> list[float]:
+        n = int(math.floor((self.stop - self.start) / self.step + 1e-9)) + 1
+        return [self.start + k * self.step for k in range(n)]
+
+
+AngleList = list[float] | Range
+
+
+def _angles(v: AngleList | None) -> list[float]:
+    if v is None:
+        return [0.0]
+    return v.values() if isinstance(v, Range) else list(v)
+
+
+class Grid(_Strict):
+    """The pose grid, in degrees.
+
+    ``kind = "spherical"`` uses ``theta_i_deg``, ``phi_i_deg``, ``theta_o_deg``,
+    ``phi_o_deg``; ``kind = "half_difference"`` uses ``theta_h_deg``, ``phi_h_deg``,
+    ``theta_d_deg``, ``phi_d_deg``.  Each is a list of values or ``{start, stop, step}``
+    (stop included); an azimuth left out is 0.
+    """
+
+    kind: Literal["spherical", "half_difference"] = "spherical"
+    theta_i_deg: AngleList | None = None
+    phi_i_deg: AngleList | None = None
+    theta_o_deg: AngleList | None = None
+    phi_o_deg: AngleList | None = None
+    theta_h_deg: AngleList | None = None
+    phi_h_deg: AngleList | None = None
+    theta_d_deg: AngleList | None = None
+    phi_d_deg: AngleList | None = None
+
+    @model_validator(mode="after")
+    def _fields_match_kind(self) -> Grid:
+        sph = ("theta_i_deg", "phi_i_deg", "theta_o_deg", "phi_o_deg")
+        hd = ("theta_h_deg", "phi_h_deg", "theta_d_deg", "phi_d_deg")
+        use, other = (sph, hd) if self.kind == "spherical" else (hd, sph)
+        wrong = [n for n in other if getattr(self, n) is not None]
+        if wrong:
+            raise ValueError(f"fields {wrong} do not belong to a grid of kind {self.kind!r}")
+        for name in (use[0], use[2]):
+            if getattr(self, name) is None:
+                raise ValueError(f"a {self.kind} grid needs {name}")
+        for name in use:
+            v = _angles(getattr(self, name))
+            if not v:
+                raise ValueError(f"{name} is empty")
+            if name.startswith("theta") and not all(-1e-9 <= t <= 90 for t in v):
+                raise ValueError(f"{name} values must lie in [0, 90] degrees, got {v}")
+        return self
+
+    def axes(self) -> list[list[float]]:
+        names = (
+            ("theta_i_deg", "phi_i_deg", "theta_o_deg", "phi_o_deg")
+            if self.kind == "spherical"
+            else ("theta_h_deg", "phi_h_deg", "theta_d_deg", "phi_d_deg")
+        )
+        return [_angles(getattr(self, n)) for n in names]
+
+
+class Reductions(_Strict):
+    """Symmetries of the material that make some poses redundant."""
+
+    isotropic: bool = False
+    reciprocity: bool = False
+
+
+class Exclusions(_Strict):
+    """Plan-level limits (the rig's own limits apply on top, through its kinematics).
+
+    ``grazing_limit_deg``: largest theta allowed for either direction.
+    ``min_separation_deg``: smallest angle between ``wi`` and ``wo``; below it the
+    camera sits in the light's path (and shadows the sample).
+    """
+
+    grazing_limit_deg: float = Field(default=85.0, gt=0, le=90)
+    min_separation_deg: float = Field(default=0.0, ge=0, lt=180)
+    check_rig: bool = True
+
+
+class BracketPolicy(_Strict):
+    """How each pose is exposed.
+
+    ``policy = "adaptive"``: start from a predicted exposure (``exposure_time_s`` for the
+    first pose, then the last good exposure of the previous pose scaled by the change of
+    ``cos(theta_i)``), and add frames ``step_ev`` stops shorter or longer only until the
+    region of interest is neither saturated nor under the noise floor, at most
+    ``max_frames``.  ``policy = "fixed"``: shoot ``exposures_s`` at every pose.
+    """
+
+    policy: Literal["adaptive", "fixed"] = "adaptive"
+    exposure_time_s: float = Field(default=0.01, gt=0)
+    exposures_s: tuple[float, ...] = ()
+    iso: float = Field(default=100.0, gt=0)
+    f_number: float = Field(default=8.0, gt=0)
+    step_ev: float = Field(default=2.0, gt=0, le=6)
+    max_frames: int = Field(default=5, ge=1, le=20)
+    min_exposure_s: float = Field(default=1e-5, gt=0)
+    max_exposure_s: float = Field(default=30.0, gt=0)
+    saturated_fraction: float = Field(default=1e-3, ge=0, lt=1)
+    noise_floor_snr: float = Field(default=10.0, gt=0)
+    roi: tuple[float, float, float, float] | None = None
+    shot_overhead_s: float = Field(default=0.5, ge=0)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> BracketPolicy:
+        if self.policy == "fixed" and not self.exposures_s:
+            raise ValueError("policy 'fixed' needs exposures_s (a list of exposure times)")
+        if any(t <= 0 for t in self.exposures_s):
+            raise ValueError(f"exposures_s must be positive, got {list(self.exposures_s)}")
+        if self.min_exposure_s >= self.max_exposure_s:
+            raise ValueError("min_exposure_s must be below max_exposure_s")
+        if self.roi is not None:
+            x0, y0, x1, y1 = self.roi
+            if not (0 <= x0 < x1 <= 1 and 0 <= y0 < y1 <= 1):
+                raise ValueError(
+                    f"roi = {list(self.roi)} must be [x0, y0, x1, y1] fractions in [0, 1]"
+                )
+        return self
+
+
+class DarkFrames(_Strict):
+    """Dark frames (light off): ``count`` frames per distinct exposure time, shot at
+    ``when`` (``"end"`` or ``"start"`` of the session; ``count = 0`` for none)."""
+
+    count: int = Field(default=0, ge=0, le=100)
+    when: Literal["start", "end"] = "end"
+    exposure_times_s: tuple[float, ...] = ()
+
+
+class ReferencePose(_Strict):
+    theta_i_deg: float = Field(ge=0, le=90)
+    phi_i_deg: float = 0.0
+    theta_o_deg: float = Field(ge=0, le=90)
+    phi_o_deg: float = 0.0
+
+
+class ReferenceShots(_Strict):
+    """Shots of the reference target (e.g. a diffuse reflectance standard) at given poses,
+    exposed with the same bracket policy; ``reflectance`` is the target's known value."""
+
+    poses: tuple[ReferencePose, ...] = ()
+    reflectance: float | tuple[float, float, float] = 0.99
+    when: Literal["start", "end"] = "start"
+
+
+class SimulationSettings(_Strict):
+    """Used only with ``--camera simulated``: the scene the simulator renders."""
+
+    scene: str | None = None
+    width: int | None = Field(default=None, ge=8)
+    height: int | None = Field(default=None, ge=8)
+    options: dict[str, Any] = {}
+
+
+class Plan(_Strict):
+    """A whole measurement plan (the TOML file)."""
+
+    name: str = "plan"
+    description: str = ""
+    seed: int = Field(default=0, ge=0)
+    settle_s: float = Field(default=0.0, ge=0)
+    grid: Grid
+    reductions: Reductions = Reductions()
+    exclusions: Exclusions = Exclusions()
+    bracket: BracketPolicy = BracketPolicy()
+    darks: DarkFrames = DarkFrames()
+    reference: ReferenceShots = ReferenceShots()
+    simulation: SimulationSettings = SimulationSettings()
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        if not v.strip():
+            raise ValueError("name must not be empty")
+        return v
+
+
+def _format_validation(err: ValidationError, source: str) -> str:
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"] if not str(p).startswith(("list[", "Range")))
+        lines.append(
+            f"{source}: field '{loc or '(top level)'}': {e['msg']} (got {e.get('input')!r})"
+        )
+    return "\n".join(lines)
+
+
+def plan_from_dict(data: dict, source: str = "<plan>") -> Plan:
+    """Validate a parsed plan document.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``source`` and each offending field, e.g. ``field 'bracket.iso'``.
+    """
+    try:
+        return Plan.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_validation(exc, source)) from None
+
+
+def load_plan(path: str | Path) -> Plan:
+    """Read and validate a plan TOML file (see ``examples/plan.toml``).
+
+    Raises
+    ------
+    ConfigError
+        If the file is missing, is not TOML, or a field is invalid.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read plan: {exc.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return plan_from_dict(data, str(path))
+
+
+def plan_digest(obj: BaseModel | dict) -> str:
+    """sha256 of a model's canonical JSON: how a session recognises its plan and rig."""
+    data = obj.model_dump(mode="json") if isinstance(obj, BaseModel) else obj
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+
+
+# --------------------------------------------------------------------------------------
+# Expansion
+
+
+@dataclass(frozen=True)
+class Pose:
+    """One measurement pose in the sample frame.
+
+    ``wi``/``wo`` are unit vectors (tuples, JSON friendly); ``kind`` is ``"sample"`` or
+    ``"reference"``; ``joints`` the planned joint angles (rad) when the rig was consulted.
+    """
+
+    wi: tuple[float, float, float]
+    wo: tuple[float, float, float]
+    kind: str = "sample"
+    joints: dict[str, float] | None = None
+
+    def angles_deg(self) -> dict[str, float]:
+        ti, pi = direction_to_spherical(np.array(self.wi))
+        to, po = direction_to_spherical(np.array(self.wo))
+        return {
+            "theta_i_deg": round(math.degrees(float(ti)), 6),
+            "phi_i_deg": round(math.degrees(float(pi)), 6),
+            "theta_o_deg": round(math.degrees(float(to)), 6),
+            "phi_o_deg": round(math.degrees(float(po)), 6),
+        }
+
+    def to_json(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"kind": self.kind, "wi": list(self.wi), "wo": list(self.wo)}
+        d.update(self.angles_deg())
+        if self.joints is not None:
+            d["joints"] = dict(self.joints)
+        return d
+
+
+@dataclass(frozen=True)
+class ExcludedPose:
+    """A grid pose left out, with the reason (shown by ``gonio capture plan``)."""
+
+    pose: Pose
+    reason: str
+
+
+@dataclass
+class ExpandedPlan:
+    """The poses a plan yields: to measure, excluded (with reasons), and how many the
+    symmetry reductions removed."""
+
+    poses: list[Pose]
+    excluded: list[ExcludedPose]
+    n_grid: int
+    n_reduced: int
+    notes: list[str] = field(default_factory=list)
+
+
+def _grid_directions(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    a, b, c, d = (np.radians(np.asarray(v, dtype=np.float64)) for v in grid.axes())
+    A, B, C, D = (x.ravel() for x in np.meshgrid(a, b, c, d, indexing="ij"))
+    if grid.kind == "spherical":
+        return spherical_to_direction(A, B), spherical_to_direction(C, D)
+    wi, wo = directions_from_half_diff(A, B, C, D)
+    return wi, wo
+
+
+def _as_tuple(v: np.ndarray) -> tuple[float, float, float]:
+    # Snap float noise (cos 90 deg = 6e-17) so keys and JSON are stable across platforms.
+    r = np.round(v, 12) + 0.0
+    return (float(r[0]), float(r[1]), float(r[2]))
+
+
+def _symmetry_key(wi: np.ndarray, wo: np.ndarray, red: Reductions) -> tuple:
+    ti, pi = direction_to_spherical(wi)
+    to, po = direction_to_spherical(wo)
+    q = 1e-6  # radians: poses closer than this are the same pose
+    if red.isotropic:
+        dphi = abs(math.remainder(float(po - pi), 2 * math.pi))
+        if ti < q or to < q:
+            dphi = 0.0  # azimuth of the normal direction is meaningless
+        a, b = round(float(ti) / q), round(float(to) / q)
+        if red.reciprocity and b < a:
+            a, b = b, a
+        return ("iso", a, b, round(dphi / q))
+    ki = (round(float(ti) / q), 0 if ti < q else round(float(pi % (2 * math.pi)) / q))
+    ko = (round(float(to) / q), 0 if to < q else round(float(po % (2 * math.pi)) / q))
+    if red.reciprocity and ko < ki:
+        ki, ko = ko, ki
+    return ("aniso", ki, ko)
+
+
+def _canonical_isotropic(wi: np.ndarray, wo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotate a pose about the normal so that ``phi_i = 0`` and ``phi_o`` lies in [0, pi]."""
+    ti, pi = direction_to_spherical(wi)
+    to, po = direction_to_spherical(wo)
+    dphi = abs(math.remainder(float(po - pi), 2 * math.pi))
+    return spherical_to_direction(ti, 0.0), spherical_to_direction(to, dphi)
+
+
+def _exclusion_reason(wi: np.ndarray, wo: np.ndarray, ex: Exclusions) -> str | None:
+    if wi[2] <= 0 or wo[2] <= 0:
+        return "below the horizon (half/difference angles outside the hemisphere)"
+    ti = math.degrees(math.acos(min(1.0, float(wi[2]))))
+    to = math.degrees(math.acos(min(1.0, float(wo[2]))))
+    if ti > ex.grazing_limit_deg + 1e-9 or to > ex.grazing_limit_deg + 1e-9:
+        return (
+            f"grazing: theta_i = {ti:.1f} deg, theta_o = {to:.1f} deg, "
+            f"limit {ex.grazing_limit_deg:g} deg (exclusions.grazing_limit_deg)"
+        )
+    sep = math.degrees(math.acos(float(np.clip(np.dot(wi, wo), -1.0, 1.0))))
+    if sep < ex.min_separation_deg - 1e-9:
+        return (
+            f"camera shadows the light's path: wi-wo separation {sep:.1f} deg < "
+            f"{ex.min_separation_deg:g} deg (exclusions.min_separation_deg)"
+        )
+    return None
+
+
+RigCheck = Callable[[np.ndarray, np.ndarray], "str | None"]
+
+
+def expand_plan(plan: Plan, rig_check: RigCheck | None = None) -> ExpandedPlan:
+    """Expand a plan into the poses to measure, in grid (raster) order.
+
+    Parameters
+    ----------
+    plan
+        The validated plan.
+    rig_check
+        ``check(wi, wo) -> reason | None`` of the rig's kinematics (unreachable, collision,
+        arm shadowing); ``None`` skips the rig (a pure geometric dry run).
+
+    Returns
+    -------
+    ExpandedPlan
+        Sample poses first (raster order), then reference poses.
+    """
+    wi_all, wo_all = _grid_directions(plan.grid)
+    seen: set[tuple] = set()
+    poses: list[Pose] = []
+    excluded: list[ExcludedPose] = []
+    n_reduced = 0
+    red = plan.reductions
+    use_rig = rig_check is not None and plan.exclusions.check_rig
+    for wi, wo in zip(wi_all, wo_all, strict=True):
+        if red.isotropic and wi[2] > 0 and wo[2] > 0:
+            wi, wo = _canonical_isotropic(wi, wo)
+        key = _symmetry_key(wi, wo, red) if (wi[2] > 0 and wo[2] > 0) else None
+        if key is not None and key in seen:
+            n_reduced += 1
+            continue
+        if key is not None:
+            seen.add(key)
+        pose = Pose(_as_tuple(wi), _as_tuple(wo))
+        reason = _exclusion_reason(wi, wo, plan.exclusions)
+        if reason is None and use_rig:
+            reason = rig_check(np.array(pose.wi), np.array(pose.wo))
+        if reason is not None:
+            excluded.append(ExcludedPose(pose, reason))
+        else:
+            poses.append(pose)
+    n_grid = len(wi_all)
+    notes: list[str] = []
+    for rp in plan.reference.poses:
+        wi = spherical_to_direction(math.radians(rp.theta_i_deg), math.radians(rp.phi_i_deg))
+        wo = spherical_to_direction(math.radians(rp.theta_o_deg), math.radians(rp.phi_o_deg))
+        pose = Pose(_as_tuple(wi), _as_tuple(wo), kind="reference")
+        reason = rig_check(np.array(pose.wi), np.array(pose.wo)) if use_rig else None
+        if reason is not None:
+            excluded.append(ExcludedPose(pose, reason))
+        else:
+            poses.append(pose)
+    return ExpandedPlan(
+        poses=poses, excluded=excluded, n_grid=n_grid, n_reduced=n_reduced, notes=notes
+    )
+
+
+def exposure_times_for_darks(plan: Plan, used: Sequence[float]) -> list[float]:
+    """Exposure times to shoot dark frames at: the plan's list, else every one used."""
+    if plan.darks.exposure_times_s:
+        return sorted(set(plan.darks.exposure_times_s))
+    return sorted({float(t) for t in used})

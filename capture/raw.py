@@ -1,0 +1,511 @@
+"""RAW frames as linear measurements on the Bayer mosaic.
+
+A BRDF measurement wants the numbers the sensor counted, not a pretty picture: this module
+decodes RAW files with rawpy (LibRaw) and stops before any demosaicing, white balance or
+colour conversion.  What comes out is the mosaic in DN above the per-channel black level,
+float64, with
+
+- the CFA colour of every pixel (``R``, ``G``, ``B``; both greens are ``G``),
+- a saturation mask (pixels at or near the white level, or on the linearisation table's
+  ceiling),
+- the exposure settings needed to normalise to a quantity proportional to radiance.
+
+Linearisation tables (DNG ``LinearizationTable``, camera curves) are applied by LibRaw
+while unpacking; ``raw_image_visible`` already holds linearised values.  The test-suite
+verifies that on a real CinemaDNG with such a table.
+
+Exposure normalisation: a pixel's signal in DN is proportional to
+``L * t * (ISO / 100) / N**2`` (radiance, exposure time in s, ISO speed, f-number).
+:meth:`RawFrame.exposure_factor` is that factor, so ``linear / exposure_factor`` is in
+"DN per (s ISO/100 / N^2)", a relative radiance that the radiometric calibration turns into
+absolute units.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rawpy
+from numpy.typing import ArrayLike, NDArray
+
+from gonio.errors import FileFormatError, ReductionError
+
+#: Channel names in the order of the channel index used everywhere in the capture path.
+CHANNELS: tuple[str, ...] = ("R", "G", "B")
+
+#: Default fraction of the (white - black) range below the white level above which a
+#: pixel counts as saturated.  Noise lets pixels whose mean is just below the clip level
+#: clip sometimes; dropping only the clipped ones would bias the survivors low.  5 % of the
+#: range is many standard deviations of shot noise for any real sensor near full well.
+DEFAULT_SATURATION_MARGIN = 0.05
+
+RawSource = str | os.PathLike | bytes | bytearray | io.IOBase
+
+
+@dataclass(frozen=True)
+class CameraSignature:
+    """What every RAW file of one camera shares: CFA layout and visible size.
+
+    Parameters
+    ----------
+    cfa_pattern
+        The 2x2 CFA pattern, row-major, e.g. ``"RGGB"`` or ``"GRBG"``.
+    shape
+        Visible mosaic size ``(height, width)`` in pixels.
+    """
+
+    cfa_pattern: str
+    shape: tuple[int, int]
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any]) -> CameraSignature | None:
+        """Build from a manifest's camera section when it names the CFA and size."""
+        pattern = m.get("cfa_pattern")
+        shape = m.get("shape") or (
+            (m["height"], m["width"]) if "height" in m and "width" in m else None
+        )
+        if not pattern or not shape:
+            return None
+        return cls(str(pattern).upper(), (int(shape[0]), int(shape[1])))
+
+
+@dataclass(frozen=True)
+class RawFrame:
+    """One decoded RAW frame on its mosaic.
+
+    Attributes
+    ----------
+    name
+        The file the frame came from (for messages).
+    linear
+        (H, W) float64, DN above the per-channel black level (may be negative from noise).
+    channel
+        (H, W) int8 channel index into :data:`CHANNELS` (0 R, 1 G, 2 B).
+    saturated
+        (H, W) bool: the raw value is at or above the saturation threshold.
+    black_level
+        (H, W)-broadcastable float64 black level that was subtracted, DN.
+    white_level
+        Effective clip level in raw DN (the white level, or the linearisation table's
+        ceiling when lower).
+    cfa_pattern
+        2x2 pattern, e.g. ``"RGGB"``.
+    exposure_time, iso, f_number
+        Exposure settings (s, ISO speed, f-number); NaN where the file does not say.
+    camera
+        Camera model as reported by the file, if any.
+    """
+
+    name: str
+    linear: NDArray[np.float64]
+    channel: NDArray[np.int8]
+    saturated: NDArray[np.bool_]
+    black_level: NDArray[np.float64]
+    white_level: float
+    cfa_pattern: str
+    exposure_time: float = math.nan
+    iso: float = math.nan
+    f_number: float = math.nan
+    camera: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Visible mosaic size (height, width)."""
+        return self.linear.shape  # type: ignore[return-value]
+
+    @property
+    def signature(self) -> CameraSignature:
+        """CFA pattern and size, to compare with the session's camera."""
+        return CameraSignature(self.cfa_pattern, self.shape)
+
+    @property
+    def headroom(self) -> NDArray[np.float64]:
+        """Largest linear value a pixel can hold before it clips, DN (white - black)."""
+        return self.white_level - self.black_level
+
+    def exposure_factor(self, iso_reference: float = 100.0) -> float:
+        """``t * (ISO / iso_reference) / N**2``: what the DN scale with at fixed radiance.
+
+        Raises
+        ------
+        ReductionError
+            If exposure time, ISO or f-number is unknown (NaN) or not positive.
+        """
+        return exposure_factor(self.exposure_time, self.iso, self.f_number, iso_reference,
+                               name=self.name)
+
+    def with_exposure(self, exposure_time: float | None = None, iso: float | None = None,
+                      f_number: float | None = None) -> RawFrame:
+        """A copy with exposure settings filled in (e.g. from the session journal)."""
+        return RawFrame(
+            self.name, self.linear, self.channel, self.saturated, self.black_level,
+            self.white_level, self.cfa_pattern,
+            self.exposure_time if exposure_time is None else float(exposure_time),
+            self.iso if iso is None else float(iso),
+            self.f_number if f_number is None else float(f_number),
+            self.camera, self.extra,
+        )
+
+
+def exposure_factor(exposure_time: float, iso: float, f_number: float,
+                    iso_reference: float = 100.0, name: str = "frame") -> float:
+    """Scale of the DN with exposure: ``t * (ISO / iso_reference) / N**2``.
+
+    Parameters
+    ----------
+    exposure_time
+        Exposure time in s.
+    iso
+        ISO speed (the sensor gain is taken proportional to it).
+    f_number
+        Aperture f-number N (the irradiance on the sensor goes as 1/N^2).
+    iso_reference
+        ISO speed at which the factor is ``t / N**2``.
+    """
+    vals = {"exposure_time": exposure_time, "iso": iso, "f_number": f_number}
+    for k, v in vals.items():
+        if not (v is not None and np.isfinite(v) and v > 0):
+            raise ReductionError(f"{name}: {k} is {v!r}; a positive value is needed to "
+                                 "normalise the exposure")
+    return float(exposure_time) * float(iso) / iso_reference / float(f_number) ** 2
+
+
+def _name_of(source: RawSource, name: str | None) -> str:
+    if name:
+        return name
+    if isinstance(source, (str, os.PathLike)):
+        return str(source)
+    return "<bytes>"
+
+
+def _read_bytes(source: RawSource, name: str) -> bytes:
+    if isinstance(source, (bytes, bytearray)):
+        return bytes(source)
+    if isinstance(source, io.IOBase):
+        return source.read()
+    p = Path(source)
+    if not p.is_file():
+        raise FileFormatError(name, "no such RAW file")
+    return p.read_bytes()
+
+
+def _check_tiff_strips(data: bytes, name: str) -> None:
+    """Refuse TIFF/DNG files whose image strips or tiles run past the end of the file.
+
+    LibRaw fills the missing part of an uncompressed, truncated DNG with zeros instead of
+    failing; the strip table tells us the file is short, so say so.
+    """
+    if data[:4] not in (b"II*\x00", b"MM\x00*"):
+        return
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tf:
+            for page in tf.pages:
+                offs = page.dataoffsets
+                counts = page.databytecounts
+                if offs and counts and max(o + c for o, c in zip(offs, counts)) > len(data):
+                    raise FileFormatError(
+                        name,
+                        f"truncated: image data run to byte {max(o + c for o, c in zip(offs, counts))}"
+                        f" but the file has {len(data)} bytes",
+                        "StripOffsets",
+                    )
+    except FileFormatError:
+        raise
+    except Exception as exc:  # tifffile's own errors on a damaged header
+        raise FileFormatError(name, f"damaged TIFF structure ({exc})") from None
+
+
+def _open(data: bytes, name: str) -> rawpy.RawPy:
+    try:
+        raw = rawpy.imread(io.BytesIO(data))
+        raw.raw_image_visible  # noqa: B018 (forces unpack: errors surface here)
+    except rawpy.LibRawFileUnsupportedError:
+        raise FileFormatError(name, "not a RAW file LibRaw can read") from None
+    except (rawpy.LibRawIOError, rawpy.LibRawDataError) as exc:
+        raise FileFormatError(name, f"corrupt or truncated RAW file ({exc})") from None
+    except rawpy.LibRawError as exc:
+        raise FileFormatError(name, f"LibRaw cannot decode it ({exc})") from None
+    return raw
+
+
+def cfa_pattern_of(raw: rawpy.RawPy) -> str:
+    """The 2x2 CFA pattern of an open rawpy image as letters, e.g. ``"GRBG"``."""
+    desc = raw.color_desc.decode()
+    pat = raw.raw_pattern
+    if pat is None or pat.shape != (2, 2):
+        raise ReductionError(f"unsupported CFA (pattern {pat!r}); only 2x2 Bayer is handled")
+    return "".join(desc[i] for i in pat.ravel())
+
+
+def read_raw(
+    source: RawSource,
+    *,
+    name: str | None = None,
+    expect: CameraSignature | None = None,
+    saturation_margin: float = DEFAULT_SATURATION_MARGIN,
+) -> RawFrame:
+    """Decode a RAW file to a linear mosaic without demosaicing.
+
+    Parameters
+    ----------
+    source
+        Path, bytes or binary file object of a RAW file (DNG, or any format LibRaw reads).
+    name
+        Name used in error messages (defaults to the path).
+    expect
+        The session camera's CFA pattern and size; a frame that differs is refused.
+    saturation_margin
+        Fraction of the (white - black) range below the clip level from which pixels are
+        marked saturated (0 marks only pixels at the clip level).
+
+    Returns
+    -------
+    RawFrame
+        Linear values in DN above black, channel map, saturation mask and exposure.
+
+    Raises
+    ------
+    FileFormatError
+        Missing, truncated, corrupt or unsupported file; or (field ``CFAPattern`` /
+        ``ImageSize``) a frame that does not match ``expect``.
+    """
+    nm = _name_of(source, name)
+    data = _read_bytes(source, nm)
+    if len(data) == 0:
+        raise FileFormatError(nm, "empty file")
+    _check_tiff_strips(data, nm)
+    with _open(data, nm) as raw:
+        pattern = cfa_pattern_of(raw)
+        mosaic = raw.raw_image_visible
+        colors = raw.raw_colors_visible
+        desc = raw.color_desc.decode()
+        # raw colour index (0..3) -> our channel (R, G, B); the second green is 'G' too
+        lut = np.array([CHANNELS.index(ch) if ch in CHANNELS else -1 for ch in desc],
+                       dtype=np.int8)
+        if (lut < 0).any():
+            raise FileFormatError(nm, f"colour filter '{desc}' is not an RGB Bayer filter",
+                                  "CFAPattern")
+        channel = lut[colors]
+        black_pc = np.asarray(raw.black_level_per_channel, dtype=np.float64)
+        black = black_pc[colors]
+        white = float(raw.white_level)
+        # With a linearisation table LibRaw maps codes through it; its ceiling, not the
+        # nominal white level, is where the sensor clipped.
+        curve = raw.tone_curve
+        if curve is not None and curve.size and int(curve.max()) > 0:
+            white = min(white, float(curve.max()))
+        other = raw.other
+        exp = dict(
+            exposure_time=float(other.shutter_speed) or math.nan,
+            iso=float(other.iso_speed) or math.nan,
+            f_number=float(other.aperture) or math.nan,
+        )
+        values = mosaic.astype(np.float64)
+    if expect is not None:
+        if pattern != expect.cfa_pattern:
+            raise FileFormatError(nm, f"CFA pattern is {pattern}, the session's camera has "
+                                  f"{expect.cfa_pattern}", "CFAPattern")
+        if tuple(values.shape) != tuple(expect.shape):
+            raise FileFormatError(nm, f"mosaic is {values.shape[0]}x{values.shape[1]}, the "
+                                  f"session's camera gives {expect.shape[0]}x{expect.shape[1]}",
+                                  "ImageSize")
+    if not 0.0 <= saturation_margin < 1.0:
+        raise ValueError(f"saturation_margin must be in [0, 1), got {saturation_margin}")
+    threshold = white - saturation_margin * (white - black)
+    saturated = values >= threshold
+    return RawFrame(
+        name=nm,
+        linear=values - black,
+        channel=channel,
+        saturated=saturated,
+        black_level=black,
+        white_level=white,
+        cfa_pattern=pattern,
+        **exp,
+    )
+
+
+def subtract_dark(frame: RawFrame, dark: RawFrame | NDArray[np.float64]) -> RawFrame:
+    """Subtract a dark frame (or a master dark, in linear DN above black).
+
+    A dark frame shot with the same exposure time and ISO removes dark current and fixed
+    pattern offsets on top of the black level.  Saturation is carried over from ``frame``.
+    """
+    d = dark.linear if isinstance(dark, RawFrame) else np.asarray(dark, dtype=np.float64)
+    if d.shape != frame.shape:
+        raise ReductionError(f"{frame.name}: dark frame is {d.shape}, frame is {frame.shape}")
+    return RawFrame(frame.name, frame.linear - d, frame.channel, frame.saturated,
+                    frame.black_level + d, frame.white_level, frame.cfa_pattern,
+                    frame.exposure_time, frame.iso, frame.f_number, frame.camera, frame.extra)
+
+
+def master_flat(flats: list[RawFrame], darks: list[RawFrame] | None = None) -> NDArray[np.float64]:
+    """A flat-field gain map: mean of the flats, dark-subtracted, normalised to 1 per channel.
+
+    Returns
+    -------
+    ndarray
+        (H, W) relative pixel response; divide a frame's ``linear`` by it.
+    """
+    if not flats:
+        raise ReductionError("master_flat needs at least one flat frame")
+    mean = np.mean([f.linear for f in flats], axis=0)
+    if darks:
+        mean = mean - np.mean([d.linear for d in darks], axis=0)
+    ch = flats[0].channel
+    out = np.empty_like(mean)
+    for c in range(len(CHANNELS)):
+        m = ch == c
+        level = mean[m].mean()
+        if not level > 0:
+            raise ReductionError(f"flat frames have no signal in channel {CHANNELS[c]}")
+        out[m] = mean[m] / level
+    return out
+
+
+def apply_flat(frame: RawFrame, flat: NDArray[np.float64]) -> RawFrame:
+    """Divide a frame by a flat-field gain map from :func:`master_flat`."""
+    flat = np.asarray(flat, dtype=np.float64)
+    if flat.shape != frame.shape:
+        raise ReductionError(f"{frame.name}: flat field is {flat.shape}, frame is {frame.shape}")
+    return RawFrame(frame.name, frame.linear / flat, frame.channel, frame.saturated,
+                    frame.black_level, frame.white_level, frame.cfa_pattern,
+                    frame.exposure_time, frame.iso, frame.f_number, frame.camera,
+                    {**frame.extra, "flat_field": flat})
+
+
+@dataclass(frozen=True)
+class ChannelStats:
+    """Per-channel statistics of a region of a mosaic (arrays indexed like :data:`CHANNELS`)."""
+
+    mean: NDArray[np.float64]
+    std: NDArray[np.float64]
+    count: NDArray[np.int64]
+    saturated_fraction: NDArray[np.float64]
+
+
+def channel_stats(frame: RawFrame, mask: ArrayLike | None = None) -> ChannelStats:
+    """Mean, standard deviation, pixel count and saturated fraction per CFA channel.
+
+    Parameters
+    ----------
+    frame
+        A decoded frame.
+    mask
+        (H, W) boolean region of interest; the whole frame when omitted.
+    """
+    m = np.ones(frame.shape, bool) if mask is None else np.asarray(mask, dtype=bool)
+    n = len(CHANNELS)
+    ch = frame.channel[m].astype(np.intp)
+    v = frame.linear[m]
+    count = np.bincount(ch, minlength=n)
+    s1 = np.bincount(ch, v, minlength=n)
+    s2 = np.bincount(ch, v * v, minlength=n)
+    sat = np.bincount(ch, frame.saturated[m].astype(np.float64), minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = s1 / count
+        var = (s2 - count * mean**2) / np.maximum(count - 1, 1)
+        return ChannelStats(mean, np.sqrt(np.maximum(var, 0.0)), count, sat / count)
+
+
+@dataclass(frozen=True)
+class ExposureStats:
+    """What the adaptive bracketing needs to know about one frame's region of interest.
+
+    Attributes
+    ----------
+    saturated_fraction
+        Fraction of ROI pixels (all channels) at or near the clip level, 0..1.
+    signal_dn
+        Per channel (R, G, B), median linear signal above black in the ROI, DN.
+    snr
+        Per channel, ``signal_dn / noise`` with the noise from the photon-transfer model
+        when given, else from the pixel scatter in the ROI (which also contains texture).
+    headroom_dn
+        Linear DN available before clipping (white - black), the smallest over the ROI.
+    """
+
+    saturated_fraction: float
+    signal_dn: NDArray[np.float64]
+    snr: NDArray[np.float64]
+    headroom_dn: float
+
+
+def roi_exposure_stats(
+    source: RawSource | RawFrame,
+    roi: ArrayLike | tuple[slice, slice] | None = None,
+    noise: Any | None = None,
+) -> ExposureStats:
+    """Is a frame's region of interest saturated, and how far above the noise is it?
+
+    The session's adaptive bracketing calls this after every shot: add a shorter frame
+    while ``saturated_fraction > 0``, a longer one while ``snr`` is too low.
+
+    Parameters
+    ----------
+    source
+        RAW file path, bytes, file object, or an already decoded :class:`RawFrame`.
+    roi
+        Region of interest: a boolean (H, W) mask, a ``(row_slice, col_slice)`` tuple, or
+        ``(row0, row1, col0, col1)`` pixel bounds; the whole frame when None.
+    noise
+        Optional :class:`gonio.capture.noise.NoiseModel` (gain, read noise) for the SNR.
+
+    Returns
+    -------
+    ExposureStats
+    """
+    frame = source if isinstance(source, RawFrame) else read_raw(source)
+    mask = roi_mask(frame.shape, roi)
+    if not mask.any():
+        raise ReductionError(f"{frame.name}: region of interest is empty")
+    n = len(CHANNELS)
+    sig = np.full(n, np.nan)
+    snr = np.full(n, np.nan)
+    for c in range(n):
+        v = frame.linear[mask & (frame.channel == c)]
+        if v.size == 0:
+            continue
+        sig[c] = np.median(v)
+        if noise is not None:
+            sd = math.sqrt(max(float(noise.variance(max(sig[c], 0.0), iso=frame.iso)), 1e-300))
+        else:
+            sd = float(np.std(v)) if v.size > 1 else math.nan
+        snr[c] = sig[c] / sd if sd > 0 else math.inf
+    return ExposureStats(
+        saturated_fraction=float(frame.saturated[mask].mean()),
+        signal_dn=sig,
+        snr=snr,
+        headroom_dn=float(np.min(np.broadcast_to(frame.headroom, frame.shape)[mask])),
+    )
+
+
+def roi_mask(shape: tuple[int, int], roi: Any) -> NDArray[np.bool_]:
+    """A boolean mask from a mask, a ``(slice, slice)`` pair or ``(r0, r1, c0, c1)`` bounds."""
+    if roi is None:
+        return np.ones(shape, bool)
+    if isinstance(roi, tuple) and len(roi) == 2 and all(isinstance(s, slice) for s in roi):
+        m = np.zeros(shape, bool)
+        m[roi] = True
+        return m
+    a = np.asarray(roi)
+    if a.dtype == bool:
+        if a.shape != tuple(shape):
+            raise ReductionError(f"ROI mask is {a.shape}, frame is {tuple(shape)}")
+        return a
+    if a.shape == (4,):
+        r0, r1, c0, c1 = (int(x) for x in a)
+        m = np.zeros(shape, bool)
+        m[r0:r1, c0:c1] = True
+        return m
+    raise ReductionError(f"cannot use {roi!r} as a region of interest")

@@ -1,0 +1,322 @@
+"""The fitting problem: which samples enter, how parameters are laid out, and the full cost.
+
+A :class:`Problem` holds the cleaned data (samples that may be used, their weights), the
+model, and the *layout* of the parameter vector searched by the optimisers:
+
+``x = [u_1 .. u_S, a_(1,1) .. a_(1,C), a_(2,1) .. a_(K,C)]``
+
+where ``u`` are the S shape parameters (roughness, exponents), shared by all C channels and
+possibly reparameterised (``u = ln alpha`` when a parameter spans decades: the cost is then
+much closer to quadratic in ``u``), and ``a`` are the K linear parameters (albedo, ks) of
+every channel, in natural units.  Sharing the shape across channels is the usual choice for
+RGB BRDF fits: the colour of a material lives in its albedos, its gloss in its shape, and
+three independent roughnesses would let noise in one channel make a coloured highlight.
+
+:meth:`Problem.full_cost` evaluates the cost and its gradient for any loss, robust penalty
+and algorithm; :mod:`gonio.fitting.varpro` evaluates the cost reduced to the shape
+parameters for linear losses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from gonio.errors import FitError
+from gonio.fitting.losses import Loss, robust_rho
+
+__all__ = ["Problem", "prepare_problem"]
+
+# A shape parameter is searched in log space when it is positive and spans this ratio.
+_LOG_SPAN = 100.0
+
+
+@dataclass
+class Problem:
+    """Cleaned samples + model + parameter layout.  Build with :func:`prepare_problem`."""
+
+    model: Any
+    wi: np.ndarray  # (N, 3) used samples only
+    wo: np.ndarray
+    y: np.ndarray  # (N, C)
+    sigma: np.ndarray | None  # (N, C)
+    cos_i: np.ndarray  # (N,)
+    loss: Loss
+    robust: str | None
+    f_scale: float
+    used: np.ndarray  # (N_in,) bool
+    channels: tuple[str, ...]
+    dropped: dict[str, int]
+    shape_names: tuple[str, ...] = ()
+    linear_names: tuple[str, ...] = ()
+    log_shape: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    lb_shape: np.ndarray = field(default_factory=lambda: np.zeros(0))  # natural units
+    ub_shape: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    lb_lin: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    ub_lin: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    nfev: int = 0
+    njev: int = 0
+
+    def __post_init__(self) -> None:
+        self.weights = self.loss.weights(self.y, self.sigma, self.cos_i) if self.loss.linear else None
+        self._wi_c = self.wi[:, None, :]
+        self._wo_c = self.wo[:, None, :]
+
+    # ---- layout -----------------------------------------------------------------------
+    @property
+    def n_channels(self) -> int:
+        return self.y.shape[1]
+
+    @property
+    def n_shape(self) -> int:
+        return len(self.shape_names)
+
+    @property
+    def n_linear(self) -> int:
+        return len(self.linear_names)
+
+    @property
+    def n_params(self) -> int:
+        return self.n_shape + self.n_linear * self.n_channels
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        lin = tuple(f"{n}[{c}]" for n in self.linear_names for c in self.channels)
+        return tuple(self.shape_names) + lin
+
+    def to_u(self, theta: np.ndarray) -> np.ndarray:
+        """Natural shape parameters -> search variables."""
+        theta = np.asarray(theta, dtype=np.float64)
+        return np.where(self.log_shape, np.log(np.where(self.log_shape, theta, 1.0)), theta)
+
+    def from_u(self, u: np.ndarray) -> np.ndarray:
+        """Search variables -> natural shape parameters."""
+        u = np.asarray(u, dtype=np.float64)
+        return np.where(self.log_shape, np.exp(np.where(self.log_shape, u, 0.0)), u)
+
+    def dtheta_du(self, theta: np.ndarray) -> np.ndarray:
+        return np.where(self.log_shape, theta, 1.0)
+
+    @property
+    def u_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.to_u(self.lb_shape), self.to_u(self.ub_shape)
+
+    def x_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lu, uu = self.u_bounds
+        lo = np.concatenate([lu, np.repeat(self.lb_lin, self.n_channels)])
+        hi = np.concatenate([uu, np.repeat(self.ub_lin, self.n_channels)])
+        return lo, hi
+
+    def pack(self, theta: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """(theta (S,), a (K, C)) -> x."""
+        return np.concatenate([self.to_u(theta), np.asarray(a, dtype=np.float64).ravel()])
+
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """x -> (theta (S,) natural, a (K, C))."""
+        x = np.asarray(x, dtype=np.float64)
+        theta = self.from_u(x[: self.n_shape])
+        a = x[self.n_shape :].reshape(self.n_linear, self.n_channels)
+        return theta, a
+
+    def params_dict(self, theta: np.ndarray, a: np.ndarray) -> dict[str, Any]:
+        """Model parameters: shape as floats, linear as (C,) arrays."""
+        p: dict[str, Any] = {n: float(t) for n, t in zip(self.shape_names, theta)}
+        for j, n in enumerate(self.linear_names):
+            p[n] = np.asarray(a[j], dtype=np.float64)
+        return p
+
+    # ---- full-space cost ---------------------------------------------------------------
+    def model_eval(self, theta: np.ndarray, a: np.ndarray, grad: bool) -> tuple[np.ndarray, dict]:
+        """Model values (N, C) and, if ``grad``, derivatives by parameter name (N, C)."""
+        p = self.params_dict(theta, a)
+        if grad:
+            self.njev += 1
+            f, g = self.model.eval_with_grad(self._wi_c, self._wo_c, p)
+            return np.asarray(f), g
+        self.nfev += 1
+        return np.asarray(self.model.eval(self._wi_c, self._wo_c, p)), {}
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """Loss residuals (N, C) at ``x``."""
+        theta, a = self.unpack(x)
+        f, _ = self.model_eval(theta, a, grad=False)
+        return self.loss.residual(f, self.y, self.weights, self.cos_i)[0]
+
+    def jacobian_blocks(self, x: np.ndarray, natural: bool = False):
+        """Residuals and their Jacobian in blocks.
+
+        Returns ``r`` (N, C), ``J_shape`` (N, C, S) and ``J_lin`` (N, C, K) where
+        ``J_lin[:, c, j]`` is the derivative with respect to ``a[j, c]`` (the only channel
+        that parameter touches).  ``natural`` gives shape derivatives in natural units
+        instead of search variables.
+        """
+        theta, a = self.unpack(x)
+        f, g = self.model_eval(theta, a, grad=True)
+        r, drdf = self.loss.residual(f, self.y, self.weights, self.cos_i)
+        shp = f.shape
+        dtu = np.ones_like(theta) if natural else self.dtheta_du(theta)
+        js = np.empty(shp + (self.n_shape,))
+        for s, n in enumerate(self.shape_names):
+            js[..., s] = drdf * np.broadcast_to(g[n], shp) * dtu[s]
+        jl = np.empty(shp + (self.n_linear,))
+        for j, n in enumerate(self.linear_names):
+            jl[..., j] = drdf * np.broadcast_to(g[n], shp)
+        return r, js, jl
+
+    def full_cost(self, x: np.ndarray, want_grad: bool = True) -> tuple[float, np.ndarray]:
+        """Cost ``0.5 * sum(rho(r**2))`` and its gradient with respect to ``x``."""
+        if not want_grad:
+            r = self.residuals(x)
+            rho, _ = robust_rho(r * r, self.robust, self.f_scale)
+            return 0.5 * float(np.sum(rho)), np.empty(0)
+        r, js, jl = self.jacobian_blocks(x)
+        rho, drho = robust_rho(r * r, self.robust, self.f_scale)
+        wr = drho * r
+        gs = np.einsum("nc,ncs->s", wr, js)
+        gl = np.einsum("nc,ncj->jc", wr, jl)
+        return 0.5 * float(np.sum(rho)), np.concatenate([gs, gl.ravel()])
+
+    def dense_jacobian(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residual vector (N*C,) and dense Jacobian (N*C, P) w.r.t. ``x``; for baselines."""
+        r, js, jl = self.jacobian_blocks(x)
+        n, c = r.shape
+        J = np.zeros((n, c, self.n_params))
+        J[:, :, : self.n_shape] = js
+        for j in range(self.n_linear):
+            for k in range(c):
+                J[:, k, self.n_shape + j * c + k] = jl[:, k, j]
+        return r.ravel(), J.reshape(n * c, -1)
+
+
+def _bounds_of(model: Any, name: str) -> tuple[float, float]:
+    lo, hi = dict(getattr(model, "bounds", {}) or {}).get(name, (-np.inf, np.inf))
+    lo = -np.inf if lo is None else float(lo)
+    hi = np.inf if hi is None else float(hi)
+    return lo, hi
+
+
+def prepare_problem(
+    model: Any,
+    samples: Any,
+    loss: Loss,
+    robust: str | None = None,
+    f_scale: float = 1.0,
+    channels: tuple[str, ...] | None = None,
+) -> Problem:
+    """Select the usable samples and set up the parameter layout.
+
+    Samples are left out (and counted in ``Problem.dropped``) when flagged, when their
+    value or direction is not finite, when a direction is at or below the horizon, when the
+    weighted loss has no finite sigma for them, or when the log loss is undefined
+    (``1 + y cos(theta_i) <= 0``).  Negative values are kept: they are what unbiased noise
+    around a small BRDF looks like.
+
+    Raises
+    ------
+    FitError
+        No usable sample, all values zero or negative, a non-positive sigma, or fewer
+        residuals than parameters.
+    """
+    wi = np.asarray(samples.wi, dtype=np.float64)
+    wo = np.asarray(samples.wo, dtype=np.float64)
+    y = np.asarray(samples.brdf, dtype=np.float64)
+    if y.ndim == 1:
+        y = y[:, None]
+    if wi.shape != wo.shape or wi.ndim != 2 or wi.shape[1] != 3 or wi.shape[0] != y.shape[0]:
+        raise FitError(
+            f"samples: wi {wi.shape}, wo {wo.shape} and brdf {y.shape} must be (N, 3), (N, 3), "
+            "(N, C) with the same N"
+        )
+    n_in, n_c = y.shape
+    std = getattr(samples, "brdf_std", None)
+    sigma = None if std is None else np.asarray(std, dtype=np.float64).reshape(n_in, -1)
+    if sigma is not None and sigma.shape != y.shape:
+        raise FitError(f"samples: brdf_std has shape {sigma.shape}, expected {y.shape}")
+    flags = getattr(samples, "flags", None)
+    dropped: dict[str, int] = {}
+
+    def drop(mask: np.ndarray, why: str, keep: np.ndarray) -> np.ndarray:
+        k = int(np.count_nonzero(keep & mask))
+        if k:
+            dropped[why] = dropped.get(why, 0) + k
+        return keep & ~mask
+
+    keep = np.ones(n_in, dtype=bool)
+    if flags is not None:
+        keep = drop(np.asarray(flags).reshape(n_in) != 0, "flagged", keep)
+    keep = drop(~np.all(np.isfinite(y), axis=1), "non-finite brdf", keep)
+    keep = drop(~np.all(np.isfinite(wi), axis=1) | ~np.all(np.isfinite(wo), axis=1),
+                "non-finite direction", keep)
+    with np.errstate(invalid="ignore"):
+        keep = drop(~((wi[:, 2] > 0) & (wo[:, 2] > 0)), "below horizon", keep)
+    if loss.name == "weighted_l2":
+        if sigma is None:
+            raise FitError("loss 'weighted_l2' needs samples.brdf_std; use loss='cosine_l2'")
+        keep = drop(~np.all(np.isfinite(sigma), axis=1), "non-finite brdf_std", keep)
+        bad = keep & np.any(sigma <= 0, axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise FitError(
+                f"samples.brdf_std: {int(bad.sum())} used samples have sigma <= 0 (first at "
+                f"index {i}: {sigma[i].tolist()}); weighted_l2 needs positive sigmas, use "
+                "loss='cosine_l2' or 'l2' for noise-free data"
+            )
+    norm = np.linalg.norm(np.where(keep[:, None], wi, 1.0), axis=1)
+    cos_i = np.where(keep, wi[:, 2] / np.where(norm > 0, norm, 1.0), 0.0)
+    if loss.name == "log":
+        with np.errstate(invalid="ignore"):
+            keep = drop(~np.all(1.0 + y * cos_i[:, None] > 0, axis=1), "log loss undefined", keep)
+    if not keep.any():
+        raise FitError(f"no usable sample among {n_in} (left out: {dropped or 'none'})")
+    yk = y[keep]
+    if not np.any(yk > 0):
+        raise FitError(
+            f"samples.brdf: all {int(keep.sum())} usable values are zero or negative; "
+            "there is no reflectance to fit"
+        )
+
+    names = tuple(model.param_names)
+    linear = tuple(n for n in names if n in set(getattr(model, "linear_params", ()) or ()))
+    shape = tuple(n for n in names if n not in linear)
+    lb_s = np.array([_bounds_of(model, n)[0] for n in shape], dtype=np.float64)
+    ub_s = np.array([_bounds_of(model, n)[1] for n in shape], dtype=np.float64)
+    lb_l = np.array([max(0.0, _bounds_of(model, n)[0]) for n in linear], dtype=np.float64)
+    ub_l = np.array([_bounds_of(model, n)[1] for n in linear], dtype=np.float64)
+    log_s = (lb_s > 0) & (np.isinf(ub_s) | (ub_s / np.where(lb_s > 0, lb_s, 1.0) >= _LOG_SPAN))
+    p = len(shape) + len(linear) * n_c
+    m = int(keep.sum()) * n_c
+    if m <= p:
+        raise FitError(
+            f"{int(keep.sum())} usable samples x {n_c} channels = {m} residuals, but model "
+            f"{getattr(model, 'name', '?')} has {p} parameters; need more samples"
+        )
+    ch = tuple(channels) if channels is not None else tuple(
+        getattr(samples, "channels", None) or ("R", "G", "B")[:n_c] or ()
+    )
+    if len(ch) != n_c:
+        ch = tuple(f"c{i}" for i in range(n_c))
+    wk = wi[keep] / norm[keep, None]
+    ok = wo[keep] / np.linalg.norm(wo[keep], axis=1, keepdims=True)
+    return Problem(
+        model=model,
+        wi=wk,
+        wo=ok,
+        y=yk,
+        sigma=None if sigma is None else sigma[keep],
+        cos_i=cos_i[keep],
+        loss=loss,
+        robust=robust,
+        f_scale=float(f_scale),
+        used=keep,
+        channels=ch,
+        dropped=dropped,
+        shape_names=shape,
+        linear_names=linear,
+        log_shape=log_s,
+        lb_shape=lb_s,
+        ub_shape=ub_s,
+        lb_lin=lb_l,
+        ub_lin=ub_l,
+    )

@@ -1,0 +1,209 @@
+"""A careful nlopt driver: one call, checked results, the project's own errors.
+
+nlopt is used as is, with three traps handled here (see ``shared/reference/libraries.md``):
+the gradient must be written in place; several algorithms (SLSQP, MMA, BOBYQA, CRS2,
+...) return a *success* code with a NaN objective, so every result is checked for
+finiteness here and the best finite point seen is kept; and nlopt's exceptions carry empty
+messages, so they are turned into :class:`~gonio.errors.FitError` with the algorithm
+named, or, when a finite point was reached before the failure, into a non-success status
+with that point.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import nlopt
+import numpy as np
+
+from gonio.errors import FitError, GonioError, UnknownNameError
+
+__all__ = [
+    "ALGORITHMS",
+    "GLOBAL_ALGORITHMS",
+    "LOCAL_ALGORITHMS",
+    "NloptResult",
+    "nlopt_minimize",
+    "sobol_design",
+]
+
+LOCAL_ALGORITHMS = ("LD_LBFGS", "LD_SLSQP", "LD_MMA", "LD_CCSAQ", "LN_BOBYQA", "LN_SBPLX",
+                    "LN_NELDERMEAD", "LN_COBYLA")
+GLOBAL_ALGORITHMS = ("GN_DIRECT_L", "GN_CRS2_LM", "G_MLSL_LDS", "GN_ISRES")
+ALGORITHMS = LOCAL_ALGORITHMS + GLOBAL_ALGORITHMS
+
+_MESSAGES = {
+    1: "success",
+    2: "stopval reached",
+    3: "ftol reached",
+    4: "xtol reached",
+    5: "maxeval reached",
+    6: "maxtime reached",
+    -1: "generic failure",
+    -2: "invalid arguments",
+    -3: "out of memory",
+    -4: "roundoff limited",
+    -5: "forced stop",
+}
+
+
+@dataclass
+class NloptResult:
+    """Outcome of :func:`nlopt_minimize`: best finite point, its cost, status, counts."""
+
+    x: np.ndarray
+    fun: float
+    status: int
+    message: str
+    nfev: int
+    algorithm: str
+
+    @property
+    def success(self) -> bool:
+        return self.status > 0 and bool(np.isfinite(self.fun)) and bool(np.all(np.isfinite(self.x)))
+
+
+def _algorithm(name: str) -> int:
+    code = getattr(nlopt, name, None) if name.isupper() else None
+    if not isinstance(code, int) or name not in ALGORITHMS:
+        raise UnknownNameError(
+            f"unknown nlopt algorithm {name!r}; expected one of {', '.join(ALGORITHMS)}"
+        )
+    return code
+
+
+def nlopt_minimize(
+    fun: Callable[[np.ndarray, bool], tuple[float, np.ndarray]],
+    x0: np.ndarray,
+    lb: np.ndarray,
+    ub: np.ndarray,
+    algorithm: str = "LD_LBFGS",
+    *,
+    ftol_rel: float = 1e-13,
+    xtol_rel: float = 1e-11,
+    maxeval: int = 500,
+    local_algorithm: str = "LD_LBFGS",
+    ineq: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    n_ineq: int = 0,
+    ineq_tol: float = 1e-10,
+    population: int = 0,
+    seed: int = 0,
+) -> NloptResult:
+    """Minimise ``fun`` with nlopt and check the outcome.
+
+    Parameters
+    ----------
+    fun
+        ``fun(x, want_grad) -> (cost, grad)``; ``grad`` may be empty when not wanted.
+    x0, lb, ub
+        Start and bounds (the start is clipped into the bounds).
+    algorithm
+        nlopt algorithm name, e.g. ``"LD_LBFGS"`` (see :data:`ALGORITHMS`).
+    ftol_rel, xtol_rel, maxeval
+        Stopping criteria (relative cost change, relative step, evaluations).
+    local_algorithm
+        Local optimiser of ``G_MLSL_LDS``.
+    ineq, n_ineq, ineq_tol
+        Vector inequality constraint ``ineq(x, grad) -> (n_ineq,)`` values, feasible when
+        ``<= 0``; fill ``grad`` (n_ineq, n) in place when it is non-empty.
+    population, seed
+        Population of the stochastic global algorithms and nlopt's random seed.
+
+    Returns
+    -------
+    NloptResult
+        The best finite point seen (not only nlopt's last answer).
+
+    Raises
+    ------
+    FitError
+        No finite cost was ever seen, or nlopt rejected the problem.
+    """
+    code = _algorithm(algorithm)
+    x0 = np.clip(np.asarray(x0, dtype=np.float64), lb, ub)
+    n = x0.size
+    best = {"f": np.inf, "x": x0.copy(), "n": 0}
+    gradient_based = algorithm.startswith(("LD_", "GD_"))
+
+    def obj(x: np.ndarray, grad: np.ndarray) -> float:
+        best["n"] += 1
+        want = grad.size > 0
+        f, g = fun(x, want)
+        if want:
+            grad[:] = g if np.all(np.isfinite(g)) else 0.0
+        if not np.isfinite(f):
+            return float("inf")
+        if f < best["f"] and (ineq is None or _feasible(x)):
+            best["f"], best["x"] = float(f), x.copy()
+        return float(f)
+
+    def _feasible(x: np.ndarray) -> bool:
+        return bool(np.all(ineq(x, np.empty((0, 0))) <= ineq_tol * 10))
+
+    nlopt.srand(seed)
+    try:
+        opt = nlopt.opt(code, n)
+        opt.set_lower_bounds(np.asarray(lb, dtype=np.float64))
+        opt.set_upper_bounds(np.asarray(ub, dtype=np.float64))
+        opt.set_min_objective(obj)
+        opt.set_ftol_rel(ftol_rel)
+        opt.set_xtol_rel(xtol_rel)
+        opt.set_maxeval(int(maxeval))
+        if population:
+            opt.set_population(int(population))
+        if algorithm == "G_MLSL_LDS":
+            loc = nlopt.opt(_algorithm(local_algorithm), n)
+            loc.set_ftol_rel(ftol_rel)
+            loc.set_xtol_rel(xtol_rel)
+            loc.set_maxeval(max(20, int(maxeval) // 10))
+            opt.set_local_optimizer(loc)
+        if ineq is not None:
+
+            def cons(result: np.ndarray, x: np.ndarray, grad: np.ndarray) -> None:
+                result[:] = ineq(x, grad)
+
+            opt.add_inequality_mconstraint(cons, np.full(n_ineq, ineq_tol))
+    except GonioError:
+        raise
+    except Exception as exc:  # nlopt's exceptions have empty messages
+        raise FitError(
+            f"nlopt rejected the problem for {algorithm} ({type(exc).__name__}: {exc!s} "
+            f"- n={n}, bounds finite: {bool(np.all(np.isfinite([lb, ub])))})"
+        ) from exc
+    status, message = 0, ""
+    try:
+        opt.optimize(x0)
+        status = int(opt.last_optimize_result())
+        message = _MESSAGES.get(status, str(status))
+    except GonioError:
+        raise
+    except nlopt.RoundoffLimited:
+        status, message = -4, "roundoff limited (best point kept)"
+    except nlopt.ForcedStop:
+        status, message = -5, "forced stop"
+    except Exception as exc:  # noqa: BLE001 - nlopt raises bare Exception subclasses
+        status = -1
+        message = f"{algorithm} failed ({type(exc).__name__}{': ' + str(exc) if str(exc) else ''})"
+    if not np.isfinite(best["f"]):
+        raise FitError(
+            f"{algorithm}: no finite cost in {best['n']} evaluations from x0={x0.tolist()} "
+            f"({message or 'no message'}); the model is NaN or inf on these samples"
+        )
+    if gradient_based and status == -4 and best["n"] > 1:
+        # L-BFGS stops with roundoff when it cannot improve further at machine precision:
+        # at a minimum that is convergence, not failure.
+        status, message = 1, "converged to round-off"
+    return NloptResult(best["x"], best["f"], status, message, best["n"], algorithm)
+
+
+def sobol_design(lb: np.ndarray, ub: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """Scrambled Sobol points (``n`` rounded up to a power of two) in the box [lb, ub]."""
+    from scipy.stats import qmc
+
+    d = len(lb)
+    if d == 0:
+        return np.zeros((1, 0))
+    m = int(np.ceil(np.log2(max(n, 2))))
+    pts = qmc.Sobol(d, scramble=True, seed=seed).random_base2(m)
+    return qmc.scale(pts, lb, ub)

@@ -1,0 +1,422 @@
+"""The model machinery shared by every analytic lobe: parameters, geometry, sums, binding.
+
+A *lobe* (:class:`Lobe`) is one closed-form BRDF term with its own parameter names.  A
+*model* (:class:`Model`) is a sum of one or more lobes with public, unambiguous parameter
+names; it checks parameters against bounds, applies the below-horizon rule, broadcasts,
+and sums values and gradients.  ``gonio.brdf.registry.get_model`` builds models by name.
+
+Conventions (ARCHITECTURE.md): local frame with +z the normal and +x the tangent; ``wi``
+towards the light, ``wo`` towards the camera, unit vectors of shape ``(..., 3)``;
+``eval`` returns f_r in 1/sr (never times cos).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from gonio.errors import ParameterError
+
+Array = NDArray[np.float64]
+Params = Mapping[str, ArrayLike]
+
+__all__ = ["Array", "BoundModel", "Geometry", "Lobe", "Model", "ParamSpec"]
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One lobe parameter: its bounds (inclusive), default, and whether f is linear in it."""
+
+    name: str
+    lower: float
+    upper: float
+    default: float
+    linear: bool = False
+    doc: str = ""
+
+
+class Geometry:
+    """Quantities derived from a batch of direction pairs, computed once and shared by the
+    lobes of a sum.
+
+    All products use components rather than trigonometric functions, so that the normal
+    direction, grazing directions and ``wi == wo`` need no special cases.  ``h`` is the
+    *unnormalised* half vector ``wi + wo``.
+    """
+
+    def __init__(self, wi: Array, wo: Array) -> None:
+        self.wi = wi
+        self.wo = wo
+        self.ix, self.iy, self.iz = wi[..., 0], wi[..., 1], wi[..., 2]
+        self.ox, self.oy, self.oz = wo[..., 0], wo[..., 1], wo[..., 2]
+
+    @cached_property
+    def hx(self) -> Array:
+        return self.ix + self.ox
+
+    @cached_property
+    def hy(self) -> Array:
+        return self.iy + self.oy
+
+    @cached_property
+    def hz(self) -> Array:
+        return self.iz + self.oz
+
+    @cached_property
+    def hxy2(self) -> Array:
+        """``hx^2 + hy^2`` of the unnormalised half vector."""
+        return self.hx * self.hx + self.hy * self.hy
+
+    @cached_property
+    def hz2(self) -> Array:
+        return self.hz * self.hz
+
+    @cached_property
+    def hh(self) -> Array:
+        """``|wi + wo|^2``."""
+        return self.hxy2 + self.hz2
+
+    @cached_property
+    def cos_d(self) -> Array:
+        """``dot(wi, h)`` with ``h`` normalised: the cosine Fresnel sees."""
+        return (self.ix * self.hx + self.iy * self.hy + self.iz * self.hz) / np.sqrt(self.hh)
+
+    @cached_property
+    def si2(self) -> Array:
+        """``sin^2(theta_i)`` from the tangential components (exact near the normal)."""
+        return self.ix * self.ix + self.iy * self.iy
+
+    @cached_property
+    def so2(self) -> Array:
+        return self.ox * self.ox + self.oy * self.oy
+
+    @cached_property
+    def dot_xy(self) -> Array:
+        """``ix ox + iy oy``: the tangential part of ``dot(wi, wo)``."""
+        return self.ix * self.ox + self.iy * self.oy
+
+
+class Lobe:
+    """One closed-form BRDF term.  Subclasses set :attr:`kind` and :attr:`specs` and
+    implement :meth:`evaluate`.
+
+    Parameters of a lobe are addressed by their *local* names (``"ks"``, ``"alpha"``); a
+    :class:`Model` maps public names onto them.
+    """
+
+    kind: str = ""
+    #: Short human description (shown by ``gonio brdf list``).
+    summary: str = ""
+    #: Options accepted by the constructor, name -> allowed values (first is the default).
+    option_choices: dict[str, tuple[str, ...]] = {}
+    isotropic: bool = True
+
+    def __init__(self, **options: str) -> None:
+        self.options = {k: v[0] for k, v in self.option_choices.items()}
+        self.options.update(options)
+        self.specs: tuple[ParamSpec, ...] = self._specs()
+
+    def _specs(self) -> tuple[ParamSpec, ...]:
+        raise NotImplementedError
+
+    def evaluate(
+        self, g: Geometry, p: dict[str, Array], grad: bool
+    ) -> tuple[Array, dict[str, Array] | None]:
+        """f_r (1/sr) for directions above the horizon (the caller masks the rest), and,
+        when ``grad``, the partial derivatives keyed by local parameter name.
+
+        ``f`` must be a freshly allocated array (the caller zeroes it in place); the
+        gradients may be views or broadcastable scalars."""
+        raise NotImplementedError
+
+    def lobe_width(self, p: dict[str, Array]) -> Array:
+        """Angular width (rad) of the lobe around the half vector ``h = n``: the smallest
+        scale the albedo quadrature must resolve."""
+        return np.asarray(1.0)
+
+
+def _as_float_array(name: str, value: ArrayLike) -> Array:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"parameter '{name}' = {value!r} is not a number") from exc
+    return arr
+
+
+@dataclass
+class _Slot:
+    lobe: Lobe
+    index: int  # 1-based position in the sum
+    names: dict[str, str] = field(default_factory=dict)  # local -> public
+
+
+class Model:
+    """A BRDF model: a sum of lobes with public parameter names.
+
+    Build models with :func:`gonio.brdf.registry.get_model`; see DEVELOPING.md for the
+    contract.  Public attributes: :attr:`name`, :attr:`param_names`, :attr:`bounds`,
+    :attr:`defaults`, :attr:`linear_params`, :attr:`options`.
+    """
+
+    def __init__(self, lobes: list[Lobe], options: dict[str, str] | None = None) -> None:
+        if not lobes:
+            raise ValueError("a model needs at least one lobe")
+        self.options = dict(options or {})
+        self.name = "+".join(lobe.kind for lobe in lobes)
+        counts: dict[str, int] = {}
+        for lobe in lobes:
+            for s in lobe.specs:
+                counts[s.name] = counts.get(s.name, 0) + 1
+        self._slots: list[_Slot] = []
+        specs: dict[str, ParamSpec] = {}
+        for i, lobe in enumerate(lobes, start=1):
+            slot = _Slot(lobe, i)
+            for s in lobe.specs:
+                public = s.name if counts[s.name] == 1 else f"{s.name}_{i}"
+                slot.names[s.name] = public
+                specs[public] = s
+            self._slots.append(slot)
+        self._specs = specs
+        self.param_names: tuple[str, ...] = tuple(specs)
+        self.bounds: dict[str, tuple[float, float]] = {
+            k: (s.lower, s.upper) for k, s in specs.items()
+        }
+        self.defaults: dict[str, float] = {k: s.default for k, s in specs.items()}
+        self.linear_params: tuple[str, ...] = tuple(k for k, s in specs.items() if s.linear)
+
+    # -- introspection -------------------------------------------------------------------
+    @property
+    def lobes(self) -> tuple[Lobe, ...]:
+        return tuple(s.lobe for s in self._slots)
+
+    @property
+    def isotropic(self) -> bool:
+        return all(s.lobe.isotropic for s in self._slots)
+
+    def describe_params(self) -> list[tuple[str, float, float, float, bool, str]]:
+        """Rows ``(name, lower, upper, default, linear, doc)`` for listings."""
+        return [
+            (k, s.lower, s.upper, s.default, s.linear, s.doc) for k, s in self._specs.items()
+        ]
+
+    def __repr__(self) -> str:
+        opts = "".join(f", {k}={v!r}" for k, v in self.options.items())
+        return f"get_model({self.name!r}{opts})"
+
+    # -- parameters ----------------------------------------------------------------------
+    def check_params(self, params: Params | None = None) -> dict[str, Array]:
+        """Validate parameters and fill in defaults.
+
+        Parameters
+        ----------
+        params
+            Mapping from public parameter name to a float or an array (for example one
+            value per colour channel).  Missing parameters take their default.
+
+        Returns
+        -------
+        dict
+            Every parameter of the model as a float64 array.
+
+        Raises
+        ------
+        ParameterError
+            A name is not a parameter of this model, a value is not a number, or a value is
+            outside the inclusive bounds (the message names the parameter, the offending
+            value and the bounds).
+        """
+        params = dict(params or {})
+        unknown = [k for k in params if k not in self._specs]
+        if unknown:
+            raise ParameterError(
+                f"model '{self.name}' has no parameter {', '.join(map(repr, unknown))}; "
+                f"its parameters are: {', '.join(self.param_names)}"
+            )
+        out: dict[str, Array] = {}
+        for k, s in self._specs.items():
+            v = _as_float_array(k, params.get(k, s.default))
+            ok = (v >= s.lower) & (v <= s.upper)
+            if not np.all(ok):
+                bad = v[~ok] if v.ndim else v
+                bad_v = float(np.ravel(bad)[0])
+                raise ParameterError(
+                    f"parameter '{k}' of model '{self.name}' = {bad_v:g} is outside its "
+                    f"bounds [{s.lower:g}, {s.upper:g}]"
+                )
+            out[k] = v
+        return out
+
+    def _local(self, slot: _Slot, p: dict[str, Array]) -> dict[str, Array]:
+        return {local: p[public] for local, public in slot.names.items()}
+
+    # -- evaluation ----------------------------------------------------------------------
+    def eval(self, wi: ArrayLike, wo: ArrayLike, params: Params | None = None) -> Array:
+        """BRDF value f_r in 1/sr (not multiplied by any cosine).
+
+        Parameters
+        ----------
+        wi, wo
+            Unit directions towards the light and the camera in the local frame, shape
+            ``(..., 3)``.
+        params
+            Parameter values (floats or arrays); missing ones take their defaults.
+
+        Returns
+        -------
+        ndarray
+            Shape ``broadcast(wi.shape[:-1], wo.shape[:-1], *param shapes)``; exactly 0 where
+            either direction has ``z <= 0``; NaN where an input direction is NaN.
+        """
+        return self._eval(wi, wo, params, grad=False)[0]
+
+    def eval_with_grad(
+        self, wi: ArrayLike, wo: ArrayLike, params: Params | None = None
+    ) -> tuple[Array, dict[str, Array]]:
+        """f_r (1/sr) and its analytic partial derivatives with respect to every parameter.
+
+        Returns
+        -------
+        f, grads
+            ``grads[name]`` has the same shape as ``f`` (units 1/sr per unit of ``name``).
+        """
+        f, g = self._eval(wi, wo, params, grad=True)
+        assert g is not None
+        return f, g
+
+    def _eval(
+        self, wi: ArrayLike, wo: ArrayLike, params: Params | None, grad: bool
+    ) -> tuple[Array, dict[str, Array] | None]:
+        wi = np.asarray(wi, dtype=np.float64)
+        wo = np.asarray(wo, dtype=np.float64)
+        if wi.shape[-1:] != (3,) or wo.shape[-1:] != (3,):
+            raise ValueError(
+                f"directions must have shape (..., 3); got wi {wi.shape}, wo {wo.shape}"
+            )
+        p = self.check_params(params)
+        g = Geometry(wi, wo)
+        total: Array | None = None
+        grads: dict[str, Array] = {}
+        with np.errstate(all="ignore"):
+            for slot in self._slots:
+                f, lg = slot.lobe.evaluate(g, self._local(slot, p), grad)
+                total = f if total is None else total + f
+                if grad and lg is not None:
+                    for local, public in slot.names.items():
+                        grads[public] = lg[local]
+            # NaN in z compares False on both tests, so NaN directions stay NaN.
+            below = (g.iz <= 0.0) | (g.oz <= 0.0)
+            shape = np.broadcast_shapes(below.shape, *(np.shape(v) for v in p.values()))
+            assert total is not None
+            total = _masked(total, below, shape, inplace=True)
+            if grad:
+                for k in self.param_names:
+                    grads[k] = _masked(grads.get(k, np.zeros(())), below, shape)
+        return total, (grads if grad else None)
+
+    def albedo(
+        self, theta_i: ArrayLike, params: Params | None = None, phi_i: ArrayLike = 0.0
+    ) -> Array:
+        """Directional albedo: the integral of f_r cos(theta_o) over the outgoing hemisphere.
+
+        Computed by deterministic quadrature in half-vector space with the lobe width
+        resolved (see :mod:`gonio.brdf.albedo`); accurate also for near-mirror lobes.
+
+        Parameters
+        ----------
+        theta_i
+            Incidence angle(s) in radians, in [0, pi/2].
+        params
+            Parameter values (floats or arrays).
+        phi_i
+            Incidence azimuth (rad); matters only for anisotropic lobes.
+
+        Returns
+        -------
+        ndarray
+            Dimensionless, shape ``broadcast(theta_i, phi_i, *param shapes)``.
+        """
+        from gonio.brdf.albedo import lobe_albedo
+
+        p = self.check_params(params)
+        total: Array | None = None
+        for slot in self._slots:
+            a = lobe_albedo(slot.lobe, theta_i, self._local(slot, p), phi_i)
+            total = a if total is None else total + a
+        assert total is not None
+        return total
+
+    def bind(self, params: Params | None = None) -> BoundModel:
+        """Fix the parameters: the result evaluates RGB f_r with ``eval(wi, wo)``.
+
+        Scalar parameters are broadcast to 3 colour channels; array parameters must have a
+        last axis of 3 (or 1).
+        """
+        return BoundModel(self, params)
+
+
+def _masked(f: Array, below: Array, shape: tuple[int, ...], inplace: bool = False) -> Array:
+    """Zero below the horizon, broadcast to the full output shape, always a fresh array."""
+    f = np.asarray(f, dtype=np.float64)
+    if inplace and f.shape == shape and below.shape == shape:
+        # Saves a full pass on large batches; lobes return a fresh array for f.
+        f[below] = 0.0
+        return f
+    return np.where(below, 0.0, np.broadcast_to(f, shape))
+
+
+class BoundModel:
+    """A model with fixed parameters, evaluated per colour channel.
+
+    ``eval(wi, wo)`` returns RGB f_r of shape ``(..., 3)`` (1/sr); ``albedo(theta_i)``
+    returns ``(..., 3)``.  Same interface as a measured BRDF from ``gonio.brdf.load``.
+    """
+
+    format = "analytic"
+
+    def __init__(self, model: Model, params: Params | None = None) -> None:
+        checked = model.check_params(params)
+        self.model = model
+        self.params: dict[str, Array] = {}
+        for k, v in checked.items():
+            if v.ndim == 0:
+                v = np.full(3, float(v))
+            elif v.shape[-1] not in (1, 3):
+                raise ParameterError(
+                    f"parameter '{k}' must be a scalar or have 3 colour channels in its last "
+                    f"axis, got shape {v.shape}"
+                )
+            self.params[k] = np.broadcast_to(v, v.shape[:-1] + (3,))
+        values = ", ".join(f"{k}={_fmt(v)}" for k, v in self.params.items())
+        self.description = f"{model.name}({values})"
+        self.metadata: dict[str, Any] = {
+            "model": model.name,
+            "options": dict(model.options),
+            "params": {k: v.tolist() for k, v in self.params.items()},
+        }
+
+    def eval(self, wi: ArrayLike, wo: ArrayLike) -> Array:
+        """RGB f_r (1/sr), shape ``broadcast(wi.shape[:-1], wo.shape[:-1]) + (3,)``."""
+        wi = np.asarray(wi, dtype=np.float64)[..., None, :]
+        wo = np.asarray(wo, dtype=np.float64)[..., None, :]
+        return self.model.eval(wi, wo, self.params)
+
+    def albedo(self, theta_i: ArrayLike, phi_i: ArrayLike = 0.0) -> Array:
+        """RGB directional albedo at incidence ``theta_i`` (rad), shape ``(..., 3)``."""
+        t = np.asarray(theta_i, dtype=np.float64)[..., None]
+        ph = np.asarray(phi_i, dtype=np.float64)[..., None]
+        return self.model.albedo(t, self.params, ph)
+
+    def __repr__(self) -> str:
+        return f"<BoundModel {self.description}>"
+
+
+def _fmt(v: Array) -> str:
+    flat = np.ravel(v)
+    if flat.size and np.all(flat == flat[0]):
+        return f"{flat[0]:.6g}"
+    return "[" + ", ".join(f"{x:.6g}" for x in flat[:3]) + (", ..." if flat.size > 3 else "") + "]"

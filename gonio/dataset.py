@@ -1,0 +1,304 @@
+"""BRDF sample sets and their HDF5 file, ``samples.h5``.
+
+A :class:`BRDFSamples` holds what a reduction produces and a fit consumes: per sample the
+incident and outgoing directions in the sample frame, the BRDF per colour channel with its
+standard deviation, and flags saying why a sample should not be trusted.
+
+File layout (schema version 1)
+------------------------------
+Datasets at the root, ``N`` samples and ``C`` channels:
+
+==============  ==========  =========  ==================================================
+name            shape       units      meaning
+==============  ==========  =========  ==================================================
+``wi``          (N, 3)      1          unit vector towards the light, sample frame
+``wo``          (N, 3)      1          unit vector towards the camera, sample frame
+``theta_i`` ..  (N,)        rad        ``theta_i, phi_i, theta_o, phi_o`` of wi and wo
+``brdf``        (N, C)      1/sr       f_r per channel
+``brdf_std``    (N, C)      1/sr       one standard deviation of ``brdf``
+``flags``       (N,)        bit mask   :class:`Flag`; 0 means usable
+``radiance``    (N, C)      W/(sr m2)  optional: reflected radiance (relative until
+                                       calibrated)
+``irradiance``  (N, C)      W/m2       optional: irradiance at the sample
+``frames``      (N,)        str        optional: the RAW files a sample came from
+==============  ==========  =========  ==================================================
+
+Root attributes: ``schema`` (``"gonio.samples"``), ``schema_version``, ``channels``, and
+free-form provenance (software version, session, creation time...).  Each dataset carries
+a ``units`` attribute.
+"""
+
+from __future__ import annotations
+
+import enum
+import os
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from gonio.errors import FileFormatError
+from gonio.radiometry.frames import direction_to_spherical
+
+SCHEMA = "gonio.samples"
+SCHEMA_VERSION = 1
+
+
+class Flag(enum.IntFlag):
+    """Why a sample should not be used (bit mask; 0 = usable)."""
+
+    SATURATED = 1
+    UNDEREXPOSED = 2
+    SHADOWED = 4
+    GEOMETRY_MISMATCH = 8
+    EXCLUDED = 16
+    INVALID = 32
+
+
+_UNITS = {
+    "wi": "1",
+    "wo": "1",
+    "theta_i": "rad",
+    "phi_i": "rad",
+    "theta_o": "rad",
+    "phi_o": "rad",
+    "brdf": "1/sr",
+    "brdf_std": "1/sr",
+    "flags": "bitmask (gonio.dataset.Flag)",
+    "radiance": "W/(sr m^2)",
+    "irradiance": "W/m^2",
+    "frames": "",
+}
+
+
+@dataclass
+class BRDFSamples:
+    """BRDF samples in the sample frame.
+
+    Parameters
+    ----------
+    wi, wo
+        Unit directions towards light and camera, shape (N, 3).
+    brdf
+        f_r in 1/sr, shape (N, C); a 1-D array is taken as one channel.
+    brdf_std
+        Standard deviation of ``brdf`` (1/sr), same shape; defaults to NaN (unknown).
+    flags
+        :class:`Flag` bit mask per sample, shape (N,); defaults to 0.
+    channels
+        Channel names, length C.
+    radiance, irradiance
+        Optional radiance (W/(sr m^2)) and irradiance (W/m^2), shape (N, C).
+    frames
+        Optional RAW file names each sample came from, shape (N,).
+    attrs
+        Provenance attributes stored on the file root.
+    """
+
+    wi: NDArray[np.float64]
+    wo: NDArray[np.float64]
+    brdf: NDArray[np.float64]
+    brdf_std: NDArray[np.float64] | None = None
+    flags: NDArray[np.uint32] | None = None
+    channels: tuple[str, ...] | None = None
+    radiance: NDArray[np.float64] | None = None
+    irradiance: NDArray[np.float64] | None = None
+    frames: NDArray[np.str_] | None = None
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.wi = _vec3(self.wi, "wi")
+        self.wo = _vec3(self.wo, "wo")
+        n = self.wi.shape[0]
+        if self.wo.shape[0] != n:
+            raise ValueError(f"wo has {self.wo.shape[0]} samples, wi has {n}")
+        self.brdf = _per_channel(self.brdf, n, "brdf")
+        c = self.brdf.shape[1]
+        if self.brdf_std is None:
+            self.brdf_std = np.full_like(self.brdf, np.nan)
+        self.brdf_std = _per_channel(self.brdf_std, n, "brdf_std", c)
+        if self.flags is None:
+            self.flags = np.zeros(n, dtype=np.uint32)
+        self.flags = np.asarray(self.flags, dtype=np.uint32).reshape(n)
+        if self.channels is None:
+            self.channels = ("R", "G", "B") if c == 3 else tuple(f"c{k}" for k in range(c))
+        self.channels = tuple(str(x) for x in self.channels)
+        if len(self.channels) != c:
+            raise ValueError(f"{len(self.channels)} channel names for {c} channels")
+        for name in ("radiance", "irradiance"):
+            v = getattr(self, name)
+            if v is not None:
+                setattr(self, name, _per_channel(v, n, name, c))
+        if self.frames is not None:
+            self.frames = np.asarray(self.frames, dtype=str).reshape(n)
+
+    def __len__(self) -> int:
+        return self.wi.shape[0]
+
+    @property
+    def n_channels(self) -> int:
+        """Number of colour channels C."""
+        return self.brdf.shape[1]
+
+    @property
+    def valid(self) -> NDArray[np.bool_]:
+        """Samples with no flag set and finite, non-negative-variance values."""
+        finite = np.isfinite(self.brdf).all(axis=1)
+        finite &= np.isfinite(self.wi).all(axis=1) & np.isfinite(self.wo).all(axis=1)
+        return (self.flags == 0) & finite
+
+    def angles(self) -> dict[str, NDArray[np.float64]]:
+        """``theta_i, phi_i, theta_o, phi_o`` in radians."""
+        ti, pi = direction_to_spherical(self.wi)
+        to, po = direction_to_spherical(self.wo)
+        return {"theta_i": ti, "phi_i": pi, "theta_o": to, "phi_o": po}
+
+    def subset(self, mask: ArrayLike) -> BRDFSamples:
+        """The samples selected by a boolean mask or index array."""
+        idx = np.asarray(mask)
+
+        def pick(v: Any) -> Any:
+            return None if v is None else v[idx]
+
+        return BRDFSamples(
+            wi=self.wi[idx],
+            wo=self.wo[idx],
+            brdf=self.brdf[idx],
+            brdf_std=pick(self.brdf_std),
+            flags=pick(self.flags),
+            channels=self.channels,
+            radiance=pick(self.radiance),
+            irradiance=pick(self.irradiance),
+            frames=pick(self.frames),
+            attrs=dict(self.attrs),
+        )
+
+
+def _vec3(v: ArrayLike, name: str) -> NDArray[np.float64]:
+    a = np.asarray(v, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
+    return a
+
+
+def _per_channel(v: ArrayLike, n: int, name: str, c: int | None = None) -> NDArray[np.float64]:
+    a = np.asarray(v, dtype=np.float64)
+    if a.ndim == 1:
+        a = a[:, None]
+    if a.ndim != 2 or a.shape[0] != n or (c is not None and a.shape[1] != c):
+        want = f"({n}, {c if c is not None else 'C'})"
+        raise ValueError(f"{name} must have shape {want}, got {a.shape}")
+    return a
+
+
+def save_samples(path: str | os.PathLike, samples: BRDFSamples) -> Path:
+    """Write ``samples`` to an HDF5 file atomically.
+
+    The file is written next to its destination under a temporary name, flushed and
+    renamed, so an existing file is replaced only by a complete one.
+
+    Returns
+    -------
+    Path
+        The written file.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["schema"] = SCHEMA
+            f.attrs["schema_version"] = SCHEMA_VERSION
+            f.attrs["channels"] = np.array(samples.channels, dtype=h5py.string_dtype())
+            for k, v in samples.attrs.items():
+                f.attrs[k] = _attr_value(v)
+            data: dict[str, Any] = {
+                "wi": samples.wi,
+                "wo": samples.wo,
+                **samples.angles(),
+                "brdf": samples.brdf,
+                "brdf_std": samples.brdf_std,
+                "flags": samples.flags,
+                "radiance": samples.radiance,
+                "irradiance": samples.irradiance,
+            }
+            for name, v in data.items():
+                if v is None:
+                    continue
+                ds = f.create_dataset(name, data=v, compression="gzip", compression_opts=4)
+                ds.attrs["units"] = _UNITS[name]
+            if samples.frames is not None:
+                ds = f.create_dataset(
+                    "frames", data=samples.frames.astype(object), dtype=h5py.string_dtype()
+                )
+                ds.attrs["units"] = ""
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _attr_value(v: Any) -> Any:
+    if isinstance(v, Mapping):
+        import json
+
+        return json.dumps(v, default=str)
+    if v is None:
+        return ""
+    return v
+
+
+def load_samples(path: str | os.PathLike) -> BRDFSamples:
+    """Read a ``samples.h5`` file written by :func:`save_samples`.
+
+    Raises
+    ------
+    FileFormatError
+        If the file is missing, not HDF5, of another schema or version, or a required
+        dataset is absent or has the wrong shape.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(path, "no such file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise FileFormatError(path, f"not a readable HDF5 file ({exc})") from None
+    with f:
+        schema = f.attrs.get("schema")
+        if schema != SCHEMA:
+            raise FileFormatError(path, f"expected schema '{SCHEMA}', found {schema!r}", "schema")
+        version = int(f.attrs.get("schema_version", -1))
+        if version != SCHEMA_VERSION:
+            raise FileFormatError(
+                path, f"schema version {version} is not supported (expected {SCHEMA_VERSION})",
+                "schema_version",
+            )
+        out: dict[str, Any] = {}
+        for name in ("wi", "wo", "brdf"):
+            if name not in f:
+                raise FileFormatError(path, "required dataset is missing", name)
+        for name in ("wi", "wo", "brdf", "brdf_std", "flags", "radiance", "irradiance"):
+            if name in f:
+                out[name] = f[name][()]
+        if "frames" in f:
+            out["frames"] = f["frames"].asstr()[()]
+        channels = tuple(str(c) for c in f.attrs.get("channels", ()))
+        attrs = {
+            k: (v.decode() if isinstance(v, bytes) else v)
+            for k, v in f.attrs.items()
+            if k not in ("schema", "schema_version", "channels")
+        }
+    try:
+        return BRDFSamples(channels=channels or None, attrs=attrs, **out)
+    except ValueError as exc:
+        raise FileFormatError(path, str(exc)) from None

@@ -1,0 +1,295 @@
+"""Rig configuration: bus, servos, joints and geometry, read from TOML and validated.
+
+Degrees appear only here, at the edge (field names end in ``_deg``); everything the
+configuration hands to the rest of the code is in radians via the ``*_rad`` properties.
+
+The default preset (``default_rig.toml``, shipped as package data) is a four-servo rig:
+a light arm and a camera arm turning about the vertical axis through the sample centre,
+and a sample stage that tilts about a horizontal axis and spins about the sample normal.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from gonio.errors import ConfigError
+
+#: The joints the ``arms_tilt_spin`` geometry knows.  A servo drives exactly one of them.
+JOINT_NAMES: tuple[str, ...] = ("light_azimuth", "camera_azimuth", "stage_tilt", "stage_spin")
+
+#: Baud rates dynamixel-sdk's PortHandler accepts (``setBaudRate`` whitelist).
+SDK_BAUD_RATES: tuple[int, ...] = (
+    9600,
+    19200,
+    38400,
+    57600,
+    115200,
+    230400,
+    460800,
+    500000,
+    576000,
+    921600,
+    1000000,
+    1152000,
+    2000000,
+    2500000,
+    3000000,
+    3500000,
+    4000000,
+)
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class BusConfig(_Strict):
+    """Serial bus settings.
+
+    ``timeout_ms`` overrides dynamixel-sdk's reply timeout (None keeps the SDK formula
+    ``10000/baud * bytes + 2 * latency_timer_ms + 2 ms``); ``latency_timer_ms`` is the
+    USB adapter's latency the SDK budgets for (16 ms on FTDI; a larger value makes the
+    SDK tolerant of a loaded CPU, see dynamixel.md).
+    """
+
+    port: str = "/dev/ttyUSB0"
+    baud_rate: int = 1_000_000
+    timeout_ms: float | None = Field(default=None, gt=0)
+    latency_timer_ms: int = Field(default=16, ge=1, le=1000)
+    retries: int = Field(default=3, ge=0, le=100)
+
+    @field_validator("baud_rate")
+    @classmethod
+    def _known_baud(cls, v: int) -> int:
+        if v not in SDK_BAUD_RATES:
+            raise ValueError(f"baud rate {v} is not one dynamixel-sdk supports: {SDK_BAUD_RATES}")
+        return v
+
+
+class ServoConfig(_Strict):
+    """One servo and the joint it drives.
+
+    joint angle (rad) = direction * (servo angle - zero) / gear_ratio, where the servo
+    angle is Present Position * 2 pi / 4096.
+    """
+
+    id: int = Field(ge=0, le=252)
+    model: str = "XM430-W350"
+    joint: str
+    gear_ratio: float = Field(default=1.0, gt=0)
+    direction: Literal[1, -1] = 1
+    zero_deg: float = 180.0
+    min_deg: float = -180.0
+    max_deg: float = 180.0
+    velocity_deg_s: float = Field(default=60.0, ge=0)
+    acceleration_deg_s2: float = Field(default=240.0, ge=0)
+    operating_mode: Literal["position", "extended_position"] = "position"
+
+    @field_validator("joint")
+    @classmethod
+    def _known_joint(cls, v: str) -> str:
+        if v not in JOINT_NAMES:
+            raise ValueError(f"unknown joint {v!r}; expected one of {JOINT_NAMES}")
+        return v
+
+    @model_validator(mode="after")
+    def _limits_ordered(self) -> ServoConfig:
+        if not self.min_deg < self.max_deg:
+            raise ValueError(f"min_deg ({self.min_deg}) must be below max_deg ({self.max_deg})")
+        if self.operating_mode == "position":
+            # Position mode clamps goals to 0..4095 pulses (one turn of the servo horn).
+            ends = [self.pulses(math.radians(d)) for d in (self.min_deg, self.max_deg)]
+            if min(ends) < 0 or max(ends) > 4095:
+                raise ValueError(
+                    f"limits [{self.min_deg}, {self.max_deg}] deg need servo positions {ends}, "
+                    "outside 0..4095 of position mode; narrow them, move zero_deg or use "
+                    "operating_mode = 'extended_position'"
+                )
+        return self
+
+    def pulses(self, joint_rad: float) -> float:
+        """Servo position (pulses, unrounded) for a joint angle (rad)."""
+        zero = self.zero_deg * 4096.0 / 360.0
+        return zero + self.direction * self.gear_ratio * joint_rad * 4096.0 / (2 * math.pi)
+
+    def joint_rad(self, pulses: float) -> float:
+        """Joint angle (rad) for a servo position (pulses)."""
+        zero = self.zero_deg * 4096.0 / 360.0
+        return self.direction * (pulses - zero) * (2 * math.pi / 4096.0) / self.gear_ratio
+
+    @property
+    def limits_rad(self) -> tuple[float, float]:
+        """Joint limits (rad)."""
+        return math.radians(self.min_deg), math.radians(self.max_deg)
+
+
+class GeometryConfig(_Strict):
+    """Geometry of the rig (kind ``arms_tilt_spin``), world frame: origin at the sample
+    centre, +z up.
+
+    Both arms turn about the world z axis; an arm at azimuth ``a`` and elevation ``e``
+    holds its device in direction ``(cos e cos a, cos e sin a, sin e)``.  The stage
+    orientation (sample -> world) is ``A(tilt) @ B @ Rz(spin)``: ``B`` places the sample
+    normal along ``rest_normal`` and the sample +x along ``rest_reference``; ``A`` turns
+    about the horizontal ``tilt_axis``.
+    """
+
+    kind: Literal["arms_tilt_spin"] = "arms_tilt_spin"
+    light_radius_m: float = Field(default=0.50, gt=0)
+    camera_radius_m: float = Field(default=0.40, gt=0)
+    light_elevation_deg: float = Field(default=0.0, gt=-90, lt=90)
+    camera_elevation_deg: float = Field(default=0.0, gt=-90, lt=90)
+    tilt_axis: tuple[float, float, float] = (0.0, -1.0, 0.0)
+    rest_normal: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    rest_reference: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    min_separation_deg: float = Field(default=10.0, ge=0, lt=180)
+    arm_clearance_deg: float = Field(default=8.0, ge=0, lt=180)
+    arms_can_cross: bool = False
+    max_theta_deg: float = Field(default=85.0, gt=0, le=90)
+    camera_body_radius_m: float = Field(default=0.04, ge=0)
+    light_body_radius_m: float = Field(default=0.03, ge=0)
+
+    @model_validator(mode="after")
+    def _axes(self) -> GeometryConfig:
+        def norm(v):
+            return math.sqrt(sum(c * c for c in v))
+
+        for name in ("tilt_axis", "rest_normal", "rest_reference"):
+            if norm(getattr(self, name)) < 1e-9:
+                raise ValueError(f"{name} must be a non-zero vector")
+        n, r, k = self.rest_normal, self.rest_reference, self.tilt_axis
+        if abs(sum(a * b for a, b in zip(n, r, strict=True))) > 1e-6 * norm(n) * norm(r):
+            raise ValueError("rest_reference must be perpendicular to rest_normal")
+        if abs(k[2]) > 1e-6 * norm(k):
+            raise ValueError("tilt_axis must be horizontal (z component 0)")
+        return self
+
+
+class MotionConfig(_Strict):
+    """How moves are verified.  Poses are in degrees, by joint name."""
+
+    position_tolerance_pulses: int = Field(default=1, ge=0, le=100)
+    move_timeout_s: float = Field(default=20.0, gt=0)
+    home_deg: dict[str, float] = {
+        "light_azimuth": -45.0,
+        "camera_azimuth": 0.0,
+        "stage_tilt": 0.0,
+        "stage_spin": 0.0,
+    }
+    park_deg: dict[str, float] | None = None
+
+    @field_validator("home_deg", "park_deg")
+    @classmethod
+    def _joints(cls, v):
+        if v is not None:
+            bad = sorted(set(v) - set(JOINT_NAMES))
+            if bad:
+                raise ValueError(f"unknown joint(s) {bad}; expected names from {JOINT_NAMES}")
+        return v
+
+
+class RigConfig(_Strict):
+    """A whole rig: bus, servos (one per joint), geometry, motion settings."""
+
+    name: str = "rig"
+    bus: BusConfig = BusConfig()
+    servos: tuple[ServoConfig, ...]
+    geometry: GeometryConfig = GeometryConfig()
+    motion: MotionConfig = MotionConfig()
+
+    @model_validator(mode="after")
+    def _servos_consistent(self) -> RigConfig:
+        ids = [s.id for s in self.servos]
+        dup = sorted({i for i in ids if ids.count(i) > 1})
+        if dup:
+            raise ValueError(f"duplicate servo ID(s) {dup}: every servo needs its own ID")
+        joints = [s.joint for s in self.servos]
+        dupj = sorted({j for j in joints if joints.count(j) > 1})
+        if dupj:
+            raise ValueError(f"joint(s) {dupj} driven by more than one servo")
+        missing = [j for j in JOINT_NAMES if j not in joints]
+        if missing:
+            raise ValueError(f"no servo drives joint(s) {missing}; {self.geometry.kind} needs all of {JOINT_NAMES}")
+        for pose_name in ("home_deg", "park_deg"):
+            pose = getattr(self.motion, pose_name)
+            for s in self.servos if pose else ():
+                v = pose.get(s.joint)
+                if v is not None and not s.min_deg <= v <= s.max_deg:
+                    raise ValueError(
+                        f"motion.{pose_name}.{s.joint} = {v} deg outside the servo limits "
+                        f"[{s.min_deg}, {s.max_deg}]"
+                    )
+        return self
+
+    def servo_for(self, joint: str) -> ServoConfig:
+        """The servo that drives ``joint``."""
+        for s in self.servos:
+            if s.joint == joint:
+                return s
+        raise ConfigError(f"no servo drives joint {joint!r}")
+
+    @property
+    def home_rad(self) -> dict[str, float]:
+        """Home pose, joint name -> rad."""
+        return {j: math.radians(v) for j, v in self.motion.home_deg.items()}
+
+    @property
+    def park_rad(self) -> dict[str, float]:
+        """Park pose (defaults to home), joint name -> rad."""
+        pose = self.motion.park_deg if self.motion.park_deg is not None else self.motion.home_deg
+        return {j: math.radians(v) for j, v in pose.items()}
+
+
+def _format_validation(err: ValidationError, source: str) -> str:
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        lines.append(f"{source}: field '{loc}': {e['msg']} (got {e.get('input')!r})")
+    return "\n".join(lines)
+
+
+def rig_config_from_dict(data: dict, source: str = "<dict>") -> RigConfig:
+    """Validate a parsed TOML document into a :class:`RigConfig`.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``source`` and each offending field.
+    """
+    try:
+        return RigConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_validation(exc, source)) from None
+
+
+def load_rig_config(path: str | Path) -> RigConfig:
+    """Read and validate a rig configuration TOML file.
+
+    Raises
+    ------
+    ConfigError
+        If the file is missing, is not TOML, or a field is invalid (the message names the
+        file and the field).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read rig configuration: {exc.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return rig_config_from_dict(data, str(path))
+
+
+def default_rig_config() -> RigConfig:
+    """The default four-servo preset (``gonio/rig/default_rig.toml``)."""
+    text = resources.files("gonio.rig").joinpath("default_rig.toml").read_text(encoding="utf-8")
+    return rig_config_from_dict(tomllib.loads(text), "gonio.rig:default_rig.toml")

@@ -1,0 +1,467 @@
+"""Kinematics of the gonioreflectometer: joint angles <-> light and camera directions.
+
+Geometry kind ``arms_tilt_spin`` (the default preset, see :class:`GeometryConfig`)
+-------------------------------------------------------------------------------------
+World frame: origin at the sample centre, +z up.  The light arm and the camera arm turn
+about the world z axis; an arm at azimuth ``a`` and elevation ``e`` holds its device in
+direction ``d(a, e) = (cos e cos a, cos e sin a, sin e)`` from the sample centre.  The
+stage maps sample coordinates to world coordinates with ``M = A(tilt) @ B @ Rz(spin)``:
+``Rz`` spins about the sample normal, ``B`` is the rest orientation (sample normal along
+``rest_normal``, sample +x along ``rest_reference``), ``A`` turns about the horizontal
+``tilt_axis``.  Then ``wi = M.T @ d(a_light, e_light)`` and ``wo = M.T @ d(a_cam, e_cam)``.
+
+Inverse.  Let ``u = M.T @ z`` be the world's up direction seen in the sample frame.  Both
+devices sit at fixed elevations, so ``u . wi = sin e_light`` and ``u . wo = sin e_cam``:
+``u = alpha wi + beta wo + gamma (wi x wo)`` with ``(alpha, beta)`` from a 2x2 linear system
+and ``gamma = +-sqrt(1 - |alpha wi + beta wo|^2) / |wi x wo|`` -- two mirror solutions
+(light left or right of the camera).  ``u`` fixes the tilt (from ``u_z``, two branches) and
+the spin (from the azimuth of ``u``); the arm azimuths then follow from ``M wi`` and
+``M wo``.  With both elevations 0 the in-plane configurations (``phi_o = phi_i + pi``)
+have ``u`` along the sample y axis, i.e. tilt = 0; out-of-plane configurations tilt the
+stage.  Four joints give four degrees of freedom, so every pair (wi, wo) -- isotropic
+and anisotropic -- is reached, except when wi and wo are parallel (the devices would
+have to be in the same place).
+
+Every solution (both mirrors, both tilt branches, every 2 pi turn within the limits) is
+checked against joint limits, the holder rim (``max_theta_deg``), the camera-shadow
+condition (angular separation of light and camera seen from the sample below
+``min_separation_deg`` or below what the devices' bodies subtend) and arm-arm
+clearance, and -- when the arms cannot pass each other -- that the move keeps the arms'
+order and clearance along the servos' trapezoid profiles.  The survivor with the
+shortest move time wins.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from gonio.errors import ConfigError, RigError
+from gonio.rig.config import JOINT_NAMES, RigConfig
+from gonio.rig.control_table import (
+    MODELS,
+    acceleration_register,
+    profile_pulses,
+    velocity_register,
+)
+
+Array = NDArray[np.float64]
+Joints = Mapping[str, float]
+
+_Z = np.array([0.0, 0.0, 1.0])
+_EPS = 1e-12
+
+
+def _unit(v: ArrayLike) -> Array:
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.linalg.norm(v)
+
+
+def _rotation(axis: Array, angle: ArrayLike) -> Array:
+    """Rodrigues rotation matrices about unit ``axis`` by ``angle`` (rad), shape (..., 3, 3)."""
+    angle = np.asarray(angle, dtype=np.float64)
+    kx, ky, kz = axis
+    K = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
+    s = np.sin(angle)[..., None, None]
+    c = np.cos(angle)[..., None, None]
+    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+
+
+def _wrap(a: ArrayLike) -> Array:
+    """Angle wrapped to (-pi, pi]."""
+    return -np.remainder(-np.asarray(a, dtype=np.float64) + np.pi, 2 * np.pi) + np.pi
+
+
+def _angle_between(a: Array, b: Array) -> Array:
+    """Angle (rad) between vectors, accurate near 0 and pi (atan2 of cross and dot)."""
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("...i,...i", a, b))
+
+
+def trapezoid_time(distance: ArrayLike, speed: ArrayLike, accel: ArrayLike) -> Array:
+    """Duration (s) of a rest-to-rest trapezoid move.
+
+    Parameters
+    ----------
+    distance
+        Path length (any unit u), >= 0.
+    speed, accel
+        Cruise speed (u/s, > 0) and acceleration (u/s^2, may be ``inf``).
+    """
+    d = np.abs(np.asarray(distance, dtype=np.float64))
+    v = np.asarray(speed, dtype=np.float64)
+    a = np.asarray(accel, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ramp = np.where(np.isinf(a), 0.0, v * v / a)  # distance to reach v and stop again
+        t_full = d / v + np.where(np.isinf(a), 0.0, v / a)
+        t_tri = 2.0 * np.sqrt(d / a)
+    return np.where(d >= ramp, t_full, t_tri)
+
+
+def trapezoid_position(distance: float, speed: float, accel: float, t: ArrayLike) -> Array:
+    """Distance covered at time ``t`` (s) along the move of :func:`trapezoid_time`."""
+    t = np.asarray(t, dtype=np.float64)
+    d = abs(distance)
+    if d == 0:
+        return np.zeros_like(t)
+    if math.isinf(accel):
+        return np.clip(t * speed, 0.0, d)
+    v = min(speed, math.sqrt(d * accel))  # peak speed (triangle when the cruise is never reached)
+    t_acc = v / accel
+    t_total = float(trapezoid_time(d, speed, accel))
+    t_dec = t_total - t_acc
+    out = np.where(
+        t < t_acc,
+        0.5 * accel * t * t,
+        np.where(t < t_dec, 0.5 * accel * t_acc**2 + v * (t - t_acc),
+                 d - 0.5 * accel * np.clip(t_total - t, 0.0, None) ** 2),
+    )
+    return np.clip(np.where(t <= 0, 0.0, out), 0.0, d)
+
+
+@dataclass(frozen=True)
+class RigPoses:
+    """Where the devices are, in the sample frame (metres; origin at the sample centre).
+
+    Attributes
+    ----------
+    wi, wo
+        Unit directions from the sample centre towards the light and the camera.
+    light_position
+        Light centre, ``light_radius_m * wi``.
+    light_normal
+        The light's emitting normal, pointing at the sample centre (``-wi``).
+    camera_position
+        Camera centre of projection, ``camera_radius_m * wo``.
+    camera_rotation
+        3x3 matrix whose columns are the camera axes expressed in the sample frame, in the
+        OpenCV convention: x right, y down (image rows), z forward (optical axis, towards
+        the sample centre).  A point ``p_cam`` in camera coordinates is
+        ``camera_rotation @ p_cam + camera_position`` in the sample frame; the OpenCV
+        extrinsics (sample -> camera) are ``R = camera_rotation.T``,
+        ``t = -camera_rotation.T @ camera_position``.  Image "up" is world up.
+    sample_to_world
+        Stage orientation: sample-frame vectors -> world vectors (world +z up).
+    """
+
+    wi: Array
+    wo: Array
+    light_position: Array
+    light_normal: Array
+    camera_position: Array
+    camera_rotation: Array
+    sample_to_world: Array
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    joints: dict[str, float]
+    reason: str | None
+
+
+class Kinematics:
+    """Forward and inverse kinematics of a rig configuration.
+
+    Parameters
+    ----------
+    config
+        The rig (its ``geometry`` and the servos' limits and motion profiles).
+    """
+
+    def __init__(self, config: RigConfig) -> None:
+        g = config.geometry
+        if g.kind != "arms_tilt_spin":  # pragma: no cover - pydantic already restricts kind
+            raise ConfigError(f"geometry.kind {g.kind!r} is not supported")
+        self.config = config
+        self.geometry = g
+        x_s = _unit(g.rest_reference)
+        z_s = _unit(g.rest_normal)
+        self._B = np.stack([x_s, np.cross(z_s, x_s), z_s], axis=1)  # columns: sample axes
+        self._k = _unit(g.tilt_axis)
+        # Up seen from the rest stage: v(t) = p cos t - q sin t with p = B^T z, q = B^T (k x z).
+        self._p = self._B.T @ _Z
+        self._q = self._B.T @ np.cross(self._k, _Z)
+        self._tilt_amp = math.hypot(self._p[2], self._q[2])
+        if self._tilt_amp < 1e-9:
+            raise ConfigError("geometry: tilting about tilt_axis never changes the stage's inclination")
+        self._tilt_phase = math.atan2(-self._q[2], self._p[2])
+        self._eL = math.radians(g.light_elevation_deg)
+        self._eC = math.radians(g.camera_elevation_deg)
+        self.limits = {s.joint: s.limits_rad for s in config.servos}
+        self._servo = {s.joint: s for s in config.servos}
+        self._profile = {}
+        for s in config.servos:
+            model = MODELS.get(s.model)
+            if model is None:
+                raise ConfigError(f"servo {s.id}: unknown model {s.model!r}; known: {sorted(MODELS)}")
+            speed = math.radians(s.velocity_deg_s) * s.gear_ratio
+            accel = math.radians(s.acceleration_deg_s2) * s.gear_ratio
+            self._profile[s.joint] = profile_pulses(
+                velocity_register(speed), acceleration_register(accel), model
+            )
+        body = math.asin(min(1.0, g.camera_body_radius_m / g.camera_radius_m)) + math.asin(
+            min(1.0, g.light_body_radius_m / g.light_radius_m)
+        )
+        self.min_separation = max(math.radians(g.min_separation_deg), body)
+        self.arm_clearance = math.radians(g.arm_clearance_deg)
+        self.max_theta = math.radians(g.max_theta_deg)
+
+    # ------------------------------------------------------------------ forward
+    def sample_to_world(self, tilt: ArrayLike, spin: ArrayLike) -> Array:
+        """Stage rotation ``A(tilt) @ B @ Rz(spin)`` (sample -> world), shape (..., 3, 3)."""
+        return _rotation(self._k, tilt) @ self._B @ _rotation(_Z, spin)
+
+    @staticmethod
+    def _device(azimuth: ArrayLike, elevation: float) -> Array:
+        a = np.asarray(azimuth, dtype=np.float64)
+        ce = math.cos(elevation)
+        return np.stack(np.broadcast_arrays(ce * np.cos(a), ce * np.sin(a), math.sin(elevation) + 0 * a), -1)
+
+    def forward(self, joints: Joints) -> tuple[Array, Array]:
+        """Light and camera directions in the sample frame.
+
+        Parameters
+        ----------
+        joints
+            Joint name -> angle (rad); floats or broadcastable arrays.
+
+        Returns
+        -------
+        wi, wo : ndarray, shape (..., 3)
+            Unit vectors from the sample centre towards the light and the camera.
+        """
+        self._require(joints)
+        M = self.sample_to_world(joints["stage_tilt"], joints["stage_spin"])
+        l = self._device(joints["light_azimuth"], self._eL)
+        c = self._device(joints["camera_azimuth"], self._eC)
+        Mt = np.swapaxes(M, -1, -2)
+        return np.einsum("...ij,...j->...i", Mt, l), np.einsum("...ij,...j->...i", Mt, c)
+
+    def poses(self, joints: Joints) -> RigPoses:
+        """Positions and orientations of light and camera in the sample frame (metres).
+
+        See :class:`RigPoses` for the conventions (camera axes: OpenCV, x right, y down,
+        z forward towards the sample centre).
+        """
+        self._require(joints)
+        M = self.sample_to_world(float(joints["stage_tilt"]), float(joints["stage_spin"]))
+        wi, wo = self.forward({k: float(v) for k, v in joints.items()})
+        g = self.geometry
+        z_cam = -wo
+        down = -(M.T @ _Z)  # world down, in the sample frame
+        y_cam = down - (down @ z_cam) * z_cam
+        ny = np.linalg.norm(y_cam)
+        if ny < 1e-9:  # camera looking straight up or down (elevation 90): roll is arbitrary
+            y_cam = np.cross(z_cam, [1.0, 0.0, 0.0])
+            if np.linalg.norm(y_cam) < 1e-9:
+                y_cam = np.cross(z_cam, [0.0, 1.0, 0.0])
+            ny = np.linalg.norm(y_cam)
+        y_cam = y_cam / ny
+        x_cam = np.cross(y_cam, z_cam)
+        return RigPoses(
+            wi=wi,
+            wo=wo,
+            light_position=g.light_radius_m * wi,
+            light_normal=-wi,
+            camera_position=g.camera_radius_m * wo,
+            camera_rotation=np.stack([x_cam, y_cam, z_cam], axis=1),
+            sample_to_world=M,
+        )
+
+    # ------------------------------------------------------------------ motion
+    def move_time(self, joints_from: Joints, joints_to: Joints) -> float:
+        """Time (s) the servos need to move between two poses, each on its trapezoid profile.
+
+        Uses the profile velocity and acceleration register values the controller writes
+        (so the quantisation matches the servos), and the goal positions rounded to
+        pulses.  Joints missing from either mapping do not move.
+        """
+        t = 0.0
+        for j, (v, a) in self._profile.items():
+            if j in joints_from and j in joints_to:
+                s = self._servo[j]
+                d = abs(round(s.pulses(float(joints_to[j]))) - round(s.pulses(float(joints_from[j]))))
+                t = max(t, float(trapezoid_time(d, v, a)))
+        return t
+
+    def joint_trajectory(self, joints_from: Joints, joints_to: Joints, n: int = 65) -> dict[str, Array]:
+        """Joint angles (rad) at ``n`` instants of a move, every servo on its own profile."""
+        total = self.move_time(joints_from, joints_to)
+        ts = np.linspace(0.0, total, n)
+        out = {}
+        for j in JOINT_NAMES:
+            s = self._servo[j]
+            p0, p1 = s.pulses(float(joints_from[j])), s.pulses(float(joints_to[j]))
+            v, a = self._profile[j]
+            covered = trapezoid_position(abs(p1 - p0), v, a, ts)
+            out[j] = np.array([s.joint_rad(p0 + math.copysign(c, p1 - p0)) for c in covered])
+        return out
+
+    # ------------------------------------------------------------------ checks
+    def _pose_reason(self, q: dict[str, float], wi: Array, wo: Array) -> str | None:
+        for j, (lo, hi) in self.limits.items():
+            if not lo - 1e-12 <= q[j] <= hi + 1e-12:
+                return (
+                    f"{j} would need {math.degrees(q[j]):.3f} deg, outside its limits "
+                    f"[{math.degrees(lo):.1f}, {math.degrees(hi):.1f}] deg"
+                )
+        sep = float(_angle_between(wi, wo))
+        if sep < self.min_separation:
+            return (
+                f"light and camera only {math.degrees(sep):.2f} deg apart seen from the sample "
+                f"(minimum {math.degrees(self.min_separation):.2f} deg): the camera would shadow "
+                "the light (or the light block the camera)"
+            )
+        gap = abs(float(_wrap(q["light_azimuth"] - q["camera_azimuth"])))
+        if gap < self.arm_clearance:
+            return (
+                f"light and camera arms {math.degrees(gap):.2f} deg apart in azimuth, below the "
+                f"arm clearance {math.degrees(self.arm_clearance):.2f} deg (arms would collide)"
+            )
+        return None
+
+    def _path_reason(self, q0: Joints, q1: Joints) -> str | None:
+        if self.geometry.arms_can_cross:
+            return None
+        path = self.joint_trajectory(q0, q1)
+        d = path["camera_azimuth"] - path["light_azimuth"]
+        if np.any(np.sign(d) != np.sign(d[0])) or np.min(np.abs(d)) < self.arm_clearance - 1e-12:
+            return (
+                "the move would make the light and camera arms pass or touch each other "
+                f"(azimuth gap down to {math.degrees(float(np.min(np.abs(d)))):.2f} deg)"
+            )
+        return None
+
+    def _direction_reason(self, wi: Array, wo: Array) -> str | None:
+        for name, w in (("wi", wi), ("wo", wo)):
+            if not np.all(np.isfinite(w)) or np.linalg.norm(w) < 1e-9:
+                return f"{name} = {w.tolist()} is not a finite non-zero direction"
+        ti, to = float(np.arccos(np.clip(wi[2], -1, 1))), float(np.arccos(np.clip(wo[2], -1, 1)))
+        for name, th in (("theta_i", ti), ("theta_o", to)):
+            if th > self.max_theta:
+                return (
+                    f"{name} = {math.degrees(th):.2f} deg beyond {math.degrees(self.max_theta):.1f} deg: "
+                    "the sample holder's rim blocks that direction"
+                )
+        return None
+
+    def _candidates(self, wi: Array, wo: Array) -> tuple[list[dict[str, float]], str | None]:
+        """All joint solutions within the limits' turn counts (not yet checked)."""
+        sL, sC = math.sin(self._eL), math.sin(self._eC)
+        c = float(wi @ wo)
+        cross = np.cross(wi, wo)
+        ncross = float(np.linalg.norm(cross))
+        if ncross < 1e-9:
+            return [], "wi and wo are parallel: light and camera would have to be in the same place"
+        det = 1.0 - c * c
+        alpha, beta = (sL - c * sC) / det, (sC - c * sL) / det
+        r2 = alpha * sL + beta * sC
+        if r2 > 1.0 + 1e-12:
+            return [], "no stage orientation puts both directions at the arms' elevations"
+        gamma = math.sqrt(max(0.0, 1.0 - r2)) / ncross
+        out = []
+        reason = None
+        for sign in (1.0, -1.0):
+            u = alpha * wi + beta * wo + sign * gamma * cross
+            u = u / np.linalg.norm(u)
+            ratio = u[2] / self._tilt_amp
+            if abs(ratio) > 1.0 + 1e-12:
+                reason = "the stage cannot tilt far enough for this pair"
+                continue
+            half = math.acos(max(-1.0, min(1.0, ratio)))
+            for t in {self._tilt_phase + half, self._tilt_phase - half}:
+                v = self._p * math.cos(t) - self._q * math.sin(t)
+                s = math.atan2(v[1], v[0]) - math.atan2(u[1], u[0])
+                M = self.sample_to_world(t, s)
+                l, cam = M @ wi, M @ wo
+                aL, aC = math.atan2(l[1], l[0]), math.atan2(cam[1], cam[0])
+                base = {"light_azimuth": aL, "camera_azimuth": aC, "stage_tilt": t, "stage_spin": s}
+                options = []
+                for j in JOINT_NAMES:
+                    lo, hi = self.limits[j]
+                    k0 = math.ceil((lo - base[j]) / (2 * math.pi) - 1e-9)
+                    k1 = math.floor((hi - base[j]) / (2 * math.pi) + 1e-9)
+                    vals = [base[j] + 2 * math.pi * k for k in range(k0, k1 + 1)]
+                    if not vals:  # keep the nearest so the reason names the joint
+                        vals = [base[j] + 2 * math.pi * round(((lo + hi) / 2 - base[j]) / (2 * math.pi))]
+                    options.append(vals)
+                for combo in itertools.product(*options):
+                    out.append(dict(zip(JOINT_NAMES, combo, strict=True)))
+        return out, reason
+
+    def _solve(self, wi: ArrayLike, wo: ArrayLike, current: Joints | None) -> tuple[dict | None, str | None]:
+        wi = np.asarray(wi, dtype=np.float64).reshape(3)
+        wo = np.asarray(wo, dtype=np.float64).reshape(3)
+        reason = self._direction_reason(wi, wo)
+        if reason:
+            return None, reason
+        wi, wo = wi / np.linalg.norm(wi), wo / np.linalg.norm(wo)
+        cands, reason = self._candidates(wi, wo)
+        ref = dict(current) if current is not None else self.config.home_rad
+        best, best_cost = None, math.inf
+        reasons = [reason] if reason else []
+        for q in cands:
+            r = self._pose_reason(q, wi, wo)
+            if r is None and current is not None:
+                r = self._path_reason(ref, q)
+            elif r is None and not self.geometry.arms_can_cross:
+                # no current pose: keep the arms in the home pose's order
+                d0 = ref["camera_azimuth"] - ref["light_azimuth"]
+                if np.sign(q["camera_azimuth"] - q["light_azimuth"]) != np.sign(d0):
+                    r = "the arms would have to pass each other (order differs from home)"
+            if r is not None:
+                reasons.append(r)
+                continue
+            cost = self.move_time(ref, q) + 1e-6 * sum(abs(q[j] - ref[j]) for j in JOINT_NAMES)
+            if cost < best_cost:
+                best, best_cost = q, cost
+        if best is None:
+            # The most specific reason: prefer limit / shadow reasons over the order one.
+            reasons.sort(key=lambda r: "order" in r or "pass" in r)
+            return None, reasons[0] if reasons else "no solution"
+        return best, None
+
+    def inverse(self, wi: ArrayLike, wo: ArrayLike, current: Joints | None = None) -> dict[str, float]:
+        """Joint angles (rad) that put the light along ``wi`` and the camera along ``wo``.
+
+        Parameters
+        ----------
+        wi, wo
+            Directions in the sample frame (shape (3,), need not be normalised).
+        current
+            Present joint angles (rad); the solution with the shortest move from there
+            (from the home pose if None) is chosen among the reachable, collision-free ones.
+
+        Raises
+        ------
+        RigError
+            If no solution is reachable; the message says why (limits, camera shadow, arm
+            collision, holder rim, parallel directions).
+        """
+        q, reason = self._solve(wi, wo, current)
+        if q is None:
+            raise RigError(
+                f"cannot reach wi={np.round(np.asarray(wi, float), 6).tolist()}, "
+                f"wo={np.round(np.asarray(wo, float), 6).tolist()}: {reason}"
+            )
+        return q
+
+    def check(self, wi: ArrayLike, wo: ArrayLike, current: Joints | None = None) -> str | None:
+        """Why ``(wi, wo)`` cannot be reached (a sentence), or None when it can."""
+        return self._solve(wi, wo, current)[1]
+
+    def check_joints(self, joints: Joints) -> str | None:
+        """Why a joint pose is not allowed (limits, shadow, clearance), or None."""
+        self._require(joints)
+        wi, wo = self.forward(joints)
+        return self._direction_reason(wi, wo) or self._pose_reason(dict(joints), wi, wo)
+
+    @staticmethod
+    def _require(joints: Joints) -> None:
+        missing = [j for j in JOINT_NAMES if j not in joints]
+        if missing:
+            raise RigError(f"joint angles missing for {missing}; expected all of {JOINT_NAMES}")

@@ -1,0 +1,684 @@
+"""The simulated scene: sample, holder with ChArUco board, lights, occluders, camera.
+
+A scene is a pydantic model, usually read from TOML with :func:`load_scene`.  All
+positions are in the *sample frame* (metres): the sample and its holder lie in the plane
+z = 0 with +z their normal, +x the sample's reference direction.
+
+TOML schema (every length in metres, angles in degrees where the name says ``_deg``)::
+
+    [sample]
+    width = 0.05                 # extent along x
+    height = 0.05                # extent along y
+    albedo_map = "albedo.npy"    # optional: (H, W) or (H, W, 3) array or 8/16-bit image,
+                                 # multiplies f_r; row 0 at +y, column 0 at -x
+    [sample.brdf]                # either an analytic model ...
+    model = "lambert+ggx"        # any gonio.brdf model name
+    params = { albedo = [0.5, 0.4, 0.3], ks = 0.04, alpha = 0.2 }
+    options = { fresnel = "schlick" }   # keyword options of get_model
+    # file = "paper_white_rgb.bsdf"     # ... or a measured file (gonio.brdf.load)
+
+    [holder]                     # optional: a Lambertian plate around the sample
+    width = 0.15
+    height = 0.15
+    albedo_black = 0.04          # printed black (per channel or scalar)
+    albedo_white = 0.85          # printed white / bare plate
+    [holder.board]               # ChArUco board printed on it, centred on the origin
+    squares_x = 7
+    squares_y = 7
+    square_length = 0.02
+    marker_length = 0.015
+    dictionary = "DICT_4X4_50"   # any cv2.aruco predefined dictionary
+    [holder.reference_patch]     # optional Lambertian patch of known albedo
+    center = [0.055, -0.055]
+    size = [0.015, 0.015]
+    albedo = 0.99
+
+    [[lights]]                   # one or more
+    type = "disk"                # "point" | "disk" | "rectangle"
+    position = [0.0, 0.25, 0.433]
+    look_at = [0.0, 0.0, 0.0]    # or normal = [...], the emitting direction
+    radius = 0.01                # disk
+    # width, height, up: rectangle; intensity (W/sr) for point lights
+    radiance = [1.0e4, 1.0e4, 1.0e4]        # camera-space RGB, W/(sr m^2)
+    # radiance = { illuminant = "D65", scale = 100.0 }   # or a spectrum (see Spectrum)
+
+    [[occluders]]
+    type = "box"                 # center, size, rotation_deg (xyz Euler, degrees)
+    center = [0.0, 0.1, 0.2]
+    size = [0.02, 0.02, 0.1]
+    [[occluders]]
+    type = "cylinder"            # start, end, radius
+    start = [0.1, 0.0, 0.0]
+    end = [0.1, 0.0, 0.3]
+    radius = 0.01
+
+    [camera]
+    resolution = [640, 480]      # width, height in pixels
+    focal_length = 0.035
+    pixel_pitch = 5.0e-6         # or fov_deg (horizontal), giving the pitch
+    position = [0.0, -0.25, 0.433]
+    look_at = [0.0, 0.0, 0.0]    # or rotation (3x3 world->camera, OpenCV axes)
+    up = [0.0, 0.0, 1.0]
+    f_number = 8.0
+    exposure_time = 0.01
+    iso = 100
+    [camera.sensor]              # see Sensor for the fields and their defaults
+
+    [render]
+    tolerance = 1e-4             # relative per-pixel error target of the light integral
+    strategy = "auto"            # "auto" | "point" | "quadrature" | "mc"
+    antialias = 4                # sub-samples per axis on edge pixels (1: off)
+
+    [rig]                        # optional: light and camera poses from joint angles
+    joints_deg = { light = 30.0, camera = -30.0 }
+    config = "rig.toml"          # optional; the default rig preset otherwise
+
+The camera follows OpenCV's convention: camera x right, y down, z forward; ``rotation``
+maps sample-frame vectors to camera-frame vectors.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from functools import cached_property
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from gonio.errors import ConfigError
+
+__all__ = [
+    "BRDFSpec",
+    "Board",
+    "BoxOccluder",
+    "Camera",
+    "CylinderOccluder",
+    "DiskLight",
+    "Holder",
+    "PointLight",
+    "RectangleLight",
+    "ReferencePatch",
+    "RenderSettings",
+    "RigPoseSpec",
+    "Sample",
+    "Scene",
+    "Sensor",
+    "Spectrum",
+    "load_scene",
+    "look_at_rotation",
+    "parse_scene",
+]
+
+Vec3 = tuple[float, float, float]
+Vec2 = tuple[float, float]
+Positive = Annotated[float, Field(gt=0)]
+RGBOrScalar = float | tuple[float, float, float]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _rgb(value: RGBOrScalar) -> np.ndarray:
+    return np.broadcast_to(np.asarray(value, dtype=np.float64), (3,)).copy()
+
+
+def _unit(v: Any, what: str) -> np.ndarray:
+    a = np.asarray(v, dtype=np.float64)
+    n = float(np.linalg.norm(a))
+    if not np.isfinite(n) or n == 0.0:
+        raise ValueError(f"{what} must be a non-zero finite vector, got {v}")
+    return a / n
+
+
+def look_at_rotation(position: Any, target: Any, up: Any = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """World-to-camera rotation (OpenCV axes: x right, y down, z forward).
+
+    Parameters
+    ----------
+    position, target
+        Camera centre and the point it looks at, metres, shape (3,).
+    up
+        Approximate up direction in the image; when parallel to the viewing direction,
+        the sample frame's +y (then +x) is used instead.
+
+    Returns
+    -------
+    ndarray (3, 3)
+        Rows are the camera's x, y, z axes expressed in the world (sample) frame.
+    """
+    forward = _unit(np.asarray(target, float) - np.asarray(position, float), "look direction")
+    for cand in (up, (0.0, 1.0, 0.0), (1.0, 0.0, 0.0)):
+        right = np.cross(forward, _unit(cand, "up"))
+        if np.linalg.norm(right) > 1e-9:
+            break
+    right = right / np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return np.stack([right, down, forward])
+
+
+class Spectrum(_Model):
+    """A light's spectral radiance, converted to camera RGB with the camera's sensitivities.
+
+    Exactly one of ``illuminant`` (a name in ``colour.SDS_ILLUMINANTS``), ``blackbody``
+    (temperature, K) or ``csv`` (two columns: wavelength nm, value) is given.  The
+    spectrum is normalised to 1 at 560 nm and multiplied by ``scale`` (W/(sr m^2 nm), or
+    W/(sr nm) for point lights).  Channel c is ``sum S(l) s_c(l) dl`` over the camera
+    sensitivities ``s_c`` (peak 1), so a flat spectrum of 1 gives each channel the
+    equivalent width of its sensitivity in nm.
+    """
+
+    illuminant: str | None = None
+    blackbody: Positive | None = None
+    csv: Path | None = None
+    scale: Positive = 1.0
+
+    @model_validator(mode="after")
+    def _one_source(self) -> Spectrum:
+        given = [x is not None for x in (self.illuminant, self.blackbody, self.csv)]
+        if sum(given) != 1:
+            raise ValueError("give exactly one of 'illuminant', 'blackbody' or 'csv'")
+        return self
+
+    def to_camera_rgb(self, sensitivities: str, base: Path | None = None) -> np.ndarray:
+        """Integrate against the named ``colour.MSDS_CAMERA_SENSITIVITIES`` entry."""
+        import colour
+
+        if sensitivities not in colour.MSDS_CAMERA_SENSITIVITIES:
+            raise ConfigError(
+                f"camera.sensor.spectral_sensitivities: unknown camera {sensitivities!r}; "
+                f"known: {sorted(colour.MSDS_CAMERA_SENSITIVITIES)}"
+            )
+        cam = colour.MSDS_CAMERA_SENSITIVITIES[sensitivities]
+        wl = cam.wavelengths
+        if self.illuminant is not None:
+            if self.illuminant not in colour.SDS_ILLUMINANTS:
+                raise ConfigError(f"unknown illuminant {self.illuminant!r}")
+            sd = colour.SDS_ILLUMINANTS[self.illuminant]
+            values = np.interp(wl, sd.wavelengths, sd.values)
+            ref = np.interp(560.0, sd.wavelengths, sd.values)
+        elif self.blackbody is not None:
+            values = colour.colorimetry.planck_law(wl * 1e-9, self.blackbody)
+            ref = colour.colorimetry.planck_law(560e-9, self.blackbody)
+        else:
+            path = self.csv if base is None or self.csv.is_absolute() else base / self.csv
+            try:
+                data = np.loadtxt(path, delimiter=",", ndmin=2)
+            except (OSError, ValueError) as exc:
+                raise ConfigError(f"spectrum csv {path}: {exc}") from exc
+            values = np.interp(wl, data[:, 0], data[:, 1], left=0.0, right=0.0)
+            ref = np.interp(560.0, data[:, 0], data[:, 1])
+        s = np.asarray(values, float) / float(ref) * self.scale
+        dl = np.gradient(wl)
+        return np.einsum("l,lc,l->c", s, np.asarray(cam.values, float), dl)
+
+
+Colour = float | tuple[float, float, float] | Spectrum
+
+
+class BRDFSpec(_Model):
+    """The sample's BRDF: a ``gonio.brdf`` model with parameters, or a measured file."""
+
+    model: str | None = None
+    params: dict[str, float | list[float]] = Field(default_factory=dict)
+    options: dict[str, Any] = Field(default_factory=dict)
+    file: Path | None = None
+
+    @model_validator(mode="after")
+    def _model_or_file(self) -> BRDFSpec:
+        if (self.model is None) == (self.file is None):
+            raise ValueError("give exactly one of 'model' (with 'params') or 'file'")
+        return self
+
+
+class Sample(_Model):
+    """The measured sample: a rectangle centred on the origin in the plane z = 0."""
+
+    width: Positive
+    height: Positive
+    brdf: BRDFSpec
+    albedo_map: Path | None = None
+
+
+class Board(_Model):
+    """A ChArUco board (OpenCV ``cv2.aruco.CharucoBoard``) printed on the holder."""
+
+    squares_x: Annotated[int, Field(ge=2)] = 7
+    squares_y: Annotated[int, Field(ge=2)] = 7
+    square_length: Positive = 0.02
+    marker_length: Positive = 0.015
+    dictionary: str = "DICT_4X4_50"
+    pixels_per_square: Annotated[int, Field(ge=8)] = 64
+
+    @model_validator(mode="after")
+    def _marker_fits(self) -> Board:
+        if self.marker_length >= self.square_length:
+            raise ValueError("marker_length must be smaller than square_length")
+        return self
+
+    @field_validator("dictionary")
+    @classmethod
+    def _known_dictionary(cls, v: str) -> str:
+        import cv2
+
+        if not v.startswith("DICT_") or not hasattr(cv2.aruco, v):
+            raise ValueError(f"unknown cv2.aruco dictionary {v!r} (e.g. 'DICT_4X4_50')")
+        return v
+
+    def cv_board(self) -> Any:
+        """The OpenCV board object (object points in metres, board frame)."""
+        import cv2
+
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+        return cv2.aruco.CharucoBoard(
+            (self.squares_x, self.squares_y), self.square_length, self.marker_length, d
+        )
+
+    @property
+    def extent(self) -> tuple[float, float]:
+        """Board width and height, metres."""
+        return self.squares_x * self.square_length, self.squares_y * self.square_length
+
+    def board_to_sample(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rotation and translation taking board-frame points to the sample frame.
+
+        OpenCV's board frame has its origin at the board's top-left corner, x along the
+        image columns, y down the rows, z into the board.  The board is printed centred on
+        the sample-frame origin with its columns along +x and its rows along -y, so
+        ``p_sample = R @ p_board + t``.
+        """
+        bw, bh = self.extent
+        return np.diag([1.0, -1.0, -1.0]), np.array([-bw / 2, bh / 2, 0.0])
+
+    def image(self) -> np.ndarray:
+        """The printed board as a boolean array (True = white), row 0 at the board's top."""
+        n = self.pixels_per_square
+        img = self.cv_board().generateImage(
+            (self.squares_x * n, self.squares_y * n), marginSize=0, borderBits=1
+        )
+        return img > 127
+
+
+class ReferencePatch(_Model):
+    """A Lambertian patch of known albedo on the holder (radiometric reference)."""
+
+    center: Vec2
+    size: tuple[Positive, Positive]
+    albedo: RGBOrScalar = 0.99
+
+
+class Holder(_Model):
+    """A Lambertian plate around the sample carrying a ChArUco board."""
+
+    width: Positive
+    height: Positive
+    albedo_black: RGBOrScalar = 0.04
+    albedo_white: RGBOrScalar = 0.85
+    board: Board | None = Field(default_factory=Board)
+    reference_patch: ReferencePatch | None = None
+
+
+class PointLight(_Model):
+    """An isotropic point source; ``intensity`` in W/sr per channel."""
+
+    type: Literal["point"] = "point"
+    position: Vec3
+    intensity: Colour
+
+
+class _AreaLight(_Model):
+    position: Vec3
+    normal: Vec3 | None = None
+    look_at: Vec3 | None = None
+    radiance: Colour
+
+    @model_validator(mode="after")
+    def _orientation(self) -> _AreaLight:
+        if self.normal is not None and self.look_at is not None:
+            raise ValueError("give 'normal' or 'look_at', not both")
+        _unit(self.emit_normal(), "light normal")
+        return self
+
+    def emit_normal(self) -> np.ndarray:
+        """Unit emitting direction (the light emits into its +normal half-space)."""
+        if self.normal is not None:
+            return _unit(self.normal, "normal")
+        target = np.zeros(3) if self.look_at is None else np.asarray(self.look_at, float)
+        return _unit(target - np.asarray(self.position, float), "look_at - position")
+
+
+class DiskLight(_AreaLight):
+    """A one-sided Lambertian disk emitter; ``radiance`` in W/(sr m^2) per channel."""
+
+    type: Literal["disk"] = "disk"
+    radius: Positive
+
+
+class RectangleLight(_AreaLight):
+    """A one-sided Lambertian rectangle; ``width`` along ``up x normal``, ``height``
+    along ``up`` (projected perpendicular to the normal)."""
+
+    type: Literal["rectangle"] = "rectangle"
+    width: Positive
+    height: Positive
+    up: Vec3 = (0.0, 0.0, 1.0)
+
+
+Light = Annotated[PointLight | DiskLight | RectangleLight, Field(discriminator="type")]
+
+
+class BoxOccluder(_Model):
+    """An opaque box: centre, full size along its axes, xyz Euler rotation in degrees."""
+
+    type: Literal["box"] = "box"
+    center: Vec3
+    size: tuple[Positive, Positive, Positive]
+    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+
+    def rotation(self) -> np.ndarray:
+        """Box-to-world rotation (columns are the box axes)."""
+        from scipy.spatial.transform import Rotation
+
+        return Rotation.from_euler("xyz", self.rotation_deg, degrees=True).as_matrix()
+
+
+class CylinderOccluder(_Model):
+    """An opaque capped cylinder from ``start`` to ``end``."""
+
+    type: Literal["cylinder"] = "cylinder"
+    start: Vec3
+    end: Vec3
+    radius: Positive
+
+    @model_validator(mode="after")
+    def _has_length(self) -> CylinderOccluder:
+        _unit(np.subtract(self.end, self.start), "end - start")
+        return self
+
+
+Occluder = Annotated[BoxOccluder | CylinderOccluder, Field(discriminator="type")]
+
+
+class Sensor(_Model):
+    """Sensor and RAW-file parameters (defaults: a generic 14-bit CMOS)."""
+
+    quantum_efficiency: RGBOrScalar = (0.45, 0.55, 0.40)
+    wavelength_nm: tuple[Positive, Positive, Positive] = (610.0, 540.0, 465.0)
+    full_well: Positive = 40000.0
+    read_noise: Annotated[float, Field(ge=0)] = 3.0
+    dark_current: Annotated[float, Field(ge=0)] = 0.1
+    gain_at_base_iso: Positive = 0.4
+    base_iso: Positive = 100.0
+    black_level: Annotated[int, Field(ge=0)] = 512
+    bits: Annotated[int, Field(ge=8, le=16)] = 14
+    cfa_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] = "RGGB"
+    vignetting: bool = True
+    spectral_sensitivities: str = "Nikon 5100 (NPL)"
+    model: str = "gonio simulated camera"
+
+    @property
+    def white_level(self) -> int:
+        """Largest DN the ADC produces."""
+        return 2**self.bits - 1
+
+    @model_validator(mode="after")
+    def _black_below_white(self) -> Sensor:
+        if self.black_level >= 2**self.bits - 1:
+            raise ValueError(f"black_level must be below the white level {2**self.bits - 1}")
+        return self
+
+
+class Camera(_Model):
+    """A pinhole camera with a thin-lens aperture for exposure."""
+
+    resolution: tuple[Annotated[int, Field(ge=1)], Annotated[int, Field(ge=1)]]
+    focal_length: Positive = 0.035
+    pixel_pitch: Positive | None = None
+    fov_deg: Annotated[float, Field(gt=0, lt=180)] | None = None
+    principal_point: Vec2 | None = None
+    position: Vec3 | None = None
+    look_at: Vec3 = (0.0, 0.0, 0.0)
+    up: Vec3 = (0.0, 0.0, 1.0)
+    rotation: tuple[Vec3, Vec3, Vec3] | None = None
+    f_number: Positive = 8.0
+    exposure_time: Positive = 0.01
+    iso: Positive = 100.0
+    sensor: Sensor = Field(default_factory=Sensor)
+
+    @model_validator(mode="after")
+    def _intrinsics(self) -> Camera:
+        if (self.pixel_pitch is None) == (self.fov_deg is None):
+            raise ValueError("give exactly one of 'pixel_pitch' or 'fov_deg'")
+        return self
+
+    @property
+    def pitch(self) -> float:
+        """Pixel pitch, metres."""
+        if self.pixel_pitch is not None:
+            return self.pixel_pitch
+        half = np.tan(np.radians(self.fov_deg) / 2)
+        return 2 * self.focal_length * half / self.resolution[0]
+
+    def intrinsics(self) -> np.ndarray:
+        """The 3x3 OpenCV camera matrix K (pixels; pixel centres at integer + 0.5)."""
+        w, h = self.resolution
+        f = self.focal_length / self.pitch
+        cx, cy = self.principal_point if self.principal_point else (w / 2, h / 2)
+        return np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]])
+
+
+class RigPoseSpec(_Model):
+    """Light and camera poses from rig joint angles (``gonio.rig.kinematics``)."""
+
+    joints_deg: dict[str, float]
+    config: Path | None = None
+
+
+class RenderSettings(_Model):
+    """Renderer controls (see :func:`gonio.simulator.render.render`)."""
+
+    tolerance: Positive = 1e-4
+    strategy: Literal["auto", "point", "quadrature", "mc"] = "auto"
+    quadrature_order: Annotated[int, Field(ge=1, le=64)] = 4
+    mc_samples: Annotated[int, Field(ge=1)] = 64
+    antialias: Annotated[int, Field(ge=1, le=16)] = 4
+    chunk_size: Annotated[int, Field(ge=1024)] = 262144
+    seed: int = 0
+
+
+class Scene(_Model):
+    """Everything the simulated camera sees.  See the module docstring for the schema."""
+
+    sample: Sample
+    holder: Holder | None = None
+    lights: list[Light] = Field(min_length=1)
+    occluders: list[Occluder] = Field(default_factory=list)
+    camera: Camera
+    render: RenderSettings = Field(default_factory=RenderSettings)
+    rig: RigPoseSpec | None = None
+    base_dir: Path | None = Field(default=None, exclude=True)
+
+    @model_validator(mode="after")
+    def _geometry(self) -> Scene:
+        h = self.holder
+        if h is not None:
+            if h.width < self.sample.width or h.height < self.sample.height:
+                raise ValueError("holder must be at least as large as the sample")
+            if h.board is not None:
+                bw, bh = h.board.extent
+                if bw > h.width + 1e-12 or bh > h.height + 1e-12:
+                    raise ValueError(
+                        f"board ({bw:g} x {bh:g} m) does not fit on the holder "
+                        f"({h.width:g} x {h.height:g} m)"
+                    )
+        if self.camera.position is None and self.camera.rotation is None and self.rig is None:
+            raise ValueError("camera: give 'position' (and 'look_at' or 'rotation') or [rig]")
+        return self
+
+    def resolve(self, path: Path) -> Path:
+        """A path from the scene file, relative to the file's folder."""
+        if path.is_absolute() or self.base_dir is None:
+            return path
+        return self.base_dir / path
+
+    def camera_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Camera centre (3,) and world-to-camera rotation (3, 3), sample frame."""
+        cam = self.camera
+        if cam.position is None:
+            raise ConfigError("camera.position: not given (and rig poses not applied)")
+        pos = np.asarray(cam.position, float)
+        if cam.rotation is not None:
+            R = np.asarray(cam.rotation, float)
+            if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+                raise ConfigError("camera.rotation: not a proper rotation matrix")
+            return pos, R
+        try:
+            return pos, look_at_rotation(pos, cam.look_at, cam.up)
+        except ValueError as exc:
+            raise ConfigError(f"camera.look_at: {exc}") from exc
+
+    def light_rgb(self, value: Colour) -> np.ndarray:
+        """A light's colour as camera RGB (3,)."""
+        if isinstance(value, Spectrum):
+            return value.to_camera_rgb(self.camera.sensor.spectral_sensitivities, self.base_dir)
+        return _rgb(value)
+
+    @cached_property
+    def brdf(self) -> Any:
+        """The bound sample BRDF: an object with ``eval(wi, wo) -> (..., 3)``."""
+        from gonio.errors import GonioError
+
+        spec = self.sample.brdf
+        if spec.file is not None:
+            import gonio.brdf
+
+            path = self.resolve(spec.file)
+            if not path.is_file():
+                raise ConfigError(f"sample.brdf.file: {path} does not exist")
+            return gonio.brdf.load(path)
+        import gonio.brdf
+
+        try:
+            model = gonio.brdf.get_model(spec.model, **spec.options)
+            params = {k: np.asarray(v, dtype=np.float64) for k, v in spec.params.items()}
+            return model.bind(params)
+        except GonioError as exc:
+            raise ConfigError(f"sample.brdf: {exc}") from exc
+
+    def with_reference_target(self, albedo: RGBOrScalar = 0.99) -> Scene:
+        """The same scene with a Lambertian target of ``albedo`` in place of the sample."""
+        brdf = BRDFSpec(model="lambert", params={"albedo": list(_rgb(albedo))})
+        sample = self.sample.model_copy(update={"brdf": brdf, "albedo_map": None})
+        return self.model_copy(update={"sample": sample})
+
+    def with_poses(
+        self,
+        camera_position: Any,
+        camera_rotation: Any,
+        light_position: Any | None = None,
+        light_normal: Any | None = None,
+    ) -> Scene:
+        """The same scene with the camera (and first light) moved; sample-frame metres.
+
+        ``camera_rotation`` is world-to-camera in OpenCV axes.  A point light ignores
+        ``light_normal``.
+        """
+        R = np.asarray(camera_rotation, float)
+        cam = self.camera.model_copy(
+            update={
+                "position": tuple(map(float, np.asarray(camera_position, float))),
+                "rotation": tuple(tuple(map(float, r)) for r in R),
+            }
+        )
+        lights = list(self.lights)
+        if light_position is not None:
+            upd: dict[str, Any] = {"position": tuple(map(float, light_position))}
+            if not isinstance(lights[0], PointLight) and light_normal is not None:
+                upd.update(normal=tuple(map(float, light_normal)), look_at=None)
+            lights[0] = lights[0].model_copy(update=upd)
+        return self.model_copy(update={"camera": cam, "lights": lights})
+
+
+def _format_validation(exc: ValidationError, source: str) -> str:
+    lines = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "<root>"
+        lines.append(f"field '{loc}': {err['msg']}")
+    return f"{source}: invalid scene: " + "; ".join(lines)
+
+
+def parse_scene(data: dict[str, Any], source: str = "<scene>", base_dir: Path | None = None):
+    """Validate a scene given as a dict (e.g. parsed TOML).
+
+    Raises
+    ------
+    ConfigError
+        Naming the source and each offending field.
+    """
+    try:
+        scene = Scene.model_validate({**data, "base_dir": base_dir})
+    except ValidationError as exc:
+        raise ConfigError(_format_validation(exc, source)) from None
+    if scene.rig is not None:
+        scene = apply_rig_poses(scene)
+    return scene
+
+
+def apply_rig_poses(scene: Scene) -> Scene:
+    """Replace the camera and first light poses by those of the rig's joint angles."""
+    from gonio.errors import GonioError
+
+    try:
+        from gonio.rig.config import default_rig_config, load_rig_config
+        from gonio.rig.kinematics import Kinematics
+    except ImportError as exc:  # pragma: no cover - rig arrives in another issue
+        raise ConfigError(f"rig: gonio.rig.kinematics is not available ({exc})") from exc
+    spec = scene.rig
+    try:
+        cfg = load_rig_config(scene.resolve(spec.config)) if spec.config else default_rig_config()
+        joints = {k: np.radians(v) for k, v in spec.joints_deg.items()}
+        poses = Kinematics(cfg).poses(joints)
+    except GonioError as exc:
+        raise ConfigError(f"rig: {exc}") from exc
+    return scene_with_rig_poses(scene, poses)
+
+
+def scene_with_rig_poses(scene: Scene, poses: Any) -> Scene:
+    """Apply a ``RigPoses``-like object (or mapping) to the scene."""
+
+    def get(name: str) -> Any:
+        return poses[name] if isinstance(poses, dict) else getattr(poses, name)
+
+    return scene.with_poses(
+        get("camera_position"),
+        get("camera_rotation"),
+        get("light_position"),
+        get("light_normal"),
+    )
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read and validate a scene TOML file.
+
+    Raises
+    ------
+    ConfigError
+        The file is missing, is not TOML, or a field is invalid (the field is named).
+    """
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: scene file not found") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{p}: not a valid TOML file: {exc}") from None
+    return parse_scene(data, str(p), p.resolve().parent)

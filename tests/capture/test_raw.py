@@ -1,0 +1,157 @@
+"""RAW decoding on the mosaic, checked against rawpy's own linear output on real files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import rawpy
+
+from gonio.capture.raw import (
+    CameraSignature,
+    channel_stats,
+    exposure_factor,
+    read_raw,
+    roi_exposure_stats,
+)
+from gonio.errors import FileFormatError, ReductionError
+
+# rawpy's linear output (see shared/reference/libraries.md); half_size puts one 2x2 CFA
+# cell into one output pixel, the two greens averaged (and floored) by LibRaw.
+LINEAR = dict(
+    half_size=True,
+    gamma=(1, 1),
+    no_auto_bright=True,
+    output_bps=16,
+    use_camera_wb=False,
+    user_wb=[1, 1, 1, 1],
+    output_color=rawpy.ColorSpace.raw,
+    adjust_maximum_thr=0,
+)
+
+
+def _half_size_from_mosaic(frame):
+    """Our linear mosaic folded to LibRaw's half-size layout: (H/2, W/2, 3), G averaged."""
+    h, w = frame.shape
+    v = frame.linear[: h // 2 * 2, : w // 2 * 2].reshape(h // 2, 2, w // 2, 2)
+    c = frame.channel[:2, :2]
+    out = np.zeros((h // 2, w // 2, 3))
+    cnt = np.zeros(3)
+    for i in range(2):
+        for j in range(2):
+            out[..., c[i, j]] += v[:, i, :, j]
+            cnt[c[i, j]] += 1
+    return out / cnt
+
+
+@pytest.mark.parametrize(
+    "fname, pattern, black, white",
+    [("Blackmagic.dng", "RGGB", 512, 65472), ("RAW_KODAK_DC50.KDC", "GRBG", 0, 16383)],
+)
+def test_real_files_match_rawpy_linear_half_size(refdata, fname, pattern, black, white):
+    path = refdata / "raw" / fname
+    frame = read_raw(path)
+    assert frame.cfa_pattern == pattern
+    assert np.all(frame.black_level == black)
+    assert frame.white_level == white  # the linearisation table's ceiling for the DNG
+    ours = np.maximum(_half_size_from_mosaic(frame), 0.0)  # LibRaw clips below black
+    with rawpy.imread(str(path)) as raw:
+        # black subtracted by LibRaw, no scaling: the same DN scale as ours
+        plain = raw.postprocess(no_auto_scale=True, **LINEAR).astype(np.float64)
+        # LibRaw's default scaling to 16 bits: (v - black) * 65535 / (white - black)
+        scaled = raw.postprocess(**LINEAR).astype(np.float64)
+        scale_max = raw.white_level  # LibRaw scales by its nominal maximum
+    assert plain.shape == ours.shape
+    assert np.max(np.abs(plain - ours)) <= 1.0
+    # R and B are single pixels: LibRaw rounds once; green it averages already-scaled,
+    # rounded values, hence the test on R and B only for the scaled output.
+    s = 65535.0 / (scale_max - black)
+    for c in (0, 2):
+        assert np.max(np.abs(scaled[..., c] - np.clip(ours[..., c] * s, 0, 65535))) <= 1.0
+
+
+def test_linearisation_table_is_applied(refdata):
+    """Every decoded code of the CinemaDNG is an output value of its LinearizationTable."""
+    path = refdata / "raw" / "Blackmagic.dng"
+    with rawpy.imread(str(path)) as raw:
+        table = raw.tone_curve.copy()
+        values = np.unique(raw.raw_image_visible)
+    assert table.max() == 65472 and not np.array_equal(table[:4096], np.arange(4096))
+    assert np.isin(values, table[:4096]).all()
+    frame = read_raw(path)
+    # pixels on the table's ceiling are marked saturated
+    raw_codes = frame.linear + frame.black_level
+    assert np.array_equal(frame.saturated[raw_codes >= 65472], np.ones((raw_codes >= 65472).sum(), bool))
+
+
+def test_kodak_exposure_metadata(refdata):
+    frame = read_raw(refdata / "raw" / "RAW_KODAK_DC50.KDC")
+    assert frame.exposure_time == pytest.approx(0.00435, rel=1e-6)
+    assert frame.iso == pytest.approx(84.0)
+    assert frame.f_number == pytest.approx(6.2, rel=1e-6)
+    assert frame.exposure_factor() == pytest.approx(0.00435 * 0.84 / 6.2**2, rel=1e-6)
+
+
+def test_exposure_factor_scales_as_t_iso_over_n2():
+    assert exposure_factor(0.01, 100, 8) == pytest.approx(0.01 / 64)
+    assert exposure_factor(0.02, 400, 4) == pytest.approx(0.02 * 4 / 16)
+    with pytest.raises(ReductionError, match="f_number"):
+        exposure_factor(0.01, 100, float("nan"), name="x.dng")
+
+
+def test_channel_stats_per_cfa_colour(refdata):
+    frame = read_raw(refdata / "raw" / "RAW_KODAK_DC50.KDC")
+    st = channel_stats(frame)
+    # GRBG: greens at (0,0) and (1,1)
+    g = np.concatenate([frame.linear[0::2, 0::2].ravel(), frame.linear[1::2, 1::2].ravel()])
+    assert st.mean[1] == pytest.approx(g.mean())
+    assert st.std[1] == pytest.approx(g.std(ddof=1))
+    assert st.mean[0] == pytest.approx(frame.linear[0::2, 1::2].mean())
+    assert st.mean[2] == pytest.approx(frame.linear[1::2, 0::2].mean())
+    assert st.count.sum() == frame.linear.size
+
+
+def test_roi_exposure_stats(refdata):
+    path = refdata / "raw" / "RAW_KODAK_DC50.KDC"
+    frame = read_raw(path)
+    st = roi_exposure_stats(path, (10, 60, 20, 90))
+    roi = frame.linear[10:60, 20:90]
+    ch = frame.channel[10:60, 20:90]
+    assert st.signal_dn[0] == pytest.approx(np.median(roi[ch == 0]))
+    assert st.saturated_fraction == pytest.approx(frame.saturated[10:60, 20:90].mean())
+    assert st.headroom_dn == 16383
+    with pytest.raises(ReductionError, match="empty"):
+        roi_exposure_stats(frame, (5, 5, 0, 10))
+
+
+# ---- bad input -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("fname", ["Blackmagic.dng", "RAW_KODAK_DC50.KDC"])
+def test_truncated_raw_is_refused(refdata, fname, tmp_path):
+    data = (refdata / "raw" / fname).read_bytes()
+    for n in (len(data) // 2, len(data) - 100):
+        p = tmp_path / f"cut_{n}_{fname}"
+        p.write_bytes(data[:n])
+        with pytest.raises(FileFormatError, match=str(p.name)):
+            read_raw(p)
+
+
+def test_garbage_and_missing_files_are_refused(tmp_path):
+    p = tmp_path / "noise.dng"
+    p.write_bytes(np.random.default_rng(0).bytes(5000))
+    with pytest.raises(FileFormatError, match="noise.dng"):
+        read_raw(p)
+    (tmp_path / "empty.dng").write_bytes(b"")
+    with pytest.raises(FileFormatError, match="empty"):
+        read_raw(tmp_path / "empty.dng")
+    with pytest.raises(FileFormatError, match="no such"):
+        read_raw(tmp_path / "absent.dng")
+
+
+def test_camera_mismatch_is_refused(refdata):
+    path = refdata / "raw" / "RAW_KODAK_DC50.KDC"
+    with pytest.raises(FileFormatError, match="CFA pattern is GRBG.*RGGB"):
+        read_raw(path, expect=CameraSignature("RGGB", (512, 768)))
+    with pytest.raises(FileFormatError, match="ImageSize.*512x768.*480x640"):
+        read_raw(path, expect=CameraSignature("GRBG", (480, 640)))
+    assert read_raw(path, expect=CameraSignature("GRBG", (512, 768))).shape == (512, 768)
