@@ -38,9 +38,29 @@ __all__ = [
 
 #: File suffixes of RAW formats (the session refuses anything else from a real camera).
 RAW_SUFFIXES = frozenset(
-    {".dng", ".nef", ".nrw", ".cr2", ".cr3", ".arw", ".srf", ".sr2", ".raf", ".orf", ".rw2",
-     ".pef", ".srw", ".3fr", ".iiq", ".x3f", ".erf", ".kdc", ".mrw", ".raw"}
-)  # fmt: skip
+    {
+        ".dng",
+        ".nef",
+        ".nrw",
+        ".cr2",
+        ".cr3",
+        ".arw",
+        ".srf",
+        ".sr2",
+        ".raf",
+        ".orf",
+        ".rw2",
+        ".pef",
+        ".srw",
+        ".3fr",
+        ".iiq",
+        ".x3f",
+        ".erf",
+        ".kdc",
+        ".mrw",
+        ".raw",
+    }
+)
 
 
 @dataclass(frozen=True)
@@ -240,8 +260,9 @@ class GPhoto2Camera:
     }
     PARSERS = {"exposure_time": parse_shutter_speed, "f_number": parse_f_number, "iso": parse_iso}
 
-    def __init__(self, port: str | None = None, *, require_raw: bool = True,
-                 max_rel_error: float = 0.5) -> None:  # fmt: skip
+    def __init__(
+        self, port: str | None = None, *, require_raw: bool = True, max_rel_error: float = 0.5
+    ) -> None:
         try:
             import gphoto2 as gp
         except ImportError:
@@ -272,7 +293,7 @@ class GPhoto2Camera:
             return f"no camera found while {doing}: is it connected, switched on and not mounted?"
         if code in (gp.GP_ERROR_IO, gp.GP_ERROR_IO_USB_CLAIM, gp.GP_ERROR_CAMERA_BUSY):
             return f"camera not responding while {doing} ({exc}): check the cable and power"
-        return f"gphoto2 error while {doing}: {exc}"
+        return f"camera failed while {doing} ({exc}): is it still connected and switched on?"
 
     def _read_model(self) -> str:
         try:

@@ -180,7 +180,7 @@ def estimate_noise(
         raise ReductionError(f"frames mix ISO settings {sorted(isos)}; estimate one ISO at a time")
     q = 1.0 / 12.0 if quantisation else 0.0
     ok = np.isfinite(means) & np.isfinite(varis)
-    if ok.sum() < 2 or np.ptp(means[ok]) <= 0:
+    if len(pts) < 2 or ok.sum() < 2 or np.ptp(means[ok]) <= 0:
         raise ReductionError("need flat pairs at two or more signal levels for a photon-transfer fit")
     # Pooled weighted least squares: var = g * mean + r2, weights 1/var^2 (the variance of
     # a sample variance grows with its square).

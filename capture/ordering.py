@@ -14,6 +14,7 @@ poses need no more than these classic local searches.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -26,6 +27,7 @@ def move_time_matrix(
     joints: Sequence[Joints],
     move_time: Callable[[Joints, Joints], float],
     start: Joints | None = None,
+    servos: Sequence[Any] | None = None,
 ) -> np.ndarray:
     """Move durations between all poses (s).
 
@@ -37,6 +39,12 @@ def move_time_matrix(
         ``move_time(joints_from, joints_to) -> s`` (e.g. ``Kinematics.move_time``).
     start
         Joint angles the tour starts from (e.g. the park pose); it becomes node 0.
+    servos
+        The rig's servo configurations (``RigConfig.servos``).  When given, the matrix is
+        built joint by joint: a move's time is the slowest joint's, and one joint's time
+        depends only on its distance in whole pulses, so ``move_time`` is called once per
+        distinct distance (with single-joint mappings: joints missing from a mapping do
+        not move) instead of once per pair of poses.
 
     Returns
     -------
@@ -47,6 +55,8 @@ def move_time_matrix(
     nodes = ([start] if start is not None else []) + list(joints)
     n = len(nodes)
     names = sorted(nodes[0]) if n else []
+    if servos is not None and n:
+        return _per_joint_matrix(nodes, move_time, servos)
     # Try one vectorised call (joint arrays broadcast to (n, n)); fall back to scalar calls
     # for a move_time that only takes floats.
     try:
@@ -61,6 +71,28 @@ def move_time_matrix(
             for j in range(n):
                 if i != j:
                     D[i, j] = float(move_time(nodes[i], nodes[j]))
+    np.fill_diagonal(D, 0.0)
+    return D
+
+
+def _per_joint_matrix(nodes: list, move_time: Callable, servos: Sequence[Any]) -> np.ndarray:
+    n = len(nodes)
+    D = np.zeros((n, n))
+    for s in servos:
+        j = s.joint
+        if j not in nodes[0]:
+            continue
+        p = np.rint([s.pulses(float(q[j])) for q in nodes]).astype(np.int64)
+        dist = np.abs(p[:, None] - p[None, :])
+        uniq, inv = np.unique(dist, return_inverse=True)
+        base = int(p.min())
+        t = np.array(
+            [
+                float(move_time({j: s.joint_rad(base)}, {j: s.joint_rad(base + int(d))}))
+                for d in uniq
+            ]
+        )
+        np.maximum(D, t[inv].reshape(n, n), out=D)
     np.fill_diagonal(D, 0.0)
     return D
 

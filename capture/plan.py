@@ -24,7 +24,7 @@ import tomllib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -164,13 +164,20 @@ class BracketPolicy(_Strict):
     ``cos(theta_i)``), and add frames ``step_ev`` stops shorter or longer only until the
     region of interest is neither saturated nor under the noise floor, at most
     ``max_frames``.  ``policy = "fixed"``: shoot ``exposures_s`` at every pose.
+    ``iso``/``f_number = "camera"`` leaves the camera's own setting alone.
     """
+
+    def camera_iso(self) -> float | None:
+        return None if self.iso == "camera" else float(self.iso)
+
+    def camera_f_number(self) -> float | None:
+        return None if self.f_number == "camera" else float(self.f_number)
 
     policy: Literal["adaptive", "fixed"] = "adaptive"
     exposure_time_s: float = Field(default=0.01, gt=0)
     exposures_s: tuple[float, ...] = ()
-    iso: float = Field(default=100.0, gt=0)
-    f_number: float = Field(default=8.0, gt=0)
+    iso: Annotated[float, Field(gt=0)] | Literal["camera"] = 100.0
+    f_number: Annotated[float, Field(gt=0)] | Literal["camera"] = 8.0
     step_ev: float = Field(default=2.0, gt=0, le=6)
     max_frames: int = Field(default=5, ge=1, le=20)
     min_exposure_s: float = Field(default=1e-5, gt=0)

@@ -52,6 +52,7 @@ class Problem:
     shape_names: tuple[str, ...] = ()
     linear_names: tuple[str, ...] = ()
     log_shape: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    log_offset: np.ndarray = field(default_factory=lambda: np.zeros(0))
     lb_shape: np.ndarray = field(default_factory=lambda: np.zeros(0))  # natural units
     ub_shape: np.ndarray = field(default_factory=lambda: np.zeros(0))
     lb_lin: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -87,17 +88,20 @@ class Problem:
         return tuple(self.shape_names) + lin
 
     def to_u(self, theta: np.ndarray) -> np.ndarray:
-        """Natural shape parameters -> search variables."""
+        """Natural shape parameters -> search variables (``ln(theta + offset)`` or as is)."""
         theta = np.asarray(theta, dtype=np.float64)
-        return np.where(self.log_shape, np.log(np.where(self.log_shape, theta, 1.0)), theta)
+        t = np.where(self.log_shape, theta + self.log_offset, 1.0)
+        return np.where(self.log_shape, np.log(np.maximum(t, 1e-300)), theta)
 
     def from_u(self, u: np.ndarray) -> np.ndarray:
         """Search variables -> natural shape parameters."""
         u = np.asarray(u, dtype=np.float64)
-        return np.where(self.log_shape, np.exp(np.where(self.log_shape, u, 0.0)), u)
+        th = np.where(self.log_shape, np.exp(np.where(self.log_shape, u, 0.0)) - self.log_offset, u)
+        # exp(log(bound)) can round outside the bound, which the model would reject
+        return np.clip(th, self.lb_shape, self.ub_shape)
 
     def dtheta_du(self, theta: np.ndarray) -> np.ndarray:
-        return np.where(self.log_shape, theta, 1.0)
+        return np.where(self.log_shape, theta + self.log_offset, 1.0)
 
     @property
     def u_bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -284,7 +288,13 @@ def prepare_problem(
     ub_s = np.array([_bounds_of(model, n)[1] for n in shape], dtype=np.float64)
     lb_l = np.array([max(0.0, _bounds_of(model, n)[0]) for n in linear], dtype=np.float64)
     ub_l = np.array([_bounds_of(model, n)[1] for n in linear], dtype=np.float64)
-    log_s = (lb_s > 0) & (np.isinf(ub_s) | (ub_s / np.where(lb_s > 0, lb_s, 1.0) >= _LOG_SPAN))
+    # ln(alpha) for a positive parameter spanning decades; ln(n + 1) for an exponent that
+    # may be 0 but spans decades above 1
+    pos = lb_s > 0
+    log_s = pos & (np.isinf(ub_s) | (ub_s / np.where(pos, lb_s, 1.0) >= _LOG_SPAN))
+    log1 = (lb_s == 0) & (ub_s >= _LOG_SPAN)
+    log_off = np.where(log1, 1.0, 0.0)
+    log_s = log_s | log1
     p = len(shape) + len(linear) * n_c
     m = int(keep.sum()) * n_c
     if m <= p:
@@ -292,9 +302,7 @@ def prepare_problem(
             f"{int(keep.sum())} usable samples x {n_c} channels = {m} residuals, but model "
             f"{getattr(model, 'name', '?')} has {p} parameters; need more samples"
         )
-    ch = tuple(channels) if channels is not None else tuple(
-        getattr(samples, "channels", None) or ("R", "G", "B")[:n_c] or ()
-    )
+    ch = tuple(channels or getattr(samples, "channels", None) or ())
     if len(ch) != n_c:
         ch = tuple(f"c{i}" for i in range(n_c))
     wk = wi[keep] / norm[keep, None]
@@ -315,6 +323,7 @@ def prepare_problem(
         shape_names=shape,
         linear_names=linear,
         log_shape=log_s,
+        log_offset=log_off,
         lb_shape=lb_s,
         ub_shape=ub_s,
         lb_lin=lb_l,

@@ -99,6 +99,14 @@ def solve_box_qp(H: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -
     return a
 
 
+def unit_values(problem: Problem) -> np.ndarray:
+    """A value inside the bounds for each linear parameter at which basis functions are
+    evaluated (1, or the upper bound when it is below 1: Oren-Nayar albedo <= 0.99)."""
+    return np.array(
+        [min(1.0, hi) if hi > 0 else 1.0 for hi in problem.ub_lin], dtype=np.float64
+    )
+
+
 class VarPro:
     """The reduced cost ``c(u)`` over shape search variables ``u`` of a linear-loss problem.
 
@@ -114,12 +122,13 @@ class VarPro:
         self.p = problem
         self.w2 = problem.weights**2  # (N, C)
         self.w2y = self.w2 * problem.y
+        self.unit = unit_values(problem)
         self.coupling = self._detect_coupling()
 
-    def _unit_params(self, theta: np.ndarray, a: Any = 1.0) -> dict[str, Any]:
+    def _unit_params(self, theta: np.ndarray) -> dict[str, Any]:
         p: dict[str, Any] = {n: float(t) for n, t in zip(self.p.shape_names, theta)}
-        for n in self.p.linear_names:
-            p[n] = a
+        for j, n in enumerate(self.p.linear_names):
+            p[n] = float(self.unit[j])
         return p
 
     def _detect_coupling(self) -> list[int] | None:
@@ -141,7 +150,7 @@ class VarPro:
         for j, _ in enumerate(p.linear_names):
             prm = self._unit_params(theta)
             for jj, n in enumerate(p.linear_names):
-                prm[n] = 1.0 if jj == j else 0.0
+                prm[n] = float(self.unit[jj]) if jj == j else 0.0
             _, g = p.model.eval_with_grad(p.wi[sel], p.wo[sel], prm)
             for s, n in enumerate(p.shape_names):
                 nz[s, j] = bool(np.any(np.asarray(g[n]) != 0))
@@ -166,7 +175,8 @@ class VarPro:
         return np.clip(th, p.lb_shape, p.ub_shape)
 
     def basis(self, theta: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """Basis ``G`` (N, K) (one column per linear parameter) and the gradients at a = 1."""
+        """Basis ``G`` (N, K) (one column per linear parameter) and the gradients at the unit
+        values of the linear parameters."""
         p = self.p
         p.njev += 1
         _, g = p.model.eval_with_grad(p.wi, p.wo, self._unit_params(theta))
@@ -179,8 +189,9 @@ class VarPro:
     def solve_linear(self, G: np.ndarray) -> np.ndarray:
         """Best linear parameters (K, C) for basis ``G`` (N, K)."""
         p = self.p
-        H = np.einsum("nj,nc,nl->cjl", G, self.w2, G)
-        b = np.einsum("nj,nc->cj", G, self.w2y)
+        # normal equations by BLAS products: H_c = G^T diag(w_c^2) G, b_c = G^T (w_c^2 y_c)
+        H = np.stack([(G.T * self.w2[:, c]) @ G for c in range(self.w2.shape[1])])
+        b = (G.T @ self.w2y).T
         return solve_box_qp(H, b, p.lb_lin, p.ub_lin).T
 
     def evaluate(self, u: np.ndarray, want_grad: bool = True):
@@ -190,22 +201,24 @@ class VarPro:
         theta = p.from_u(u)
         G, g = self.basis(theta)
         a = self.solve_linear(G)
-        f = G @ a  # (N, C)
-        res = f - p.y
-        cost = 0.5 * float(np.sum(self.w2 * res * res))
+        res = G @ a
+        res -= p.y
+        wres = self.w2 * res
+        cost = 0.5 * float(np.einsum("nc,nc->", wres, res))
         if not want_grad or p.n_shape == 0:
             return cost, np.zeros(p.n_shape), a
         dtu = p.dtheta_du(theta)
-        wres = self.w2 * res
         grad = np.empty(p.n_shape)
+        n = G.shape[0]
         if self.coupling is not None:
-            for s, n in enumerate(p.shape_names):
-                dfs = np.broadcast_to(g[n], (G.shape[0],))[:, None] * a[self.coupling[s]][None, :]
-                grad[s] = np.sum(wres * dfs) * dtu[s]
+            for s, name in enumerate(p.shape_names):
+                j = self.coupling[s]
+                gs = np.broadcast_to(g[name], (n,))
+                grad[s] = float((gs @ wres) @ (a[j] / self.unit[j])) * dtu[s]
         else:
             _, gf = p.model_eval(theta, a, grad=True)
-            for s, n in enumerate(p.shape_names):
-                grad[s] = np.sum(wres * np.broadcast_to(gf[n], res.shape)) * dtu[s]
+            for s, name in enumerate(p.shape_names):
+                grad[s] = np.sum(wres * np.broadcast_to(gf[name], res.shape)) * dtu[s]
         return cost, grad, a
 
     def batch_cost(self, U: np.ndarray) -> np.ndarray:
@@ -220,20 +233,21 @@ class VarPro:
             th = p.from_u(U[s0 : s0 + step])  # (m, S)
             m = th.shape[0]
             prm: dict[str, Any] = {n_: th[:, s, None] for s, n_ in enumerate(p.shape_names)}
-            for n_ in p.linear_names:
-                prm[n_] = 1.0
+            for j, n_ in enumerate(p.linear_names):
+                prm[n_] = float(self.unit[j])
             p.njev += 1
             _, g = p.model.eval_with_grad(p.wi, p.wo, prm)
             G = np.empty((m, n, p.n_linear))
             for j, name in enumerate(p.linear_names):
                 G[:, :, j] = np.broadcast_to(g[name], (m, n))
-            H = np.einsum("mnj,nc,mnl->mcjl", G, self.w2, G)
-            b = np.einsum("mnj,nc->mcj", G, self.w2y)
             K = p.n_linear
+            Gt = np.swapaxes(G, 1, 2)  # (m, K, n)
+            H = np.stack([np.matmul(Gt * self.w2[None, None, :, c], G)
+                          for c in range(self.w2.shape[1])], axis=1)  # (m, C, K, K)
+            b = np.swapaxes(np.matmul(Gt, self.w2y), 1, 2)  # (m, C, K)
             a = solve_box_qp(H.reshape(-1, K, K), b.reshape(-1, K), p.lb_lin, p.ub_lin)
             a = a.reshape(m, -1, K)  # (m, C, K)
-            f = np.einsum("mnj,mcj->mnc", G, a)
-            res = f - p.y[None]
+            res = np.matmul(G, np.swapaxes(a, 1, 2)) - p.y[None]  # (m, n, C)
             c = 0.5 * np.sum(self.w2[None] * res * res, axis=(1, 2))
             out[s0 : s0 + m] = np.where(np.isfinite(c), c, np.inf)
         return out

@@ -176,6 +176,7 @@ class MotionConfig(_Strict):
 
     position_tolerance_pulses: int = Field(default=1, ge=0, le=100)
     move_timeout_s: float = Field(default=20.0, gt=0)
+    poll_interval_s: float = Field(default=0.01, gt=0, le=1.0)
     home_deg: dict[str, float] = {
         "light_azimuth": -45.0,
         "camera_azimuth": 0.0,

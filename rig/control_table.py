@@ -187,10 +187,12 @@ MODELS: dict[str, ServoModel] = {
 MODELS_BY_NUMBER: dict[int, ServoModel] = {m.number: m for m in MODELS.values()}
 _BY_ADDRESS = {m.name: {r.address: r for r in m.registers.values()} for m in MODELS.values()}
 
-# The block the controller sync-reads every cycle: current, velocity, position (126..135),
-# and separately register 70 because group reads drop the ERR byte's alert bit.
-STATE_BLOCK_START = 122  # moving, moving_status, present_pwm, current, velocity, position
-STATE_BLOCK_END = 147  # ... up to present_temperature inclusive
+# The block the controller sync-reads every cycle, one contiguous transaction: torque
+# enable (64), Hardware Error Status (70: group reads drop the ERR byte's alert bit, so it
+# must be read), goal (116), moving / moving status, current, velocity, position,
+# voltage and temperature (up to 146).
+STATE_BLOCK_START = 64
+STATE_BLOCK_END = 147
 STATE_BLOCK_LEN = STATE_BLOCK_END - STATE_BLOCK_START
 
 

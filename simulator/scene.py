@@ -80,7 +80,6 @@ maps sample-frame vectors to camera-frame vectors.
 from __future__ import annotations
 
 import tomllib
-from functools import cached_property
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -552,9 +551,14 @@ class Scene(_Model):
             return value.to_camera_rgb(self.camera.sensor.spectral_sensitivities, self.base_dir)
         return _rgb(value)
 
-    @cached_property
-    def brdf(self) -> Any:
-        """The bound sample BRDF: an object with ``eval(wi, wo) -> (..., 3)``."""
+    def build_brdf(self) -> Any:
+        """The bound sample BRDF: an object with ``eval(wi, wo) -> (..., 3)``.
+
+        Raises
+        ------
+        ConfigError
+            Unknown model, bad parameters, or a missing measured file (field named).
+        """
         from gonio.errors import GonioError
 
         spec = self.sample.brdf
@@ -653,14 +657,19 @@ def apply_rig_poses(scene: Scene) -> Scene:
 
 
 def scene_with_rig_poses(scene: Scene, poses: Any) -> Scene:
-    """Apply a ``RigPoses``-like object (or mapping) to the scene."""
+    """Apply a ``gonio.rig.kinematics.RigPoses``-like object (or mapping) to the scene.
+
+    Uses ``camera_position``, ``camera_rotation`` (camera-to-sample, OpenCV axes),
+    ``light_position`` and ``light_normal``.
+    """
 
     def get(name: str) -> Any:
         return poses[name] if isinstance(poses, dict) else getattr(poses, name)
 
+    # RigPoses.camera_rotation is camera-to-sample (columns are the camera axes).
     return scene.with_poses(
         get("camera_position"),
-        get("camera_rotation"),
+        np.asarray(get("camera_rotation"), float).T,
         get("light_position"),
         get("light_normal"),
     )

@@ -25,6 +25,8 @@ from gonio.errors import ParameterError
 Array = NDArray[np.float64]
 Params = Mapping[str, ArrayLike]
 
+_CHUNK = 16384  # rows per chunk for large batches: keeps the temporaries in L2 cache
+
 __all__ = ["Array", "BoundModel", "Geometry", "Lobe", "Model", "ParamSpec"]
 
 
@@ -83,8 +85,12 @@ class Geometry:
 
     @cached_property
     def cos_d(self) -> Array:
-        """``dot(wi, h)`` with ``h`` normalised: the cosine Fresnel sees."""
-        return (self.ix * self.hx + self.iy * self.hy + self.iz * self.hz) / np.sqrt(self.hh)
+        """``dot(wi, h) = dot(wo, h)`` with ``h`` normalised: the cosine Fresnel sees.
+
+        Written as ``|wi + wo| / 2`` (exact for unit vectors), which is symmetric in wi
+        and wo and has no cancellation when the two directions are nearly opposite.
+        """
+        return 0.5 * np.sqrt(self.hh)
 
     @cached_property
     def si2(self) -> Array:
@@ -138,6 +144,10 @@ class Lobe:
         """Angular width (rad) of the lobe around the half vector ``h = n``: the smallest
         scale the albedo quadrature must resolve."""
         return np.asarray(1.0)
+
+    def aniso_axes(self, p: dict[str, Array]) -> tuple[Array, Array]:
+        """Slope widths along +x and +y of an anisotropic lobe (for the albedo quadrature)."""
+        return np.asarray(1.0), np.asarray(1.0)
 
 
 def _as_float_array(name: str, value: ArrayLike) -> Array:
@@ -200,9 +210,7 @@ class Model:
 
     def describe_params(self) -> list[tuple[str, float, float, float, bool, str]]:
         """Rows ``(name, lower, upper, default, linear, doc)`` for listings."""
-        return [
-            (k, s.lower, s.upper, s.default, s.linear, s.doc) for k, s in self._specs.items()
-        ]
+        return [(k, s.lower, s.upper, s.default, s.linear, s.doc) for k, s in self._specs.items()]
 
     def __repr__(self) -> str:
         opts = "".join(f", {k}={v!r}" for k, v in self.options.items())
@@ -298,6 +306,26 @@ class Model:
                 f"directions must have shape (..., 3); got wi {wi.shape}, wo {wo.shape}"
             )
         p = self.check_params(params)
+        if (
+            not grad
+            and wi.ndim == 2
+            and wi.shape == wo.shape
+            and wi.shape[0] > 2 * _CHUNK
+            and all(v.ndim == 0 for v in p.values())
+        ):
+            # Large batches with scalar parameters: evaluate in cache-sized chunks, which
+            # is 2-4x faster than whole-array numpy passes (benchmarks/brdf_eval.py).
+            out = np.empty(wi.shape[0])
+            for s in range(0, wi.shape[0], _CHUNK):
+                out[s : s + _CHUNK] = self._eval_checked(
+                    wi[s : s + _CHUNK], wo[s : s + _CHUNK], p, False
+                )[0]
+            return out, None
+        return self._eval_checked(wi, wo, p, grad)
+
+    def _eval_checked(
+        self, wi: Array, wo: Array, p: dict[str, Array], grad: bool
+    ) -> tuple[Array, dict[str, Array] | None]:
         g = Geometry(wi, wo)
         total: Array | None = None
         grads: dict[str, Array] = {}

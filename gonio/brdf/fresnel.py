@@ -69,7 +69,9 @@ def fresnel_complex(
     c = np.clip(cos_i, 0.0, 1.0)
     n = eta + 1j * k
     n2 = n * n
-    s = np.sqrt(n2 - (1.0 - c * c))
+    # n^2 - sin^2 as (n^2 - 1) + cos^2: exact at grazing incidence when n = 1, where the
+    # naive form rounds cos^2 away and turns 0/0 into NaN gradients.
+    s = np.sqrt(((eta - 1.0) * (eta + 1.0) - k * k + c * c) + 2j * eta * k)
     # Physical branch: Im(s) >= 0 (a decaying transmitted wave).  Im(n^2 - sin^2) >= 0 for
     # eta, k >= 0, where the principal root already has Im >= 0, except for a signed zero.
     s = s.real + 1j * np.abs(s.imag)

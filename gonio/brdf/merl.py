@@ -25,7 +25,7 @@ Hand-written: no maintained Python package reads or writes this format.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gonio.errors import FileFormatError
-from gonio.radiometry.frames import directions_from_half_diff, half_diff_from_directions
+from gonio.radiometry.frames import (
+    as_vectors,
+    directions_from_half_diff,
+    half_diff_from_directions,
+)
 
 __all__ = [
     "DIMS",
@@ -57,8 +61,16 @@ FILE_SIZE = 12 + 3 * _N * 8  # 34,992,012 bytes
 
 
 def looks_like_merl(head: bytes, size: int) -> bool:
-    """Whether the first bytes and size of a file are those of a MERL binary."""
-    return len(head) >= 12 and head[:12] == _HEADER and size == FILE_SIZE
+    """Whether a file's first bytes look like a MERL header (three small positive int32).
+
+    Deliberately lenient (the size and the exact dimensions are not checked) so that a
+    truncated or odd-sized MERL file is routed to :func:`read_merl`, whose error then says
+    precisely what is wrong.
+    """
+    if len(head) < 12 or size < 12:
+        return False
+    dims = np.frombuffer(head[:12], dtype="<i4")
+    return bool(np.all((dims >= 1) & (dims <= 100_000)))
 
 
 def bin_angles() -> tuple[Array, Array, Array]:
@@ -129,7 +141,9 @@ class MERLBRDF:
             "missing_fraction": float(missing.mean()),
         }
         # f_r table with missing entries as NaN, for interpolation with renormalised weights
-        self._f = np.where(missing, np.nan, raw * SCALES[:, None, None, None])
+        f = np.where(missing, np.nan, raw * SCALES[:, None, None, None])
+        # (node, channel) rows: one gather per corner fetches the three channels
+        self._f = np.ascontiguousarray(f.reshape(3, -1).T)
 
     def eval(self, wi: ArrayLike, wo: ArrayLike, interpolation: str = "linear") -> Array:
         """RGB ``f_r(wi, wo)`` in 1/sr.
@@ -149,8 +163,8 @@ class MERLBRDF:
             0 below the horizon and where every contributing node is missing; NaN for NaN
             input.
         """
-        wi = np.asarray(wi, dtype=np.float64)
-        wo = np.asarray(wo, dtype=np.float64)
+        wi = as_vectors(wi)
+        wo = as_vectors(wo)
         wi, wo = np.broadcast_arrays(wi, wo)
         shape = wi.shape[:-1]
         wi = wi.reshape(-1, 3)
@@ -164,12 +178,14 @@ class MERLBRDF:
             th, td, pd = th[active], td[active], pd[active]
             if interpolation == "nearest":
                 ih, idd, ip = indices_reference(th, td, pd)
-                v = self._f[:, ih, idd, ip].T
+                v = self._f[(ih * DIMS[1] + idd) * DIMS[2] + ip]
                 out[active] = np.nan_to_num(v, nan=0.0)
             elif interpolation == "linear":
                 out[active] = self._trilinear(th, td, pd)
             else:
-                raise ValueError(f"interpolation must be 'linear' or 'nearest', got {interpolation!r}")
+                raise ValueError(
+                    f"interpolation must be 'linear' or 'nearest', got {interpolation!r}"
+                )
         out[nan] = np.nan
         return out.reshape(*shape, 3)
 
@@ -183,17 +199,19 @@ class MERLBRDF:
         fh, fd, fp = uh - ih, ud - idd, up - ip
         ip1 = (ip + 1) % DIMS[2]  # phi_d is periodic with period 180 deg
         acc = np.zeros((th.size, 3))
-        wsum = np.zeros(th.size)
+        wsum = np.zeros((th.size, 3))
         for a, wa in ((ih, 1 - fh), (ih + 1, fh)):
             for b, wb in ((idd, 1 - fd), (idd + 1, fd)):
+                row = (a * DIMS[1] + b) * DIMS[2]
+                wab = wa * wb
                 for c, wc in ((ip, 1 - fp), (ip1, fp)):
-                    v = self._f[:, a, b, c].T  # (n, 3)
-                    w = wa * wb * wc
-                    ok = ~np.isnan(v[:, 0])
-                    acc += np.where(ok[:, None], v * w[:, None], 0.0)
-                    wsum += np.where(ok, w, 0.0)
+                    v = self._f[row + c]  # (n, 3)
+                    ok = ~np.isnan(v)
+                    w = np.where(ok, (wab * wc)[:, None], 0.0)
+                    acc += np.where(ok, v, 0.0) * w
+                    wsum += w
         with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(wsum[:, None] > 0, acc / wsum[:, None], 0.0)
+            return np.where(wsum > 0, acc / wsum, 0.0)
 
     def albedo(self, theta_i: ArrayLike) -> Array:
         """Directional albedo at incident elevations ``theta_i`` (rad), shape ``(..., 3)``."""
@@ -224,11 +242,15 @@ def read_merl(path: str | Path) -> MERLBRDF:
     except OSError as exc:
         raise FileFormatError(path, f"cannot read file: {exc.strerror or exc}") from exc
     if len(buf) < 12:
-        raise FileFormatError(path, f"file too small for the MERL header ({len(buf)} bytes, needs 12)")
+        raise FileFormatError(
+            path, f"file too small for the MERL header ({len(buf)} bytes, needs 12)"
+        )
     dims = tuple(int(d) for d in np.frombuffer(buf, dtype="<i4", count=3))
     if dims != DIMS:
         raise FileFormatError(
-            path, f"header dimensions are {dims}, expected {DIMS} (theta_h, theta_d, phi_d)", field="header"
+            path,
+            f"header dimensions are {dims}, expected {DIMS} (theta_h, theta_d, phi_d)",
+            field="header",
         )
     if len(buf) != FILE_SIZE:
         what = "truncated" if len(buf) < FILE_SIZE else "has trailing bytes"
@@ -269,7 +291,9 @@ def resample(
     brdf: Any,
     params: Mapping[str, Any] | None = None,
     description: str | None = None,
+    symmetrize: bool = True,
     chunk: int = 262_144,
+    progress: Callable[[int, int], None] | None = None,
 ) -> MERLBRDF:
     """Tabulate any BRDF on the MERL grid.
 
@@ -282,27 +306,49 @@ def resample(
         Model parameters, when ``brdf`` is an unbound model (bound with ``model.bind``).
     description
         Stored as the result's description.
+    symmetrize
+        Store ``(f(wi, wo) + f(wo, wi)) / 2``.  The MERL layout can only hold reciprocal
+        BRDFs (it folds ``phi_d`` onto [0, 180) deg); measured sources are only
+        approximately reciprocal, and the symmetric part is the closest reciprocal BRDF
+        (in the least-squares sense).  Reciprocal models are unchanged by it.
     chunk
         Direction pairs evaluated per call (memory bound).
+    progress
+        Called as ``progress(done, total)`` after each chunk (for progress bars).
 
     Returns
     -------
     MERLBRDF
         Values at the table nodes (``bin_angles``) with ``phi_h = 0``; nodes whose ``wi``
         or ``wo`` is below the horizon are marked missing (-1), as in measured files.
+        Negative values (RGB conversions of measured spectra dip slightly below 0) are
+        clamped to 0, since the format reserves negative numbers for "missing".
     """
     if params is not None:
         brdf = brdf.bind(params)
     th, td, pd = bin_angles()
     TH, TD, PD = np.meshgrid(th, td, pd, indexing="ij")
     wi, wo = directions_from_half_diff(TH.ravel(), 0.0, TD.ravel(), PD.ravel())
-    f = np.empty((wi.shape[0], 3))
-    for s in range(0, wi.shape[0], chunk):
-        f[s : s + chunk] = np.asarray(brdf.eval(wi[s : s + chunk], wo[s : s + chunk]))[..., :3]
     below = (wi[:, 2] <= 0) | (wo[:, 2] <= 0)
-    raw = f / SCALES
-    raw[below] = -1.0
+    up = np.flatnonzero(~below)  # only nodes above the horizon are evaluated
+    f = np.zeros((wi.shape[0], 3))
+    for s in range(0, up.size, chunk):
+        idx = up[s : s + chunk]
+        a, b = wi[idx], wo[idx]
+        v = np.asarray(brdf.eval(a, b), dtype=np.float64)[..., :3]
+        if symmetrize:
+            v = 0.5 * (v + np.asarray(brdf.eval(b, a), dtype=np.float64)[..., :3])
+        f[idx] = v
+        if progress is not None:
+            progress(min(s + chunk, up.size), up.size)
+    # A node the source cannot evaluate (NaN/inf) is stored as missing rather than
+    # written as a value every MERL reader would choke on; the count is kept in metadata.
+    bad = ~np.isfinite(f).all(axis=1)
+    raw = np.maximum(f, 0.0) / SCALES
+    raw[below | bad] = -1.0
     raw = raw.T.reshape(3, *DIMS)
     if description is None:
         description = f"resampled {getattr(brdf, 'description', type(brdf).__name__)}"
-    return MERLBRDF(raw, description=description)
+    out = MERLBRDF(raw, description=description)
+    out.metadata["nonfinite_nodes"] = int(bad.sum())
+    return out

@@ -48,7 +48,12 @@ def beckmann_g1(cos_t: Array, sin2_t: Array, alpha: Array, form: str, grad: bool
     """Beckmann Smith ``G1 / cos(theta)`` (``form`` ``"exact"`` or ``"rational"``) and
     ``d ln(G1) / d alpha``."""
     s = np.sqrt(sin2_t)
-    a = cos_t / (alpha * s)  # inf at the normal: G1 = 1 there in both forms
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return _beckmann_g1(cos_t, s, cos_t / (alpha * s), alpha, form, grad)
+
+
+def _beckmann_g1(cos_t, s, a, alpha, form, grad):
+    # a = inf at the normal: G1 = 1 there in both forms.
     if form == "exact":
         e = np.exp(-a * a)
         # cos * (1 + Lambda) written without 1/a, so that a -> 0 (grazing) is finite.
@@ -128,16 +133,35 @@ class GGXLobe(_Microfacet):
         return ggx_g1(cos_t, sin2_t, alpha, grad)
 
     def evaluate(self, g, p, grad):
-        if grad or self.options["fresnel"] != "none":
+        alpha = p["alpha"]
+        if (
+            grad
+            or self.options["fresnel"] != "none"
+            or alpha.ndim
+            or p["ks"].ndim
+            or g.wi.ndim < 2
+            or g.wi.shape != g.wo.shape
+        ):
             return super().evaluate(g, p, grad)
         # Hot path (fitting loops, the simulator, benchmarks/brdf_eval.py): F = 1, no
-        # gradient.  f = ks alpha^2 / pi * t^2 / ((ci + ri)(co + ro)), in-place updates.
-        alpha = p["alpha"]
-        a2 = alpha * alpha
-        t = g.hh / (a2 * g.hz2 + g.hxy2)
+        # gradient, scalar parameters.  f = ks alpha^2 / pi * t^2 / ((ci + ri)(co + ro))
+        # with t = |h|^2 / (alpha^2 hz^2 + hxy^2), ri = sqrt(alpha^2 + (1 - alpha^2) ci^2);
+        # in-place updates on as few temporaries as possible.
+        a2 = float(alpha) ** 2
+        hx = g.ix + g.ox
+        hy = g.iy + g.oy
+        hz = g.iz + g.oz
+        hx *= hx
+        hy *= hy
+        hx += hy  # hxy^2
+        hz *= hz
+        hy = np.add(hx, hz, out=hy)  # |h|^2
+        hz *= a2
+        hz += hx  # alpha^2 hz^2 + hxy^2
+        t = np.divide(hy, hz, out=hy)
         t *= t
-        ci, co = g.iz, g.oz
         one_m = 1.0 - a2
+        ci, co = g.iz, g.oz
         ri = ci * ci
         ri *= one_m
         ri += a2
@@ -150,7 +174,7 @@ class GGXLobe(_Microfacet):
         ro += co
         ri *= ro
         t /= ri
-        t *= p["ks"] * a2 * _INV_PI
+        t *= float(p["ks"]) * a2 * _INV_PI
         return t, None
 
 

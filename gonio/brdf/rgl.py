@@ -10,9 +10,11 @@ unit square of *sample space*: the space in which the measured visible-normal di
    spends resolution near the normal, where specular lobes live; isotropic files store
    ``phi_m`` relative to ``phi_i``);
 2. the *inverse* of the VNDF sampling warp, which takes ``u`` to its position in sample
-   space.  The warp is the continuous marginal/conditional inversion of the bilinear
-   interpolant of the tabulated VNDF (Mitsuba's ``Marginal2D<..., Continuous=true>``), so the
-   inverse is: the marginal CDF along ``theta``-rows ... see :meth:`RGLBRDF._invert_vndf`;
+   space.  The forward warp samples the bilinear interpolant of the tabulated VNDF by
+   inverting its marginal CDF (over ``phi_m``) and then its conditional CDF (over
+   ``theta_m``), both continuous (Mitsuba's ``Marginal2D<..., Continuous=true>``); the
+   inverse therefore just *evaluates* those two CDFs at ``u``
+   (:meth:`RGLBRDF._invert_vndf`);
 3. a bilinear look-up of the RGB table at that position, linearly interpolated between the
    tabulated incident elevations ``theta_i`` (and azimuths ``phi_i`` when anisotropic);
 4. when the ``jacobian`` flag is set, the factor ``D(m) / (4 sigma(wi))`` (NDF over
@@ -36,6 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gonio.errors import FileFormatError
+from gonio.radiometry.frames import as_vectors
 
 __all__ = ["RGLBRDF", "read_rgl"]
 
@@ -73,17 +76,21 @@ class _Slices:
         ip, wp = _param_lerp(phi_vals, phi)
         it, wt = _param_lerp(theta_vals, theta)
         n_t = theta_vals.size
-        ip1 = np.minimum(ip + 1, phi_vals.size - 1)
         it1 = np.minimum(it + 1, n_t - 1)
-        self.index = (ip * n_t + it, ip * n_t + it1, ip1 * n_t + it, ip1 * n_t + it1)
-        self.weight = ((1 - wp) * (1 - wt), (1 - wp) * wt, wp * (1 - wt), wp * wt)
+        self.index = [ip * n_t + it, ip * n_t + it1]
+        self.weight = [(1 - wp) * (1 - wt), (1 - wp) * wt]
+        if phi_vals.size > 1:  # isotropic files have one phi_i: skip the zero-weight corners
+            ip1 = np.minimum(ip + 1, phi_vals.size - 1)
+            self.index += [ip1 * n_t + it, ip1 * n_t + it1]
+            self.weight += [wp * (1 - wt), wp * wt]
         self.ip, self.wp, self.it, self.wt = ip, wp, it, wt
 
     def gather(self, table: Array, *idx: Any) -> Array:
         """``sum_k w_k table[slice_k, *idx]``: the parameter-interpolated table entry."""
         out = 0.0
         for s, w in zip(self.index, self.weight, strict=True):
-            out = out + w * table[(s, *idx)]
+            v = table[(s, *idx)]
+            out = out + w.reshape(w.shape + (1,) * (v.ndim - w.ndim)) * v
         return out
 
 
@@ -118,8 +125,8 @@ class RGLBRDF:
         The material description stored in the file.
     metadata : dict
         ``path``, ``spectral``, ``isotropic``, ``jacobian``, ``theta_i_deg`` (tabulated
-        incident elevations), ``phi_i_deg``, ``resolution`` (sample-space grid), ``vndf_resolution``,
-        ``wavelengths_nm`` (spectral files), ``valid_fraction``.
+        incident elevations), ``phi_i_deg``, ``resolution`` (sample-space grid),
+        ``vndf_resolution``, ``wavelengths_nm`` (spectral files), ``valid_fraction``.
     """
 
     format = "rgl"
@@ -145,11 +152,19 @@ class RGLBRDF:
         vndf = f64["vndf"]
         n_phi, n_theta, h, w = vndf.shape
         self._vndf_shape = (h, w)
-        self._vndf, self._cond, self._marg = _marginal_tables(vndf.reshape(-1, h, w))
+        self._patch = _patch_table(*_marginal_tables(vndf.reshape(-1, h, w)))
         spec = f64["spectra"] if self.spectral else f64["rgb"]
         n_ch, ry, rx = spec.shape[2:]
-        # (slice, channel, y, x) with slice = phi index * n_theta + theta index
-        self._spec = spec.reshape(n_phi * n_theta, n_ch, ry, rx)
+        # (slice, y, x, channel), slice = phi index * n_theta + theta index: channel last so
+        # one gather fetches all channels of a node
+        spec = spec.reshape(n_phi * n_theta, n_ch, ry, rx).transpose(0, 2, 3, 1)
+        # per patch (slice, y, x): its 4 corner nodes x channels, so one gather per slice
+        # fetches everything a bilinear look-up needs
+        self._spec = np.ascontiguousarray(
+            np.stack(
+                [spec[:, :-1, :-1], spec[:, :-1, 1:], spec[:, 1:, :-1], spec[:, 1:, 1:]], axis=3
+            )
+        )
         self.wavelengths = f64["wavelengths"] if self.spectral else None
         valid = fields.get("valid")
         self.metadata: dict[str, Any] = {
@@ -200,13 +215,13 @@ class RGLBRDF:
 
     def eval_channels(self, wi: ArrayLike, wo: ArrayLike) -> Array:
         """``f_r`` for every stored channel (3 for RGB files, one per wavelength otherwise)."""
-        wi = np.asarray(wi, dtype=np.float64)
-        wo = np.asarray(wo, dtype=np.float64)
+        wi = as_vectors(wi)
+        wo = as_vectors(wo)
         wi, wo = np.broadcast_arrays(wi, wo)
         shape = wi.shape[:-1]
         wi = wi.reshape(-1, 3)
         wo = wo.reshape(-1, 3)
-        n_ch = self._spec.shape[1]
+        n_ch = self._spec.shape[-1]
         out = np.zeros((wi.shape[0], n_ch))
         nan = np.isnan(wi).any(-1) | np.isnan(wo).any(-1)
         active = (wi[:, 2] > 0) & (wo[:, 2] > 0) & ~nan
@@ -244,11 +259,14 @@ class RGLBRDF:
         sx_, sy_ = self._invert_vndf(sl, *u_m)
 
         # Bilinear over the sample-space position, multilinear over (phi_i, theta_i).
-        spec = 0.0
-        for s, w in zip(sl.index, sl.weight, strict=True):
-            spec = spec + w[:, None] * _bilinear(
-                self._spec, sx_[:, None], sy_[:, None], lead=(s[:, None], np.arange(self._spec.shape[1]))
-            )
+        ry, rx = self._spec.shape[1] + 1, self._spec.shape[2] + 1
+        px = np.clip(sx_, 0.0, 1.0) * (rx - 1)
+        py = np.clip(sy_, 0.0, 1.0) * (ry - 1)
+        ix = np.minimum(px.astype(np.intp), rx - 2)
+        iy = np.minimum(py.astype(np.intp), ry - 2)
+        fx, fy = px - ix, py - iy
+        corner_w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=-1)
+        spec = np.einsum("nk,nkc->nc", corner_w, sl.gather(self._spec, iy, ix))
         if self.jacobian:
             # The table stores a quantity smooth in sample space; the NDF over the
             # projected area restores f cos(theta_o) (paper, eq. for the Jacobian of the
@@ -261,14 +279,15 @@ class RGLBRDF:
     def _invert_vndf(self, sl: _Slices, ux: Array, uy: Array) -> tuple[Array, Array]:
         """Inverse of the continuous marginal/conditional warp of the VNDF table.
 
-        For the bilinear interpolant ``p(x, y)`` of the (per-slice normalised) VNDF, the
-        sample ``(sx, sy)`` that the forward warp maps to ``(x, y)`` is
-        ``sy = P(y) = int_0^y int_0^1 p dx' dy'`` (marginal CDF along rows) and
-        ``sx = int_0^x p(x', y) dx' / int_0^1 p(x', y) dx'`` (conditional CDF of the row at
-        height ``y``).  Within a patch both integrals of a (bi)linear function are
-        quadratic, so they are evaluated exactly from the patch corners plus the
-        cumulative tables of whole patches.  Tables are interpolated over (phi_i, theta_i)
-        before use, as in the reference implementation.
+        For the bilinear interpolant ``p(x, y)`` of the (per-slice normalised) VNDF, with
+        ``x`` the ``theta_m`` axis and ``y`` the ``phi_m`` axis, the sample ``(sx, sy)`` that
+        the forward warp maps to ``(x, y)`` is ``sy = int_0^y int_0^1 p dx' dy'`` (marginal
+        CDF over y) and ``sx = int_0^x p(x', y) dx' / int_0^1 p(x', y) dx'`` (conditional
+        CDF along x at height ``y``; ``p`` is linear in ``y`` inside a patch, so it is the
+        linear blend of the cumulative tables of the two bounding rows).  Within a patch
+        both integrals of a (bi)linear function are quadratic, so they are evaluated
+        exactly from the patch corners plus the cumulative tables of whole patches.
+        Tables are interpolated over (phi_i, theta_i) before use, as in the reference.
         """
         h, w = self._vndf_shape
         px = np.clip(ux, 0.0, 1.0) * (w - 1)
@@ -276,28 +295,17 @@ class RGLBRDF:
         ix = np.minimum(px.astype(np.intp), w - 2)
         iy = np.minimum(py.astype(np.intp), h - 2)
         fx, fy = px - ix, py - iy
+        v00, v10, v01, v11, prev0, prev1, r0, r1, marg_prev = sl.gather(self._patch, iy, ix).T
 
-        v00 = sl.gather(self._vndf, iy, ix)
-        v10 = sl.gather(self._vndf, iy, ix + 1)
-        v01 = sl.gather(self._vndf, iy + 1, ix)
-        v11 = sl.gather(self._vndf, iy + 1, ix + 1)
         c0 = v00 + (v01 - v00) * fy
         c1 = v10 + (v11 - v10) * fy
-
-        # partial integral of the linear segment c0 -> c1 over [0, fx], patch width 1/(w-1)
-        sx = fx * (c0 + (c1 - c0) * 0.5 * fx) / (w - 1)
-        prev = np.maximum(ix - 1, 0)
-        has_prev = ix > 0
-        before = (1 - fy) * sl.gather(self._cond, iy, prev) + fy * sl.gather(self._cond, iy + 1, prev)
-        sx = sx + np.where(has_prev, before, 0.0)
-        r0 = sl.gather(self._cond, iy, w - 2)
-        r1 = sl.gather(self._cond, iy + 1, w - 2)
+        # integral of the linear segment c0 -> c1 over [0, fx] (patch width 1/(w-1)), plus
+        # the whole patches to the left of it in this row (blend of the bounding rows)
+        sx = fx * (c0 + (c1 - c0) * 0.5 * fx) / (w - 1) + prev0 + (prev1 - prev0) * fy
         row = r0 + (r1 - r0) * fy
         with np.errstate(invalid="ignore", divide="ignore"):
             sx = np.where(row > 0, sx / row, fx)
-
-        sy = fy * (r0 + (r1 - r0) * 0.5 * fy) / (h - 1)
-        sy = sy + np.where(iy > 0, sl.gather(self._marg, np.maximum(iy - 1, 0)), 0.0)
+        sy = fy * (r0 + (r1 - r0) * 0.5 * fy) / (h - 1) + marg_prev
         return sx, sy
 
     # ------------------------------------------------------------------ integrals
@@ -331,6 +339,33 @@ def _marginal_tables(vndf: Array) -> tuple[Array, Array, Array]:
     with np.errstate(divide="ignore"):
         norm = np.where(total > 0, 1.0 / total, 0.0)
     return vndf * norm[:, None, None], cond * norm[:, None, None], marg * norm[:, None]
+
+
+def _patch_table(vndf: Array, cond: Array, marg: Array) -> Array:
+    """Everything the VNDF inversion reads for one bilinear patch, packed per patch.
+
+    Returns shape (slices, h-1, w-1, 9): the 4 corner densities (00, 10, 01, 11), the
+    conditional CDF before the patch in its lower and upper row (0 for the first column),
+    the row totals of those two rows, and the marginal CDF before the patch's row.  All
+    entries are linear in the tables, so interpolating packed rows over (phi_i, theta_i)
+    equals interpolating the tables, and one gather per slice replaces nine.
+    """
+    s, h, w = vndf.shape
+    cprev = np.concatenate([np.zeros((s, h, 1)), cond[:, :, :-1]], axis=2)  # (s, h, w-1)
+    mprev = np.concatenate([np.zeros((s, 1)), marg[:, :-1]], axis=1)  # (s, h-1)
+    shape = (s, h - 1, w - 1)
+    parts = [
+        vndf[:, :-1, :-1],
+        vndf[:, :-1, 1:],
+        vndf[:, 1:, :-1],
+        vndf[:, 1:, 1:],
+        cprev[:, :-1, :],
+        cprev[:, 1:, :],
+        np.broadcast_to(cond[:, :-1, -1:], shape),
+        np.broadcast_to(cond[:, 1:, -1:], shape),
+        np.broadcast_to(mprev[:, :, None], shape),
+    ]
+    return np.ascontiguousarray(np.stack(parts, axis=-1))
 
 
 _REQUIRED = ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance", "description", "jacobian")

@@ -187,7 +187,9 @@ def write_tensor_file(path: str | Path, fields: dict[str, np.ndarray]) -> None:
         struct.pack_into("<H", out, hp, len(nb))
         out[hp + 2 : hp + 2 + len(nb)] = nb
         hp += 2 + len(nb)
-        struct.pack_into(f"<HBQ{a.ndim}Q", out, hp, a.ndim, _CODE_OF[a.dtype], offsets[name], *a.shape)
+        struct.pack_into(
+            f"<HBQ{a.ndim}Q", out, hp, a.ndim, _CODE_OF[a.dtype], offsets[name], *a.shape
+        )
         hp += 11 + 8 * a.ndim
         out[offsets[name] : offsets[name] + a.nbytes] = a.tobytes()
     Path(path).write_bytes(bytes(out))

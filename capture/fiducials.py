@@ -1,0 +1,310 @@
+"""Where is the camera, and which pixels see which part of the sample?
+
+The sample holder carries a ChArUco board (OpenCV ``cv2.aruco.CharucoBoard``) centred on
+the sample-frame origin, columns along +x, rows along -y (see
+:class:`gonio.simulator.scene.Board`).  From one frame this module
+
+1. builds a grey image from the raw mosaic (each CFA channel scaled to a common level,
+   which is exact for the neutral black and white print),
+2. detects the board with OpenCV 5's ``CharucoDetector.detectBoard``,
+3. solves the camera pose with ``cv2.solvePnP(..., SOLVEPNP_IPPE)`` (the points are
+   planar) refined by Levenberg-Marquardt,
+4. maps the sample's region of interest: every pixel whose ray meets the sample plane
+   inside the ROI, split into a grid of regions, with its sample-frame point, ``wo`` and
+   (given the light position) ``wi``.
+
+Pixel coordinates follow OpenCV: the centre of pixel (row r, column c) is at u = c, v = r.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from gonio.capture.raw import CHANNELS, RawFrame
+from gonio.errors import ReductionError
+
+
+@dataclass(frozen=True)
+class BoardSpec:
+    """The holder's ChArUco board and where it sits in the sample frame.
+
+    Parameters
+    ----------
+    squares_x, squares_y
+        Number of chessboard squares along the board's columns and rows.
+    square_length, marker_length
+        Square and marker side, metres.
+    dictionary
+        Name of a ``cv2.aruco`` predefined dictionary, e.g. ``"DICT_4X4_50"``.
+    board_to_sample
+        ``(R, t)`` with ``p_sample = R @ p_board + t``; by default the board is centred on
+        the origin with its columns along +x and its rows along -y.
+    """
+
+    squares_x: int = 7
+    squares_y: int = 7
+    square_length: float = 0.02
+    marker_length: float = 0.015
+    dictionary: str = "DICT_4X4_50"
+    board_to_sample: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any]) -> BoardSpec:
+        """From a mapping with the fields of the simulator's ``[holder.board]`` table."""
+        keys = ("squares_x", "squares_y", "square_length", "marker_length", "dictionary")
+        return cls(**{k: m[k] for k in keys if k in m})
+
+    def cv_board(self) -> Any:
+        """The OpenCV board (object points in metres, board frame)."""
+        if not hasattr(cv2.aruco, self.dictionary):
+            raise ReductionError(f"unknown cv2.aruco dictionary {self.dictionary!r}")
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+        return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_length,
+                                      self.marker_length, d)
+
+    def transform(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``(R, t)`` taking board-frame points to the sample frame."""
+        if self.board_to_sample is not None:
+            R, t = self.board_to_sample
+            return np.asarray(R, float), np.asarray(t, float)
+        w, h = self.squares_x * self.square_length, self.squares_y * self.square_length
+        return np.diag([1.0, -1.0, -1.0]), np.array([-w / 2, h / 2, 0.0])
+
+
+@dataclass(frozen=True)
+class CameraPose:
+    """Camera pose in the sample frame from the fiducials.
+
+    Attributes
+    ----------
+    rotation
+        (3, 3) sample-to-camera rotation (OpenCV axes: x right, y down, z forward).
+    translation
+        (3,) sample origin in camera coordinates, metres.
+    position
+        (3,) camera centre in the sample frame, metres.
+    reprojection_rms
+        RMS reprojection error of the board corners, pixels.
+    n_corners
+        Number of ChArUco corners used.
+    """
+
+    rotation: NDArray[np.float64]
+    translation: NDArray[np.float64]
+    position: NDArray[np.float64]
+    reprojection_rms: float
+    n_corners: int
+
+    def angle_to(self, rotation: ArrayLike) -> float:
+        """Angle (rad) of the rotation between this pose and another world-to-camera one."""
+        dR = self.rotation @ np.asarray(rotation, float).T
+        return float(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)))
+
+
+def grey_from_mosaic(frame: RawFrame) -> NDArray[np.uint8]:
+    """An 8-bit grey image of the mosaic for marker detection.
+
+    Each CFA channel is divided by its own median, which equalises the channels on the
+    neutral (black and white) print, so the Bayer pattern does not show as a checker
+    texture; then the image is scaled so its 99.5th percentile is near white.
+    """
+    v = np.where(frame.saturated, np.nan, frame.linear)
+    out = np.empty_like(v)
+    for c in range(len(CHANNELS)):
+        m = frame.channel == c
+        med = np.nanmedian(v[m]) if m.any() else np.nan
+        out[m] = v[m] / med if np.isfinite(med) and med > 0 else np.nan
+    top = np.nanpercentile(out, 99.5)
+    if not np.isfinite(top) or top <= 0:
+        raise ReductionError(f"{frame.name}: frame has no usable signal to find the board in")
+    out = np.where(np.isfinite(out), out, top * 1.2)  # saturated reads as white
+    return np.clip(out * (230.0 / top), 0, 255).astype(np.uint8)
+
+
+def detect_pose(
+    image: NDArray[np.uint8],
+    board: BoardSpec,
+    K: ArrayLike,
+    dist: ArrayLike | None = None,
+    *,
+    name: str = "frame",
+    min_corners: int = 6,
+) -> CameraPose:
+    """Detect the ChArUco board and solve the camera pose in the sample frame.
+
+    Parameters
+    ----------
+    image
+        8-bit grey image, (H, W).
+    board
+        The holder's board.
+    K
+        3x3 camera matrix (pixels, OpenCV convention).
+    dist
+        Distortion coefficients (OpenCV order), none by default.
+    name
+        Frame name for messages.
+    min_corners
+        Fewest ChArUco corners accepted.
+
+    Raises
+    ------
+    ReductionError
+        When the board is not visible (fewer than ``min_corners`` corners found).
+    """
+    K = np.asarray(K, dtype=np.float64)
+    dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64)
+    cvb = board.cv_board()
+    det = cv2.aruco.CharucoDetector(cvb)
+    corners, ids, _mc, mids = det.detectBoard(image)
+    n = 0 if ids is None else len(ids)
+    if n < min_corners:
+        nm = 0 if mids is None else len(mids)
+        raise ReductionError(
+            f"{name}: ChArUco board not visible ({n} corners, {nm} markers found; "
+            f"need {min_corners} corners)"
+        )
+    obj, img = cvb.matchImagePoints(corners, ids)
+    obj = obj.reshape(-1, 3).astype(np.float64)
+    img = img.reshape(-1, 2).astype(np.float64)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        raise ReductionError(f"{name}: solvePnP found no pose for the board")
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+    rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
+    R_bc = cv2.Rodrigues(rvec)[0]
+    R_bs, t_bs = board.transform()
+    # p_cam = R_bc p_board + t_bc and p_board = R_bs^T (p_sample - t_bs)
+    R = R_bc @ R_bs.T
+    t = tvec.ravel() - R @ t_bs
+    return CameraPose(R, t, -R.T @ t, rms, n)
+
+
+@dataclass(frozen=True)
+class RegionMap:
+    """The sample's region of interest in one camera pose.
+
+    Attributes
+    ----------
+    box
+        ``(row_slice, col_slice)``: the image crop holding the ROI.
+    label
+        (h, w) int region index of each pixel in the crop, -1 outside the ROI.
+    points
+        (h, w, 3) sample-frame point seen by each pixel of the crop (NaN off the plane).
+    wo
+        (h, w, 3) unit direction from that point to the camera centre.
+    vignetting
+        (h, w) cos^4 of each pixel's angle to the optical axis (natural vignetting).
+    n_regions
+        Number of regions (grid cells).
+    centers
+        (n_regions, 2) cell centres on the sample, metres (x, y).
+    """
+
+    box: tuple[slice, slice]
+    label: NDArray[np.int64]
+    points: NDArray[np.float64]
+    wo: NDArray[np.float64]
+    vignetting: NDArray[np.float64]
+    n_regions: int
+    centers: NDArray[np.float64]
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def map_regions(
+    pose: CameraPose,
+    K: ArrayLike,
+    shape: tuple[int, int],
+    sample_size: tuple[float, float],
+    *,
+    roi_fraction: float = 0.6,
+    grid: int = 3,
+    margin_px: float = 2.0,
+) -> RegionMap:
+    """Split the sample's central area into ``grid x grid`` regions and find their pixels.
+
+    Parameters
+    ----------
+    pose
+        Camera pose from :func:`detect_pose`.
+    K
+        Camera matrix (OpenCV convention).
+    shape
+        Image (mosaic) size (height, width).
+    sample_size
+        Sample width (x) and height (y), metres; the sample is centred on the origin.
+    roi_fraction
+        Fraction of each side used (keeps away from the sample's edges).
+    grid
+        Regions per side; small regions keep the spread of directions in each small.
+    margin_px
+        Pixels whose centre lies closer than this to a region boundary (in the image) are
+        left out, so no pixel mixes two regions or the holder.
+
+    Raises
+    ------
+    ReductionError
+        When the ROI is not in the image or not facing the camera.
+    """
+    K = np.asarray(K, float)
+    hw, hh = 0.5 * roi_fraction * sample_size[0], 0.5 * roi_fraction * sample_size[1]
+    corners = np.array([[-hw, -hh, 0], [hw, -hh, 0], [hw, hh, 0], [-hw, hh, 0]])
+    pc = corners @ pose.rotation.T + pose.translation
+    if np.any(pc[:, 2] <= 0) or pose.position[2] <= 0:
+        raise ReductionError("the sample's ROI is behind the camera or seen from below")
+    uv = (pc @ K.T)[:, :2] / pc[:, 2:3]
+    c0, r0 = np.floor(uv.min(0)).astype(int)
+    c1, r1 = np.ceil(uv.max(0)).astype(int) + 1
+    H, W = shape
+    if c0 < 0 or r0 < 0 or c1 > W or r1 > H:
+        raise ReductionError(
+            f"the sample's ROI (columns {c0}..{c1}, rows {r0}..{r1}) is not inside the "
+            f"{W}x{H} image"
+        )
+    rows, cols = np.mgrid[r0:r1, c0:c1].astype(np.float64)
+    d_cam = np.stack([(cols - K[0, 2]) / K[0, 0], (rows - K[1, 2]) / K[1, 1],
+                      np.ones_like(cols)], axis=-1)
+    vign = (1.0 / np.linalg.norm(d_cam, axis=-1)) ** 4
+    d = d_cam @ pose.rotation  # to the sample frame (R^T d)
+    C = pose.position
+    s = -C[2] / d[..., 2]
+    p = C + s[..., None] * d
+    wo = C - p
+    wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+    # a metre on the sample near the ROI is this many pixels: turns the pixel margin into
+    # a margin on the sample plane
+    dist = float(np.linalg.norm(pose.translation))
+    m = margin_px * dist / K[0, 0] / max(float(pose.position[2]) / dist, 0.2)
+    cell_x, cell_y = 2 * hw / grid, 2 * hh / grid
+    ix = np.floor((p[..., 0] + hw) / cell_x)
+    iy = np.floor((p[..., 1] + hh) / cell_y)
+    fx = (p[..., 0] + hw) - ix * cell_x
+    fy = (p[..., 1] + hh) - iy * cell_y
+    inside = (ix >= 0) & (ix < grid) & (iy >= 0) & (iy < grid)
+    inside &= (fx > m) & (fx < cell_x - m) & (fy > m) & (fy < cell_y - m)
+    label = np.where(inside, iy * grid + ix, -1).astype(np.int64)
+    g = (np.arange(grid) + 0.5)
+    cx, cy = np.meshgrid(-hw + g * cell_x, -hh + g * cell_y)
+    return RegionMap((slice(r0, r1), slice(c0, c1)), label, p, wo, vign, grid * grid,
+                     np.stack([cx.ravel(), cy.ravel()], axis=1))
+
+
+def directions_to(points: NDArray[np.float64], position: ArrayLike) -> NDArray[np.float64]:
+    """Unit directions from sample points (..., 3) towards a position (3,), e.g. the light."""
+    v = np.asarray(position, float) - points
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def angle_between(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
+    """Angle (rad) between unit vectors, robust near 0."""
+    a = np.asarray(a, float)
+    b = np.asarray(b, float)
+    return 2 * np.arctan2(np.linalg.norm(a - b, axis=-1), np.linalg.norm(a + b, axis=-1))

@@ -1,0 +1,843 @@
+"""Reduce a capture session to BRDF samples: ``reduce_session(SESSION/) -> samples.h5``.
+
+For every pose of the session (see DEVELOPING.md, "Session directory"):
+
+1. the RAW frames are checked against their journal hash and the session's camera (CFA
+   pattern and size), decoded on the mosaic (:mod:`gonio.capture.raw`), and the matching
+   master dark (same exposure time and ISO) is subtracted;
+2. the holder's ChArUco board gives the camera pose (:mod:`gonio.capture.fiducials`);
+   the sample's central area is split into ``grid x grid`` regions, each one BRDF sample
+   with its own measured ``wo`` and ``wi`` (from the light's position given by the rig's
+   kinematics at the joint angles read back); a camera pose further than the tolerance
+   from the rig's report flags the pose;
+3. the bracket is merged with inverse-variance weights (:mod:`gonio.capture.hdr`),
+   corrected for natural vignetting, and averaged per region and CFA channel, the
+   variance following from the photon-transfer model;
+4. the reference target's poses give the light's radiance in camera units,
+   ``I = pi / rho * <L_ref(x) / G(x)>`` with ``G`` the irradiance a unit-radiance light
+   puts on point ``x`` (exact disk formula), pooled over regions and reference poses;
+   a sample region's BRDF is ``f = <L(x)> / (I <G(x)>)`` in 1/sr.
+
+Nothing in ``raw/`` is touched; ``samples.h5`` is written atomically, and the same session
+gives the same file.  A summary (``reduction.json``) lists samples kept and rejected with
+their reasons, and ``samples.png`` shows them over the angle domain.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import tomllib
+from collections import Counter, defaultdict
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gonio.capture.calibration import irradiance_geometry, reference_reflectance
+from gonio.capture.fiducials import (
+    BoardSpec,
+    CameraPose,
+    RegionMap,
+    angle_between,
+    detect_pose,
+    grey_from_mosaic,
+    map_regions,
+)
+from gonio.capture.hdr import merge_bracket
+from gonio.capture.noise import NoiseModel
+from gonio.capture.raw import CHANNELS, CameraSignature, RawFrame, read_raw, subtract_dark
+from gonio.errors import FileFormatError, GonioError, ReductionError, SessionError
+
+SAMPLES_FILE = "samples.h5"
+SUMMARY_FILE = "reduction.json"
+PLOT_FILE = "samples.png"
+NOISE_FILE = "noise.json"
+CONFIG_FILE = "reduction.toml"
+
+
+# --------------------------------------------------------------------------------------
+# What the reduction needs to know besides the frames
+
+
+@dataclass(frozen=True)
+class ReductionSetup:
+    """Camera, holder, light and noise facts the reduction needs.
+
+    Attributes
+    ----------
+    K
+        3x3 camera matrix, pixels, OpenCV convention (pixel centres at integers).
+    board
+        The holder's ChArUco board.
+    sample_size
+        Sample width (x) and height (y), metres, centred on the origin.
+    noise
+        Photon-transfer noise model of the camera.
+    reflectance
+        Reference target reflectance per channel (R, G, B).
+    reflectance_std
+        Its standard uncertainty per channel.
+    light_radius
+        Radius of the (disk) light, metres; None treats it as a point source.
+    dist
+        Lens distortion coefficients (OpenCV), None for none.
+    signature
+        The session camera's CFA pattern and mosaic size (frames that differ are refused);
+        None takes it from the first frame.
+    roi_fraction, grid
+        Central fraction of the sample used, and regions per side.
+    geometry_tolerance_deg, position_tolerance_m
+        Largest disagreement between the camera pose from the board and the rig's report.
+    min_snr
+        Regions whose signal-to-noise ratio is lower are flagged UNDEREXPOSED.
+    """
+
+    K: NDArray[np.float64]
+    board: BoardSpec
+    sample_size: tuple[float, float]
+    noise: NoiseModel
+    reflectance: NDArray[np.float64]
+    reflectance_std: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    light_radius: float | None = None
+    dist: NDArray[np.float64] | None = None
+    signature: CameraSignature | None = None
+    roi_fraction: float = 0.6
+    grid: int = 3
+    geometry_tolerance_deg: float = 0.5
+    position_tolerance_m: float = 0.01
+    min_snr: float = 5.0
+
+
+def setup_from_scene(scene: Any, reflectance: Any = 0.99, **options: Any) -> ReductionSetup:
+    """Reduction facts of a simulated rig, from its :class:`gonio.simulator.scene.Scene`.
+
+    The simulator's camera matrix puts pixel centres at integer + 0.5; OpenCV puts them at
+    integers, hence the half-pixel shift.
+    """
+    cam = scene.camera
+    K = np.array(cam.intrinsics(), float)
+    K[0, 2] -= 0.5
+    K[1, 2] -= 0.5
+    s = cam.sensor
+    if scene.holder is None or scene.holder.board is None:
+        raise ReductionError("the scene's holder has no ChArUco board: the camera pose cannot be measured")
+    b = scene.holder.board
+    board = BoardSpec(b.squares_x, b.squares_y, b.square_length, b.marker_length, b.dictionary)
+    light = scene.lights[0]
+    radius = getattr(light, "radius", None)
+    noise = NoiseModel(s.gain_at_base_iso, s.read_noise * s.gain_at_base_iso, s.base_iso)
+    w, h = cam.resolution
+    opts = dict(
+        light_radius=radius,
+        signature=CameraSignature(s.cfa_pattern, (int(h), int(w))),
+    )
+    opts.update(options)
+    return ReductionSetup(K=K, board=board, sample_size=(scene.sample.width, scene.sample.height),
+                          noise=noise, reflectance=reference_reflectance(reflectance), **opts)
+
+
+def setup_from_mapping(d: Mapping[str, Any], source: Path, base: Path) -> ReductionSetup:
+    """Reduction facts from a ``reduction.toml`` document (a lab's calibration).
+
+    Schema::
+
+        [camera]   K = [[fx,0,cx],[0,fy,cy],[0,0,1]]   dist = [k1,k2,p1,p2,k3]
+                   cfa_pattern = "RGGB"   width = 6000   height = 4000
+        [noise]    gain = 0.4  read_noise = 1.2  iso = 100     # or file = "noise.json"
+        [board]    squares_x, squares_y, square_length, marker_length, dictionary
+        [sample]   width = 0.05  height = 0.05
+        [light]    radius = 0.01                 # omit for a point source
+        [reference] reflectance = 0.99 (or "spectrum.csv")  reflectance_std = 0.005
+        [reduction] roi_fraction, grid, geometry_tolerance_deg, position_tolerance_m, min_snr
+    """
+    try:
+        cam = d["camera"]
+        K = np.asarray(cam["K"], float)
+        if K.shape != (3, 3):
+            raise FileFormatError(source, f"must be 3x3, got shape {K.shape}", "camera.K")
+        noise_d = d.get("noise", {})
+        if "file" in noise_d:
+            noise = NoiseModel.load(base / noise_d["file"])
+        else:
+            noise = NoiseModel.from_mapping(noise_d, source=source)
+        sample = d["sample"]
+        ref = d.get("reference", {})
+        refl = ref.get("reflectance", 0.99)
+        if isinstance(refl, str):
+            refl = base / refl
+        red = d.get("reduction", {})
+        return ReductionSetup(
+            K=K,
+            board=BoardSpec.from_mapping(d.get("board", {})),
+            sample_size=(float(sample["width"]), float(sample["height"])),
+            noise=noise,
+            reflectance=reference_reflectance(refl),
+            reflectance_std=np.broadcast_to(np.asarray(ref.get("reflectance_std", 0.0), float), (3,)).copy(),
+            light_radius=d.get("light", {}).get("radius"),
+            dist=np.asarray(cam["dist"], float) if "dist" in cam else None,
+            signature=CameraSignature.from_mapping(cam),
+            **{k: red[k] for k in ("roi_fraction", "grid", "geometry_tolerance_deg",
+                                   "position_tolerance_m", "min_snr") if k in red},
+        )
+    except KeyError as exc:
+        raise FileFormatError(source, "missing", str(exc.args[0])) from None
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, GonioError):
+            raise
+        raise FileFormatError(source, str(exc)) from None
+
+
+def _scene_of_manifest(manifest: Mapping[str, Any], session: Path) -> Any | None:
+    sim = manifest.get("simulation")
+    if not sim:
+        return None
+    doc = sim.get("scene", sim) if isinstance(sim, Mapping) else sim
+    from gonio.simulator.scene import load_scene, parse_scene
+
+    if isinstance(doc, str):
+        p = Path(doc)
+        scene = load_scene(p if p.is_absolute() else session / p)
+    elif isinstance(doc, Mapping) and "camera" in doc:
+        scene = parse_scene(dict(doc), f"{session}/manifest.json: simulation.scene")
+    else:
+        from gonio.capture.sim_camera import minimal_scene
+
+        scene = parse_scene(minimal_scene(), "minimal scene")
+    w = sim.get("width") if isinstance(sim, Mapping) else None
+    h = sim.get("height") if isinstance(sim, Mapping) else None
+    if w or h:
+        W, H = scene.camera.resolution
+        cam = scene.camera.model_copy(update={"resolution": (int(w or W), int(h or H))})
+        scene = scene.model_copy(update={"camera": cam})
+    return scene
+
+
+def resolve_setup(session: Path, manifest: Mapping[str, Any],
+                  noise: NoiseModel | None = None) -> ReductionSetup:
+    """Find the reduction facts of a session.
+
+    In order: ``SESSION/reduction.toml`` (a lab's calibration), else the simulated scene
+    recorded in the manifest.  A ``SESSION/noise.json`` written by
+    ``gonio capture calibrate-noise`` (or ``noise``) replaces the noise model.
+    """
+    ref = manifest.get("reference") or {}
+    cfg = session / CONFIG_FILE
+    if cfg.is_file():
+        try:
+            doc = tomllib.loads(cfg.read_text())
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise FileFormatError(cfg, f"not valid TOML ({exc})") from None
+        doc.setdefault("reference", {}).setdefault("reflectance", ref.get("reflectance", 0.99))
+        setup = setup_from_mapping(doc, cfg, session)
+    else:
+        scene = _scene_of_manifest(manifest, session)
+        if scene is None:
+            raise SessionError(
+                f"{session}: no {CONFIG_FILE} (camera matrix, board, sample size, noise model) "
+                "and no simulated scene in the manifest: the reduction does not know the camera"
+            )
+        setup = setup_from_scene(scene, ref.get("reflectance", 0.99),
+                                 reflectance_std=np.broadcast_to(
+                                     np.asarray(ref.get("reflectance_std", 0.0), float), (3,)).copy())
+    nfile = session / NOISE_FILE
+    if noise is None and nfile.is_file():
+        noise = NoiseModel.load(nfile)
+    if noise is not None:
+        setup = _replace(setup, noise=noise)
+    return setup
+
+
+def _replace(setup: ReductionSetup, **kw: Any) -> ReductionSetup:
+    from dataclasses import replace
+
+    return replace(setup, **kw)
+
+
+# --------------------------------------------------------------------------------------
+# One pose
+
+
+@dataclass
+class PoseMeasurement:
+    """Per-region measurements of one pose.
+
+    Attributes
+    ----------
+    pose, kind
+        Journal pose index and kind (``"sample"`` or ``"reference"``).
+    wi, wo
+        (n, 3) measured directions per region (sample frame).
+    radiance, radiance_var
+        (n, 3) mean relative radiance per region and channel, and its variance.
+    geometry
+        (n, 3) mean of ``G(x)`` (irradiance from a unit-radiance light) over the same pixels.
+    ratio, ratio_var
+        (n, 3) mean of ``L(x) / G(x)`` and its variance (for reference poses).
+    flags
+        (n,) :class:`gonio.dataset.Flag` bits.
+    reasons
+        Per region, the reasons for its flags.
+    frames
+        Files of the bracket.
+    camera
+        Camera pose from the board (None when not found).
+    regions
+        The :class:`RegionMap` (pixel sets), for inspection and tests.
+    """
+
+    pose: int
+    kind: str
+    wi: NDArray[np.float64]
+    wo: NDArray[np.float64]
+    radiance: NDArray[np.float64]
+    radiance_var: NDArray[np.float64]
+    geometry: NDArray[np.float64]
+    ratio: NDArray[np.float64]
+    ratio_var: NDArray[np.float64]
+    flags: NDArray[np.uint32]
+    reasons: list[list[str]]
+    frames: tuple[str, ...]
+    camera: CameraPose | None = None
+    regions: RegionMap | None = None
+
+
+def _flag(name: str) -> int:
+    from gonio.dataset import Flag
+
+    return int(Flag[name])
+
+
+def _detection_frame(frames: list[RawFrame]) -> RawFrame:
+    """The longest exposure with (almost) nothing saturated: the best-exposed board."""
+    by_exp = sorted(frames, key=lambda f: f.exposure_factor())
+    good = [f for f in by_exp if f.saturated.mean() < 0.02]
+    return good[-1] if good else by_exp[0]
+
+
+def measure_pose(
+    frames: list[RawFrame],
+    setup: ReductionSetup,
+    light_position: NDArray[np.float64],
+    light_normal: NDArray[np.float64] | None,
+    *,
+    pose: int = 0,
+    kind: str = "sample",
+    reported_wo: NDArray[np.float64] | None = None,
+    reported_camera: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+    dark_variance: float | NDArray[np.float64] = 0.0,
+) -> PoseMeasurement:
+    """Measure one pose's bracket: camera pose, regions, merged radiance per region.
+
+    Parameters
+    ----------
+    frames
+        The pose's decoded (dark-subtracted) frames.
+    setup
+        Camera, board, sample and noise facts.
+    light_position, light_normal
+        The light's centre and emitting normal in the sample frame (from the rig), metres.
+    pose, kind
+        Journal pose index and kind, carried into the result.
+    reported_wo
+        The rig's reported direction to the camera (sample frame), for the geometry check.
+    reported_camera
+        The rig's reported camera ``(position, world-to-camera rotation)``: used when the
+        board cannot be seen (the samples are then flagged GEOMETRY_MISMATCH).
+    dark_variance
+        Variance (DN^2) added by the subtracted master dark.
+
+    Raises
+    ------
+    ReductionError
+        When neither the board nor a reported camera pose gives the geometry.
+    """
+    names = tuple(f.name for f in frames)
+    pose_flags = 0
+    pose_reasons: list[str] = []
+    det = _detection_frame(frames)
+    try:
+        cam = detect_pose(grey_from_mosaic(det), setup.board, setup.K, setup.dist, name=det.name)
+    except ReductionError as exc:
+        if reported_camera is None:
+            raise
+        C, R = (np.asarray(x, float) for x in reported_camera)
+        cam = CameraPose(R, -R @ C, C, math.nan, 0)
+        pose_flags |= _flag("GEOMETRY_MISMATCH")
+        pose_reasons.append(f"board not found ({exc}); the rig's camera pose was used")
+    else:
+        if reported_wo is not None:
+            ang = math.degrees(float(angle_between(cam.position / np.linalg.norm(cam.position),
+                                                   np.asarray(reported_wo, float))))
+            if ang > setup.geometry_tolerance_deg:
+                pose_flags |= _flag("GEOMETRY_MISMATCH")
+                pose_reasons.append(
+                    f"camera direction from the board is {ang:.2f} deg from the rig's report "
+                    f"(tolerance {setup.geometry_tolerance_deg} deg)"
+                )
+        if reported_camera is not None:
+            dpos = float(np.linalg.norm(cam.position - np.asarray(reported_camera[0], float)))
+            if dpos > setup.position_tolerance_m:
+                pose_flags |= _flag("GEOMETRY_MISMATCH")
+                pose_reasons.append(
+                    f"camera position from the board is {dpos * 1e3:.1f} mm from the rig's "
+                    f"report (tolerance {setup.position_tolerance_m * 1e3:g} mm)"
+                )
+    regions = map_regions(cam, setup.K, frames[0].shape, setup.sample_size,
+                          roi_fraction=setup.roi_fraction, grid=setup.grid)
+    merged = merge_bracket(frames, setup.noise, dark_variance, region=regions.box)
+    val = merged.value / regions.vignetting
+    var = merged.variance / regions.vignetting**2
+    pts = regions.points
+    lp = np.asarray(light_position, float)
+    wi_px = lp - pts
+    wi_px /= np.linalg.norm(wi_px, axis=-1, keepdims=True)
+    # G(x): the point-source law gives the shape across a region; the exact disk value at
+    # the region's centre corrects its level (the two differ by ~(r/d)^2, smoothly).
+    g_pt = irradiance_geometry(pts, lp, light_normal)
+    n, nc = regions.n_regions, len(CHANNELS)
+    out = {k: np.full((n, nc), np.nan) for k in ("L", "Lv", "G", "Q", "Qv")}
+    wi = np.full((n, 3), np.nan)
+    wo = np.full((n, 3), np.nan)
+    flags = np.full(n, pose_flags, dtype=np.uint32)
+    reasons = [list(pose_reasons) for _ in range(n)]
+    centres = np.column_stack([regions.centers, np.zeros(n)])
+    g_c_pt = irradiance_geometry(centres, lp, light_normal)
+    g_c = irradiance_geometry(centres, lp, light_normal, setup.light_radius)
+    label = regions.label
+    for j in range(n):
+        in_j = label == j
+        if not in_j.any():
+            flags[j] |= _flag("INVALID")
+            reasons[j].append("region has no pixels in the image")
+            continue
+        wi[j] = wi_px[in_j].mean(0)
+        wo[j] = regions.wo[in_j].mean(0)
+        gscale = g_c[j] / g_c_pt[j]
+        for c in range(nc):
+            m = in_j & (merged.channel == c)
+            k = int(m.sum())
+            if k == 0:
+                continue
+            if merged.saturated[m].any():
+                flags[j] |= _flag("SATURATED")
+                reasons[j].append(f"{CHANNELS[c]} saturated in every frame of the bracket")
+                continue
+            g = g_pt[m] * gscale
+            out["L"][j, c] = val[m].mean()
+            out["Lv"][j, c] = var[m].sum() / k**2
+            out["G"][j, c] = g.mean()
+            out["Q"][j, c] = (val[m] / g).mean()
+            out["Qv"][j, c] = (var[m] / g**2).sum() / k**2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            snr = out["L"][j] / np.sqrt(out["Lv"][j])
+        if np.any(snr < setup.min_snr):
+            flags[j] |= _flag("UNDEREXPOSED")
+            low = ", ".join(f"{CHANNELS[c]} {snr[c]:.1f}" for c in range(nc) if snr[c] < setup.min_snr)
+            reasons[j].append(f"signal-to-noise below {setup.min_snr:g} ({low})")
+    wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+    wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+    return PoseMeasurement(pose, kind, wi, wo, out["L"], out["Lv"], out["G"], out["Q"],
+                           out["Qv"], flags, reasons, names, cam, regions)
+
+
+def light_scale(references: list[PoseMeasurement], setup: ReductionSetup
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The light's radiance in camera units per channel, from the reference poses.
+
+    ``I_c = pi / rho_c * <L_ref / G>``, pooled with inverse-variance weights over every
+    unflagged region of every reference pose; the variance includes the reflectance's
+    uncertainty.
+
+    Raises
+    ------
+    ReductionError
+        When no usable reference region exists.
+    """
+    q, qv = [], []
+    for r in references:
+        ok = (r.flags == 0)[:, None] & np.isfinite(r.ratio) & np.isfinite(r.ratio_var)
+        q.append(np.where(ok, r.ratio, np.nan))
+        qv.append(np.where(ok, r.ratio_var, np.nan))
+    if not q:
+        raise ReductionError("the session has no reference-target frames: the irradiance is unknown")
+    Q = np.concatenate(q)
+    V = np.concatenate(qv)
+    good = np.isfinite(Q)
+    if not good.any(axis=0).all():
+        missing = [CHANNELS[c] for c in range(len(CHANNELS)) if not good[:, c].any()]
+        raise ReductionError(
+            f"no usable reference-target region in channel(s) {', '.join(missing)} "
+            "(all flagged saturated, underexposed, or without the board)"
+        )
+    w = np.where(good, 1.0 / np.where(good, V, 1.0), 0.0)
+    qm = np.nansum(w * np.nan_to_num(Q), axis=0) / w.sum(0)
+    qm_var = 1.0 / w.sum(0)
+    rho = setup.reflectance
+    I = np.pi * qm / rho
+    I_var = I**2 * (qm_var / qm**2 + (setup.reflectance_std / rho) ** 2)
+    return I, I_var
+
+
+def brdf_of(m: PoseMeasurement, I: NDArray[np.float64], I_var: NDArray[np.float64]
+            ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+                       NDArray[np.float64]]:
+    """BRDF, its standard deviation, and the irradiance of each region of a sample pose.
+
+    ``f = <L> / (I <G>)``; ``var f = var<L> / E^2 + f^2 var(I) / I^2`` with ``E = I <G>``.
+    """
+    E = I[None, :] * m.geometry
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = m.radiance / E
+        var = m.radiance_var / E**2 + f**2 * (I_var / I**2)[None, :]
+    return f, np.sqrt(var), E, I_var[None, :] * m.geometry**2
+
+
+# --------------------------------------------------------------------------------------
+# The session
+
+
+@dataclass
+class ReductionResult:
+    """What :func:`reduce_session` did.
+
+    Attributes
+    ----------
+    path
+        The written ``samples.h5``.
+    n_samples, n_kept
+        Samples written, and those with no flag.
+    rejected
+        Reason -> number of samples (or frames) rejected for it.
+    summary
+        The JSON summary written next to the samples.
+    plot
+        The plot file, or None.
+    """
+
+    path: Path
+    n_samples: int
+    n_kept: int
+    rejected: dict[str, int]
+    summary: dict[str, Any]
+    plot: Path | None
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _kinematics(manifest: Mapping[str, Any]) -> Any | None:
+    rig = manifest.get("rig")
+    if not rig:
+        return None
+    try:
+        from gonio.rig.config import rig_config_from_dict
+        from gonio.rig.kinematics import Kinematics
+
+        return Kinematics(rig_config_from_dict(dict(rig), "manifest.json: rig"))
+    except (ImportError, GonioError):
+        return None
+
+
+def _shots_by_pose(records: list[dict[str, Any]]) -> tuple[dict[int, list[dict]], set[int]]:
+    shots: dict[int, dict[int, dict]] = defaultdict(dict)
+    done: set[int] = set()
+    for r in records:
+        if r.get("type") == "shot":
+            shots[int(r["pose"])][int(r["frame"])] = r  # a redone frame replaces the old
+        elif r.get("type") == "pose_done":
+            done.add(int(r["pose"]))
+    return {p: [fr[k] for k in sorted(fr)] for p, fr in shots.items()}, done
+
+
+def reduce_session(
+    session_dir: str | os.PathLike,
+    *,
+    out: str | os.PathLike | None = None,
+    noise: NoiseModel | None = None,
+    setup: ReductionSetup | None = None,
+    plot: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+) -> ReductionResult:
+    """Reduce a session's RAW frames to calibrated BRDF samples (``samples.h5``).
+
+    Parameters
+    ----------
+    session_dir
+        The session directory (manifest, journal, raw/).
+    out
+        Output file; ``SESSION/samples.h5`` by default.
+    noise
+        Noise model overriding the session's (``noise.json`` / the simulated sensor).
+    setup
+        All reduction facts, overriding what the session says.
+    plot
+        Write ``samples.png`` (angle-domain plot) next to the output.
+    progress
+        Called as ``progress(done, total)`` after each pose.
+
+    Returns
+    -------
+    ReductionResult
+
+    Raises
+    ------
+    SessionError
+        Not a session directory, or nothing to reduce.
+    ReductionError
+        No usable reference frames (the irradiance cannot be calibrated).
+    """
+    from gonio.capture.journal import read_journal
+    from gonio.capture.session import load_manifest
+    from gonio.dataset import BRDFSamples, save_samples
+
+    session = Path(session_dir)
+    manifest = load_manifest(session)
+    records = read_journal(session / "journal.jsonl")
+    if setup is None:
+        setup = resolve_setup(session, manifest, noise)
+    elif noise is not None:
+        setup = _replace(setup, noise=noise)
+    kin = _kinematics(manifest)
+    shots, done = _shots_by_pose(records)
+    frame_problems: dict[str, str] = {}
+    rejected: Counter[str] = Counter()
+
+    def load(rec: dict[str, Any]) -> RawFrame | None:
+        rel = rec.get("file", "")
+        path = session / rel
+        try:
+            if not path.is_file():
+                raise FileFormatError(path, "missing (the journal lists it)")
+            if rec.get("sha256") and _sha256(path) != rec["sha256"]:
+                raise FileFormatError(path, "sha256 differs from the journal: the file was "
+                                      "changed or corrupted after capture")
+            fr = read_raw(path, name=rel, expect=setup.signature)
+        except GonioError as exc:
+            frame_problems[rel] = str(exc)
+            return None
+        return fr.with_exposure(
+            exposure_time=rec.get("exposure_time") if not np.isfinite(fr.exposure_time) else None,
+            iso=rec.get("iso") if not np.isfinite(fr.iso) else None,
+            f_number=rec.get("f_number") if not np.isfinite(fr.f_number) else None,
+        )
+
+    # Master darks per (exposure time, ISO)
+    dark_groups: dict[tuple[float, float], list[RawFrame]] = defaultdict(list)
+    for p, recs in shots.items():
+        for rec in recs:
+            if rec.get("kind") == "dark":
+                fr = load(rec)
+                if fr is not None:
+                    dark_groups[(round(fr.exposure_time, 9), fr.iso)].append(fr)
+    masters = {k: (np.mean([f.linear for f in v], axis=0), len(v)) for k, v in dark_groups.items()}
+
+    if setup.signature is None:
+        first = next((r for recs in shots.values() for r in recs if r.get("kind") != "dark"), None)
+        if first is not None:
+            fr = load(first)
+            if fr is not None:
+                setup = _replace(setup, signature=fr.signature)
+
+    poses = sorted(p for p, recs in shots.items()
+                   if recs and recs[0].get("kind") in ("sample", "reference"))
+    measurements: list[PoseMeasurement] = []
+    failed_poses: list[dict[str, Any]] = []
+    for i, p in enumerate(poses):
+        recs = shots[p]
+        kind = recs[0]["kind"]
+        if p not in done:
+            failed_poses.append({"pose": p, "kind": kind, "reason": "pose not completed (no pose_done record)"})
+            rejected["pose not completed"] += 1
+            if progress:
+                progress(i + 1, len(poses))
+            continue
+        frames = []
+        dvar = 0.0
+        for rec in recs:
+            fr = load(rec)
+            if fr is None:
+                continue
+            key = (round(fr.exposure_time, 9), fr.iso)
+            if key in masters:
+                mdark, nd = masters[key]
+                fr = subtract_dark(fr, mdark)
+                dvar = setup.noise.variance(0.0, iso=fr.iso) / nd
+            frames.append(fr)
+        last = recs[-1]
+        wi_rep = np.asarray(last.get("wi_achieved") or last.get("wi_requested"), float)
+        wo_rep = np.asarray(last.get("wo_achieved") or last.get("wo_requested"), float)
+        light_pos, light_n, cam_rep = _rig_pose(kin, last.get("joints"), wi_rep, wo_rep)
+        if not frames:
+            why = "; ".join(frame_problems.get(r.get("file", ""), "?") for r in recs)
+            failed_poses.append({"pose": p, "kind": kind, "reason": f"no decodable frame: {why}"})
+            rejected["no decodable frame"] += 1
+            if kind == "sample":
+                measurements.append(_invalid_pose(p, wi_rep, wo_rep, why, tuple(r["file"] for r in recs)))
+        else:
+            try:
+                m = measure_pose(frames, setup, light_pos, light_n, pose=p, kind=kind,
+                                 reported_wo=wo_rep, reported_camera=cam_rep, dark_variance=dvar)
+            except ReductionError as exc:
+                failed_poses.append({"pose": p, "kind": kind, "reason": str(exc)})
+                rejected["geometry not measurable"] += 1
+                if kind == "sample":
+                    measurements.append(_invalid_pose(p, wi_rep, wo_rep, str(exc),
+                                                      tuple(f.name for f in frames)))
+            else:
+                measurements.append(m)
+        if progress:
+            progress(i + 1, len(poses))
+
+    samples_m = [m for m in measurements if m.kind == "sample"]
+    if not samples_m:
+        raise SessionError(f"{session}: no sample pose to reduce"
+                           + (f" ({failed_poses[0]['reason']})" if failed_poses else ""))
+    I, I_var = light_scale([m for m in measurements if m.kind == "reference"], setup)
+    parts = [brdf_of(m, I, I_var) for m in samples_m]
+    f = np.concatenate([x[0] for x in parts])
+    fstd = np.concatenate([x[1] for x in parts])
+    E = np.concatenate([x[2] for x in parts])
+    wi = np.concatenate([m.wi for m in samples_m])
+    wo = np.concatenate([m.wo for m in samples_m])
+    flags = np.concatenate([m.flags for m in samples_m])
+    L = np.concatenate([m.radiance for m in samples_m])
+    frames_col = np.array([";".join(m.frames) for m in samples_m for _ in range(len(m.flags))])
+    reasons = [r for m in samples_m for r in m.reasons]
+    for rs in reasons:
+        for r in rs:
+            rejected[_reason_key(r)] += 1
+    attrs = {
+        "session": str(manifest.get("created", "")),
+        "software_version": _version(),
+        "session_software_version": str(manifest.get("software_version", "")),
+        "radiance_units": "camera DN per (s ISO/100 / N^2), vignetting corrected (relative)",
+        "irradiance_units": "same camera units x sr (relative); brdf = radiance / irradiance",
+        "light_radiance_camera_units": I.tolist(),
+        "light_radiance_std": np.sqrt(I_var).tolist(),
+        "noise_model": json.dumps({"gain": setup.noise.gain, "read_noise": setup.noise.read_noise,
+                                   "iso": setup.noise.iso}),
+        "reference_reflectance": setup.reflectance.tolist(),
+        "roi_fraction": setup.roi_fraction,
+        "grid": setup.grid,
+    }
+    samples = BRDFSamples(wi=wi, wo=wo, brdf=f,
+                          brdf_std=fstd, flags=flags, channels=CHANNELS, radiance=L,
+                          irradiance=E, frames=frames_col, attrs=attrs)
+    path = Path(out) if out is not None else session / SAMPLES_FILE
+    save_samples(path, samples)
+    n_kept = int(samples.valid.sum())
+    summary = {
+        "samples": len(samples),
+        "kept": n_kept,
+        "rejected": dict(sorted(rejected.items())),
+        "sample_poses": len(samples_m),
+        "reference_poses": sum(m.kind == "reference" for m in measurements),
+        "failed_poses": failed_poses,
+        "frame_problems": dict(sorted(frame_problems.items())),
+        "light_radiance_camera_units": I.tolist(),
+        "output": path.name,
+    }
+    _write_json(path.with_name(SUMMARY_FILE), summary)
+    plot_path = None
+    if plot:
+        plot_path = plot_samples(samples, path.with_name(PLOT_FILE))
+    return ReductionResult(path, len(samples), n_kept, dict(rejected), summary, plot_path)
+
+
+def _reason_key(reason: str) -> str:
+    for key in ("saturated", "signal-to-noise", "board not found", "camera direction",
+                "camera position", "no decodable frame", "no pixels"):
+        if key in reason:
+            return {"signal-to-noise": "underexposed", "camera direction": "geometry mismatch",
+                    "camera position": "geometry mismatch"}.get(key, key)
+    return reason.split(":")[0][:60]
+
+
+def _invalid_pose(p: int, wi: NDArray, wo: NDArray, why: str, frames: tuple[str, ...]) -> PoseMeasurement:
+    nan3 = np.full((1, 3), np.nan)
+    return PoseMeasurement(p, "sample", wi[None, :], wo[None, :], nan3, nan3, nan3, nan3, nan3,
+                           np.array([_flag("INVALID")], np.uint32),
+                           [[f"no decodable frame: {why}" if "decod" not in why else why]], frames)
+
+
+def _rig_pose(kin: Any, joints: Mapping[str, float] | None, wi: NDArray, wo: NDArray):
+    """Light position/normal and reported camera (position, world->camera R) of a pose."""
+    if kin is not None and joints:
+        try:
+            rp = kin.poses({k: float(v) for k, v in joints.items()})
+            return (np.asarray(rp.light_position, float), np.asarray(rp.light_normal, float),
+                    (np.asarray(rp.camera_position, float), np.asarray(rp.camera_rotation, float).T))
+        except GonioError:
+            pass
+    raise ReductionError(
+        "the light's position is unknown: the manifest has no rig configuration with "
+        "kinematics for the journal's joint angles"
+    )
+
+
+def _version() -> str:
+    try:
+        from gonio import __version__
+
+        return str(__version__)
+    except ImportError:  # pragma: no cover
+        return "unknown"
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(obj, indent=2, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+def plot_samples(samples: Any, path: Path) -> Path:
+    """Samples over the angle domain: theta_i vs theta_o (colour: BRDF G), and the
+    outgoing directions projected on the disk; rejected samples as crosses."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ang = samples.angles()
+    ok = samples.valid
+    g = samples.brdf[:, 1 if samples.n_channels > 1 else 0]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
+    ax = axes[0]
+    sc = ax.scatter(np.degrees(ang["theta_i"][ok]), np.degrees(ang["theta_o"][ok]), c=np.log10(
+        np.clip(g[ok], 1e-6, None)), s=14, cmap="viridis")
+    ax.scatter(np.degrees(ang["theta_i"][~ok]), np.degrees(ang["theta_o"][~ok]), marker="x",
+               c="red", s=18, label=f"rejected ({int((~ok).sum())})")
+    ax.set_xlabel("theta_i (deg)")
+    ax.set_ylabel("theta_o (deg)")
+    ax.set_title(f"{int(ok.sum())} samples kept")
+    fig.colorbar(sc, ax=ax, label="log10 f_r (G channel, 1/sr)")
+    if (~ok).any():
+        ax.legend(loc="upper left")
+    ax = axes[1]
+    for sel, style in ((ok, dict(c="tab:blue", s=10, label="wo")),
+                       (ok, dict(c="tab:orange", s=10, label="wi"))):
+        w = samples.wo if style["label"] == "wo" else samples.wi
+        ax.scatter(w[sel, 0], w[sel, 1], **style)
+    ax.add_patch(plt.Circle((0, 0), 1.0, fill=False, color="grey"))
+    ax.set_aspect("equal")
+    ax.set_xlim(-1.05, 1.05)
+    ax.set_ylim(-1.05, 1.05)
+    ax.set_xlabel("x (sample frame)")
+    ax.set_ylabel("y")
+    ax.set_title("directions seen from above")
+    ax.legend(loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path

@@ -1,0 +1,197 @@
+"""``model="auto"``: fit candidate models and choose one by an information criterion.
+
+Each candidate is fitted with the same loss and samples; the criterion (BIC by default,
+AIC on request) is computed from the fitted cost (``-2 ln L = chi^2`` with absolute sigmas,
+``m ln(RSS/m)`` otherwise) plus the parameter penalty (``p ln m`` or ``2 p``), with ``p``
+the number of free parameters (shape + linear x channels, parameters held at a bound not
+counted).  The model with the lowest criterion wins, so a specular lobe is reported only
+when the data support its extra parameters.
+
+Measured BRDFs are not noise-limited: with thousands of samples even a tiny systematic
+misfit of a diffuse model is "significant".  Two safeguards keep the choice physical:
+
+- ``m`` in the criterion is the *effective* number of samples.  Without sigmas, samples
+  resampled from a tabulated BRDF (an RGL file sampled on a dense grid) are strongly
+  correlated; ``effective_samples`` caps ``m`` (default: the number of samples, or 1/10 of
+  it for samples made from a measured file by :func:`gonio.fitting.sampling.sample_brdf`).
+- The lobe the criterion keeps must also be a *visible* specular reflection: the fitted
+  BRDF's specular gloss at 60 deg (ISO 2813 geometry: receptor aperture 4.4 x 11.7 deg,
+  in gloss units relative to black glass n = 1.567, 100 GU) must reach
+  ``min_gloss`` (10 GU, the usual upper limit of "matte").  A broad forward-scattering
+  sheen (paper: a GGX lobe with alpha ~ 0.55) or a faint highlight (matte wall paint:
+  ks ~ 0.005) lowers the cost measurably yet leaves the surface matte; for such data the
+  best diffuse candidate is returned and the rejected lobe is recorded in the diagnostics.
+- Ties (a specular weight at zero, so the same cost and free-parameter count) go to the
+  earlier, simpler candidate.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from gonio.errors import FitError, UnknownNameError
+from gonio.fitting.result import FitResult
+
+__all__ = [
+    "DEFAULT_CANDIDATES",
+    "DIFFUSE_MODELS",
+    "gloss_units",
+    "information_criterion",
+    "select_model",
+]
+
+DEFAULT_CANDIDATES = ("lambert", "oren-nayar", "lambert+ggx", "lambert+beckmann")
+DIFFUSE_MODELS = ("lambert", "oren-nayar")
+MIN_GLOSS = 10.0
+
+
+def _fresnel_dielectric(cos_t: float, n: float) -> float:
+    s2 = 1.0 - cos_t * cos_t
+    ct = np.sqrt(1.0 - s2 / (n * n))
+    rs = (cos_t - n * ct) / (cos_t + n * ct)
+    rp = (n * cos_t - ct) / (n * cos_t + ct)
+    return float(0.5 * (rs * rs + rp * rp))
+
+
+def gloss_units(brdf: Any, theta_deg: float = 60.0, aperture_deg: tuple[float, float] = (4.4, 11.7),
+                n_standard: float = 1.567, n_nodes: int = 15) -> np.ndarray:
+    """Specular gloss (GU, per channel) of a BRDF in the ISO 2813 geometry.
+
+    ``100 * (flux into the receptor aperture around the mirror direction) / (flux the black
+    glass standard reflects there)``, both per unit irradiance at incidence ``theta_deg``.
+
+    Parameters
+    ----------
+    brdf
+        Anything with ``eval(wi, wo) -> (N, C)`` (a bound model, a measured file, or
+        :meth:`FitResult.bind`).
+    theta_deg
+        Incidence angle (deg); 60 is the universal geometry, 20 for high gloss, 85 for matte.
+    aperture_deg
+        Receptor aperture (deg) in and perpendicular to the plane of incidence.
+    """
+    t = np.radians(theta_deg)
+    da, dp = np.radians(aperture_deg)
+    x = (np.arange(n_nodes) + 0.5) / n_nodes - 0.5
+    to = t + da * x  # in-plane polar angle of the mirror lobe
+    po = np.pi + (dp / np.sin(t)) * x  # azimuth spread giving the perpendicular width
+    TO, PO = np.meshgrid(to, po, indexing="ij")
+    wo = np.stack([np.sin(TO) * np.cos(PO), np.sin(TO) * np.sin(PO), np.cos(TO)], -1).reshape(-1, 3)
+    wi = np.broadcast_to(np.array([np.sin(t), 0.0, np.cos(t)]), wo.shape)
+    f = np.asarray(brdf.eval(wi, wo), dtype=np.float64).reshape(wo.shape[0], -1)
+    dw = np.sin(TO).ravel() * (da / n_nodes) * (dp / np.sin(t) / n_nodes)
+    flux = np.sum(f * (wo[:, 2] * dw)[:, None], axis=0)
+    return 100.0 * flux / _fresnel_dielectric(np.cos(t), n_standard)
+
+
+def information_criterion(r: FitResult, criterion: str = "bic", m_eff: float | None = None) -> float:
+    """AIC or BIC of a fit result, optionally with an effective sample count ``m_eff``.
+
+    With ``m_eff`` the log-likelihood is rescaled by ``m_eff / m`` (each effective sample
+    carries ``m / m_eff`` correlated residuals) and the BIC penalty uses ``ln m_eff``.
+    """
+    if criterion not in ("bic", "aic"):
+        raise UnknownNameError(f"unknown criterion {criterion!r}; expected 'bic' or 'aic'")
+    m = r.diagnostics["n_residuals"]
+    p = r.n_params - len(r.diagnostics["at_bounds"])
+    if r.diagnostics["absolute_sigma"]:
+        m2ll = 2.0 * r.cost
+    else:
+        m2ll = m * np.log(max(2.0 * r.cost / m, 1e-300))
+    me = float(m if m_eff is None else min(m_eff, m))
+    m2ll *= me / m
+    return float(m2ll + (p * np.log(me) if criterion == "bic" else 2.0 * p))
+
+
+def select_model(
+    samples: Any,
+    candidates: tuple[str, ...] | None = None,
+    criterion: str = "bic",
+    effective_samples: float | None = None,
+    min_gloss: float = MIN_GLOSS,
+    progress: Callable[[str], None] | None = None,
+    **fit_kwargs: Any,
+) -> FitResult:
+    """Fit ``candidates`` and return the best by ``criterion``.
+
+    Parameters
+    ----------
+    samples
+        BRDF samples (see :func:`gonio.fitting.fit`).
+    candidates
+        Model names (default :data:`DEFAULT_CANDIDATES`).
+    criterion
+        ``"bic"`` (default) or ``"aic"``.
+    effective_samples
+        Number of independent samples for the criterion (see the module notes); default
+        ``samples.attrs["effective_samples"]`` when present, else the number of residuals.
+    min_gloss
+        Gloss (GU at 60 deg) a specular model needs to be chosen over the diffuse ones.
+    progress
+        Called with the candidate name before each fit.
+    **fit_kwargs
+        Passed to :func:`gonio.fitting.fit.fit_model` (loss, algorithm, ...).
+
+    Returns
+    -------
+    FitResult
+        The chosen fit; ``diagnostics["selection"]`` lists every candidate with its
+        criterion, cost and success, and ``diagnostics["criterion"]`` names the criterion.
+    """
+    from gonio.fitting.fit import fit_model
+
+    cands = tuple(candidates or DEFAULT_CANDIDATES)
+    if not cands:
+        raise FitError("model='auto' needs at least one candidate model")
+    if effective_samples is None:
+        attrs = getattr(samples, "attrs", None) or {}
+        if "effective_samples" in attrs:
+            effective_samples = float(attrs["effective_samples"])
+    fit_kwargs.pop("x0", None)
+    rows: list[dict[str, Any]] = []
+    results: list[FitResult] = []
+    errors: list[str] = []
+    for name in cands:
+        if progress:
+            progress(f"fitting {name}")
+        try:
+            r = fit_model(samples, name, **fit_kwargs)
+        except FitError as exc:
+            errors.append(f"{name}: {exc}")
+            rows.append({"model": name, "criterion": None, "cost": None, "success": False,
+                         "error": str(exc)})
+            continue
+        m_eff = None
+        if effective_samples is not None:
+            m_eff = effective_samples * len(r.channels)
+        ic = information_criterion(r, criterion, m_eff)
+        rows.append({"model": name, "criterion": ic, "cost": r.cost, "success": r.success,
+                     "n_params": r.n_params, "at_bounds": list(r.diagnostics["at_bounds"])})
+        results.append(r)
+    ok = [(row["criterion"], i) for i, row in enumerate(rows)
+          if row["success"] and row["criterion"] is not None]
+    if not ok:
+        raise FitError("model='auto': no candidate could be fitted: " + "; ".join(errors))
+    by_name = {r.model: r for r in results}
+    for row in rows:
+        r = by_name.get(row["model"])
+        if r is not None and row["model"] not in DIFFUSE_MODELS:
+            row["gloss_60"] = float(np.mean(gloss_units(r.bind())))
+    best_row = min(ok)[1]
+    note = ""
+    gloss = rows[best_row].get("gloss_60")
+    if gloss is not None and gloss < min_gloss:
+        diffuse = [(ic, i) for ic, i in ok if rows[i]["model"] in DIFFUSE_MODELS]
+        if diffuse:
+            note = (f"{rows[best_row]['model']} fits better but its lobe is matte "
+                    f"({gloss:.2f} GU < {min_gloss:g} GU at 60 deg): diffuse chosen")
+            best_row = min(diffuse)[1]
+    chosen = by_name[rows[best_row]["model"]]
+    chosen.diagnostics["criterion"] = criterion
+    chosen.diagnostics["selection_note"] = note
+    chosen.diagnostics["selection"] = rows
+    chosen.algorithm = [f"auto:{criterion}({len(cands)})", *chosen.algorithm]
+    return chosen

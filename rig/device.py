@@ -1,0 +1,418 @@
+"""The rig device: move the light and camera to directions, verify, stop safely.
+
+:class:`Rig` owns one :class:`Transport` and one :class:`Servo` per joint.  A move is
+one SYNC_WRITE of goal positions followed by cyclic SYNC_READs of each servo's state
+block until every servo is in position within tolerance or the timeout passes (the loop
+waits on an abort event between reads; the state, not the clock, ends it).  On a
+hardware error (register 70, read in the same block) every servo's torque is cut and a
+:class:`RigFault` names the servo and the error bits.  Torque goes off on every exit
+path: ``close()``, the context manager, any exception during a move, SIGINT and SIGTERM.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import signal
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from gonio.errors import RigError, RigFault
+from gonio.rig import control_table as ct
+from gonio.rig.config import JOINT_NAMES, RigConfig
+from gonio.rig.kinematics import Kinematics, _angle_between
+from gonio.rig.servo import Servo, ServoState
+from gonio.rig.transport import Transport
+
+log = logging.getLogger("gonio.rig")
+
+
+@dataclass(frozen=True)
+class MoveResult:
+    """Outcome of :meth:`Rig.move_to`.
+
+    Attributes
+    ----------
+    wi, wo
+        Requested directions (sample frame, unit).
+    wi_achieved, wo_achieved
+        Directions computed from the read-back joint angles.
+    joints
+        Read-back joint angles (rad).
+    error_i, error_o
+        Angles (rad) between requested and achieved directions.
+    duration
+        Wall-clock time of the move (s).
+    """
+
+    wi: NDArray[np.float64]
+    wo: NDArray[np.float64]
+    wi_achieved: NDArray[np.float64]
+    wo_achieved: NDArray[np.float64]
+    joints: dict[str, float]
+    error_i: float
+    error_o: float
+    duration: float
+
+
+@dataclass
+class RigStatus:
+    """Snapshot of every servo (see :class:`ServoState`) plus bus counters."""
+
+    servos: list[ServoState]
+    counters: dict[str, int] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "servos": [
+                {
+                    "id": s.dxl_id,
+                    "joint": s.joint,
+                    "position_deg": math.degrees(s.position),
+                    "goal_deg": math.degrees(s.goal),
+                    "velocity_deg_s": math.degrees(s.velocity),
+                    "current_a": s.current,
+                    "voltage_v": s.voltage,
+                    "temperature_c": s.temperature,
+                    "torque": s.torque,
+                    "moving": s.moving,
+                    "hardware_error": s.hardware_error,
+                    "hardware_error_names": s.error_names,
+                }
+                for s in self.servos
+            ],
+            "counters": dict(self.counters),
+        }
+
+
+def _fault(message: str, servo: int | None = None, bits: int = 0) -> RigFault:
+    exc = RigFault(message)
+    exc.servo = servo  # type: ignore[attr-defined]
+    exc.error_bits = bits  # type: ignore[attr-defined]
+    return exc
+
+
+class Rig:
+    """The gonioreflectometer: servos, kinematics and safe motion.
+
+    Parameters
+    ----------
+    config
+        Rig configuration (bus, servos, geometry, motion).
+    port, baud_rate
+        Override ``config.bus.port`` / ``config.bus.baud_rate``.
+
+    Examples
+    --------
+    >>> with Rig(load_rig_config("rig.toml")) as rig:          # doctest: +SKIP
+    ...     result = rig.move_to(wi, wo)
+    """
+
+    def __init__(self, config: RigConfig, *, port: str | None = None, baud_rate: int | None = None) -> None:
+        self.config = config
+        bus = config.bus
+        self.transport = Transport(
+            port or bus.port,
+            baud_rate or bus.baud_rate,
+            retries=bus.retries,
+            timeout_ms=bus.timeout_ms,
+            latency_timer_ms=bus.latency_timer_ms,
+        )
+        self.kinematics = Kinematics(config)
+        self.servos = {s.joint: Servo(self.transport, s) for s in config.servos}
+        self._ids = tuple(s.id for s in config.servos)
+        self._by_id = {s.id: s for s in self.servos.values()}
+        self._abort = threading.Event()
+        self._saved_handlers: dict[int, Any] = {}
+        self._opened = False
+
+    # ------------------------------------------------------------------ lifecycle
+    def open(self) -> Rig:
+        """Open the port, check every configured servo and configure it (torque stays off).
+
+        Raises
+        ------
+        RigError
+            Unknown port, no answer (wrong baud rate?), missing IDs, model mismatch.
+        """
+        self.transport.open()
+        try:
+            self._check_servos()
+            for s in self.servos.values():
+                s.torque(False)
+                if s.read("hardware_error_status"):
+                    bits = s.read("hardware_error_status")
+                    log.warning("servo %d reports hardware error 0x%02X from before; rebooting it", s.id, bits)
+                    self.transport.reboot(s.id)
+                s.configure()
+        except BaseException:
+            self.transport.close()
+            raise
+        self._opened = True
+        return self
+
+    def _check_servos(self) -> None:
+        found = {}
+        for i in self._ids:
+            found[i] = self.transport.ping(i, retries=min(self.config.bus.retries, 1))
+        missing = [i for i, v in found.items() if v is None]
+        port, baud = self.transport.port_name, self.transport.baud_rate
+        if len(missing) == len(self._ids):
+            raise RigError(
+                f"no servo answered on {port} at {baud} baud (IDs {list(self._ids)}): check the "
+                "baud rate (bus.baud_rate must match the servos' Baud Rate register), power and cabling"
+            )
+        if missing:
+            names = ", ".join(f"{i} ({self._by_id[i].joint})" for i in missing)
+            raise RigError(f"servo(s) {names} did not answer on {port}; found {sorted(set(found) - set(missing))}")
+        for i, (number, fw) in found.items():
+            s = self._by_id[i]
+            model = ct.MODELS_BY_NUMBER.get(number)
+            if model is None or model.name != s.config.model:
+                got = model.name if model else "an unknown model"
+                raise RigError(
+                    f"servo {i} ({s.joint}) is {got} (model number {number}, firmware {fw}) but the "
+                    f"configuration says {s.config.model} (model number {s.model.number})"
+                )
+
+    def close(self) -> None:
+        """Cut torque on every servo and close the port (idempotent)."""
+        if self.transport.is_open:
+            try:
+                self.torque_off()
+            finally:
+                self.transport.close()
+        self._opened = False
+
+    def __enter__(self) -> Rig:
+        self.open()
+        self._install_signal_handlers()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            self.close()
+        finally:
+            self._restore_signal_handlers()
+
+    def _install_signal_handlers(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+
+        def handler(signum, frame):
+            self._abort.set()
+            raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._saved_handlers[sig] = signal.signal(sig, handler)
+
+    def _restore_signal_handlers(self) -> None:
+        for sig, h in self._saved_handlers.items():
+            signal.signal(sig, h)
+        self._saved_handlers.clear()
+
+    def torque_off(self) -> None:
+        """Cut torque on every servo: one broadcast WRITE, then each servo verified.
+
+        Signals are held off meanwhile so a second Ctrl-C cannot interrupt it.
+        """
+        main = threading.current_thread() is threading.main_thread()
+        old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+        try:
+            self.transport.reset()
+            reg = ct.MODELS[self.config.servos[0].model]["torque_enable"]
+            self.transport.broadcast_write(reg, 0)
+            failed = []
+            for s in self.servos.values():
+                try:
+                    s.torque(False)
+                except RigError as exc:
+                    failed.append(f"{s.id}: {exc}")
+            if failed:
+                log.error("could not confirm torque off on servo(s) %s", "; ".join(failed))
+            else:
+                log.info("torque off on servos %s", list(self._ids))
+        finally:
+            if main:
+                signal.signal(signal.SIGINT, old)
+
+    # ------------------------------------------------------------------ state
+    def read_states(self) -> dict[str, ServoState]:
+        """Every servo's state block in one SYNC_READ, by joint name."""
+        blocks = self.transport.sync_read(self._ids, ct.STATE_BLOCK_START, ct.STATE_BLOCK_LEN)
+        return {self._by_id[i].joint: self._by_id[i].decode_state(b) for i, b in blocks.items()}
+
+    def status(self) -> RigStatus:
+        """Positions, temperatures, voltages, currents, torque and errors of every servo."""
+        st = self.read_states()
+        return RigStatus([st[j] for j in JOINT_NAMES if j in st], dict(self.transport.counters))
+
+    def joints(self) -> dict[str, float]:
+        """Read-back joint angles (rad)."""
+        return {j: s.position for j, s in self.read_states().items()}
+
+    def directions(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Present (wi, wo) in the sample frame from the read-back joints."""
+        return self.kinematics.forward(self.joints())
+
+    # ------------------------------------------------------------------ motion
+    def _check_target(self, target: Mapping[str, float], current: Mapping[str, float]) -> dict[int, int]:
+        missing = [j for j in JOINT_NAMES if j not in target]
+        if missing:
+            raise RigError(f"target pose lacks joint(s) {missing}")
+        goals = {self.servos[j].id: self.servos[j].to_pulses(float(target[j])) for j in JOINT_NAMES}
+        reason = self.kinematics.check_joints(target) or self.kinematics._path_reason(current, target)
+        if reason:
+            raise RigError(f"refusing to move: {reason}")
+        return goals
+
+    def move_joints(self, target: Mapping[str, float], timeout: float | None = None) -> dict[str, float]:
+        """Move to joint angles (rad) and wait until every servo is in position.
+
+        Everything is checked (limits, camera shadow, arm clearance, path) before anything
+        moves.  Returns the read-back joint angles (rad).
+
+        Raises
+        ------
+        RigError
+            Target not allowed (nothing moved).
+        RigFault
+            Hardware error or timeout during the move (torque is off on every servo).
+        """
+        current = self.joints()
+        goals = self._check_target(target, current)
+        return self._move_pulses(goals, timeout)
+
+    def _move_pulses(self, goals: dict[int, int], timeout: float | None) -> dict[str, float]:
+        motion = self.config.motion
+        timeout = motion.move_timeout_s if timeout is None else timeout
+        tol = motion.position_tolerance_pulses
+        self._abort.clear()
+        try:
+            states = self.read_states()
+            self._raise_on_fault(states)
+            goal_reg = ct.MODELS[self.config.servos[0].model]["goal_position"]
+            off = [s for s in states.values() if not s.torque]
+            if off:  # hold where they are, then enable: no jump
+                self.transport.sync_write(goal_reg, {s.dxl_id: s.position_pulses for s in off})
+                for s in off:
+                    self._by_id[s.dxl_id].torque(True)
+            self.transport.sync_write(goal_reg, goals)
+            deadline = time.monotonic() + timeout
+            while True:
+                states = self.read_states()
+                self._raise_on_fault(states)
+                lost = {s.dxl_id: goals[s.dxl_id] for s in states.values() if s.goal_pulses != goals[s.dxl_id]}
+                if lost:  # a SYNC_WRITE has no reply: a lost one shows up here
+                    self.transport.counters["goal_resends"] += 1
+                    log.warning("goal not taken by servo(s) %s; sending it again", sorted(lost))
+                    self.transport.sync_write(goal_reg, lost)
+                elif all(
+                    not s.moving and abs(s.position_pulses - goals[s.dxl_id]) <= tol for s in states.values()
+                ):
+                    return {j: s.position for j, s in states.items()}
+                if time.monotonic() > deadline:
+                    late = [
+                        f"{s.dxl_id} ({s.joint}) at {s.position_pulses}, goal {goals[s.dxl_id]}"
+                        for s in states.values()
+                        if abs(s.position_pulses - goals[s.dxl_id]) > tol or s.moving
+                    ]
+                    raise _fault(f"move timed out after {timeout:.1f} s: servo(s) {'; '.join(late)}")
+                # Wait for the next state poll; an abort (signal) wakes it at once.
+                self._abort.wait(motion.poll_interval_s)
+        except BaseException:
+            log.error("move aborted; cutting torque on every servo")
+            self.torque_off()
+            raise
+
+    def _raise_on_fault(self, states: Mapping[str, ServoState]) -> None:
+        for s in states.values():
+            if s.hardware_error or s.dxl_id in self.transport.alerts:
+                bits = s.hardware_error or self._by_id[s.dxl_id].read("hardware_error_status")
+                names = ", ".join(s.error_names) or "alert bit without a register 70 code"
+                raise _fault(
+                    f"servo {s.dxl_id} ({s.joint}) hardware error 0x{bits:02X} ({names}); torque cut "
+                    f"on all servos; power-cycle or `gonio rig home` after fixing the cause "
+                    f"(a REBOOT clears the error)",
+                    s.dxl_id,
+                    bits,
+                )
+
+    def quantised_goals(self, wi: ArrayLike, wo: ArrayLike, joints: Mapping[str, float]) -> dict[int, int]:
+        """Goal pulses near ``joints`` whose directions are closest to (wi, wo).
+
+        Each joint can round down or up; of the 16 combinations the one with the smallest
+        worst direction error wins (plain rounding can add the half-pulse errors of three
+        joints along one direction).
+        """
+        options = []
+        for j in JOINT_NAMES:
+            s = self.servos[j]
+            p = s.config.pulses(float(joints[j]))
+            lo, hi = math.floor(p), math.ceil(p)
+            options.append(sorted({lo, hi}))
+        combos = np.array(list(itertools.product(*options)), dtype=np.float64)
+        q = {j: np.array([self.servos[j].to_joint(c) for c in combos[:, k]]) for k, j in enumerate(JOINT_NAMES)}
+        ai, ao = self.kinematics.forward(q)
+        err = np.maximum(_angle_between(ai, np.asarray(wi)), _angle_between(ao, np.asarray(wo)))
+        best = combos[int(np.argmin(err))]
+        goals = {}
+        for k, j in enumerate(JOINT_NAMES):
+            s = self.servos[j]
+            s.to_pulses(s.to_joint(best[k]))  # limit check of the rounded value
+            goals[s.id] = int(best[k])
+        return goals
+
+    def move_to(self, wi: ArrayLike, wo: ArrayLike, timeout: float | None = None) -> MoveResult:
+        """Put the light along ``wi`` and the camera along ``wo`` (sample frame).
+
+        Solves the inverse kinematics from the present pose (least motion among the
+        reachable, collision-free solutions), sends one SYNC_WRITE, waits until every
+        servo is in position, reads back and returns the achieved directions.
+
+        Raises
+        ------
+        RigError
+            Unreachable request (nothing moved); the message says why.
+        RigFault
+            Hardware error or timeout during the move; torque is off on every servo.
+        """
+        t0 = time.monotonic()
+        wi = np.asarray(wi, dtype=np.float64)
+        wo = np.asarray(wo, dtype=np.float64)
+        current = self.joints()
+        q = self.kinematics.inverse(wi, wo, current=current)
+        wi_u, wo_u = wi / np.linalg.norm(wi), wo / np.linalg.norm(wo)
+        goals = self.quantised_goals(wi_u, wo_u, q)
+        target = {j: self.servos[j].to_joint(goals[self.servos[j].id]) for j in JOINT_NAMES}
+        self._check_target(target, current)
+        achieved = self._move_pulses(goals, timeout)
+        ai, ao = self.kinematics.forward(achieved)
+        return MoveResult(
+            wi=wi_u,
+            wo=wo_u,
+            wi_achieved=ai,
+            wo_achieved=ao,
+            joints=achieved,
+            error_i=float(_angle_between(ai, wi_u)),
+            error_o=float(_angle_between(ao, wo_u)),
+            duration=time.monotonic() - t0,
+        )
+
+    def home(self, timeout: float | None = None) -> dict[str, float]:
+        """Move to the configured home pose; returns the read-back joints (rad)."""
+        return self.move_joints(self.config.home_rad, timeout)
+
+    def park(self, timeout: float | None = None) -> dict[str, float]:
+        """Move to the park pose (home unless configured), then cut torque."""
+        try:
+            return self.move_joints(self.config.park_rad, timeout)
+        finally:
+            self.torque_off()

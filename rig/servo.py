@@ -1,0 +1,171 @@
+"""A servo in SI units: joint angle (rad), speed (rad/s), temperature (degC), current (A).
+
+:class:`Servo` turns a :class:`ServoConfig` (gear ratio, direction, zero, limits) and the
+control table into register values for the :class:`Transport`, and decodes the state
+block the rig sync-reads every cycle (:func:`decode_state`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from gonio.errors import RigError
+from gonio.rig import control_table as ct
+from gonio.rig.config import ServoConfig
+from gonio.rig.protocol import from_le
+from gonio.rig.transport import Transport
+
+
+@dataclass(frozen=True)
+class ServoState:
+    """One servo's state, decoded from the cyclic block.
+
+    Attributes
+    ----------
+    dxl_id, joint
+        Bus ID and joint name.
+    position
+        Joint angle (rad).
+    goal
+        Joint angle the servo is heading to (rad).
+    position_pulses, goal_pulses
+        The raw counts.
+    velocity
+        Joint speed (rad/s).
+    current
+        Motor current (A).
+    voltage
+        Input voltage (V).
+    temperature
+        Internal temperature (degC).
+    torque, moving
+        Torque enabled; profile still running.
+    in_position
+        Moving Status bit 0.
+    hardware_error
+        Register 70 (0 when healthy).
+    """
+
+    dxl_id: int
+    joint: str
+    position: float
+    goal: float
+    position_pulses: int
+    goal_pulses: int
+    velocity: float
+    current: float
+    voltage: float
+    temperature: float
+    torque: bool
+    moving: bool
+    in_position: bool
+    hardware_error: int
+
+    @property
+    def error_names(self) -> list[str]:
+        """Names of the Hardware Error Status bits that are set."""
+        return [n for bit, n in ct.HW_ERROR_NAMES.items() if self.hardware_error & bit]
+
+
+class Servo:
+    """One configured servo on a transport.
+
+    Parameters
+    ----------
+    transport
+        The bus owner.
+    config
+        ID, model, joint, gear ratio, direction, zero and limits.
+    """
+
+    def __init__(self, transport: Transport, config: ServoConfig) -> None:
+        self.bus = transport
+        self.config = config
+        self.id = config.id
+        self.joint = config.joint
+        model = ct.MODELS.get(config.model)
+        if model is None:
+            raise RigError(f"servo {config.id}: unknown model {config.model!r}; known: {sorted(ct.MODELS)}")
+        self.model = model
+
+    # ---------------------------------------------------------- conversions
+    def to_pulses(self, joint_rad: float) -> int:
+        """Goal Position (pulses) for a joint angle (rad); RigError outside the limits."""
+        lo, hi = self.config.limits_rad
+        if not (lo - 1e-9 <= joint_rad <= hi + 1e-9) or not math.isfinite(joint_rad):
+            raise RigError(
+                f"{self.joint} (servo {self.id}): {math.degrees(joint_rad):.3f} deg outside the "
+                f"limits [{self.config.min_deg}, {self.config.max_deg}] deg"
+            )
+        return round(self.config.pulses(joint_rad))
+
+    def to_joint(self, pulses: float) -> float:
+        """Joint angle (rad) for a position count."""
+        return self.config.joint_rad(pulses)
+
+    def decode_state(self, block: bytes) -> ServoState:
+        """Decode the cyclic block (``STATE_BLOCK_START`` .. ``STATE_BLOCK_END``)."""
+        m = self.model
+
+        def val(name: str) -> int:
+            r = m[name]
+            k = r.address - ct.STATE_BLOCK_START
+            return r.to_signed(from_le(block[k : k + r.size]))
+
+        pos, goal = val("present_position"), val("goal_position")
+        vel = val("present_velocity") * ct.RPM_PER_VELOCITY_UNIT * 2 * math.pi / 60
+        return ServoState(
+            dxl_id=self.id,
+            joint=self.joint,
+            position=self.to_joint(pos),
+            goal=self.to_joint(goal),
+            position_pulses=pos,
+            goal_pulses=goal,
+            velocity=self.config.direction * vel / self.config.gear_ratio,
+            current=val("present_current") * ct.AMPS_PER_CURRENT_UNIT,
+            voltage=val("present_input_voltage") * ct.VOLTS_PER_VOLTAGE_UNIT,
+            temperature=float(val("present_temperature")),
+            torque=bool(val("torque_enable")),
+            moving=bool(val("moving")),
+            in_position=bool(val("moving_status") & 1),
+            hardware_error=val("hardware_error_status"),
+        )
+
+    # ---------------------------------------------------------- register access
+    def read(self, name: str) -> int:
+        return self.bus.read(self.id, self.model[name])
+
+    def write(self, name: str, value: int) -> None:
+        self.bus.write(self.id, self.model[name], value)
+
+    def state(self) -> ServoState:
+        """Read and decode this servo's state block (one READ)."""
+        return self.decode_state(self.bus.read_bytes(self.id, ct.STATE_BLOCK_START, ct.STATE_BLOCK_LEN))
+
+    def configure(self) -> None:
+        """Write operating mode, position limits and motion profile; read them back.
+
+        Torque must be off (EEPROM items).  Raises RigError if a value does not stick.
+        """
+        c = self.config
+        mode = ct.OPERATING_MODES[c.operating_mode]
+        speed = math.radians(c.velocity_deg_s) * c.gear_ratio
+        accel = math.radians(c.acceleration_deg_s2) * c.gear_ratio
+        wanted = {"operating_mode": mode, "drive_mode": 0}  # direction is handled here
+        if c.operating_mode == "position":
+            lo, hi = sorted((round(c.pulses(math.radians(c.min_deg))), round(c.pulses(math.radians(c.max_deg)))))
+            wanted |= {"min_position_limit": max(0, lo), "max_position_limit": min(4095, hi)}
+        wanted |= {
+            "profile_velocity": ct.velocity_register(speed),
+            "profile_acceleration": ct.acceleration_register(accel),
+        }
+        for name, v in wanted.items():
+            if self.read(name) != v:
+                self.write(name, v)
+                back = self.read(name)
+                if back != v:
+                    raise RigError(f"servo {self.id}: {name} reads back {back} after writing {v}")
+
+    def torque(self, on: bool) -> None:
+        self.write("torque_enable", int(on))

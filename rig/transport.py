@@ -1,0 +1,323 @@
+"""The one owner of the Dynamixel bus: dynamixel-sdk behind a lock, with retries.
+
+dynamixel-sdk's ``PortHandler`` is not thread-safe (``is_using`` is a flag, not a lock),
+times out on a loaded CPU, returns unsigned values, and (4.1.0) never byte-stuffs what
+it sends.  :class:`Transport` wraps ``PortHandler`` / ``Protocol2PacketHandler`` /
+``GroupSyncRead`` / ``GroupSyncWrite`` so that every access
+
+- takes the bus lock,
+- is retried on corrupt replies and timeouts (counted, and logged on logger
+  ``gonio.rig.bus``),
+- goes through the control table (:mod:`gonio.rig.control_table`) with signed
+  conversions,
+- is stuffed correctly (packets whose payload contains ``FF FF FD`` are built by
+  :func:`gonio.rig.protocol.build_packet` and written directly),
+- uses the configured timeout instead of the SDK's global ``LATENCY_TIMER``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter
+from collections.abc import Iterable, Mapping
+
+import serial
+from dynamixel_sdk import (
+    COMM_RX_CORRUPT,
+    COMM_RX_TIMEOUT,
+    COMM_SUCCESS,
+    GroupSyncRead,
+    GroupSyncWrite,
+    PacketHandler,
+    PortHandler,
+)
+
+from gonio.errors import RigError
+from gonio.rig import protocol
+from gonio.rig.control_table import Register
+
+log = logging.getLogger("gonio.rig.bus")
+
+_RETRYABLE = (COMM_RX_TIMEOUT, COMM_RX_CORRUPT)
+
+
+class _Port(PortHandler):
+    """PortHandler with a per-instance reply timeout.
+
+    The SDK computes ``tx_time * bytes + 2 * LATENCY_TIMER + 2 ms`` from a module global;
+    patching that global would change every port in the process, so the budget is an
+    attribute here.
+    """
+
+    def __init__(self, port_name: str, latency_timer_ms: float, timeout_ms: float | None) -> None:
+        super().__init__(port_name)
+        self.latency_timer_ms = latency_timer_ms
+        self.fixed_timeout_ms = timeout_ms
+
+    def setPacketTimeout(self, packet_length):  # noqa: N802 - SDK name
+        self.packet_start_time = self.getCurrentTime()
+        if self.fixed_timeout_ms is not None:
+            self.packet_timeout = self.tx_time_per_byte * packet_length + self.fixed_timeout_ms
+        else:
+            self.packet_timeout = (
+                self.tx_time_per_byte * packet_length + 2.0 * self.latency_timer_ms + 2.0
+            )
+
+
+class Transport:
+    """Bus owner: open the port, read and write registers with retries.
+
+    Parameters
+    ----------
+    port
+        Serial device path (``/dev/ttyUSB0``, or a virtual bus's pty).
+    baud_rate
+        Bits per second; must match the servos' Baud Rate register.
+    retries
+        Extra attempts after a timeout or corrupt reply.
+    timeout_ms
+        Fixed reply timeout (plus transmission time); None: the SDK formula with
+        ``latency_timer_ms``.
+    latency_timer_ms
+        USB adapter latency the timeout budgets for (FTDI default 16 ms).
+
+    Attributes
+    ----------
+    counters
+        ``Counter`` of ``"retries"``, ``"timeouts"``, ``"corrupt"``, ``"transactions"``,
+        ``"stuffed"``.
+    alerts
+        IDs whose last status packet had the alert bit (read register 70).
+    """
+
+    def __init__(
+        self,
+        port: str,
+        baud_rate: int = 1_000_000,
+        *,
+        retries: int = 3,
+        timeout_ms: float | None = None,
+        latency_timer_ms: float = 16.0,
+    ) -> None:
+        self.port_name = port
+        self.baud_rate = baud_rate
+        self.retries = retries
+        self.lock = threading.RLock()
+        self.counters: Counter[str] = Counter()
+        self.alerts: set[int] = set()
+        self._port = _Port(port, latency_timer_ms, timeout_ms)
+        self._ph = PacketHandler(2.0)
+        self._sync_reads: dict[tuple[int, int, tuple[int, ...]], GroupSyncRead] = {}
+
+    # ------------------------------------------------------------- lifecycle
+    def open(self) -> Transport:
+        """Open the serial port at the baud rate.
+
+        Raises
+        ------
+        RigError
+            If the port does not exist or cannot be opened, or the baud rate is not one
+            dynamixel-sdk supports.
+        """
+        if self._port.getCFlagBaud(self.baud_rate) <= 0:
+            raise RigError(f"baud rate {self.baud_rate} is not supported by dynamixel-sdk")
+        self._port.baudrate = self.baud_rate
+        try:
+            self._port.openPort()
+        except (serial.SerialException, OSError) as exc:
+            raise RigError(f"cannot open serial port {self.port_name!r}: {exc}") from None
+        return self
+
+    def close(self) -> None:
+        """Close the port (idempotent)."""
+        with self.lock:
+            if self._port.is_open:
+                self._port.closePort()
+
+    @property
+    def is_open(self) -> bool:
+        return bool(self._port.is_open)
+
+    def __enter__(self) -> Transport:
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def reset(self) -> None:
+        """Recover after an interrupted transaction (e.g. a signal mid-read)."""
+        with self.lock:
+            self._port.is_using = False
+            if self._port.is_open:
+                self._port.clearPort()
+
+    # ------------------------------------------------------------- core
+    def _status(self, what: str, dxl_id: int, result: int, error: int) -> None:
+        if error & protocol.ERR_ALERT:
+            self.alerts.add(dxl_id)
+        code = error & 0x7F
+        if code:
+            name = protocol.ERR_NAMES.get(code, f"error {code}")
+            raise RigError(f"servo {dxl_id} refused {what}: {name} (status error 0x{error:02X})")
+
+    def _attempt(self, what: str, dxl_id: int | str, fn):
+        """Run ``fn() -> (value, result, error)`` with retries; return (value, error)."""
+        last = None
+        for attempt in range(self.retries + 1):
+            self.counters["transactions"] += 1
+            value, result, error = fn()
+            if result == COMM_SUCCESS and (error & 0x7F) != protocol.ERR_CRC:
+                if attempt:
+                    log.info("%s on servo %s succeeded after %d retries", what, dxl_id, attempt)
+                return value, error
+            last = self._ph.getTxRxResult(result) if result != COMM_SUCCESS else "CRC error"
+            self.counters["timeouts" if result == COMM_RX_TIMEOUT else "corrupt"] += 1
+            if result not in _RETRYABLE and result != COMM_SUCCESS:
+                break
+            if attempt < self.retries:
+                self.counters["retries"] += 1
+                log.warning("retry %d/%d of %s on servo %s: %s", attempt + 1, self.retries, what,
+                            dxl_id, last)
+        raise RigError(
+            f"servo {dxl_id} did not answer {what} after {self.retries + 1} attempts "
+            f"({last}); check the port, baud rate ({self.baud_rate}), ID and power"
+        )
+
+    # ------------------------------------------------------------- instructions
+    def ping(self, dxl_id: int, retries: int | None = None) -> tuple[int, int] | None:
+        """(model number, firmware version) of ``dxl_id``, or None if it does not answer."""
+        saved = self.retries
+        if retries is not None:
+            self.retries = retries
+        try:
+            with self.lock:
+                def fn():
+                    model, result, error = self._ph.ping(self._port, dxl_id)
+                    fw = 0
+                    if result == COMM_SUCCESS:
+                        fw, r2, e2 = self._ph.readTxRx(self._port, dxl_id, 6, 1)
+                        fw = fw[0] if r2 == COMM_SUCCESS and fw else 0
+                    return (model, fw), result, error
+
+                (model, fw), err = self._attempt("PING", dxl_id, fn)
+                if err & protocol.ERR_ALERT:
+                    self.alerts.add(dxl_id)
+                return model, fw
+        except RigError:
+            return None
+        finally:
+            self.retries = saved
+
+    def read_bytes(self, dxl_id: int, address: int, length: int) -> bytes:
+        """READ ``length`` raw bytes from ``address``."""
+        with self.lock:
+            data, err = self._attempt(
+                f"READ {address}+{length}", dxl_id,
+                lambda: self._ph.readTxRx(self._port, dxl_id, address, length),
+            )
+            self._status(f"READ {address}", dxl_id, COMM_SUCCESS, err)
+            if len(data) != length:
+                raise RigError(f"servo {dxl_id} returned {len(data)} bytes for a {length}-byte READ")
+            return bytes(data)
+
+    def read(self, dxl_id: int, reg: Register) -> int:
+        """Read a register; signed registers come back signed."""
+        return reg.to_signed(protocol.from_le(self.read_bytes(dxl_id, reg.address, reg.size)))
+
+    def write_bytes(self, dxl_id: int, address: int, data: bytes, what: str = "") -> None:
+        """WRITE raw bytes (with correct stuffing) and check the status packet."""
+        what = what or f"WRITE {address}"
+        with self.lock:
+            params = protocol.le(address, 2) + bytes(data)
+            if protocol.needs_stuffing(bytes([protocol.WRITE]) + params):
+                self.counters["stuffed"] += 1
+                fn = lambda: self._raw_txrx(protocol.build_packet(dxl_id, protocol.WRITE, params))  # noqa: E731
+            else:
+                fn = lambda: (None, *self._ph.writeTxRx(self._port, dxl_id, address, len(data), list(data)))  # noqa: E731
+            _, err = self._attempt(what, dxl_id, fn)
+            self._status(what, dxl_id, COMM_SUCCESS, err)
+
+    def write(self, dxl_id: int, reg: Register, value: int) -> None:
+        """Write a register value (signed values are encoded as two's complement)."""
+        if reg.access != "RW":
+            raise RigError(f"register {reg.name} is read-only")
+        self.write_bytes(dxl_id, reg.address, protocol.le(reg.to_raw(value), reg.size),
+                         f"WRITE {reg.name}={value}")
+
+    def _raw_txrx(self, packet: bytes):
+        """Send a packet built here (stuffed) and read the status with the SDK."""
+        port = self._port
+        if port.is_using:
+            return None, -1000, 0  # COMM_PORT_BUSY
+        port.is_using = True
+        port.clearPort()
+        port.writePort(packet)
+        port.setPacketTimeout(11)
+        while True:
+            rx, result = self._ph.rxPacket(port, False)
+            if result != COMM_SUCCESS or rx[4] == packet[4]:
+                break
+        error = rx[8] if result == COMM_SUCCESS else 0
+        return None, result, error
+
+    def sync_read(self, ids: Iterable[int], address: int, length: int) -> dict[int, bytes]:
+        """SYNC_READ ``length`` bytes at ``address`` from every ID; all or nothing.
+
+        Group reads drop the status ERR byte (no alert bit): read register 70 in the block.
+        """
+        ids = tuple(ids)
+        key = (address, length, ids)
+        with self.lock:
+            group = self._sync_reads.get(key)
+            if group is None:
+                group = GroupSyncRead(self._port, self._ph, address, length)
+                for i in ids:
+                    group.addParam(i)
+                self._sync_reads[key] = group
+
+            def fn():
+                result = group.txRxPacket()
+                return None, result, 0
+
+            self._attempt(f"SYNC_READ {address}+{length}", ",".join(map(str, ids)), fn)
+            return {i: bytes(group.data_dict[i]) for i in ids}
+
+    def sync_write(self, reg: Register, values: Mapping[int, int]) -> None:
+        """SYNC_WRITE one register to several servos (no reply; verify by reading back)."""
+        with self.lock:
+            payload = b"".join(bytes([i]) + protocol.le(reg.to_raw(v), reg.size) for i, v in values.items())
+            params = protocol.le(reg.address, 2) + protocol.le(reg.size, 2) + payload
+            self.counters["transactions"] += 1
+            if protocol.needs_stuffing(bytes([protocol.SYNC_WRITE]) + params):
+                self.counters["stuffed"] += 1
+                self._raw_send(protocol.build_packet(protocol.BROADCAST_ID, protocol.SYNC_WRITE, params))
+                return
+            group = GroupSyncWrite(self._port, self._ph, reg.address, reg.size)
+            for i, v in values.items():
+                group.addParam(i, list(protocol.le(reg.to_raw(v), reg.size)))
+            result = group.txPacket()
+            if result != COMM_SUCCESS:
+                raise RigError(f"SYNC_WRITE {reg.name} failed: {self._ph.getTxRxResult(result)}")
+
+    def broadcast_write(self, reg: Register, value: int) -> None:
+        """WRITE to the broadcast ID (every servo, no reply): used for emergency torque off."""
+        with self.lock:
+            pkt = protocol.build_packet(
+                protocol.BROADCAST_ID, protocol.WRITE,
+                protocol.le(reg.address, 2) + protocol.le(reg.to_raw(value), reg.size),
+            )
+            self._raw_send(pkt)
+
+    def _raw_send(self, packet: bytes) -> None:
+        port = self._port
+        port.is_using = False
+        port.clearPort()
+        port.writePort(packet)
+        port.ser.flush()
+
+    def reboot(self, dxl_id: int) -> None:
+        """REBOOT (clears a hardware error; torque comes back off)."""
+        with self.lock:
+            _, err = self._attempt("REBOOT", dxl_id, lambda: (None, *self._ph.reboot(self._port, dxl_id)))
+            self.alerts.discard(dxl_id)

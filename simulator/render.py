@@ -1,0 +1,518 @@
+"""Render what the camera sees of the sample and its holder: the rendering equation.
+
+For each pixel the camera ray meets the plane z = 0 at x; the radiance towards the camera
+is the area form of the rendering equation, summed over the lights,
+
+    L(x -> wo) = integral over the light of f_r(x, wi, wo) L_e V(x, y) cos(theta) cos(theta') / |x - y|^2 dA(y),
+
+evaluated by one of
+
+- ``"point"``: the light's centre with its whole area (exact for point lights);
+- ``"quadrature"``: a deterministic rule over the light's area (see ``lights.py``);
+- ``"mc"``: stratified Monte Carlo over the light's area (seeded);
+- ``"auto"``: the cheapest of those whose *estimated* error meets ``tolerance``.  The
+  estimate compares consecutive quadrature levels (point, 4, 16, 36, ... nodes) on a
+  pilot set of pixels spread over the image; the first level whose difference to the
+  next is below ``tolerance / 2`` wins.  The error measure is relative per pixel, with a
+  floor of 1e-3 of the brightest pilot pixel so that near-black pixels do not dominate.
+
+Work that the scene does not need is skipped and counted in :class:`RenderStats`: no
+visibility tests for occluders whose bounding box misses the box around the lit surface
+and the light; no shading for pixels that see neither sample nor holder; sub-pixel
+anti-aliasing samples only on pixels whose four corners and centre do not all see the
+same thing (region, board print, reference patch, light-centre visibility).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from gonio.errors import ConfigError
+from gonio.simulator.geometry import (
+    camera_rays,
+    intersect_plane_z0,
+    prepare_occluders,
+    segments_blocked,
+)
+from gonio.simulator.lights import LEVELS, PreparedLight, prepare_lights
+from gonio.simulator.scene import Scene
+
+__all__ = ["REGION_NAMES", "RenderResult", "RenderStats", "Surface", "render", "save_truth"]
+
+NONE, SAMPLE, HOLDER, PATCH, OCCLUDED = 0, 1, 2, 3, 4
+REGION_NAMES = {NONE: "none", SAMPLE: "sample", HOLDER: "holder", PATCH: "patch",
+                OCCLUDED: "occluded"}
+_PILOT_PIXELS = 2048
+_SAFETY = 0.5
+_MC_MAX = 1024
+_QUAD_MAX = 1024
+
+
+@dataclass
+class LightStats:
+    """How one light was integrated."""
+
+    kind: str
+    strategy: str
+    level: int | None
+    nodes: int
+    estimated_error: float
+    tolerance_met: bool
+    occluders_tested: int
+    occluders_culled: int
+
+
+@dataclass
+class RenderStats:
+    """What the renderer did and what it skipped."""
+
+    pixels: int
+    pixels_shaded: int
+    pixels_skipped: int
+    pixels_occluded: int
+    edge_pixels: int
+    subpixel_samples: int
+    camera_occluders_tested: int
+    lights: list[LightStats] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class RenderResult:
+    """A rendered image with its ground truth (sample frame).
+
+    Attributes
+    ----------
+    radiance
+        (H, W, 3) noise-free radiance towards the camera, W/(sr m^2) (camera RGB).
+    wi, wo
+        (H, W, 3) unit directions from the pixel-centre surface point to the first
+        light's centre and to the camera; NaN where the pixel sees no surface.
+    points
+        (H, W, 3) pixel-centre surface points, metres (NaN where none).
+    region
+        (H, W) uint8: 0 none, 1 sample, 2 holder, 3 reference patch, 4 occluded.
+    edge
+        (H, W) bool: pixels that received sub-pixel anti-aliasing samples.
+    stats
+        :class:`RenderStats`.
+    """
+
+    radiance: np.ndarray
+    wi: np.ndarray
+    wo: np.ndarray
+    points: np.ndarray
+    region: np.ndarray
+    edge: np.ndarray
+    stats: RenderStats
+
+
+class Surface:
+    """The plane z = 0: sample rectangle (its BRDF, albedo map) and Lambertian holder."""
+
+    def __init__(self, scene: Scene, brdf: Any = None) -> None:
+        s = scene.sample
+        self.half = np.array([s.width / 2, s.height / 2])
+        self.brdf = scene.build_brdf() if brdf is None else brdf
+        self.albedo_map = None
+        if s.albedo_map is not None:
+            self.albedo_map = _load_albedo_map(scene.resolve(s.albedo_map))
+        h = scene.holder
+        self.holder_half = None if h is None else np.array([h.width / 2, h.height / 2])
+        self.board_img = None
+        self.patch = None
+        if h is not None:
+            self.black = np.broadcast_to(np.asarray(h.albedo_black, float), (3,))
+            self.white = np.broadcast_to(np.asarray(h.albedo_white, float), (3,))
+            if h.board is not None:
+                self.board_img = h.board.image()
+                self.board_half = np.array(h.board.extent) / 2
+            if h.reference_patch is not None:
+                p = h.reference_patch
+                self.patch = (np.asarray(p.center, float), np.asarray(p.size, float) / 2,
+                              np.broadcast_to(np.asarray(p.albedo, float), (3,)))
+
+    def extent(self) -> tuple[np.ndarray, np.ndarray]:
+        """Bounding box (lo, hi) of the surface, metres."""
+        half = self.half if self.holder_half is None else self.holder_half
+        return np.array([-half[0], -half[1], 0.0]), np.array([half[0], half[1], 0.0])
+
+    def classify(self, x: np.ndarray, front: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Region code (...) uint8 and board print bit (...) bool of surface points."""
+        ax, ay = np.abs(x[..., 0]), np.abs(x[..., 1])
+        region = np.zeros(x.shape[:-1], np.uint8)
+        white = np.zeros(x.shape[:-1], bool)
+        if self.holder_half is not None:
+            on_h = front & (ax <= self.holder_half[0]) & (ay <= self.holder_half[1])
+            region[on_h] = HOLDER
+            white = on_h & self._board_white(x)
+            if self.patch is not None:
+                c, hs, _ = self.patch
+                on_p = on_h & (np.abs(x[..., 0] - c[0]) <= hs[0]) & (np.abs(x[..., 1] - c[1]) <= hs[1])
+                region[on_p] = PATCH
+        on_s = front & (ax <= self.half[0]) & (ay <= self.half[1])
+        region[on_s] = SAMPLE
+        white &= region == HOLDER
+        return region, white
+
+    def _board_white(self, x: np.ndarray) -> np.ndarray:
+        if self.board_img is None:
+            return np.ones(x.shape[:-1], bool)
+        hb = self.board_half
+        rows, cols = self.board_img.shape
+        c = np.floor((x[..., 0] + hb[0]) / (2 * hb[0]) * cols)
+        r = np.floor((hb[1] - x[..., 1]) / (2 * hb[1]) * rows)
+        inside = (c >= 0) & (c < cols) & (r >= 0) & (r < rows)
+        ci = np.clip(c, 0, cols - 1).astype(np.intp)
+        ri = np.clip(r, 0, rows - 1).astype(np.intp)
+        return np.where(inside, self.board_img[ri, ci], True)
+
+    def lambert_albedo(self, x: np.ndarray, region: np.ndarray, white: np.ndarray) -> np.ndarray:
+        """Albedo (..., 3) of holder and patch points."""
+        out = np.where(white[..., None], self.white, self.black)
+        if self.patch is not None:
+            out = np.where((region == PATCH)[..., None], self.patch[2], out)
+        return out
+
+    def albedo_scale(self, x: np.ndarray) -> np.ndarray | None:
+        """The albedo map's factor (..., 3) at sample points, or None without a map."""
+        if self.albedo_map is None:
+            return None
+        from scipy.ndimage import map_coordinates
+
+        m = self.albedo_map
+        rows, cols = m.shape[:2]
+        c = (x[..., 0] + self.half[0]) / (2 * self.half[0]) * cols - 0.5
+        r = (self.half[1] - x[..., 1]) / (2 * self.half[1]) * rows - 0.5
+        coords = np.stack([r.ravel(), c.ravel()])
+        out = np.stack([map_coordinates(m[..., k], coords, order=1, mode="nearest")
+                        for k in range(3)], -1)
+        return out.reshape(x.shape[:-1] + (3,))
+
+
+def _load_albedo_map(path) -> np.ndarray:
+    if not path.is_file():
+        raise ConfigError(f"sample.albedo_map: {path} does not exist")
+    if path.suffix == ".npy":
+        m = np.load(path).astype(np.float64)
+    else:
+        import cv2
+
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ConfigError(f"sample.albedo_map: {path} is not a readable image")
+        scale = 65535.0 if img.dtype == np.uint16 else 255.0
+        m = img.astype(np.float64) / scale
+        if m.ndim == 3:
+            m = m[..., 2::-1]  # OpenCV's BGR -> RGB
+    if m.ndim == 2:
+        m = np.repeat(m[..., None], 3, -1)
+    if m.ndim != 3 or m.shape[-1] != 3 or not np.all(np.isfinite(m)):
+        raise ConfigError(f"sample.albedo_map: {path} must be (H, W) or (H, W, 3) finite values")
+    return m
+
+
+class _Integrator:
+    """Shades surface points for one light with a fixed node set or stratified MC."""
+
+    def __init__(self, light: PreparedLight, occluders, surface: Surface, camera: np.ndarray):
+        self.light = light
+        self.occ = occluders
+        self.surface = surface
+        self.camera = camera
+
+    def shade(self, x, region, white, strategy: str, level: int, n_mc: int = 0,
+              rng: np.random.Generator | None = None, chunk: int = 262144) -> np.ndarray:
+        """Radiance (M, 3) at points x (M, 3) towards the camera."""
+        m = x.shape[0]
+        out = np.zeros((m, 3))
+        if m == 0:
+            return out
+        if strategy == "mc":
+            k = n_mc
+        else:
+            nodes, weights = self.light.quadrature(level)
+            k = len(weights)
+        step = max(1, chunk // max(k, 1))
+        for s in range(0, m, step):
+            sl = slice(s, min(m, s + step))
+            if strategy == "mc":
+                y, wt = self.light.stratified(n_mc, rng, sl.stop - sl.start)
+                w = np.full(y.shape[:-1], wt)
+            else:
+                y, w = nodes[None], weights[None]
+            out[sl] = self._shade_nodes(x[sl], region[sl], white[sl], y, w)
+        return out
+
+    def _shade_nodes(self, x, region, white, y, w) -> np.ndarray:
+        light = self.light
+        d = y - x[:, None, :]
+        r2 = np.einsum("mki,mki->mk", d, d)
+        r = np.sqrt(r2)
+        wi = d / r[..., None]
+        cos_s = np.maximum(wi[..., 2], 0.0)
+        if light.is_point:
+            g = cos_s / r2
+        else:
+            cos_l = np.maximum(-(wi @ light.normal), 0.0)
+            g = w * cos_s * cos_l / r2
+        if self.occ:
+            live = g > 0
+            blocked = np.zeros_like(live)
+            xb = np.broadcast_to(x[:, None, :], d.shape)
+            yb = np.broadcast_to(y, d.shape)
+            blocked[live] = segments_blocked(self.occ, xb[live], yb[live])
+            g = np.where(blocked, 0.0, g)
+        out = np.zeros((x.shape[0], 3))
+        lam = region != SAMPLE
+        if np.any(lam):
+            alb = self.surface.lambert_albedo(x[lam], region[lam], white[lam])
+            out[lam] = alb / np.pi * g[lam].sum(-1)[:, None]
+        smp = ~lam
+        if np.any(smp):
+            xs = x[smp]
+            wo = self.camera - xs
+            wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+            wis = wi[smp]
+            f = np.asarray(self.surface.brdf.eval(wis, np.broadcast_to(wo[:, None, :], wis.shape)))
+            f = np.nan_to_num(f, nan=0.0)
+            val = np.einsum("mkc,mk->mc", f, g[smp])
+            scale = self.surface.albedo_scale(xs)
+            out[smp] = val if scale is None else val * scale
+        return out * light.rgb
+
+
+def _levels_for(light: PreparedLight) -> tuple[int, ...]:
+    return (0,) if light.is_point else LEVELS
+
+
+def _choose(integ: _Integrator, xs, region, white, tol, settings, rng) -> tuple[str, int, int, float, bool]:
+    """Pick (strategy, level, n_mc, estimated error, met) for one light on pilot points."""
+    light = integ.light
+    if light.is_point:
+        return "point", 0, 0, 0.0, True
+    mode = settings.strategy
+    if mode == "point":
+        return "point", 0, 0, float("nan"), False
+    if mode == "quadrature":
+        return "quadrature", settings.quadrature_order, 0, float("nan"), False
+    if mode == "mc":
+        return "mc", 0, settings.mc_samples, float("nan"), False
+
+    def rel_err(a, b):
+        floor = 1e-3 * max(float(np.max(np.abs(b))), 1e-300)
+        return float(np.max(np.abs(a - b) / np.maximum(np.abs(b), floor)))
+
+    prev = integ.shade(xs, region, white, "quadrature", 0)
+    levels = [k for k in _levels_for(light) if light.n_nodes(k) <= _QUAD_MAX]
+    err = np.inf
+    for k0, k1 in zip(levels[:-1], levels[1:], strict=True):
+        cur = integ.shade(xs, region, white, "quadrature", k1)
+        err = rel_err(prev, cur)
+        if err <= _SAFETY * tol:
+            return ("point" if k0 == 0 else "quadrature"), k0, 0, err, True
+        prev = cur
+    # Quadrature converges slowly where the integrand is not smooth (penumbrae, measured
+    # BRDFs interpolated piecewise): try stratified MC, its sample count scaled from the
+    # spread of two independent estimates, and keep it only if it is predicted to meet
+    # the tolerance; otherwise the finest quadrature, flagged as not meeting it.
+    n0 = 64
+    a = integ.shade(xs, region, white, "mc", 0, n0, rng)
+    b = integ.shade(xs, region, white, "mc", 0, n0, rng)
+    sigma = rel_err(a, b) / np.sqrt(2.0)  # max over pilots of one estimate's error
+    n = int(np.ceil(n0 * (sigma / (_SAFETY * tol)) ** 2))
+    if max(n, 16) <= _MC_MAX:
+        return "mc", 0, max(n, 16), sigma * np.sqrt(n0 / max(n, 16)), True
+    return "quadrature", levels[-1], 0, err, False
+
+
+def _label(surface: Surface, occ_cam, C, x, front, light_vis) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    region, white = surface.classify(x, front)
+    if occ_cam:
+        seen = region > 0
+        blk = np.zeros_like(seen)
+        blk[seen] = segments_blocked(occ_cam, C, x[seen])
+        region[blk] = OCCLUDED
+    code = region.astype(np.int64) + 8 * white
+    for bit, (occ, center) in enumerate(light_vis):
+        lit = region > 0
+        sh = np.zeros_like(lit)
+        sh[lit] = segments_blocked(occ, x[lit], center)
+        code = code + (16 << bit) * sh
+    return region, white, code, x
+
+
+def render(scene: Scene, *, tolerance: float | None = None, strategy: str | None = None,
+           antialias: int | None = None, seed: int | None = None,
+           brdf: Any = None) -> RenderResult:
+    """Render the scene's camera view of the sample plane.
+
+    Parameters
+    ----------
+    scene
+        The scene (poses in the sample frame, metres).
+    tolerance, strategy, antialias, seed
+        Override ``scene.render`` (see :class:`gonio.simulator.scene.RenderSettings`).
+    brdf
+        An already built sample BRDF (``eval(wi, wo) -> (..., 3)``) to use instead of
+        building ``scene.sample.brdf`` again (measured files are slow to load).
+
+    Returns
+    -------
+    RenderResult
+        Radiance image (W/(sr m^2), camera RGB) with ground truth and stats.
+
+    Raises
+    ------
+    ConfigError
+        The camera does not see the sample (it is reported, not rendered black).
+    """
+    t0 = time.perf_counter()
+    upd = {k: v for k, v in dict(tolerance=tolerance, strategy=strategy, antialias=antialias,
+                                   seed=seed).items() if v is not None}
+    settings = scene.render.model_copy(update=upd)
+    rng = np.random.default_rng(settings.seed)
+    C, R = scene.camera_pose()
+    if C[2] <= 0:
+        raise ConfigError(f"camera.position: {C.tolist()} is not above the sample plane (z > 0)")
+    K = scene.camera.intrinsics()
+    W, H = scene.camera.resolution
+    surface = Surface(scene, brdf)
+    lights = prepare_lights(scene)
+    occluders = prepare_occluders(scene.occluders)
+    lo, hi = surface.extent()
+
+    # Bounding tests: an occluder matters for a light only if it meets the box around the
+    # surface and the emitter, for the camera only if it meets the box around both.
+    light_occ = []
+    for light in lights:
+        pts = np.vstack([light.extent_points(), lo, hi])
+        light_occ.append([o for o in occluders if o.overlaps(pts.min(0), pts.max(0))])
+    cam_box = np.vstack([C, lo, hi])
+    occ_cam = [o for o in occluders if o.overlaps(cam_box.min(0), cam_box.max(0))]
+    light_vis = [(oc, li.center) for li, oc in zip(lights, light_occ, strict=True) if oc]
+
+    # Pixel centres and corners.
+    jj, ii = np.mgrid[0:H, 0:W]
+    d = camera_rays(K, R, ii + 0.5, jj + 0.5)
+    x, front = intersect_plane_z0(C, d)
+    region, white, code_c, _ = _label(surface, occ_cam, C, x, front, light_vis)
+    jc, ic = np.mgrid[0 : H + 1, 0 : W + 1]
+    xc, frontc = intersect_plane_z0(C, camera_rays(K, R, ic.astype(float), jc.astype(float)))
+    region_k, _, code_k, _ = _label(surface, occ_cam, C, xc, frontc, light_vis)
+    if not (np.any(region == SAMPLE) or np.any(region_k == SAMPLE)):
+        raise ConfigError(
+            f"camera: at {np.round(C, 4).tolist()} the camera does not see the sample "
+            f"({scene.sample.width:g} x {scene.sample.height:g} m at the origin); "
+            "check camera.position, look_at/rotation and the field of view"
+        )
+    corners = np.stack([code_k[:-1, :-1], code_k[1:, :-1], code_k[:-1, 1:], code_k[1:, 1:]])
+    edge = np.any(corners != code_c[None], axis=0) if settings.antialias > 1 else np.zeros((H, W), bool)
+    surf = (region > 0) & (region != OCCLUDED)
+
+    radiance = np.zeros((H, W, 3))
+    integrators = [_Integrator(li, oc, surface, C) for li, oc in zip(lights, light_occ, strict=True)]
+    xs, rs, ws = x[surf], region[surf], white[surf]
+    pilot = np.unique(np.linspace(0, len(xs) - 1, min(_PILOT_PIXELS, len(xs))).astype(int))
+    light_stats = []
+    plans = []
+    for integ, oc in zip(integrators, light_occ, strict=True):
+        strat, level, n_mc, err, met = _choose(integ, xs[pilot], rs[pilot], ws[pilot],
+                                                settings.tolerance, settings, rng)
+        plans.append((strat, level, n_mc))
+        nodes = n_mc if strat == "mc" else integ.light.n_nodes(level)
+        light_stats.append(LightStats(integ.light.kind, strat, None if strat == "mc" else level,
+                                      nodes, err, met, len(oc), len(occluders) - len(oc)))
+
+    def shade_all(xp, rp, wp):
+        acc = np.zeros((len(xp), 3))
+        for integ, (strat, level, n_mc) in zip(integrators, plans, strict=True):
+            acc += integ.shade(xp, rp, wp, strat, level, n_mc, rng, settings.chunk_size)
+        return acc
+
+    radiance[surf] = shade_all(xs, rs, ws)
+
+    # Anti-aliasing: n x n sub-pixel samples (box filter) on edge pixels only.
+    n_aa = settings.antialias
+    ej, ei = np.nonzero(edge)
+    n_sub = 0
+    if len(ej):
+        off = (np.arange(n_aa) + 0.5) / n_aa
+        ou, ov = np.meshgrid(off, off, indexing="ij")
+        su = (ei[:, None] + ou.ravel()).ravel()
+        sv = (ej[:, None] + ov.ravel()).ravel()
+        xsub, fsub = intersect_plane_z0(C, camera_rays(K, R, su, sv))
+        rsub, wsub, _, _ = _label(surface, occ_cam, C, xsub, fsub, [])
+        ok = (rsub > 0) & (rsub != OCCLUDED)
+        lsub = np.zeros((len(su), 3))
+        lsub[ok] = shade_all(xsub[ok], rsub[ok], wsub[ok])
+        radiance[ej, ei] = lsub.reshape(len(ej), n_aa * n_aa, 3).mean(1)
+        n_sub = len(su)
+
+    nan3 = np.full((H, W, 3), np.nan)
+    pts = np.where(surf[..., None], x, nan3)
+    wo = C - pts
+    wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+    wi = lights[0].center - pts
+    wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+    stats = RenderStats(
+        pixels=H * W,
+        pixels_shaded=int(surf.sum()),
+        pixels_skipped=int((region == NONE).sum()),
+        pixels_occluded=int((region == OCCLUDED).sum()),
+        edge_pixels=int(len(ej)),
+        subpixel_samples=n_sub,
+        camera_occluders_tested=len(occ_cam),
+        lights=light_stats,
+        seconds=time.perf_counter() - t0,
+    )
+    return RenderResult(radiance, wi, wo, pts, region, edge, stats)
+
+
+def save_truth(path, result: RenderResult, scene: Scene | None = None, *,
+               overwrite: bool = False) -> None:
+    """Write a render's ground truth to HDF5 (atomic: temporary file, then rename).
+
+    Datasets: ``radiance`` (H, W, 3) W/(sr m^2), ``wi``, ``wo`` (H, W, 3) sample frame,
+    ``points`` (H, W, 3) m, ``region`` (H, W) uint8 (attribute ``names``), ``edge``
+    (H, W) bool; attributes ``stats`` (JSON) and ``scene`` (JSON, when given).
+
+    Raises
+    ------
+    FileFormatError
+        ``path`` exists and ``overwrite`` is false.
+    """
+    import json
+    import os
+    import tempfile
+    from pathlib import Path
+
+    import h5py
+
+    from gonio.errors import FileFormatError
+
+    p = Path(path)
+    if p.exists() and not overwrite:
+        raise FileFormatError(p, "exists; refusing to overwrite (use --force)")
+    fd, tmp = tempfile.mkstemp(dir=p.parent, suffix=".h5.tmp")
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w") as f:
+            for name in ("radiance", "wi", "wo", "points", "region", "edge"):
+                f.create_dataset(name, data=getattr(result, name), compression="gzip")
+            f["region"].attrs["names"] = json.dumps(REGION_NAMES)
+            f.attrs["stats"] = json.dumps(result.stats.as_dict())
+            f.attrs["frame"] = "sample"
+            if scene is not None:
+                f.attrs["scene"] = scene.model_dump_json()
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

@@ -1,0 +1,355 @@
+"""One virtual X-series servo: control table memory, access rules, motion and faults.
+
+The register layout comes from :mod:`gonio.rig.control_table` (declared once).  Motion
+follows the goal on a trapezoid from Profile Velocity / Profile Acceleration; it is
+computed on demand from timestamps (no thread per servo), with a ``time_scale`` so tests
+can run moves faster than real time.  Temperature and current follow load crudely.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from gonio.rig import control_table as ct
+from gonio.rig.protocol import (
+    ERR_ACCESS,
+    ERR_ALERT,
+    ERR_DATA_LENGTH,
+    ERR_DATA_LIMIT,
+    from_le,
+    le,
+)
+
+TABLE_SIZE = 662  # XM430 control table incl. indirect address/data (plain RAM here)
+_AMBIENT_C = 30.0
+
+
+def _trapezoid(d: float, v: float, a: float, t: float) -> tuple[float, float, float]:
+    """(distance covered, speed, total time) at time ``t`` of a rest-to-rest move of ``d``.
+
+    Written independently of the controller's move-time estimate so that tests of one
+    check the other.
+    """
+    if d <= 0:
+        return 0.0, 0.0, 0.0
+    if math.isinf(a):
+        total = d / v
+        return (min(d, v * t), v if t < total else 0.0, total)
+    t_ramp = v / a
+    if a * t_ramp * t_ramp >= d:  # never reaches cruise speed: triangle
+        t_ramp = math.sqrt(d / a)
+        v = a * t_ramp
+        total = 2 * t_ramp
+    else:
+        total = t_ramp + d / v
+    if t <= 0:
+        return 0.0, 0.0, total
+    if t >= total:
+        return d, 0.0, total
+    if t < t_ramp:
+        return 0.5 * a * t * t, a * t, total
+    if t > total - t_ramp:
+        r = total - t
+        return d - 0.5 * a * r * r, a * r, total
+    return 0.5 * a * t_ramp * t_ramp + v * (t - t_ramp), v, total
+
+
+@dataclass
+class _Segment:
+    t0: float  # bus clock (scaled seconds) when the move started
+    p0: float
+    p1: float
+    speed: float  # pulses/s
+    accel: float  # pulses/s^2 (inf: no ramp)
+
+
+class VirtualServo:
+    """A servo's memory and physics.
+
+    Parameters
+    ----------
+    dxl_id
+        Bus ID.
+    model
+        Model name from :data:`gonio.rig.control_table.MODELS`.
+    firmware
+        Firmware Version register value.
+    clock
+        Monotonic clock in (scaled) seconds, shared by the servos of a bus.
+    position
+        Initial Present Position (pulses).
+    """
+
+    def __init__(
+        self,
+        dxl_id: int,
+        model: str = "XM430-W350",
+        firmware: int = 45,
+        clock: Callable[[], float] = time.monotonic,
+        position: int = 2048,
+    ) -> None:
+        self.model = ct.MODELS[model]
+        self.firmware = firmware
+        self.clock = clock
+        self.mem = bytearray(TABLE_SIZE)
+        self.lock = threading.RLock()
+        self.silent = False  # a servo that stops answering
+        self.pending_fault: tuple[int, float] | None = None  # (bits, fraction of next move)
+        self.voltage_raw = 120
+        self._reset_all()
+        self.set_u("id", dxl_id)
+        self._pos = float(position)
+        self._seg: _Segment | None = None
+        self._fault_at: tuple[float, int] | None = None
+        self._heat = 0.0
+        self._t_last = clock()
+        self.registered: tuple[int, bytes] | None = None
+        self.torque_log: list[tuple[float, int]] = []  # (clock, torque) for tests and audits
+
+    # ------------------------------------------------------------- raw memory
+    def _reset_all(self, keep: tuple[str, ...] = ()) -> None:
+        saved = {n: self.get_u(n) for n in keep}
+        self.mem[:] = bytes(TABLE_SIZE)
+        for r in self.model.registers.values():
+            if r.default is not None:
+                self.mem[r.address : r.address + r.size] = le(r.default, r.size)
+        self.set_u("firmware_version", self.firmware)
+        # indirect addresses default to their own data slots (plain RAM behaviour)
+        for n, v in saved.items():
+            self.set_u(n, v)
+
+    def get_u(self, name: str) -> int:
+        r = self.model[name]
+        return from_le(self.mem[r.address : r.address + r.size])
+
+    def get(self, name: str) -> int:
+        """Signed value of a register (after bringing the physics up to date)."""
+        with self.lock:
+            self._update()
+            return self.model[name].to_signed(self.get_u(name))
+
+    def set_u(self, name: str, value: int) -> None:
+        r = self.model[name]
+        self.mem[r.address : r.address + r.size] = le(value, r.size)
+
+    @property
+    def dxl_id(self) -> int:
+        return self.get_u("id")
+
+    # ------------------------------------------------------------- physics
+    def _profile(self) -> tuple[float, float]:
+        return ct.profile_pulses(self.get_u("profile_velocity"), self.get_u("profile_acceleration"), self.model)
+
+    def _position_at(self, t: float) -> tuple[float, float, bool]:
+        seg = self._seg
+        if seg is None:
+            return self._pos, 0.0, False
+        d = abs(seg.p1 - seg.p0)
+        covered, speed, total = _trapezoid(d, seg.speed, seg.accel, t - seg.t0)
+        sign = 1.0 if seg.p1 >= seg.p0 else -1.0
+        return seg.p0 + sign * covered, sign * speed, t - seg.t0 < total
+
+    def _update(self) -> None:
+        now = self.clock()
+        if self._fault_at is not None and now >= self._fault_at[0]:
+            t_fault, bits = self._fault_at
+            self._fault_at = None
+            pos, _, _ = self._position_at(t_fault)
+            self._pos, self._seg = pos, None
+            self._trip(bits)
+        pos, speed, moving = self._position_at(now)
+        if self._seg is not None and not moving:
+            self._pos, self._seg = self._seg.p1, None
+            pos = self._pos
+        elif self._seg is not None:
+            self._pos = pos
+        dt = max(0.0, now - self._t_last)
+        self._t_last = now
+        torque = self.get_u("torque_enable")
+        # Current: holding + acceleration share while moving (crude, in 2.69 mA units).
+        load = (120 if moving else 15) if torque else 0
+        # First-order heating towards a load-dependent temperature, tau 60 s.
+        target = 12.0 * load / 120.0
+        self._heat += (target - self._heat) * (1 - math.exp(-dt / 60.0))
+        present = round(pos)
+        self.set_u("present_position", le_int(present, 4))
+        self.set_u("present_velocity", le_int(round(speed * 60 / 4096 / ct.RPM_PER_VELOCITY_UNIT), 4))
+        self.set_u("present_current", le_int(load if speed >= 0 else -load, 2))
+        self.set_u("present_temperature", int(round(_AMBIENT_C + self._heat)))
+        self.set_u("present_input_voltage", self.voltage_raw)
+        goal = self.model["goal_position"].to_signed(self.get_u("goal_position"))
+        in_pos = abs(goal - present) <= 1 or not torque
+        self.set_u("moving", int(moving))
+        self.set_u("moving_status", (1 if in_pos else 0) | (2 if moving else 0))
+        self.set_u("realtime_tick", int(now * 1000) % 32768)
+
+    def _trip(self, bits: int) -> None:
+        self.set_u("hardware_error_status", self.get_u("hardware_error_status") | bits)
+        if bits & self.get_u("shutdown"):
+            self._set_torque(0)
+
+    def _set_torque(self, value: int) -> None:
+        if value == 0 and self._seg is not None:
+            self._pos, _, _ = self._position_at(self.clock())
+            self._seg = None
+        self.set_u("torque_enable", value)
+        self.torque_log.append((self.clock(), value))
+
+    def _start_move(self, goal: int) -> None:
+        now = self.clock()
+        pos, _, _ = self._position_at(now)
+        self._pos = pos
+        v, a = self._profile()
+        self._seg = _Segment(now, pos, float(goal), v, a)
+        if self.pending_fault is not None:
+            bits, frac = self.pending_fault
+            self.pending_fault = None
+            _, _, total = _trapezoid(abs(goal - pos), v, a, 0.0)
+            self._fault_at = (now + frac * total, bits)
+
+    # ------------------------------------------------------------- test hooks
+    def set_position(self, pulses: int) -> None:
+        """Place the horn at ``pulses`` (as if turned by hand with torque off)."""
+        with self.lock:
+            self._pos, self._seg = float(pulses), None
+            self._update()
+
+    def inject_fault(self, bits: int, during_next_move: float | None = None) -> None:
+        """Trip hardware error ``bits`` now, or at a fraction of the next move's duration."""
+        with self.lock:
+            if during_next_move is None:
+                self._update()
+                self._trip(bits)
+            else:
+                self.pending_fault = (bits, during_next_move)
+
+    @property
+    def alert(self) -> bool:
+        return self.get_u("hardware_error_status") != 0
+
+    # ------------------------------------------------------------- instructions
+    def error_byte(self, err: int = 0) -> int:
+        return err | (ERR_ALERT if self.alert else 0)
+
+    def read(self, address: int, length: int) -> tuple[int, bytes]:
+        """READ: (error, data)."""
+        with self.lock:
+            self._update()
+            if length < 0 or address + length > TABLE_SIZE:
+                return self.error_byte(ERR_ACCESS), b""
+            return self.error_byte(), bytes(self.mem[address : address + length])
+
+    def check_write(self, address: int, data: bytes) -> int:
+        """Error code a WRITE of ``data`` at ``address`` would get (0: fine)."""
+        end = address + len(data)
+        if not data:
+            return ERR_DATA_LENGTH
+        if end > TABLE_SIZE:
+            return ERR_ACCESS
+        torque = self.get_u("torque_enable")
+        for r in self.model.registers.values():
+            if r.address + r.size <= address or r.address >= end:
+                continue
+            if r.access == "R":
+                return ERR_ACCESS
+            if r.eeprom and torque:
+                return ERR_ACCESS
+            if r.address >= address and r.address + r.size <= end:
+                raw = from_le(data[r.address - address : r.address - address + r.size])
+                value = r.to_signed(raw)
+                if r.name == "torque_enable" and value == 1 and self.alert:
+                    return ERR_ACCESS  # after a shutdown only REBOOT re-enables torque
+                if r.name == "goal_position" and self.get_u("operating_mode") == 3:
+                    lo, hi = self.get_u("min_position_limit"), self.get_u("max_position_limit")
+                    if not lo <= value <= hi:
+                        return ERR_DATA_LIMIT
+                elif r.low is not None and not r.low <= value <= r.high:
+                    return ERR_DATA_LIMIT
+            else:
+                return ERR_DATA_LENGTH  # a write that covers part of a multi-byte item
+        return 0
+
+    def write(self, address: int, data: bytes) -> int:
+        """WRITE: apply ``data`` unless invalid; returns the status ERR byte."""
+        with self.lock:
+            self._update()
+            err = self.check_write(address, data)
+            if err:
+                return self.error_byte(err)
+            end = address + len(data)
+            old_torque = self.get_u("torque_enable")
+            self.mem[address:end] = data
+            if address <= 64 < end:
+                new = self.mem[64]
+                self.set_u("torque_enable", old_torque)
+                self._set_torque(new)
+            gp = self.model["goal_position"].address
+            if address <= gp < end and self.get_u("torque_enable"):
+                self._start_move(self.model["goal_position"].to_signed(self.get_u("goal_position")))
+            elif address <= 64 < end and self.get_u("torque_enable") and not old_torque:
+                self._start_move(self.model["goal_position"].to_signed(self.get_u("goal_position")))
+            self._update()
+            return self.error_byte()
+
+    def reg_write(self, address: int, data: bytes) -> int:
+        with self.lock:
+            err = self.check_write(address, data)
+            if err:
+                return self.error_byte(err)
+            self.registered = (address, bytes(data))
+            self.set_u("registered_instruction", 1)
+            return self.error_byte()
+
+    def action(self) -> int:
+        with self.lock:
+            if self.registered is None:
+                return self.error_byte()
+            address, data = self.registered
+            self.registered = None
+            self.set_u("registered_instruction", 0)
+            return self.write(address, data)
+
+    def reboot(self) -> int:
+        with self.lock:
+            self._update()
+            self._seg = None
+            self._fault_at = None
+            self._reset_all(keep=_EEPROM_NAMES)
+            self.torque_log.append((self.clock(), 0))
+            self._update()
+            return self.error_byte()
+
+    def factory_reset(self, option: int) -> int:
+        with self.lock:
+            if self.get_u("torque_enable"):
+                return self.error_byte(ERR_ACCESS)
+            keep = {0xFF: (), 0x01: ("id",), 0x02: ("id", "baud_rate")}.get(option)
+            if keep is None:
+                return self.error_byte(ERR_DATA_LIMIT)
+            self._reset_all(keep=keep)
+            self._update()
+            return self.error_byte()
+
+    def clear_multi_turn(self) -> int:
+        with self.lock:
+            self._update()
+            if self._seg is not None:
+                return self.error_byte(ERR_ACCESS)
+            self._pos = float(int(round(self._pos)) % ct.PULSES_PER_TURN)
+            self._update()
+            return self.error_byte()
+
+    def ping_data(self) -> bytes:
+        return le(self.get_u("model_number"), 2) + bytes([self.firmware])
+
+
+def le_int(value: int, size: int) -> int:
+    """Two's complement raw integer of a signed value."""
+    return int(value) & ((1 << (8 * size)) - 1)
+
+
+_EEPROM_NAMES = tuple(r.name for r in ct.XM430_REGISTERS if r.eeprom and r.access == "RW")

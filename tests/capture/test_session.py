@@ -1,0 +1,287 @@
+"""Simulated sessions end to end: real dynamixel-sdk on the virtual bus's pty, rendered DNGs,
+journal against files, faults on the bus, resume, and refusals that protect a session."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pytest
+from gonio.capture.journal import read_journal
+from gonio.capture.plan import load_plan
+from gonio.capture.session import (
+    build_schedule,
+    create_session,
+    inspect_session,
+    open_rig,
+    run_steps,
+)
+from gonio.capture.sim_camera import SimulatedRigCamera
+from gonio.rig.config import load_rig_config
+from gonio.rig.kinematics import Kinematics
+
+from gonio.cli import main
+from gonio.errors import SessionError
+
+PLAN = """
+name = "tiny"
+seed = 3
+[grid]
+theta_i_deg = [20, 40]
+phi_i_deg = [0]
+theta_o_deg = [30, 50]
+phi_o_deg = [180]
+[bracket]
+exposure_time_s = 0.01
+roi = [0.4, 0.4, 0.6, 0.6]
+[darks]
+count = 1
+[simulation]
+width = 32
+height = 24
+"""
+
+
+@pytest.fixture
+def files(tmp_path):
+    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
+    rig = rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"')
+    assert 'port = "virtual"' in rig
+    (tmp_path / "rig.toml").write_text(rig)
+    (tmp_path / "plan.toml").write_text(PLAN)
+    return tmp_path
+
+
+def _run_cli(*args):
+    try:
+        main(list(args))
+    except SystemExit as exc:
+        return exc.code
+    return 0
+
+
+def _check_journal_against_files(session: Path) -> list[dict]:
+    recs = read_journal(session / "journal.jsonl")
+    shots = [r for r in recs if r["type"] == "shot"]
+    keys = [(r["pose"], r["frame"]) for r in shots]
+    assert len(keys) == len(set(keys)), "duplicate shots in the journal"
+    for r in shots:
+        data = (session / r["file"]).read_bytes()
+        assert hashlib.sha256(data).hexdigest() == r["sha256"]
+        assert len(data) == r["bytes"]
+    on_disk = {f"raw/{p.name}" for p in (session / "raw").iterdir()}
+    assert on_disk == {r["file"] for r in shots}
+    return recs
+
+
+def test_simulated_session_end_to_end(files):
+    from gonio.capture.raw import read_raw
+
+    out = files / "S"
+    code = _run_cli(
+        "capture",
+        "run",
+        str(files / "plan.toml"),
+        "--rig",
+        str(files / "rig.toml"),
+        "--camera",
+        "simulated",
+        "--out",
+        str(out),
+        "--sim-speed",
+        "100",
+        "--quiet",
+    )
+    assert code == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    for key in (
+        "schema_version",
+        "software_version",
+        "rig",
+        "camera",
+        "plan",
+        "seed",
+        "simulation",
+    ):
+        assert key in manifest
+    recs = _check_journal_against_files(out)
+    assert recs[0]["type"] == "start" and recs[-1] == {
+        **recs[-1],
+        "type": "stop",
+        "status": "completed",
+        "parked": True,
+        "torque_off": True,
+    }
+    shots = [r for r in recs if r["type"] == "shot"]
+    samples = [r for r in shots if r["kind"] == "sample"]
+    assert {r["pose"] for r in samples} == {0, 1, 2, 3}
+    kin = Kinematics(load_rig_config(files / "rig.toml"))
+    for r in samples:
+        # the file is a real DNG that rawpy decodes, with the journaled exposure
+        frame = read_raw(out / r["file"])
+        assert frame.exposure_time == pytest.approx(r["exposure_time"], rel=1e-6)
+        assert frame.shape == (24, 32)
+        # achieved directions follow from the read-back joints and are within a few
+        # servo steps (0.088 deg) of the request
+        wi, wo = kin.forward(r["joints"])
+        assert np.allclose(wi, r["wi_achieved"]) and np.allclose(wo, r["wo_achieved"])
+        err = np.degrees(np.arccos(np.clip(np.dot(r["wi_achieved"], r["wi_requested"]), -1, 1)))
+        assert err < 0.3
+        assert set(r["temperatures"]) == set(r["joints"])
+    darks = [r for r in shots if r["kind"] == "dark"]
+    assert sorted(r["exposure_time"] for r in darks) == sorted(
+        {r["exposure_time"] for r in samples}
+    )
+    info = inspect_session(out)
+    assert info["status"] == "completed" and info["files_verified"] == len(shots)
+    assert info["poses_done"] == info["poses_total"] == 5
+
+
+def _open_sim(cfg, bus_port, scene_w=32, scene_h=24):
+    cfg = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus_port})})
+    return cfg
+
+
+def test_fault_on_the_bus_stops_with_torque_off_and_resume_completes(files):
+    from gonio.simulator.servo_model import VirtualServo
+    from gonio.simulator.virtual_bus import VirtualBus
+
+    plan = load_plan(files / "plan.toml")
+    cfg = load_rig_config(files / "rig.toml")
+    kin = Kinematics(cfg)
+    sched = build_schedule(plan, kin, cfg.park_rad)
+    park = cfg.park_rad
+    servos = [VirtualServo(s.id, position=round(s.pulses(park[s.joint]))) for s in cfg.servos]
+    out = files / "S"
+    with VirtualBus(servos, time_scale=100.0, seed=0) as bus:
+        real = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})
+        state = {"armed": True}
+
+        def inject(rec):
+            # after pose 1 is done, overheat servo 2 half way through the next move
+            if rec["type"] == "pose_done" and rec["pose"] == 1 and state["armed"]:
+                bus.servos[2].inject_fault(0x04, during_next_move=0.5)
+                state["armed"] = False
+
+        with open_rig(real) as rig:
+            cam = SimulatedRigCamera(rig, kin, width=32, height=24)
+            create_session(out, plan, cfg, sched, cam.describe())
+            with pytest.raises(SessionError, match="fault") as info:
+                run_steps(out, rig, cam, kin, on_event=inject)
+            assert "resume" in str(info.value)
+            assert all(v == 0 for v in bus.torque().values()), "torque must be off after a fault"
+        recs = read_journal(out / "journal.jsonl")
+        faults = [r for r in recs if r["type"] == "fault"]
+        assert len(faults) == 1 and faults[0]["source"] == "rig" and faults[0].get("servo") == 2
+        assert recs[-1]["type"] == "stop" and recs[-1]["status"] == "fault"
+        assert recs[-1]["torque_off"] is True
+        done_before = {r["pose"] for r in recs if r["type"] == "pose_done"}
+        assert done_before == {0, 1}
+        # the fault clears: opening the rig reboots the servo that reports it
+        with open_rig(real) as rig:
+            cam = SimulatedRigCamera(rig, kin, width=32, height=24)
+            assert run_steps(out, rig, cam, kin, resumed=True) == "completed"
+        assert all(v == 0 for v in bus.torque().values())
+    recs = _check_journal_against_files(out)
+    assert {r["pose"] for r in recs if r["type"] == "pose_done"} == set(range(len(sched.steps)))
+    assert recs[-1]["status"] == "completed"
+
+
+def test_existing_session_dir_is_refused_and_untouched(files):
+    out = files / "S"
+    out.mkdir()
+    (out / "notes.txt").write_text("precious")
+    code = _run_cli(
+        "capture",
+        "run",
+        str(files / "plan.toml"),
+        "--rig",
+        str(files / "rig.toml"),
+        "--camera",
+        "simulated",
+        "--out",
+        str(out),
+        "--quiet",
+    )
+    assert code == 1
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
+    assert (out / "notes.txt").read_text() == "precious"
+
+
+def test_resume_refuses_a_different_plan_unless_forced(files, capsys):
+    out = files / "S"
+    assert (
+        _run_cli(
+            "capture",
+            "run",
+            str(files / "plan.toml"),
+            "--rig",
+            str(files / "rig.toml"),
+            "--camera",
+            "simulated",
+            "--out",
+            str(out),
+            "--sim-speed",
+            "100",
+            "--quiet",
+        )
+        == 0
+    )
+    other = files / "other.toml"
+    other.write_text(PLAN.replace("exposure_time_s = 0.01", "exposure_time_s = 0.02"))
+    before = (out / "journal.jsonl").read_bytes()
+    assert _run_cli("capture", "resume", str(out), "--plan", str(other), "--quiet") == 1
+    err = capsys.readouterr().err
+    assert "bracket.exposure_time_s" in err and "--force" in err
+    assert (out / "journal.jsonl").read_bytes() == before
+    # a run into the same directory is refused too, pointing at resume
+    assert (
+        _run_cli(
+            "capture",
+            "run",
+            str(files / "plan.toml"),
+            "--rig",
+            str(files / "rig.toml"),
+            "--camera",
+            "simulated",
+            "--out",
+            str(out),
+            "--quiet",
+        )
+        == 1
+    )
+    assert "gonio capture resume" in capsys.readouterr().err
+
+
+def test_plan_dry_run_moves_nothing(files, capsys):
+    code = _run_cli(
+        "capture", "plan", str(files / "plan.toml"), "--rig", str(files / "rig.toml"), "--json"
+    )
+    assert code == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["sample_poses"] == 4 and out["excluded"] == 0 and out["dark_steps"] == 1
+    assert out["estimated_duration_s"] > out["travel_time_s"] > 0
+
+
+def test_plan_with_no_reachable_pose_is_a_clear_error(files, capsys):
+    bad = files / "bad.toml"
+    # light and camera within 20 deg of each other at every grid pose, the plan wants 25
+    bad.write_text(
+        'name = "unreachable"\n[grid]\ntheta_i_deg = [20, 40]\ntheta_o_deg = [20, 40]\n'
+        "[exclusions]\nmin_separation_deg = 25\n"
+    )
+    code = _run_cli("capture", "plan", str(bad), "--rig", str(files / "rig.toml"))
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "no reachable pose" in err
+
+
+def test_invalid_plan_cli_names_the_field(files, capsys):
+    bad = files / "bad.toml"
+    bad.write_text(PLAN.replace("exposure_time_s = 0.01", "exposure_time_s = -1"))
+    assert _run_cli("capture", "plan", str(bad)) == 1
+    err = capsys.readouterr().err
+    assert "bad.toml" in err and "bracket.exposure_time_s" in err
