@@ -204,7 +204,10 @@ def _scene_of_manifest(manifest: Mapping[str, Any], session: Path) -> Any | None
         p = Path(doc)
         scene = load_scene(p if p.is_absolute() else session / p)
     elif isinstance(doc, Mapping) and "camera" in doc:
-        scene = parse_scene(dict(doc), f"{session}/manifest.json: simulation.scene")
+        doc = dict(doc)
+        base = doc.pop("_base_dir", None)
+        scene = parse_scene(doc, f"{session}/manifest.json: simulation.scene",
+                            Path(base) if base else None)
     else:
         from gonio.capture.sim_camera import minimal_scene
 

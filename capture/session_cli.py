@@ -275,10 +275,9 @@ _COMMON_RUN = [
     click.option(
         "--sim-speed",
         type=float,
-        default=20.0,
-        show_default=True,
-        help='With a virtual bus (rig bus.port = "virtual"): servo time runs '
-        "this many times faster than the wall clock.",
+        default=None,
+        help='With a virtual bus (rig bus.port = "virtual"): servo time runs this many '
+        "times faster than the wall clock [run: 20; resume: the session's own].",
     ),
     click.option("--quiet", is_flag=True, help="No progress bar."),
 ]
@@ -322,7 +321,7 @@ def run_cmd(
     scene_file: str | None,
     camera_backend: str,
     camera_port: str | None,
-    sim_speed: float,
+    sim_speed: float | None,
     quiet: bool,
 ) -> None:
     """Run a measurement session: move, shoot adaptive brackets, journal every shot.
@@ -360,8 +359,12 @@ def run_cmd(
             "scene": _scene_for(plan, plan_file, scene_file),
             "width": plan.simulation.width,
             "height": plan.simulation.height,
-            "time_scale": sim_speed,
+            "time_scale": sim_speed or 20.0,
         }
+        if simulation["scene"] is None:  # keep the manifest self-contained
+            from gonio.capture.sim_camera import minimal_scene
+
+            simulation["scene"] = minimal_scene()
     with open_devices(
         cfg, camera_backend, simulation=simulation, camera_port=camera_port, seed=plan.seed
     ) as dev:
@@ -398,7 +401,7 @@ def resume_cmd(
     force: bool,
     camera_backend: str,
     camera_port: str | None,
-    sim_speed: float,
+    sim_speed: float | None,
     quiet: bool,
 ) -> None:
     """Continue a session after a fault, a crash or Ctrl-C.
@@ -448,7 +451,7 @@ def resume_cmd(
     if sim is not None:
         sim = {
             **sim,
-            "time_scale": sim_speed if sim_speed != 20.0 else sim.get("time_scale", sim_speed),
+            "time_scale": sim_speed or sim.get("time_scale") or 20.0,
         }
     backend = manifest["camera"]["backend"]
     with open_devices(

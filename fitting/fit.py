@@ -300,8 +300,6 @@ def fit_model(
             x_start = r.x
         x_best, status, message = _full_local(prob, x_start, local_alg, maxeval, path, say)
 
-    cost = prob.full_cost(x_best, want_grad=False)[0]
-
     # --- stage C: energy conservation ---------------------------------------------------
     max_alb = None
     if energy_conservation:
@@ -309,10 +307,9 @@ def fit_model(
         if max_alb is not None and np.any(max_alb > 1.0 + _ENERGY_TOL):
             say("energy conservation")
             x_best, status, message = _energy_stage(prob, x_best, maxeval, path)
-            cost = prob.full_cost(x_best, want_grad=False)[0]
             max_alb = _max_albedo(prob, x_best)
 
-    return _finish(prob, x_best, cost, status, message, path, absolute_sigma, max_alb,
+    return _finish(prob, x_best, status, message, path, absolute_sigma, max_alb,
                    model_name, opts)
 
 
@@ -336,6 +333,15 @@ def _varpro_stage(prob: Problem, algorithm: str, local_alg: str, user_u, n_start
         c, g, _ = vp.evaluate(u, want)
         return c, g
 
+    # Large data sets: design and local searches on a random subset, then one polish on
+    # all samples from the subset's optimum (the same basin; 5x fewer full evaluations).
+    screen = _screen_problem(prob, seed) if algorithm not in GLOBAL_ALGORITHMS else prob
+    vs = vp if screen is prob else VarPro(screen)
+
+    def fun_s(u: np.ndarray, want: bool):
+        c, g, _ = vs.evaluate(u, want)
+        return c, g
+
     starts: list[np.ndarray] = []
     if algorithm in GLOBAL_ALGORITHMS:
         r = nlopt_minimize(fun, 0.5 * (lo + hi) if user_u is None else user_u, lo, hi,
@@ -345,11 +351,8 @@ def _varpro_stage(prob: Problem, algorithm: str, local_alg: str, user_u, n_start
     else:
         nd = _design_size(S, n_starts)
         if nd > 0:
-            screen = _screen_problem(prob, seed)
             U = sobol_design(lo, hi, nd, seed=seed)
-            costs = VarPro(screen).batch_cost(U) if screen is not prob else vp.batch_cost(U)
-            if screen is not prob:
-                prob.njev += screen.njev
+            costs = vs.batch_cost(U)
             path.append(f"sobol({U.shape[0]})")
             starts.extend(_distinct_best(U, costs, 2 if S == 1 else 3, span))
             say("global design")
@@ -359,11 +362,16 @@ def _varpro_stage(prob: Problem, algorithm: str, local_alg: str, user_u, n_start
         starts.append(prob.to_u(vp.default_theta()))
     best: NloptResult | None = None
     for s in starts:
-        r = nlopt_minimize(fun, s, lo, hi, local_alg, maxeval=maxeval, seed=seed)
+        r = nlopt_minimize(fun_s, s, lo, hi, local_alg, maxeval=maxeval, seed=seed)
         if best is None or r.fun < best.fun:
             best = r
     assert best is not None
     path.append(f"{local_alg} x{len(starts)}")
+    if screen is not prob:
+        prob.njev += screen.njev
+        path[-1] += f" (subset {screen.wi.shape[0]})"
+        best = nlopt_minimize(fun, best.x, lo, hi, local_alg, maxeval=maxeval, seed=seed)
+        path.append(f"{local_alg}(all {prob.wi.shape[0]})")
     say("local search")
     _, _, a = vp.evaluate(best.x, want_grad=False)
     return np.concatenate([best.x, a.ravel()]), best.status, best.message
@@ -465,17 +473,21 @@ def _energy_stage(prob: Problem, x: np.ndarray, maxeval: int, path: list[str]):
     return r.x, r.status, r.message + " (albedo <= 1 enforced)"
 
 
-def _finish(prob: Problem, x: np.ndarray, cost: float, status: int, message: str,
+def _finish(prob: Problem, x: np.ndarray, status: int, message: str,
             path: list[str], absolute_sigma: bool, max_alb, model_name: str,
             opts: dict[str, Any]) -> FitResult:
+    if not np.all(np.isfinite(x)):
+        raise FitError(f"fit of {model_name} produced non-finite parameters ({message}); "
+                       f"x={x.tolist()}")
     theta, a = prob.unpack(x)
+    unc = covariance_at(prob, x, absolute_sigma)
+    cost = unc.cost
     finite = bool(np.all(np.isfinite(x)) and np.isfinite(cost))
     if not finite:
         raise FitError(
             f"fit of {model_name} produced non-finite parameters or cost ({message}); "
             f"x={x.tolist()}"
         )
-    unc = covariance_at(prob, x, cost, absolute_sigma)
     C = prob.n_channels
     params: dict[str, np.ndarray] = {}
     std: dict[str, np.ndarray] = {}
@@ -490,7 +502,7 @@ def _finish(prob: Problem, x: np.ndarray, cost: float, status: int, message: str
         std[n] = unc.std[S + j * C : S + (j + 1) * C].copy()
     params = {n: params[n] for n in names}
     std = {n: std[n] for n in names}
-    r = prob.residuals(x)
+    r = unc.residuals
     full_r = np.full((prob.used.size, C), np.nan)
     full_r[prob.used] = r
     m = r.size

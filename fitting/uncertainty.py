@@ -41,6 +41,8 @@ class Uncertainty:
     condition_number: float
     sigma_scale: float
     free: np.ndarray
+    residuals: np.ndarray  # (N, C) at x
+    cost: float  # 0.5 * sum(rho(r^2)) at x
 
 
 def _at_bounds(prob: Problem, x: np.ndarray) -> np.ndarray:
@@ -58,7 +60,7 @@ def _at_bounds(prob: Problem, x: np.ndarray) -> np.ndarray:
     return out
 
 
-def covariance_at(prob: Problem, x: np.ndarray, cost: float, absolute_sigma: bool) -> Uncertainty:
+def covariance_at(prob: Problem, x: np.ndarray, absolute_sigma: bool) -> Uncertainty:
     """Covariance of the parameters ``x`` of ``prob`` (labels ``prob.labels``).
 
     Parameters
@@ -67,13 +69,12 @@ def covariance_at(prob: Problem, x: np.ndarray, cost: float, absolute_sigma: boo
         The fitted problem.
     x
         Optimum in search variables (shape parameters possibly in log space).
-    cost
-        Objective at ``x`` (``0.5 * sum(rho(r^2))``).
     absolute_sigma
         Treat the residuals as already scaled by the true sigmas (``s^2 = 1``).
     """
     r, js, jl = prob.jacobian_blocks(x, natural=True)
-    _, drho = robust_rho(r * r, prob.robust, prob.f_scale)
+    rho, drho = robust_rho(r * r, prob.robust, prob.f_scale)
+    cost = 0.5 * float(np.sum(rho))
     sw = np.sqrt(drho)
     js = js * sw[..., None]
     jl = jl * sw[..., None]
@@ -126,4 +127,6 @@ def covariance_at(prob: Problem, x: np.ndarray, cost: float, absolute_sigma: boo
         condition_number=cond,
         sigma_scale=float(np.sqrt(s2)),
         free=free,
+        residuals=r,
+        cost=cost,
     )

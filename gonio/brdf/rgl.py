@@ -83,19 +83,26 @@ class _Slices:
             ip1 = np.minimum(ip + 1, phi_vals.size - 1)
             self.index += [ip1 * n_t + it, ip1 * n_t + it1]
             self.weight += [wp * (1 - wt), wp * wt]
-        self.ip, self.wp, self.it, self.wt = ip, wp, it, wt
 
-    def gather(self, table: Array, *idx: Any) -> Array:
-        """``sum_k w_k table[slice_k, *idx]``: the parameter-interpolated table entry."""
-        out = 0.0
+    def take(self, rows: Array, cell: NDArray[np.intp]) -> Array:
+        """Parameter-interpolated packed entries: ``sum_k w_k rows[:, slice_k, cell]``.
+
+        ``rows`` has shape (K, slices, cells): K packed quantities, each flattened per
+        slice.  Returns (K, n) with contiguous rows.  ``np.take`` on flat indices is ~5x
+        faster than multi-array fancy indexing, which dominated the evaluation time.
+        """
+        k, n_slices, n_cells = rows.shape
+        flat_rows = rows.reshape(k, n_slices * n_cells)
+        out = np.zeros((k, cell.size))
         for s, w in zip(self.index, self.weight, strict=True):
-            v = table[(s, *idx)]
-            out = out + w.reshape(w.shape + (1,) * (v.ndim - w.ndim)) * v
+            flat = s * n_cells + cell
+            for j in range(k):
+                out[j] += w * np.take(flat_rows[j], flat)
         return out
 
 
-def _bilinear(table: Array, x: Array, y: Array, lead: tuple = ()) -> Array:
-    """Bilinear interpolation of ``table[*lead, y, x]`` at unit-square positions (x, y).
+def _bilinear(table: Array, x: Array, y: Array) -> Array:
+    """Bilinear interpolation of a 2-D ``table[y, x]`` at unit-square positions (x, y).
 
     Nodes sit at ``k / (n - 1)``; positions are clamped to [0, 1] (Mitsuba's ``eval``).
     """
@@ -105,10 +112,12 @@ def _bilinear(table: Array, x: Array, y: Array, lead: tuple = ()) -> Array:
     ix = np.minimum(px.astype(np.intp), nx - 2)
     iy = np.minimum(py.astype(np.intp), ny - 2)
     fx, fy = px - ix, py - iy
-    v00 = table[(*lead, iy, ix)]
-    v10 = table[(*lead, iy, ix + 1)]
-    v01 = table[(*lead, iy + 1, ix)]
-    v11 = table[(*lead, iy + 1, ix + 1)]
+    flat = table.reshape(-1)
+    i00 = iy * nx + ix
+    v00 = np.take(flat, i00)
+    v10 = np.take(flat, i00 + 1)
+    v01 = np.take(flat, i00 + nx)
+    v11 = np.take(flat, i00 + nx + 1)
     return (1 - fy) * ((1 - fx) * v00 + fx * v10) + fy * ((1 - fx) * v01 + fx * v11)
 
 
@@ -152,18 +161,22 @@ class RGLBRDF:
         vndf = f64["vndf"]
         n_phi, n_theta, h, w = vndf.shape
         self._vndf_shape = (h, w)
-        self._patch = _patch_table(*_marginal_tables(vndf.reshape(-1, h, w)))
+        patch = _patch_table(*_marginal_tables(vndf.reshape(-1, h, w)))
+        # rows = packed quantities, then (slice, patch) flattened: see _Slices.take
+        self._patch = np.ascontiguousarray(
+            patch.reshape(patch.shape[0], -1, patch.shape[-1]).transpose(2, 0, 1)
+        )
         spec = f64["spectra"] if self.spectral else f64["rgb"]
         n_ch, ry, rx = spec.shape[2:]
-        # (slice, y, x, channel), slice = phi index * n_theta + theta index: channel last so
-        # one gather fetches all channels of a node
-        spec = spec.reshape(n_phi * n_theta, n_ch, ry, rx).transpose(0, 2, 3, 1)
-        # per patch (slice, y, x): its 4 corner nodes x channels, so one gather per slice
-        # fetches everything a bilinear look-up needs
+        # slice = phi_i index * n_theta + theta_i index
+        spec = spec.reshape(n_phi * n_theta, n_ch, ry, rx)
+        # rows (corner, channel) x (slice, patch): the 4 corner nodes of every bilinear
+        # patch, so that one flat index per slice fetches a whole look-up
+        corners = [spec[..., :-1, :-1], spec[..., :-1, 1:], spec[..., 1:, :-1], spec[..., 1:, 1:]]
+        self._n_ch = n_ch
+        self._spec_grid = (ry, rx)
         self._spec = np.ascontiguousarray(
-            np.stack(
-                [spec[:, :-1, :-1], spec[:, :-1, 1:], spec[:, 1:, :-1], spec[:, 1:, 1:]], axis=3
-            )
+            np.stack(corners, axis=0).transpose(0, 2, 1, 3, 4).reshape(4 * n_ch, len(spec), -1)
         )
         self.wavelengths = f64["wavelengths"] if self.spectral else None
         valid = fields.get("valid")
@@ -221,7 +234,7 @@ class RGLBRDF:
         shape = wi.shape[:-1]
         wi = wi.reshape(-1, 3)
         wo = wo.reshape(-1, 3)
-        n_ch = self._spec.shape[-1]
+        n_ch = self._n_ch
         out = np.zeros((wi.shape[0], n_ch))
         nan = np.isnan(wi).any(-1) | np.isnan(wo).any(-1)
         active = (wi[:, 2] > 0) & (wo[:, 2] > 0) & ~nan
@@ -259,14 +272,15 @@ class RGLBRDF:
         sx_, sy_ = self._invert_vndf(sl, *u_m)
 
         # Bilinear over the sample-space position, multilinear over (phi_i, theta_i).
-        ry, rx = self._spec.shape[1] + 1, self._spec.shape[2] + 1
+        ry, rx = self._spec_grid
         px = np.clip(sx_, 0.0, 1.0) * (rx - 1)
         py = np.clip(sy_, 0.0, 1.0) * (ry - 1)
         ix = np.minimum(px.astype(np.intp), rx - 2)
         iy = np.minimum(py.astype(np.intp), ry - 2)
         fx, fy = px - ix, py - iy
-        corner_w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=-1)
-        spec = np.einsum("nk,nkc->nc", corner_w, sl.gather(self._spec, iy, ix))
+        corner_w = ((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)
+        v = sl.take(self._spec, iy * (rx - 1) + ix).reshape(4, self._n_ch, -1)
+        spec = sum(w * v[k] for k, w in enumerate(corner_w)).T  # (n, channels)
         if self.jacobian:
             # The table stores a quantity smooth in sample space; the NDF over the
             # projected area restores f cos(theta_o) (paper, eq. for the Jacobian of the
@@ -295,7 +309,8 @@ class RGLBRDF:
         ix = np.minimum(px.astype(np.intp), w - 2)
         iy = np.minimum(py.astype(np.intp), h - 2)
         fx, fy = px - ix, py - iy
-        v00, v10, v01, v11, prev0, prev1, r0, r1, marg_prev = sl.gather(self._patch, iy, ix).T
+        packed = sl.take(self._patch, iy * (w - 1) + ix)
+        v00, v10, v01, v11, prev0, prev1, r0, r1, marg_prev = packed
 
         c0 = v00 + (v01 - v00) * fy
         c1 = v10 + (v11 - v10) * fy

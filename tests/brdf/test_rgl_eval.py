@@ -163,17 +163,18 @@ def test_albedo_at_most_one(rgl_file, name):
 
 
 # Reciprocity of the measured data, f(wi, wo) vs f(wo, wi), relative to their mean, over
-# pairs with both elevations <= 80 deg and f above 1 % of the maximum.  Measured
-# (seed 0, 2 x 10^4 pairs): median 1.7 % (paper), 3.4 % (wall paint), 9.3 % (golden
-# yellow film), 15.8 % (ibiza sunset film); 90th percentiles 6 %, 9.5 %, 25 %, 37 %.
-# The data are only approximately reciprocal (each theta_i slice is measured and
-# parameterised separately); the bounds below are those levels with ~25 % margin, so a
-# regression that breaks the wi/wo roles (e.g. theta_i interpolation taken from wo) fails.
+# pairs with both elevations <= 80 deg and f above 1 % of the maximum.  Measured by this
+# test (seed 0, 2 x 10^4 pairs before the cut): median 1.8 % (paper), 3.5 % (wall
+# paint), 9.7 % (golden yellow film), 12.7 % (ibiza sunset film); 90th percentiles 6.3 %,
+# 11.8 %, 25.6 %, 35.4 %.  The data are only approximately reciprocal (each theta_i slice
+# is measured and parameterised separately).  The bounds below are those medians with
+# ~25 % margin: they document the level and catch an evaluator change that makes the
+# data markedly less reciprocal (e.g. interpolating theta_i wrongly), nothing finer.
 RECIPROCITY_MEDIAN = {
     "paper_white": 0.022,
     "colodur_napoli_4f": 0.043,
     "vch_golden_yellow": 0.12,
-    "cc_ibiza_sunset": 0.20,
+    "cc_ibiza_sunset": 0.16,
 }
 
 

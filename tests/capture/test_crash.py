@@ -194,3 +194,39 @@ def test_sigkill_at_random_points_then_resume(tmp_path, warm):
         f"\n{kills} kills over {n_session} sessions (one session {t_session:.2f} s); "
         f"orphan RAW files seen after kills: {orphans_seen}"
     )
+
+
+def test_sigterm_stops_with_the_finalizer(tmp_path, warm):
+    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
+    (tmp_path / "rig.toml").write_text(rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"'))
+    (tmp_path / "plan.toml").write_text(PLAN)
+    session = tmp_path / "S"
+    pid = _spawn(
+        [
+            "capture",
+            "run",
+            str(tmp_path / "plan.toml"),
+            "--rig",
+            str(tmp_path / "rig.toml"),
+            "--camera",
+            "simulated",
+            "--sim-speed",
+            "5",
+            "--quiet",
+            "--out",
+            str(session),
+        ]
+    )
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:  # wait for the first completed pose
+        jp = session / "journal.jsonl"
+        if jp.exists() and any(r["type"] == "pose_done" for r in read_journal(jp)):
+            break
+        time.sleep(0.01)
+    os.kill(pid, signal.SIGTERM)
+    status = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
+    assert status == 1
+    recs = _check_consistent(session)
+    stop = recs[-1]
+    assert stop["type"] == "stop" and stop["status"] == "interrupted"
+    assert stop["torque_off"] is True

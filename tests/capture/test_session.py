@@ -285,3 +285,25 @@ def test_invalid_plan_cli_names_the_field(files, capsys):
     assert _run_cli("capture", "plan", str(bad)) == 1
     err = capsys.readouterr().err
     assert "bad.toml" in err and "bracket.exposure_time_s" in err
+
+
+def test_inspect_finds_tampered_and_missing_files(files, capsys):
+    out = files / "S"
+    args = ["capture", "run", str(files / "plan.toml"), "--rig", str(files / "rig.toml")]
+    assert (
+        _run_cli(*args, "--camera", "simulated", "--out", str(out), "--sim-speed", "100", "--quiet")
+        == 0
+    )
+    capsys.readouterr()
+    shots = [r for r in read_journal(out / "journal.jsonl") if r["type"] == "shot"]
+    victim = out / shots[1]["file"]
+    data = bytearray(victim.read_bytes())
+    data[-1] ^= 0xFF
+    victim.write_bytes(bytes(data))
+    assert _run_cli("capture", "inspect", str(out)) == 1
+    captured = capsys.readouterr()
+    assert shots[1]["file"] in captured.out and "sha256 differs" in captured.out
+    # resume refuses to continue a session whose journaled file has gone
+    (out / shots[0]["file"]).unlink()
+    assert _run_cli("capture", "resume", str(out), "--quiet") == 1
+    assert "missing" in capsys.readouterr().err

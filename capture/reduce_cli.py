@@ -1,0 +1,145 @@
+"""``gonio capture reduce`` and ``gonio capture calibrate-noise``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.command("reduce")
+@click.argument("session_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Output file (default: SESSION/samples.h5).")
+@click.option("--noise", "noise_file", type=click.Path(dir_okay=False, exists=True, path_type=Path),
+              default=None, help="Noise model JSON from 'gonio capture calibrate-noise' "
+              "(default: SESSION/noise.json, else the simulated sensor's).")
+@click.option("--grid", type=click.IntRange(1, 20), default=None,
+              help="Regions per side of the sample's central area (each one a sample).")
+@click.option("--roi-fraction", type=click.FloatRange(0.05, 1.0), default=None,
+              help="Fraction of the sample's width and height used (keeps off its edges).")
+@click.option("--tolerance-deg", type=click.FloatRange(0.0, min_open=True), default=None,
+              help="Largest camera-direction disagreement between board and rig before the "
+              "samples are flagged GEOMETRY_MISMATCH.")
+@click.option("--no-plot", is_flag=True, help="Do not write SESSION/samples.png.")
+@click.option("--quiet", is_flag=True, help="No progress bar or summary table.")
+def reduce_cmd(session_dir: Path, out: Path | None, noise_file: Path | None, grid: int | None,
+               roi_fraction: float | None, tolerance_deg: float | None, no_plot: bool,
+               quiet: bool) -> None:
+    """Reduce a capture session's RAW brackets to calibrated BRDF samples.
+
+    \b
+    For every pose: decode the RAW mosaics (no demosaicing), subtract the master dark,
+    find the holder's ChArUco board to measure the camera pose, merge the bracket with
+    inverse-variance weights, and average the sample's regions per colour channel.  The
+    reference-target poses give the irradiance, so BRDF = L_o / E_i in 1/sr, with a
+    standard deviation from the sensor's noise model.
+
+    \b
+    Writes SESSION/samples.h5 (see gonio.dataset), SESSION/reduction.json (samples kept
+    and rejected, with reasons) and SESSION/samples.png (samples over the angle domain).
+    Re-running gives the same file; the RAW files are never modified.
+
+    \b
+    Example:
+      gonio capture reduce runs/paper/ --grid 3
+    """
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
+    from rich.table import Table
+
+    from gonio.capture.noise import NoiseModel
+    from gonio.capture.reduce import _replace, reduce_session, resolve_setup
+    from gonio.capture.session import load_manifest
+
+    console = Console(stderr=True, quiet=quiet)
+    noise = NoiseModel.load(noise_file) if noise_file else None
+    setup = resolve_setup(session_dir, load_manifest(session_dir), noise)
+    upd = {k: v for k, v in dict(grid=grid, roi_fraction=roi_fraction,
+                                 geometry_tolerance_deg=tolerance_deg).items() if v is not None}
+    if upd:
+        setup = _replace(setup, **upd)
+    with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
+                  TimeRemainingColumn(), console=console, transient=True) as bar:
+        task = bar.add_task("reducing poses", total=None)
+
+        def progress(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        res = reduce_session(session_dir, out=out, setup=setup, plot=not no_plot,
+                             progress=progress)
+    table = Table(title=f"{res.path}")
+    table.add_column("samples", justify="right")
+    table.add_column("count", justify="right")
+    table.add_row("written", str(res.n_samples))
+    table.add_row("kept (no flag)", str(res.n_kept))
+    for reason, n in sorted(res.rejected.items()):
+        table.add_row(f"rejected: {reason}", str(n))
+    console.print(table)
+    for fp in res.summary["failed_poses"]:
+        console.print(f"[yellow]pose {fp['pose']} ({fp['kind']}): {fp['reason']}")
+    if res.plot:
+        console.print(f"plot: {res.plot}")
+
+
+@click.command("calibrate-noise")
+@click.option("--flat", "flats", multiple=True, required=True,
+              type=click.Path(dir_okay=False, exists=True, path_type=Path),
+              help="Flat-field RAW files (uniform target, nothing saturated); give them in "
+              "pairs shot with identical settings, at two or more exposure levels.")
+@click.option("--dark", "darks", multiple=True,
+              type=click.Path(dir_okay=False, exists=True, path_type=Path),
+              help="Dark RAW files (lens capped), in pairs at the same ISO: pin the read noise.")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="Where to write the noise model JSON (e.g. SESSION/noise.json).")
+@click.option("--plot", "plot_file", type=click.Path(dir_okay=False, path_type=Path),
+              default=None, help="Also save the photon-transfer curve as an image.")
+def calibrate_noise_cmd(flats: tuple[Path, ...], darks: tuple[Path, ...], out: Path,
+                        plot_file: Path | None) -> None:
+    """Estimate the camera's gain and read noise (photon transfer) from flat and dark pairs.
+
+    \b
+    The variance of the difference of two identical flats, over two, removes fixed-pattern
+    noise; plotted against the mean it is a straight line: slope = gain (DN per electron),
+    intercept = read noise squared.  The model feeds the per-sample standard deviations of
+    'gonio capture reduce' (put it in SESSION/noise.json or pass --noise).
+
+    \b
+    Example:
+      gonio capture calibrate-noise --flat f1a.dng --flat f1b.dng --flat f2a.dng \\
+          --flat f2b.dng --dark d1.dng --dark d2.dng --out S/noise.json --plot ptc.png
+    """
+    from gonio.capture.noise import estimate_noise
+    from gonio.capture.raw import read_raw
+    from gonio.errors import ReductionError
+
+    if len(flats) % 2 or len(darks) % 2:
+        raise ReductionError(f"flats and darks come in pairs; got {len(flats)} flats and "
+                             f"{len(darks)} darks")
+    if out.exists():
+        raise ReductionError(f"{out} exists; refusing to overwrite a noise model")
+    fr = [read_raw(p) for p in flats]
+    dk = [read_raw(p) for p in darks]
+    pt = estimate_noise(list(zip(fr[0::2], fr[1::2])), list(zip(dk[0::2], dk[1::2])))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    pt.model.save(out)
+    click.echo(f"gain {pt.model.gain:.4g} DN/e-, read noise {pt.model.read_noise:.4g} DN at ISO "
+               f"{pt.model.iso:g} -> {out}")
+    if plot_file:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        import numpy as np
+
+        fig, ax = plt.subplots(figsize=(5, 4))
+        for c, col in enumerate("rgb"):
+            ax.plot(pt.means[:, c], pt.variances[:, c], "o", color=col, label="RGB"[c])
+        x = np.linspace(0, np.nanmax(pt.means), 50)
+        ax.plot(x, pt.model.variance(x), "k-", label="model")
+        ax.set_xlabel("mean signal (DN above black)")
+        ax.set_ylabel("temporal variance (DN^2)")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(plot_file, dpi=90)
+        plt.close(fig)
