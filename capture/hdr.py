@@ -102,8 +102,9 @@ def merge_bracket(
     frames = [frames[k] for k in order]
     sl = region if region is not None else (slice(None), slice(None))
     e = np.array([f.exposure_factor() for f in frames])
-    S = np.stack([f.linear[sl] for f in frames])  # (K, h, w)
-    ok = ~np.stack([f.saturated[sl] for f in frames])
+    crops = [f.region(sl) for f in frames]
+    S = np.stack([c[0] for c in crops])  # (K, h, w)
+    ok = ~np.stack([c[2] for c in crops])
     n_ok = ok.sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         r0 = np.where(ok, S, 0.0).sum(axis=0) / np.where(ok, e[:, None, None], 0.0).sum(axis=0)
@@ -119,5 +120,5 @@ def merge_bracket(
     allsat = n_ok == 0
     value[allsat] = np.nan
     variance[allsat] = np.nan
-    return MergedFrame(value, variance, allsat, n_ok, ref.channel[sl],
+    return MergedFrame(value, variance, allsat, n_ok, crops[0][1],
                        tuple(f.name for f in frames))

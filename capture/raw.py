@@ -27,7 +27,7 @@ import io
 import math
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -76,9 +76,12 @@ class CameraSignature:
         return cls(str(pattern).upper(), (int(shape[0]), int(shape[1])))
 
 
-@dataclass(frozen=True)
 class RawFrame:
     """One decoded RAW frame on its mosaic.
+
+    Decoded frames keep the camera's uint16 mosaic and compute float64 values lazily, for
+    the whole frame (:attr:`linear`) or only for a crop (:meth:`region`): a reduction
+    needs the sample's region of a large sensor, not all of it.
 
     Attributes
     ----------
@@ -91,7 +94,7 @@ class RawFrame:
     saturated
         (H, W) bool: the raw value is at or above the saturation threshold.
     black_level
-        (H, W)-broadcastable float64 black level that was subtracted, DN.
+        (H, W) float64 black level that was subtracted, DN.
     white_level
         Effective clip level in raw DN (the white level, or the linearisation table's
         ceiling when lower).
@@ -103,23 +106,115 @@ class RawFrame:
         Camera model as reported by the file, if any.
     """
 
-    name: str
-    linear: NDArray[np.float64]
-    channel: NDArray[np.int8]
-    saturated: NDArray[np.bool_]
-    black_level: NDArray[np.float64]
-    white_level: float
-    cfa_pattern: str
-    exposure_time: float = math.nan
-    iso: float = math.nan
-    f_number: float = math.nan
-    camera: str = ""
-    extra: dict[str, Any] = field(default_factory=dict)
+    def __init__(
+        self,
+        name: str,
+        linear: NDArray[np.float64] | None,
+        channel: NDArray[np.int8] | None,
+        saturated: NDArray[np.bool_] | None,
+        black_level: NDArray[np.float64] | None,
+        white_level: float,
+        cfa_pattern: str,
+        exposure_time: float = math.nan,
+        iso: float = math.nan,
+        f_number: float = math.nan,
+        camera: str = "",
+        extra: dict[str, Any] | None = None,
+        *,
+        raw: NDArray[np.uint16] | None = None,
+        cell_channel: NDArray[np.int8] | None = None,
+        cell_black: NDArray[np.float64] | None = None,
+        saturation_threshold: NDArray[np.float64] | None = None,
+    ) -> None:
+        self.name = name
+        self.white_level = float(white_level)
+        self.cfa_pattern = cfa_pattern
+        self.exposure_time = float(exposure_time)
+        self.iso = float(iso)
+        self.f_number = float(f_number)
+        self.camera = camera
+        self.extra = dict(extra or {})
+        self._raw = raw
+        self._cell_channel = cell_channel  # (2, 2) channel of each CFA position
+        self._cell_black = cell_black  # (2, 2) black level of each CFA position
+        self._cell_sat = saturation_threshold  # (2, 2) raw value from which it clips
+        self._linear = linear
+        self._channel = channel
+        self._saturated = saturated
+        self._black = black_level
+        if raw is None and linear is None:
+            raise ValueError("RawFrame needs either the raw mosaic or linear values")
+
+    def _tile(self, cell: NDArray, box: tuple[slice, slice]) -> NDArray:
+        r, c = box
+        h, w = self.shape
+        r0, r1, _ = r.indices(h)
+        c0, c1, _ = c.indices(w)
+        rows = (np.arange(r0, r1) % 2)[:, None]
+        cols = (np.arange(c0, c1) % 2)[None, :]
+        return cell[rows, cols]
 
     @property
     def shape(self) -> tuple[int, int]:
         """Visible mosaic size (height, width)."""
-        return self.linear.shape  # type: ignore[return-value]
+        a = self._raw if self._raw is not None else self._linear
+        return a.shape  # type: ignore[union-attr,return-value]
+
+    def region(self, box: tuple[slice, slice] | None = None
+               ) -> tuple[NDArray[np.float64], NDArray[np.int8], NDArray[np.bool_]]:
+        """``(linear, channel, saturated)`` of a crop, computed for the crop only."""
+        box = box if box is not None else (slice(None), slice(None))
+        if self._raw is None:
+            return self.linear[box], self.channel[box], self.saturated[box]
+        raw = self._raw[box]
+        lin = raw - self._tile(self._cell_black, box)  # float64 by promotion
+        sat = raw >= self._tile(self._cell_sat, box)
+        if (off := self.extra.get("_offset")) is not None:
+            lin -= off[box]
+        if (gain := self.extra.get("_gain")) is not None:
+            lin /= gain[box]
+        return lin, self._tile(self._cell_channel, box), sat
+
+    @property
+    def linear(self) -> NDArray[np.float64]:
+        if self._linear is None:
+            self._linear = self.region()[0]
+        return self._linear
+
+    @property
+    def channel(self) -> NDArray[np.int8]:
+        if self._channel is None:
+            self._channel = self._tile(self._cell_channel, (slice(None), slice(None)))
+        return self._channel
+
+    @property
+    def saturated(self) -> NDArray[np.bool_]:
+        if self._saturated is None:
+            self._saturated = self._raw >= self._tile(self._cell_sat, (slice(None), slice(None)))
+        return self._saturated
+
+    @property
+    def black_level(self) -> NDArray[np.float64]:
+        if self._black is None:
+            self._black = self._tile(self._cell_black, (slice(None), slice(None)))
+        return self._black
+
+    @property
+    def raw(self) -> NDArray[np.uint16] | None:
+        """The camera's mosaic (raw DN with black level), when decoded from a file."""
+        return self._raw
+
+    @property
+    def cell_black(self) -> NDArray[np.float64] | None:
+        """(2, 2) black level of each CFA position, when decoded from a file."""
+        return self._cell_black
+
+    @property
+    def cell_channel(self) -> NDArray[np.int8]:
+        """(2, 2) channel index of each CFA position."""
+        if self._cell_channel is None:
+            return self.channel[:2, :2]
+        return self._cell_channel
 
     @property
     def signature(self) -> CameraSignature:
@@ -129,6 +224,8 @@ class RawFrame:
     @property
     def headroom(self) -> NDArray[np.float64]:
         """Largest linear value a pixel can hold before it clips, DN (white - black)."""
+        if self._cell_black is not None:
+            return self.white_level - self._cell_black
         return self.white_level - self.black_level
 
     def exposure_factor(self, iso_reference: float = 100.0) -> float:
@@ -142,17 +239,24 @@ class RawFrame:
         return exposure_factor(self.exposure_time, self.iso, self.f_number, iso_reference,
                                name=self.name)
 
+    def _copy(self, **kw: Any) -> RawFrame:
+        new = RawFrame.__new__(RawFrame)
+        new.__dict__.update(self.__dict__)
+        new.extra = dict(self.extra)
+        for k, v in kw.items():
+            setattr(new, k, v)
+        return new
+
     def with_exposure(self, exposure_time: float | None = None, iso: float | None = None,
                       f_number: float | None = None) -> RawFrame:
         """A copy with exposure settings filled in (e.g. from the session journal)."""
-        return RawFrame(
-            self.name, self.linear, self.channel, self.saturated, self.black_level,
-            self.white_level, self.cfa_pattern,
-            self.exposure_time if exposure_time is None else float(exposure_time),
-            self.iso if iso is None else float(iso),
-            self.f_number if f_number is None else float(f_number),
-            self.camera, self.extra,
-        )
+        kw = {k: float(v) for k, v in dict(exposure_time=exposure_time, iso=iso,
+                                           f_number=f_number).items() if v is not None}
+        return self._copy(**kw)
+
+    def __repr__(self) -> str:
+        return (f"RawFrame({self.name!r}, {self.cfa_pattern}, {self.shape[0]}x{self.shape[1]}, "
+                f"t={self.exposure_time:g} s, ISO {self.iso:g}, f/{self.f_number:g})")
 
 
 def exposure_factor(exposure_time: float, iso: float, f_number: float,
@@ -286,8 +390,6 @@ def read_raw(
     _check_tiff_strips(data, nm)
     with _open(data, nm) as raw:
         pattern = cfa_pattern_of(raw)
-        mosaic = raw.raw_image_visible
-        colors = raw.raw_colors_visible
         desc = raw.color_desc.decode()
         # raw colour index (0..3) -> our channel (R, G, B); the second green is 'G' too
         lut = np.array([CHANNELS.index(ch) if ch in CHANNELS else -1 for ch in desc],
@@ -295,9 +397,9 @@ def read_raw(
         if (lut < 0).any():
             raise FileFormatError(nm, f"colour filter '{desc}' is not an RGB Bayer filter",
                                   "CFAPattern")
-        channel = lut[colors]
-        black_pc = np.asarray(raw.black_level_per_channel, dtype=np.float64)
-        black = black_pc[colors]
+        colors = raw.raw_colors_visible[:2, :2].copy()
+        cell_channel = lut[colors]
+        cell_black = np.asarray(raw.black_level_per_channel, dtype=np.float64)[colors]
         white = float(raw.white_level)
         # With a linearisation table LibRaw maps codes through it; its ceiling, not the
         # nominal white level, is where the sensor clipped.
@@ -310,29 +412,21 @@ def read_raw(
             iso=float(other.iso_speed) or math.nan,
             f_number=float(other.aperture) or math.nan,
         )
-        values = mosaic.astype(np.float64)
+        mosaic = raw.raw_image_visible.copy()  # rawpy's buffer dies with the handle
     if expect is not None:
         if pattern != expect.cfa_pattern:
             raise FileFormatError(nm, f"CFA pattern is {pattern}, the session's camera has "
                                   f"{expect.cfa_pattern}", "CFAPattern")
-        if tuple(values.shape) != tuple(expect.shape):
-            raise FileFormatError(nm, f"mosaic is {values.shape[0]}x{values.shape[1]}, the "
+        if tuple(mosaic.shape) != tuple(expect.shape):
+            raise FileFormatError(nm, f"mosaic is {mosaic.shape[0]}x{mosaic.shape[1]}, the "
                                   f"session's camera gives {expect.shape[0]}x{expect.shape[1]}",
                                   "ImageSize")
     if not 0.0 <= saturation_margin < 1.0:
         raise ValueError(f"saturation_margin must be in [0, 1), got {saturation_margin}")
-    threshold = white - saturation_margin * (white - black)
-    saturated = values >= threshold
-    return RawFrame(
-        name=nm,
-        linear=values - black,
-        channel=channel,
-        saturated=saturated,
-        black_level=black,
-        white_level=white,
-        cfa_pattern=pattern,
-        **exp,
-    )
+    threshold = white - saturation_margin * (white - cell_black)
+    return RawFrame(nm, None, None, None, None, white, pattern, **exp, raw=mosaic,
+                    cell_channel=cell_channel, cell_black=cell_black,
+                    saturation_threshold=threshold)
 
 
 def subtract_dark(frame: RawFrame, dark: RawFrame | NDArray[np.float64]) -> RawFrame:
@@ -344,9 +438,30 @@ def subtract_dark(frame: RawFrame, dark: RawFrame | NDArray[np.float64]) -> RawF
     d = dark.linear if isinstance(dark, RawFrame) else np.asarray(dark, dtype=np.float64)
     if d.shape != frame.shape:
         raise ReductionError(f"{frame.name}: dark frame is {d.shape}, frame is {frame.shape}")
-    return RawFrame(frame.name, frame.linear - d, frame.channel, frame.saturated,
-                    frame.black_level + d, frame.white_level, frame.cfa_pattern,
-                    frame.exposure_time, frame.iso, frame.f_number, frame.camera, frame.extra)
+    return _with_offset(frame, d, None)
+
+
+def _with_offset(frame: RawFrame, offset: NDArray | None, gain: NDArray | None) -> RawFrame:
+    """A frame whose linear values are ``(linear - offset) / gain``, applied per crop."""
+    prev_offset = frame.extra.get("_offset")
+    prev_gain = frame.extra.get("_gain")
+    if offset is not None and prev_gain is not None:
+        raise ReductionError(f"{frame.name}: subtract the dark before applying the flat field")
+    new = frame._copy(_linear=None)
+    if offset is not None:
+        new.extra["_offset"] = offset if prev_offset is None else prev_offset + offset
+    if gain is not None:
+        new.extra["_gain"] = gain if prev_gain is None else prev_gain * gain
+    if frame._raw is None:  # built from arrays: apply now
+        lin = frame.linear
+        if offset is not None:
+            lin = lin - offset
+        if gain is not None:
+            lin = lin / gain
+        new._linear = lin
+        new.extra.pop("_offset", None)
+        new.extra.pop("_gain", None)
+    return new
 
 
 def master_flat(flats: list[RawFrame], darks: list[RawFrame] | None = None) -> NDArray[np.float64]:
@@ -378,10 +493,7 @@ def apply_flat(frame: RawFrame, flat: NDArray[np.float64]) -> RawFrame:
     flat = np.asarray(flat, dtype=np.float64)
     if flat.shape != frame.shape:
         raise ReductionError(f"{frame.name}: flat field is {flat.shape}, frame is {frame.shape}")
-    return RawFrame(frame.name, frame.linear / flat, frame.channel, frame.saturated,
-                    frame.black_level, frame.white_level, frame.cfa_pattern,
-                    frame.exposure_time, frame.iso, frame.f_number, frame.camera,
-                    {**frame.extra, "flat_field": flat})
+    return _with_offset(frame, None, flat)
 
 
 @dataclass(frozen=True)

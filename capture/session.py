@@ -293,6 +293,7 @@ class SessionState:
     shots: dict[int, list[dict[str, Any]]]
     faults: list[dict[str, Any]]
     last_stop: dict[str, Any] | None
+    skipped: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def n_shots(self) -> int:
@@ -304,18 +305,21 @@ def session_state(records: Sequence[dict[str, Any]]) -> SessionState:
     done: set[int] = set()
     shots: dict[int, list[dict[str, Any]]] = {}
     faults = []
+    skipped: list[dict[str, Any]] = []
     last_stop = None
     for r in records:
         t = r.get("type")
         if t == "shot":
             shots.setdefault(int(r["pose"]), []).append(r)
-        elif t == "pose_done":
+        elif t in ("pose_done", "pose_skipped"):
             done.add(int(r["pose"]))
+            if t == "pose_skipped":
+                skipped.append(r)
         elif t == "fault":
             faults.append(r)
         elif t == "stop":
             last_stop = r
-    return SessionState(list(records), done, shots, faults, last_stop)
+    return SessionState(list(records), done, shots, faults, last_stop, skipped)
 
 
 # --------------------------------------------------------------------------------------
@@ -367,7 +371,7 @@ def _verdict_of(rec: dict[str, Any]) -> FrameVerdict | None:
 
 def _fault_record(exc: BaseException, source: str) -> dict[str, Any]:
     rec: dict[str, Any] = {"type": "fault", "source": source, "error": str(exc)}
-    for attr in ("servo", "servo_id", "hardware_error", "register", "joint"):
+    for attr in ("servo", "servo_id", "error_bits", "hardware_error", "register", "joint"):
         v = getattr(exc, attr, None)
         if v is not None:
             rec["servo" if attr == "servo_id" else attr] = (
@@ -553,7 +557,15 @@ def _run_all(d, plan, steps, state, rig, camera, kinematics, emit, read_noise_dn
             camera.set_target(kind)
             target = kind
         wi, wo = np.array(step["wi"]), np.array(step["wo"])
-        rig.move_to(wi, wo)
+        try:
+            rig.move_to(wi, wo)
+        except RigFault:
+            raise
+        except RigError as exc:
+            # Refused before anything moved (e.g. no collision-free path from here): the
+            # pose is recorded as failed and the session goes on; 'inspect' lists it.
+            emit({"type": "pose_skipped", "pose": k, "reason": str(exc)})
+            continue
         joints, temps = rig.read_state()
         wi_a, wo_a = kinematics.forward(joints)
         verdicts = [v for v in map(_verdict_of, done_shots) if v is not None]
@@ -754,6 +766,7 @@ def inspect_session(session_dir: str | os.PathLike, verify: bool = True) -> dict
         "partial_poses": sorted(set(st.shots) - st.done),
         "shots": st.n_shots,
         "faults": st.faults,
+        "skipped": [{"pose": r["pose"], "reason": r["reason"]} for r in st.skipped],
         "bad_files": bad,
         "orphans": orphans,
         "files_verified": verified,

@@ -368,6 +368,14 @@ def run_cmd(
     with open_devices(
         cfg, camera_backend, simulation=simulation, camera_port=camera_port, seed=plan.seed
     ) as dev:
+        from gonio.capture.camera import LightSwitch
+
+        if plan.darks.count and not isinstance(dev.camera, LightSwitch):
+            raise SessionError(
+                f"{plan_file}: darks.count = {plan.darks.count} but the {camera_backend} camera "
+                "cannot switch the rig's light off; set darks.count = 0 and shoot darks with "
+                "the lens capped (nothing was written)"
+            )
         create_session(out, plan, cfg, sched, dev.camera.describe(), simulation=simulation)
         _run_with_progress(out, dev, resumed=False, quiet=quiet)
 
@@ -504,6 +512,8 @@ def inspect_cmd(session_dir: Path, verify: bool, as_json: bool) -> None:
         )
         if info["partial_poses"]:
             con.print(f"cut short (will be continued): poses {info['partial_poses']}")
+        for r in info["skipped"]:
+            con.print(f"[yellow]skipped[/] pose {r['pose']}: {r['reason']}")
         for f in info["faults"]:
             con.print(f"[red]fault[/] ({f.get('source')}): {f.get('error')}")
         for p in info["bad_files"]:

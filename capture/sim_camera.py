@@ -48,7 +48,7 @@ def minimal_scene(width: int = 64, height: int = 48) -> dict[str, Any]:
         "camera": {
             "resolution": [int(width), int(height)],
             "focal_length": 0.035,
-            "fov_deg": 12.0,
+            "fov_deg": 26.0,
             "position": [0.0, -0.25, 0.433],
             "look_at": [0.0, 0.0, 0.0],
         },

@@ -54,8 +54,8 @@ _SCREEN_MAX = 20_000
 
 
 def resolve_loss(loss: str, samples: Any) -> str:
-    """``"auto"`` -> ``"weighted_l2"`` when every sample has a positive finite sigma in some
-    usable channel set, else ``"cosine_l2"``; other names are checked and returned."""
+    """``"auto"`` -> ``"weighted_l2"`` when every valid sample has a finite sigma, else
+    ``"cosine_l2"``; other names are checked and returned."""
     if loss != "auto":
         if loss not in LOSSES:
             raise UnknownNameError(
@@ -69,8 +69,8 @@ def resolve_loss(loss: str, samples: Any) -> str:
     valid = getattr(samples, "valid", None)
     if valid is not None:
         std = std[np.asarray(valid)]
-    if std.size and np.all(np.isfinite(std)) and np.all(std > 0):
-        return "weighted_l2"
+    if std.size and np.all(np.isfinite(std)):
+        return "weighted_l2"  # (a sigma <= 0 is then reported as an error, not ignored)
     return "cosine_l2"
 
 

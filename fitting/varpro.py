@@ -51,46 +51,64 @@ def solve_box_qp(H: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -
     B, K = b.shape
     if K == 0:
         return np.zeros((B, 0))
-    # a ridge at round-off level keeps the solve defined when a basis function vanishes on
-    # all samples (its coefficient then comes out as 0)
-    scale = np.maximum(np.max(np.abs(np.diagonal(H, axis1=1, axis2=2)), axis=1), 1e-300)
-    Hr = H + (1e-13 * scale)[:, None, None] * np.eye(K)
-    a = np.linalg.solve(Hr, b[..., None])[..., 0]
-    ok = np.all((a >= lo) & (a <= hi), axis=1)
-    if ok.all():
-        return a
+    # Jacobi scaling: basis functions differ by many orders of magnitude (a near-mirror
+    # lobe peaks at 1e5 /sr, a Lambert term is 0.1 /sr), so the normal equations are
+    # solved for a_s = d * a with unit diagonal.  A ridge at round-off level keeps the
+    # solve defined when a basis function vanishes on all samples (its coefficient is 0).
+    d = np.sqrt(np.clip(np.diagonal(H, axis1=1, axis2=2), 0.0, None))
+    d = np.where(d > 0, d, 1.0)
+    H = H / (d[:, :, None] * d[:, None, :]) + 1e-14 * np.eye(K)
+    b = b / d
+    lo_s = lo[None, :] * d  # bounds of the scaled variables, per batch row
+    hi_s = hi[None, :] * d
+    a = np.linalg.solve(H, b[..., None])[..., 0]
+    ok = np.all((a >= lo_s) & (a <= hi_s), axis=1)
+    if not ok.all():
+        a = _enumerate_active_sets(H, b, a, ok, lo_s, hi_s)
+    # (bound * d) / d can round past the bound, which the model would reject
+    return np.clip(a / d, lo, hi)
+
+
+def _enumerate_active_sets(H, b, a, ok, lo, hi):
+    """Exact box-QP solution by trying every free/lower/upper assignment (rows ~ok).
+
+    ``lo``/``hi`` are per row (B, K) here (the scaled bounds).
+    """
+    B, K = b.shape
+    idx = np.flatnonzero(~ok)
     if K > _ENUM_MAX:  # pragma: no cover - no model has this many linear parameters
         from scipy.optimize import minimize
 
-        for i in np.flatnonzero(~ok):
+        for i in idx:
             res = minimize(
                 lambda v, i=i: (0.5 * v @ H[i] @ v - b[i] @ v, H[i] @ v - b[i]),
-                np.clip(a[i], lo, hi),
+                np.clip(a[i], lo[i], hi[i]),
                 jac=True,
-                bounds=list(zip(lo, hi)),
+                bounds=list(zip(lo[i], hi[i])),
                 method="L-BFGS-B",
             )
             a[i] = res.x
         return a
-    idx = np.flatnonzero(~ok)
-    Hs, bs = Hr[idx], b[idx]
+    Hs, bs, los, his = H[idx], b[idx], lo[idx], hi[idx]
     best = np.full(idx.size, np.inf)
-    best_a = np.clip(a[idx], lo, hi)
+    best_a = np.clip(a[idx], los, his)
     for pattern in itertools.product((0, 1, 2), repeat=K):
         pat = np.array(pattern)
-        if np.any((pat == 1) & ~np.isfinite(lo)) or np.any((pat == 2) & ~np.isfinite(hi)):
+        cand = np.where(pat == 1, los, np.where(pat == 2, his, 0.0))
+        fin = np.all(np.isfinite(cand[:, pat != 0]), axis=1)
+        if not fin.any():
             continue
-        cand = np.where(pat == 1, lo, np.where(pat == 2, hi, 0.0))
-        cand = np.broadcast_to(cand, (idx.size, K)).copy()
+        cand = np.where(np.isfinite(cand), cand, 0.0)
         free = np.flatnonzero(pat == 0)
         fixed = np.flatnonzero(pat != 0)
         if free.size:
             rhs = bs[:, free] - np.einsum("bij,bj->bi", Hs[:, free][:, :, fixed], cand[:, fixed])
             sol = np.linalg.solve(Hs[:, free][:, :, free], rhs[..., None])[..., 0]
             cand[:, free] = sol
-            feas = np.all((sol >= lo[free]) & (sol <= hi[free]), axis=1)
+            feas = np.all((sol >= los[:, free]) & (sol <= his[:, free]), axis=1)
         else:
             feas = np.ones(idx.size, dtype=bool)
+        feas &= fin
         obj = 0.5 * np.einsum("bi,bij,bj->b", cand, Hs, cand) - np.einsum("bi,bi->b", bs, cand)
         better = feas & (obj < best)
         best[better] = obj[better]

@@ -28,7 +28,7 @@ from gonio.brdf.base import Array, Geometry, Lobe
 
 __all__ = ["lobe_albedo"]
 
-_T_ORDER = 8  # Gauss-Legendre nodes per theta_h segment
+_T_ORDER = 12  # Gauss-Legendre nodes per theta_h segment
 _P_ORDER = 32  # Gauss-Legendre nodes over [0, phi_max] (isotropic), twice that otherwise
 _K_GEOM = np.arange(-3, 15)  # segment ends at width * 2^k: 1/8 width ... > pi/2 for 1e-4
 _GRADED = np.array([1 / 256, 1 / 32, 1 / 8, 1 / 4, 1 / 2, 3 / 4, 7 / 8, 31 / 32, 255 / 256])
@@ -47,8 +47,18 @@ def _theta_nodes(theta_i: Array, width: Array) -> tuple[Array, Array]:
     # Between t_kink and t_max the phi arc shrinks like a square root at both ends:
     # graded breakpoints there keep Gauss-Legendre accurate.
     graded = t_kink[:, None] + (t_max - t_kink)[:, None] * _GRADED[None, :]
+    # Near the horizon G1(wo) falls from 1 to 0 within ~alpha of cos(theta_o) = 0: grade
+    # towards t_max at the lobe's scale as well.
+    near_max = t_max[:, None] - w * 2.0 ** _K_GEOM[None, :6]
     ends = np.concatenate(
-        [np.zeros_like(w), w * 2.0 ** _K_GEOM[None, :], t_kink[:, None], graded, t_max[:, None]],
+        [
+            np.zeros_like(w),
+            w * 2.0 ** _K_GEOM[None, :],
+            t_kink[:, None],
+            graded,
+            np.maximum(near_max, 0.0),
+            t_max[:, None],
+        ],
         axis=1,
     )
     ends = np.sort(np.minimum(ends, t_max[:, None]), axis=1)

@@ -237,6 +237,14 @@ def test_resume_refuses_a_different_plan_unless_forced(files, capsys):
     err = capsys.readouterr().err
     assert "bracket.exposure_time_s" in err and "--force" in err
     assert (out / "journal.jsonl").read_bytes() == before
+    # ... and a different rig
+    rig2 = files / "rig2.toml"
+    rig2.write_text(
+        (files / "rig.toml").read_text().replace("light_radius_m = 0.50", "light_radius_m = 0.6")
+    )
+    assert _run_cli("capture", "resume", str(out), "--rig", str(rig2), "--quiet") == 1
+    assert "geometry.light_radius_m" in capsys.readouterr().err
+    assert (out / "journal.jsonl").read_bytes() == before
     # a run into the same directory is refused too, pointing at resume
     assert (
         _run_cli(
