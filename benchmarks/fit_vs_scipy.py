@@ -17,13 +17,13 @@ import json
 import time
 
 import numpy as np
+from gonio.fitting import fit
+from gonio.fitting.losses import get_loss
+from gonio.fitting.objective import prepare_problem
 from scipy.optimize import least_squares
 
 from gonio.brdf import get_model
 from gonio.dataset import BRDFSamples
-from gonio.fitting import fit
-from gonio.fitting.losses import get_loss
-from gonio.fitting.objective import prepare_problem
 
 TRUTH = {"albedo": np.array([0.2, 0.4, 0.6]), "ks": np.array([0.1, 0.2, 0.3]), "alpha": 0.15}
 
@@ -84,7 +84,9 @@ def best_of(fn, repeats: int):
 
 
 def param_error(r) -> float:
-    errs = [np.max(np.abs(r.params[k] - np.broadcast_to(v, (3,))) / np.abs(v)) for k, v in TRUTH.items()]
+    errs = [
+        np.max(np.abs(r.params[k] - np.broadcast_to(v, (3,))) / np.abs(v)) for k, v in TRUTH.items()
+    ]
     return float(max(errs))
 
 
@@ -104,11 +106,20 @@ def main() -> None:
     out = {
         "benchmark": "fit_vs_scipy",
         "case": f"lambert+ggx, {args.n} samples x 3 channels, weighted_l2 (photon+read noise)",
-        "figure": {"name": "gonio fit (default: varpro + sobol + LD_LBFGS + energy check)",
-                   "seconds": t_ours, "cost": r.cost, "njev": r.njev, "path": r.algorithm},
-        "baseline": {"name": "scipy.optimize.least_squares trf, analytic jac, same objective",
-                     "seconds": t_scipy, "cost": cost_scipy, "nfev": int(res.nfev),
-                     "njev": int(res.njev or 0)},
+        "figure": {
+            "name": "gonio fit (default: varpro + sobol + LD_LBFGS + energy check)",
+            "seconds": t_ours,
+            "cost": r.cost,
+            "njev": r.njev,
+            "path": r.algorithm,
+        },
+        "baseline": {
+            "name": "scipy.optimize.least_squares trf, analytic jac, same objective",
+            "seconds": t_scipy,
+            "cost": cost_scipy,
+            "nfev": int(res.nfev),
+            "njev": int(res.njev or 0),
+        },
         "ratio": t_scipy / t_ours,
         "cost_rel_diff": (r.cost - cost_scipy) / cost_scipy,
         "target_ratio": 5.0,
@@ -121,24 +132,45 @@ def main() -> None:
     # time vs parameter error per nlopt algorithm (noise-free data: error = convergence)
     sc = make_samples(args.curve_n, 3, noise=False)
     curve = {}
-    for alg in ("LD_LBFGS", "LD_SLSQP", "LD_MMA", "LN_BOBYQA", "GN_DIRECT_L", "GN_CRS2_LM",
-                "G_MLSL_LDS"):
+    for alg in (
+        "LD_LBFGS",
+        "LD_SLSQP",
+        "LD_MMA",
+        "LN_BOBYQA",
+        "GN_DIRECT_L",
+        "GN_CRS2_LM",
+        "G_MLSL_LDS",
+    ):
         for mode in ("varpro", "full"):
             pts = []
             for budget in (5, 10, 20, 40, 80, 160):
-                kw = dict(loss="l2", algorithm=alg, n_starts=0, maxeval=budget,
-                          energy_conservation=False, varpro=(mode == "varpro"))
+                kw = dict(
+                    loss="l2",
+                    algorithm=alg,
+                    n_starts=0,
+                    maxeval=budget,
+                    energy_conservation=False,
+                    varpro=(mode == "varpro"),
+                )
                 try:
                     t, rr = best_of(lambda kw=kw: fit(sc, "lambert+ggx", **kw), 1)
-                    pts.append({"maxeval": budget, "seconds": round(t, 5),
-                                "max_rel_param_error": param_error(rr), "njev": rr.njev,
-                                "success": rr.success})
+                    pts.append(
+                        {
+                            "maxeval": budget,
+                            "seconds": round(t, 5),
+                            "max_rel_param_error": param_error(rr),
+                            "njev": rr.njev,
+                            "success": rr.success,
+                        }
+                    )
                 except Exception as exc:  # noqa: BLE001 - report, do not stop the benchmark
                     pts.append({"maxeval": budget, "error": f"{type(exc).__name__}: {exc}"})
             curve[f"{alg}/{mode}"] = pts
-    out["time_vs_error"] = {"case": f"lambert+ggx, {args.curve_n} noise-free samples, l2; "
-                                    "global algorithms get 4x the budget then LD_LBFGS polish",
-                            "curves": curve}
+    out["time_vs_error"] = {
+        "case": f"lambert+ggx, {args.curve_n} noise-free samples, l2; "
+        "global algorithms get 4x the budget then LD_LBFGS polish",
+        "curves": curve,
+    }
     print(json.dumps(out))
 
 

@@ -100,8 +100,9 @@ def _reflectance_from_csv(path: Path, sensitivities: str, illuminant: str) -> ND
     lam = np.asarray(cam.wavelengths, float)
     if wl[0] > lam[0] + 10 or wl[-1] < lam[-1] - 10:
         raise FileFormatError(
-            path, f"spectrum covers {wl[0]:g}-{wl[-1]:g} nm, the camera needs "
-            f"{lam[0]:g}-{lam[-1]:g} nm", "wavelength"
+            path,
+            f"spectrum covers {wl[0]:g}-{wl[-1]:g} nm, the camera needs {lam[0]:g}-{lam[-1]:g} nm",
+            "wavelength",
         )
     ill = colour.SDS_ILLUMINANTS[illuminant]
     e = np.interp(lam, ill.wavelengths, ill.values)
@@ -111,7 +112,9 @@ def _reflectance_from_csv(path: Path, sensitivities: str, illuminant: str) -> ND
 
 
 def irradiance_from_reference(
-    radiance: ArrayLike, radiance_var: ArrayLike, reflectance: ArrayLike,
+    radiance: ArrayLike,
+    radiance_var: ArrayLike,
+    reflectance: ArrayLike,
     reflectance_std: ArrayLike = 0.0,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``E = pi L_ref / rho`` and its variance.
@@ -131,12 +134,17 @@ def irradiance_from_reference(
     rho = np.asarray(reflectance, float)
     E = np.pi * L / rho
     with np.errstate(divide="ignore", invalid="ignore"):
-        rel2 = np.asarray(radiance_var, float) / L**2 + (np.asarray(reflectance_std, float) / rho) ** 2
+        rel2 = (
+            np.asarray(radiance_var, float) / L**2 + (np.asarray(reflectance_std, float) / rho) ** 2
+        )
     return E, E**2 * rel2
 
 
 def brdf_from_radiance(
-    radiance: ArrayLike, radiance_var: ArrayLike, irradiance: ArrayLike, irradiance_var: ArrayLike,
+    radiance: ArrayLike,
+    radiance_var: ArrayLike,
+    irradiance: ArrayLike,
+    irradiance_var: ArrayLike,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``f = L_o / E`` in 1/sr and its standard deviation (first-order propagation).
 
@@ -146,13 +154,18 @@ def brdf_from_radiance(
     E = np.asarray(irradiance, float)
     with np.errstate(divide="ignore", invalid="ignore"):
         f = L / E
-        var = np.asarray(radiance_var, float) / E**2 + f**2 * np.asarray(irradiance_var, float) / E**2
+        var = (
+            np.asarray(radiance_var, float) / E**2 + f**2 * np.asarray(irradiance_var, float) / E**2
+        )
     return f, np.sqrt(var)
 
 
 def irradiance_geometry(
-    points: ArrayLike, light_position: ArrayLike, light_normal: ArrayLike | None = None,
-    radius: float | None = None, normal: ArrayLike = (0.0, 0.0, 1.0),
+    points: ArrayLike,
+    light_position: ArrayLike,
+    light_normal: ArrayLike | None = None,
+    radius: float | None = None,
+    normal: ArrayLike = (0.0, 0.0, 1.0),
 ) -> NDArray[np.float64]:
     """Irradiance at surface points from a light of unit radiance (or unit intensity).
 

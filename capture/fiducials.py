@@ -24,9 +24,9 @@ from typing import Any
 
 import cv2
 import numpy as np
+from gonio.capture.raw import RawFrame
 from numpy.typing import ArrayLike, NDArray
 
-from gonio.capture.raw import CHANNELS, RawFrame
 from gonio.errors import ReductionError
 
 
@@ -65,8 +65,9 @@ class BoardSpec:
         if not hasattr(cv2.aruco, self.dictionary):
             raise ReductionError(f"unknown cv2.aruco dictionary {self.dictionary!r}")
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
-        return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_length,
-                                      self.marker_length, d)
+        return cv2.aruco.CharucoBoard(
+            (self.squares_x, self.squares_y), self.square_length, self.marker_length, d
+        )
 
     def transform(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """``(R, t)`` taking board-frame points to the sample frame."""
@@ -107,24 +108,166 @@ class CameraPose:
         return float(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)))
 
 
-def grey_from_mosaic(frame: RawFrame) -> NDArray[np.uint8]:
-    """An 8-bit grey image of the mosaic for marker detection.
+def _cell_scales(frame: RawFrame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(2, 2) black level and (2, 2) level of each CFA position (median of a subsample).
 
-    Each CFA channel is divided by its own median, which equalises the channels on the
-    neutral (black and white) print, so the Bayer pattern does not show as a checker
-    texture; then the image is scaled so its 99.5th percentile is near white.
+    Dividing by the level equalises the channels on the neutral black and white print, so
+    the Bayer pattern does not show as a checker texture.
     """
-    v = np.where(frame.saturated, np.nan, frame.linear)
-    out = np.empty_like(v)
-    for c in range(len(CHANNELS)):
-        m = frame.channel == c
-        med = np.nanmedian(v[m]) if m.any() else np.nan
-        out[m] = v[m] / med if np.isfinite(med) and med > 0 else np.nan
-    top = np.nanpercentile(out, 99.5)
+    black = frame.cell_black if frame.raw is not None else frame.black_level[:2, :2]
+    src = frame.raw if frame.raw is not None else frame.linear + frame.black_level
+    step = 2 * max(1, int(np.sqrt(src.size / 4e4)) // 2 * 2 + 1)  # ~10^4 samples each
+    level = np.empty((2, 2))
+    for i in range(2):
+        for j in range(2):
+            sub = src[i::step, j::step].astype(np.float64) - black[i, j]
+            med = float(np.median(sub))
+            level[i, j] = med if med > 0 else max(float(sub.max()), 1.0)
+    return np.asarray(black, float), level
+
+
+def grey_image(frame: RawFrame, factor: int = 1) -> NDArray[np.float32]:
+    """Channel-equalised grey image of the mosaic, binned by ``factor`` (1 or even).
+
+    Saturated pixels keep their clipped value, which reads as white.
+    """
+    src = frame.raw if frame.raw is not None else frame.linear + frame.black_level
+    H, W = frame.shape
+    if factor == 1:
+        black, level = _cell_scales(frame)
+        out = src.astype(np.float32)
+        for i in range(2):
+            for j in range(2):
+                out[i::2, j::2] = (out[i::2, j::2] - black[i, j]) / level[i, j]
+        return out
+    if factor % 2:
+        raise ValueError(f"binning factor must be 1 or even, got {factor}")
+    # Every factor x factor block holds each CFA position equally often, so a plain block
+    # mean is already a neutral grey (the channels need no equalising at this scale).
+    h, w = H // factor * factor, W // factor * factor
+    img = src[:h, :w]
+    if img.dtype not in (np.uint16, np.float32):
+        img = img.astype(np.float32)
+    low = cv2.resize(img, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+    black = frame.cell_black if frame.raw is not None else frame.black_level[:2, :2]
+    return low.astype(np.float32) - np.float32(np.mean(black))
+
+
+def to_uint8(img: NDArray[np.float32], name: str = "frame") -> NDArray[np.uint8]:
+    """Scale a grey image so its 99.5th percentile sits near white."""
+    top = float(np.percentile(img[::4, ::4], 99.5))
     if not np.isfinite(top) or top <= 0:
-        raise ReductionError(f"{frame.name}: frame has no usable signal to find the board in")
-    out = np.where(np.isfinite(out), out, top * 1.2)  # saturated reads as white
-    return np.clip(out * (230.0 / top), 0, 255).astype(np.uint8)
+        raise ReductionError(f"{name}: frame has no usable signal to find the board in")
+    return np.clip(img * (230.0 / top), 0, 255).astype(np.uint8)
+
+
+def grey_from_mosaic(frame: RawFrame) -> NDArray[np.uint8]:
+    """An 8-bit full-resolution grey image of the mosaic for marker detection."""
+    return to_uint8(grey_image(frame, 1), frame.name)
+
+
+def detect_pose_in_frame(
+    frame: RawFrame,
+    board: BoardSpec,
+    K: ArrayLike,
+    dist: ArrayLike | None = None,
+    *,
+    max_width: int = 800,
+    min_corners: int = 6,
+) -> CameraPose:
+    """Find the board in a raw frame and solve the camera pose, fast on large sensors.
+
+    Markers are detected on an image binned down to at most ``max_width`` pixels (marker
+    detection costs grow with the pixel count, and markers are large); each ChArUco
+    corner found there is then refined with ``cv2.cornerSubPix`` on the full-resolution
+    mosaic around it, so the pose keeps full-resolution accuracy.
+    """
+    H, W = frame.shape
+    factor = 1
+    while W / factor > max_width:
+        factor *= 2
+    if factor == 1:
+        return detect_pose(
+            grey_from_mosaic(frame), board, K, dist, name=frame.name, min_corners=min_corners
+        )
+    low = to_uint8(grey_image(frame, factor), frame.name)
+    corners, ids = _detect_corners(low, board, frame.name, min_corners)
+    full = corners * factor + (factor - 1) / 2.0
+    spacing = _corner_spacing(full, ids, board)
+    half_win = int(np.clip(round(0.12 * spacing), 3, 15))
+    black, level = _cell_scales(frame)
+    src = frame.raw if frame.raw is not None else frame.linear + frame.black_level
+    refined = full.copy()
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)
+    pad = half_win + 3
+    for n, (u, v) in enumerate(full):
+        c0, r0 = int(round(u)) - pad, int(round(v)) - pad
+        c1, r1 = c0 + 2 * pad + 1, r0 + 2 * pad + 1
+        if c0 < 0 or r0 < 0 or c1 > W or r1 > H:
+            continue
+        crop = src[r0:r1, c0:c1].astype(np.float32)
+        for i in range(2):
+            for j in range(2):
+                crop[(i - r0) % 2 :: 2, (j - c0) % 2 :: 2] -= black[i, j]
+                crop[(i - r0) % 2 :: 2, (j - c0) % 2 :: 2] /= level[i, j]
+        pt = np.array([[[u - c0, v - r0]]], np.float32)
+        cv2.cornerSubPix(crop, pt, (half_win, half_win), (-1, -1), crit)
+        refined[n] = pt[0, 0] + (c0, r0)
+    return _solve(board, refined, ids, K, dist)
+
+
+def _corner_spacing(corners: NDArray, ids: NDArray, board: BoardSpec) -> float:
+    """Median image distance between neighbouring ChArUco corners, pixels."""
+    d = np.linalg.norm(corners[:, None, :] - corners[None, :, :], axis=-1)
+    d[d == 0] = np.inf
+    return float(np.median(d.min(axis=1)))
+
+
+def _detect_corners(
+    image: NDArray[np.uint8], board: BoardSpec, name: str, min_corners: int
+) -> tuple[NDArray[np.float64], NDArray[np.int32]]:
+    # First one adaptive-threshold window (half the cost), then OpenCV's default three
+    # if that misses the board (uneven light, small markers).
+    fast = cv2.aruco.DetectorParameters()
+    fast.adaptiveThreshWinSizeMin = fast.adaptiveThreshWinSizeMax = 11
+    for params in (fast, cv2.aruco.DetectorParameters()):
+        det = cv2.aruco.CharucoDetector(board.cv_board(), cv2.aruco.CharucoParameters(), params)
+        corners, ids, _mc, mids = det.detectBoard(image)
+        n = 0 if ids is None else len(ids)
+        if n >= min_corners:
+            break
+    if n < min_corners:
+        nm = 0 if mids is None else len(mids)
+        raise ReductionError(
+            f"{name}: ChArUco board not visible ({n} corners, {nm} markers found; "
+            f"need {min_corners} corners)"
+        )
+    return corners.reshape(-1, 2).astype(np.float64), ids.reshape(-1).astype(np.int32)
+
+
+def _solve(
+    board: BoardSpec, corners: NDArray, ids: NDArray, K: ArrayLike, dist: ArrayLike | None
+) -> CameraPose:
+    K = np.asarray(K, dtype=np.float64)
+    dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64)
+    cvb = board.cv_board()
+    obj, img = cvb.matchImagePoints(
+        corners.reshape(-1, 1, 2).astype(np.float32), ids.reshape(-1, 1)
+    )
+    obj = obj.reshape(-1, 3).astype(np.float64)
+    img = img.reshape(-1, 2).astype(np.float64)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        raise ReductionError("solvePnP found no pose for the board")
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+    rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
+    R_bc = cv2.Rodrigues(rvec)[0]
+    R_bs, t_bs = board.transform()
+    # p_cam = R_bc p_board + t_bc and p_board = R_bs^T (p_sample - t_bs)
+    R = R_bc @ R_bs.T
+    t = tvec.ravel() - R @ t_bs
+    return CameraPose(R, t, -R.T @ t, rms, len(ids))
 
 
 def detect_pose(
@@ -136,7 +279,7 @@ def detect_pose(
     name: str = "frame",
     min_corners: int = 6,
 ) -> CameraPose:
-    """Detect the ChArUco board and solve the camera pose in the sample frame.
+    """Detect the ChArUco board in a grey image and solve the camera pose (sample frame).
 
     Parameters
     ----------
@@ -158,33 +301,11 @@ def detect_pose(
     ReductionError
         When the board is not visible (fewer than ``min_corners`` corners found).
     """
-    K = np.asarray(K, dtype=np.float64)
-    dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64)
-    cvb = board.cv_board()
-    det = cv2.aruco.CharucoDetector(cvb)
-    corners, ids, _mc, mids = det.detectBoard(image)
-    n = 0 if ids is None else len(ids)
-    if n < min_corners:
-        nm = 0 if mids is None else len(mids)
-        raise ReductionError(
-            f"{name}: ChArUco board not visible ({n} corners, {nm} markers found; "
-            f"need {min_corners} corners)"
-        )
-    obj, img = cvb.matchImagePoints(corners, ids)
-    obj = obj.reshape(-1, 3).astype(np.float64)
-    img = img.reshape(-1, 2).astype(np.float64)
-    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
-        raise ReductionError(f"{name}: solvePnP found no pose for the board")
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
-    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
-    rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
-    R_bc = cv2.Rodrigues(rvec)[0]
-    R_bs, t_bs = board.transform()
-    # p_cam = R_bc p_board + t_bc and p_board = R_bs^T (p_sample - t_bs)
-    R = R_bc @ R_bs.T
-    t = tvec.ravel() - R @ t_bs
-    return CameraPose(R, t, -R.T @ t, rms, n)
+    corners, ids = _detect_corners(image, board, name, min_corners)
+    try:
+        return _solve(board, corners, ids, K, dist)
+    except ReductionError as exc:
+        raise ReductionError(f"{name}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -270,8 +391,9 @@ def map_regions(
             f"{W}x{H} image"
         )
     rows, cols = np.mgrid[r0:r1, c0:c1].astype(np.float64)
-    d_cam = np.stack([(cols - K[0, 2]) / K[0, 0], (rows - K[1, 2]) / K[1, 1],
-                      np.ones_like(cols)], axis=-1)
+    d_cam = np.stack(
+        [(cols - K[0, 2]) / K[0, 0], (rows - K[1, 2]) / K[1, 1], np.ones_like(cols)], axis=-1
+    )
     vign = (1.0 / np.linalg.norm(d_cam, axis=-1)) ** 4
     d = d_cam @ pose.rotation  # to the sample frame (R^T d)
     C = pose.position
@@ -291,10 +413,17 @@ def map_regions(
     inside = (ix >= 0) & (ix < grid) & (iy >= 0) & (iy < grid)
     inside &= (fx > m) & (fx < cell_x - m) & (fy > m) & (fy < cell_y - m)
     label = np.where(inside, iy * grid + ix, -1).astype(np.int64)
-    g = (np.arange(grid) + 0.5)
+    g = np.arange(grid) + 0.5
     cx, cy = np.meshgrid(-hw + g * cell_x, -hh + g * cell_y)
-    return RegionMap((slice(r0, r1), slice(c0, c1)), label, p, wo, vign, grid * grid,
-                     np.stack([cx.ravel(), cy.ravel()], axis=1))
+    return RegionMap(
+        (slice(r0, r1), slice(c0, c1)),
+        label,
+        p,
+        wo,
+        vign,
+        grid * grid,
+        np.stack([cx.ravel(), cy.ravel()], axis=1),
+    )
 
 
 def directions_to(points: NDArray[np.float64], position: ArrayLike) -> NDArray[np.float64]:

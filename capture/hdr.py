@@ -21,10 +21,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
-
 from gonio.capture.noise import NoiseModel
 from gonio.capture.raw import RawFrame
+from numpy.typing import NDArray
+
 from gonio.errors import ReductionError
 
 
@@ -110,9 +110,9 @@ def merge_bracket(
         r0 = np.where(ok, S, 0.0).sum(axis=0) / np.where(ok, e[:, None, None], 0.0).sum(axis=0)
         dv = np.asarray(dark_variance, dtype=np.float64)
         dv = dv[sl] if dv.ndim == 2 else dv
-        var_k = np.stack([
-            noise.variance(r0 * ek, iso=f.iso) + dv for f, ek in zip(frames, e)
-        ]) / (e[:, None, None] ** 2)
+        var_k = np.stack(
+            [noise.variance(r0 * ek, iso=f.iso) + dv for f, ek in zip(frames, e, strict=True)]
+        ) / (e[:, None, None] ** 2)
         w = np.where(ok, 1.0 / var_k, 0.0)
         wsum = w.sum(axis=0)
         value = (w * S / e[:, None, None]).sum(axis=0) / wsum
@@ -120,5 +120,4 @@ def merge_bracket(
     allsat = n_ok == 0
     value[allsat] = np.nan
     variance[allsat] = np.nan
-    return MergedFrame(value, variance, allsat, n_ok, crops[0][1],
-                       tuple(f.name for f in frames))
+    return MergedFrame(value, variance, allsat, n_ok, crops[0][1], tuple(f.name for f in frames))

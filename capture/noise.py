@@ -24,9 +24,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from gonio.capture.raw import CHANNELS, RawFrame
 from numpy.typing import ArrayLike, NDArray
 
-from gonio.capture.raw import CHANNELS, RawFrame
 from gonio.errors import FileFormatError, ReductionError
 
 
@@ -96,8 +96,12 @@ class NoiseModel:
             if k not in d:
                 raise FileFormatError(source, "missing (expected DN per e- and DN)", k)
         try:
-            return cls(float(d["gain"]), float(d["read_noise"]), float(d.get("iso", 100.0)),
-                       bool(d.get("quantisation", True)))
+            return cls(
+                float(d["gain"]),
+                float(d["read_noise"]),
+                float(d.get("iso", 100.0)),
+                bool(d.get("quantisation", True)),
+            )
         except (TypeError, ValueError) as exc:
             raise FileFormatError(source, str(exc)) from None
 
@@ -181,7 +185,9 @@ def estimate_noise(
     q = 1.0 / 12.0 if quantisation else 0.0
     ok = np.isfinite(means) & np.isfinite(varis)
     if len(pts) < 2 or ok.sum() < 2 or np.ptp(means[ok]) <= 0:
-        raise ReductionError("need flat pairs at two or more signal levels for a photon-transfer fit")
+        raise ReductionError(
+            "need flat pairs at two or more signal levels for a photon-transfer fit"
+        )
     # Pooled weighted least squares: var = g * mean + r2, weights 1/var^2 (the variance of
     # a sample variance grows with its square).
     x, y = means[ok], varis[ok]
@@ -189,12 +195,18 @@ def estimate_noise(
     A = np.stack([x, np.ones_like(x)], axis=1) * np.sqrt(w)[:, None]
     g, r2 = np.linalg.lstsq(A, y * np.sqrt(w), rcond=None)[0]
     if not g > 0:
-        raise ReductionError(f"photon-transfer slope is {g:.3g} DN/e-: the flats show no shot noise")
+        raise ReductionError(
+            f"photon-transfer slope is {g:.3g} DN/e-: the flats show no shot noise"
+        )
     per_ch = np.full(len(CHANNELS), np.nan)
     for c in range(len(CHANNELS)):
         okc = ok[:, c]
         if okc.sum() >= 2 and np.ptp(means[okc, c]) > 0:
             per_ch[c] = np.polyfit(means[okc, c], varis[okc, c], 1, w=1.0 / varis[okc, c])[0]
-    model = NoiseModel(float(g), float(np.sqrt(max(r2 - q, 0.0))),
-                       float(iso) if np.isfinite(iso) else 100.0, quantisation)
+    model = NoiseModel(
+        float(g),
+        float(np.sqrt(max(r2 - q, 0.0))),
+        float(iso) if np.isfinite(iso) else 100.0,
+        quantisation,
+    )
     return PhotonTransfer(model, per_ch, means, varis)

@@ -150,9 +150,8 @@ class RawFrame:
         h, w = self.shape
         r0, r1, _ = r.indices(h)
         c0, c1, _ = c.indices(w)
-        rows = (np.arange(r0, r1) % 2)[:, None]
-        cols = (np.arange(c0, c1) % 2)[None, :]
-        return cell[rows, cols]
+        cell = np.roll(cell, (-(r0 % 2), -(c0 % 2)), axis=(0, 1))
+        return np.tile(cell, ((r1 - r0 + 1) // 2, (c1 - c0 + 1) // 2))[: r1 - r0, : c1 - c0]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -160,8 +159,9 @@ class RawFrame:
         a = self._raw if self._raw is not None else self._linear
         return a.shape  # type: ignore[union-attr,return-value]
 
-    def region(self, box: tuple[slice, slice] | None = None
-               ) -> tuple[NDArray[np.float64], NDArray[np.int8], NDArray[np.bool_]]:
+    def region(
+        self, box: tuple[slice, slice] | None = None
+    ) -> tuple[NDArray[np.float64], NDArray[np.int8], NDArray[np.bool_]]:
         """``(linear, channel, saturated)`` of a crop, computed for the crop only."""
         box = box if box is not None else (slice(None), slice(None))
         if self._raw is None:
@@ -198,6 +198,17 @@ class RawFrame:
         if self._black is None:
             self._black = self._tile(self._cell_black, (slice(None), slice(None)))
         return self._black
+
+    def saturated_fraction(self, step: int = 8) -> float:
+        """Fraction of saturated pixels, estimated on every ``step``-th cell (fast)."""
+        if self._raw is None:
+            return float(self.saturated[::step, ::step].mean())
+        fr = [
+            np.mean(self._raw[i::step, j::step] >= self._cell_sat[i, j])
+            for i in range(2)
+            for j in range(2)
+        ]
+        return float(np.mean(fr))
 
     @property
     def raw(self) -> NDArray[np.uint16] | None:
@@ -236,8 +247,9 @@ class RawFrame:
         ReductionError
             If exposure time, ISO or f-number is unknown (NaN) or not positive.
         """
-        return exposure_factor(self.exposure_time, self.iso, self.f_number, iso_reference,
-                               name=self.name)
+        return exposure_factor(
+            self.exposure_time, self.iso, self.f_number, iso_reference, name=self.name
+        )
 
     def _copy(self, **kw: Any) -> RawFrame:
         new = RawFrame.__new__(RawFrame)
@@ -247,20 +259,34 @@ class RawFrame:
             setattr(new, k, v)
         return new
 
-    def with_exposure(self, exposure_time: float | None = None, iso: float | None = None,
-                      f_number: float | None = None) -> RawFrame:
+    def with_exposure(
+        self,
+        exposure_time: float | None = None,
+        iso: float | None = None,
+        f_number: float | None = None,
+    ) -> RawFrame:
         """A copy with exposure settings filled in (e.g. from the session journal)."""
-        kw = {k: float(v) for k, v in dict(exposure_time=exposure_time, iso=iso,
-                                           f_number=f_number).items() if v is not None}
+        kw = {
+            k: float(v)
+            for k, v in dict(exposure_time=exposure_time, iso=iso, f_number=f_number).items()
+            if v is not None
+        }
         return self._copy(**kw)
 
     def __repr__(self) -> str:
-        return (f"RawFrame({self.name!r}, {self.cfa_pattern}, {self.shape[0]}x{self.shape[1]}, "
-                f"t={self.exposure_time:g} s, ISO {self.iso:g}, f/{self.f_number:g})")
+        return (
+            f"RawFrame({self.name!r}, {self.cfa_pattern}, {self.shape[0]}x{self.shape[1]}, "
+            f"t={self.exposure_time:g} s, ISO {self.iso:g}, f/{self.f_number:g})"
+        )
 
 
-def exposure_factor(exposure_time: float, iso: float, f_number: float,
-                    iso_reference: float = 100.0, name: str = "frame") -> float:
+def exposure_factor(
+    exposure_time: float,
+    iso: float,
+    f_number: float,
+    iso_reference: float = 100.0,
+    name: str = "frame",
+) -> float:
     """Scale of the DN with exposure: ``t * (ISO / iso_reference) / N**2``.
 
     Parameters
@@ -277,8 +303,9 @@ def exposure_factor(exposure_time: float, iso: float, f_number: float,
     vals = {"exposure_time": exposure_time, "iso": iso, "f_number": f_number}
     for k, v in vals.items():
         if not (v is not None and np.isfinite(v) and v > 0):
-            raise ReductionError(f"{name}: {k} is {v!r}; a positive value is needed to "
-                                 "normalise the exposure")
+            raise ReductionError(
+                f"{name}: {k} is {v!r}; a positive value is needed to normalise the exposure"
+            )
     return float(exposure_time) * float(iso) / iso_reference / float(f_number) ** 2
 
 
@@ -316,11 +343,14 @@ def _check_tiff_strips(data: bytes, name: str) -> None:
             for page in tf.pages:
                 offs = page.dataoffsets
                 counts = page.databytecounts
-                if offs and counts and max(o + c for o, c in zip(offs, counts)) > len(data):
+                if not (offs and counts):
+                    continue
+                end = max(o + c for o, c in zip(offs, counts, strict=False))
+                if end > len(data):
                     raise FileFormatError(
                         name,
-                        f"truncated: image data run to byte {max(o + c for o, c in zip(offs, counts))}"
-                        f" but the file has {len(data)} bytes",
+                        f"truncated: image data run to byte {end} but the file has "
+                        f"{len(data)} bytes",
                         "StripOffsets",
                     )
     except FileFormatError:
@@ -392,12 +422,20 @@ def read_raw(
         pattern = cfa_pattern_of(raw)
         desc = raw.color_desc.decode()
         # raw colour index (0..3) -> our channel (R, G, B); the second green is 'G' too
-        lut = np.array([CHANNELS.index(ch) if ch in CHANNELS else -1 for ch in desc],
-                       dtype=np.int8)
+        lut = np.array([CHANNELS.index(ch) if ch in CHANNELS else -1 for ch in desc], dtype=np.int8)
         if (lut < 0).any():
-            raise FileFormatError(nm, f"colour filter '{desc}' is not an RGB Bayer filter",
-                                  "CFAPattern")
-        colors = raw.raw_colors_visible[:2, :2].copy()
+            raise FileFormatError(
+                nm, f"colour filter '{desc}' is not an RGB Bayer filter", "CFAPattern"
+            )
+        sz = raw.sizes
+        # the 2x2 cell at the visible origin (raw_colors_visible would build a full-size
+        # array just to read four values)
+        colors = np.array(
+            [
+                [raw.raw_color(i + sz.top_margin, j + sz.left_margin) for j in range(2)]
+                for i in range(2)
+            ]
+        )
         cell_channel = lut[colors]
         cell_black = np.asarray(raw.black_level_per_channel, dtype=np.float64)[colors]
         white = float(raw.white_level)
@@ -415,18 +453,35 @@ def read_raw(
         mosaic = raw.raw_image_visible.copy()  # rawpy's buffer dies with the handle
     if expect is not None:
         if pattern != expect.cfa_pattern:
-            raise FileFormatError(nm, f"CFA pattern is {pattern}, the session's camera has "
-                                  f"{expect.cfa_pattern}", "CFAPattern")
+            raise FileFormatError(
+                nm,
+                f"CFA pattern is {pattern}, the session's camera has {expect.cfa_pattern}",
+                "CFAPattern",
+            )
         if tuple(mosaic.shape) != tuple(expect.shape):
-            raise FileFormatError(nm, f"mosaic is {mosaic.shape[0]}x{mosaic.shape[1]}, the "
-                                  f"session's camera gives {expect.shape[0]}x{expect.shape[1]}",
-                                  "ImageSize")
+            raise FileFormatError(
+                nm,
+                f"mosaic is {mosaic.shape[0]}x{mosaic.shape[1]}, the "
+                f"session's camera gives {expect.shape[0]}x{expect.shape[1]}",
+                "ImageSize",
+            )
     if not 0.0 <= saturation_margin < 1.0:
         raise ValueError(f"saturation_margin must be in [0, 1), got {saturation_margin}")
     threshold = white - saturation_margin * (white - cell_black)
-    return RawFrame(nm, None, None, None, None, white, pattern, **exp, raw=mosaic,
-                    cell_channel=cell_channel, cell_black=cell_black,
-                    saturation_threshold=threshold)
+    return RawFrame(
+        nm,
+        None,
+        None,
+        None,
+        None,
+        white,
+        pattern,
+        **exp,
+        raw=mosaic,
+        cell_channel=cell_channel,
+        cell_black=cell_black,
+        saturation_threshold=threshold,
+    )
 
 
 def subtract_dark(frame: RawFrame, dark: RawFrame | NDArray[np.float64]) -> RawFrame:
@@ -581,11 +636,16 @@ def roi_exposure_stats(
     mask = roi_mask(frame.shape, roi)
     if not mask.any():
         raise ReductionError(f"{frame.name}: region of interest is empty")
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    lin, chan, sat = frame.region(box)  # only the ROI's bounding box is converted
+    m = mask[box]
     n = len(CHANNELS)
     sig = np.full(n, np.nan)
     snr = np.full(n, np.nan)
     for c in range(n):
-        v = frame.linear[mask & (frame.channel == c)]
+        v = lin[m & (chan == c)]
         if v.size == 0:
             continue
         sig[c] = np.median(v)
@@ -594,11 +654,12 @@ def roi_exposure_stats(
         else:
             sd = float(np.std(v)) if v.size > 1 else math.nan
         snr[c] = sig[c] / sd if sd > 0 else math.inf
+    black = frame.black_level[box][m] if frame.cell_black is None else frame.cell_black
     return ExposureStats(
-        saturated_fraction=float(frame.saturated[mask].mean()),
+        saturated_fraction=float(sat[m].mean()),
         signal_dn=sig,
         snr=snr,
-        headroom_dn=float(np.min(np.broadcast_to(frame.headroom, frame.shape)[mask])),
+        headroom_dn=float(frame.white_level - np.max(black)),
     )
 
 

@@ -9,23 +9,51 @@ import click
 
 @click.command("reduce")
 @click.argument("session_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Output file (default: SESSION/samples.h5).")
-@click.option("--noise", "noise_file", type=click.Path(dir_okay=False, exists=True, path_type=Path),
-              default=None, help="Noise model JSON from 'gonio capture calibrate-noise' "
-              "(default: SESSION/noise.json, else the simulated sensor's).")
-@click.option("--grid", type=click.IntRange(1, 20), default=None,
-              help="Regions per side of the sample's central area (each one a sample).")
-@click.option("--roi-fraction", type=click.FloatRange(0.05, 1.0), default=None,
-              help="Fraction of the sample's width and height used (keeps off its edges).")
-@click.option("--tolerance-deg", type=click.FloatRange(0.0, min_open=True), default=None,
-              help="Largest camera-direction disagreement between board and rig before the "
-              "samples are flagged GEOMETRY_MISMATCH.")
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Output file (default: SESSION/samples.h5).",
+)
+@click.option(
+    "--noise",
+    "noise_file",
+    type=click.Path(dir_okay=False, exists=True, path_type=Path),
+    default=None,
+    help="Noise model JSON from 'gonio capture calibrate-noise' "
+    "(default: SESSION/noise.json, else the simulated sensor's).",
+)
+@click.option(
+    "--grid",
+    type=click.IntRange(1, 20),
+    default=None,
+    help="Regions per side of the sample's central area (each one a sample).",
+)
+@click.option(
+    "--roi-fraction",
+    type=click.FloatRange(0.05, 1.0),
+    default=None,
+    help="Fraction of the sample's width and height used (keeps off its edges).",
+)
+@click.option(
+    "--tolerance-deg",
+    type=click.FloatRange(0.0, min_open=True),
+    default=None,
+    help="Largest camera-direction disagreement between board and rig before the "
+    "samples are flagged GEOMETRY_MISMATCH.",
+)
 @click.option("--no-plot", is_flag=True, help="Do not write SESSION/samples.png.")
 @click.option("--quiet", is_flag=True, help="No progress bar or summary table.")
-def reduce_cmd(session_dir: Path, out: Path | None, noise_file: Path | None, grid: int | None,
-               roi_fraction: float | None, tolerance_deg: float | None, no_plot: bool,
-               quiet: bool) -> None:
+def reduce_cmd(
+    session_dir: Path,
+    out: Path | None,
+    noise_file: Path | None,
+    grid: int | None,
+    roi_fraction: float | None,
+    tolerance_deg: float | None,
+    no_plot: bool,
+    quiet: bool,
+) -> None:
     """Reduce a capture session's RAW brackets to calibrated BRDF samples.
 
     \b
@@ -44,31 +72,40 @@ def reduce_cmd(session_dir: Path, out: Path | None, noise_file: Path | None, gri
     Example:
       gonio capture reduce runs/paper/ --grid 3
     """
+    from gonio.capture.noise import NoiseModel
+    from gonio.capture.reduce import _replace, reduce_session, resolve_setup
+    from gonio.capture.session import load_manifest
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
     from rich.table import Table
 
-    from gonio.capture.noise import NoiseModel
-    from gonio.capture.reduce import _replace, reduce_session, resolve_setup
-    from gonio.capture.session import load_manifest
-
     console = Console(stderr=True, quiet=quiet)
     noise = NoiseModel.load(noise_file) if noise_file else None
     setup = resolve_setup(session_dir, load_manifest(session_dir), noise)
-    upd = {k: v for k, v in dict(grid=grid, roi_fraction=roi_fraction,
-                                 geometry_tolerance_deg=tolerance_deg).items() if v is not None}
+    upd = {
+        k: v
+        for k, v in dict(
+            grid=grid, roi_fraction=roi_fraction, geometry_tolerance_deg=tolerance_deg
+        ).items()
+        if v is not None
+    }
     if upd:
         setup = _replace(setup, **upd)
-    with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
-                  TimeRemainingColumn(), console=console, transient=True) as bar:
+    with Progress(
+        "[progress.description]{task.description}",
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
         task = bar.add_task("reducing poses", total=None)
 
         def progress(done: int, total: int) -> None:
             bar.update(task, completed=done, total=total)
 
-        res = reduce_session(session_dir, out=out, setup=setup, plot=not no_plot,
-                             progress=progress)
-    table = Table(title=f"{res.path}")
+        res = reduce_session(session_dir, out=out, setup=setup, plot=not no_plot, progress=progress)
+    table = Table(title="BRDF samples")
     table.add_column("samples", justify="right")
     table.add_column("count", justify="right")
     table.add_row("written", str(res.n_samples))
@@ -77,25 +114,45 @@ def reduce_cmd(session_dir: Path, out: Path | None, noise_file: Path | None, gri
         table.add_row(f"rejected: {reason}", str(n))
     console.print(table)
     for fp in res.summary["failed_poses"]:
-        console.print(f"[yellow]pose {fp['pose']} ({fp['kind']}): {fp['reason']}")
+        console.print(f"[yellow]pose {fp['pose']} ({fp['kind']}): {fp['reason']}", soft_wrap=True)
+    console.print(f"wrote {res.path}", soft_wrap=True)
     if res.plot:
-        console.print(f"plot: {res.plot}")
+        console.print(f"plot: {res.plot}", soft_wrap=True)
 
 
 @click.command("calibrate-noise")
-@click.option("--flat", "flats", multiple=True, required=True,
-              type=click.Path(dir_okay=False, exists=True, path_type=Path),
-              help="Flat-field RAW files (uniform target, nothing saturated); give them in "
-              "pairs shot with identical settings, at two or more exposure levels.")
-@click.option("--dark", "darks", multiple=True,
-              type=click.Path(dir_okay=False, exists=True, path_type=Path),
-              help="Dark RAW files (lens capped), in pairs at the same ISO: pin the read noise.")
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
-              help="Where to write the noise model JSON (e.g. SESSION/noise.json).")
-@click.option("--plot", "plot_file", type=click.Path(dir_okay=False, path_type=Path),
-              default=None, help="Also save the photon-transfer curve as an image.")
-def calibrate_noise_cmd(flats: tuple[Path, ...], darks: tuple[Path, ...], out: Path,
-                        plot_file: Path | None) -> None:
+@click.option(
+    "--flat",
+    "flats",
+    multiple=True,
+    required=True,
+    type=click.Path(dir_okay=False, exists=True, path_type=Path),
+    help="Flat-field RAW files (uniform target, nothing saturated); give them in "
+    "pairs shot with identical settings, at two or more exposure levels.",
+)
+@click.option(
+    "--dark",
+    "darks",
+    multiple=True,
+    type=click.Path(dir_okay=False, exists=True, path_type=Path),
+    help="Dark RAW files (lens capped), in pairs at the same ISO: pin the read noise.",
+)
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    help="Where to write the noise model JSON (e.g. SESSION/noise.json).",
+)
+@click.option(
+    "--plot",
+    "plot_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Also save the photon-transfer curve as an image.",
+)
+def calibrate_noise_cmd(
+    flats: tuple[Path, ...], darks: tuple[Path, ...], out: Path, plot_file: Path | None
+) -> None:
     """Estimate the camera's gain and read noise (photon transfer) from flat and dark pairs.
 
     \b
@@ -111,20 +168,26 @@ def calibrate_noise_cmd(flats: tuple[Path, ...], darks: tuple[Path, ...], out: P
     """
     from gonio.capture.noise import estimate_noise
     from gonio.capture.raw import read_raw
+
     from gonio.errors import ReductionError
 
     if len(flats) % 2 or len(darks) % 2:
-        raise ReductionError(f"flats and darks come in pairs; got {len(flats)} flats and "
-                             f"{len(darks)} darks")
+        raise ReductionError(
+            f"flats and darks come in pairs; got {len(flats)} flats and {len(darks)} darks"
+        )
     if out.exists():
         raise ReductionError(f"{out} exists; refusing to overwrite a noise model")
     fr = [read_raw(p) for p in flats]
     dk = [read_raw(p) for p in darks]
-    pt = estimate_noise(list(zip(fr[0::2], fr[1::2])), list(zip(dk[0::2], dk[1::2])))
+    pt = estimate_noise(
+        list(zip(fr[0::2], fr[1::2], strict=True)), list(zip(dk[0::2], dk[1::2], strict=True))
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     pt.model.save(out)
-    click.echo(f"gain {pt.model.gain:.4g} DN/e-, read noise {pt.model.read_noise:.4g} DN at ISO "
-               f"{pt.model.iso:g} -> {out}")
+    click.echo(
+        f"gain {pt.model.gain:.4g} DN/e-, read noise {pt.model.read_noise:.4g} DN at ISO "
+        f"{pt.model.iso:g} -> {out}"
+    )
     if plot_file:
         import matplotlib
 

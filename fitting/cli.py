@@ -18,39 +18,71 @@ def _load_input(path: Path):
         from gonio.dataset import load_samples
 
         return load_samples(path), "samples"
-    from gonio.brdf import load
     from gonio.fitting.sampling import sample_brdf
+
+    from gonio.brdf import load
 
     return sample_brdf(load(path), source=str(path)), "measured file sampled on a grid"
 
 
 @click.command(name="fit")
 @click.argument("source", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("--model", "-m", default="auto", show_default=True,
-              help="Model name (lambert, oren-nayar, lambert+ggx, lambert+beckmann, "
-                   "lambert+ward, lambert+blinn-phong, ...) or 'auto' to choose by BIC.")
-@click.option("--candidates", default=None,
-              help="Comma-separated candidate models for --model auto.")
-@click.option("--loss", default="auto", show_default=True,
-              type=click.Choice(["auto", "weighted_l2", "cosine_l2", "l2", "log"]),
-              help="auto: weighted_l2 when every sample has a sigma, else cosine_l2.")
-@click.option("--robust", default=None,
-              type=click.Choice(["soft_l1", "huber", "cauchy", "arctan"]),
-              help="Robust penalty against outliers (scale: --f-scale, residual units).")
+@click.option(
+    "--model",
+    "-m",
+    default="auto",
+    show_default=True,
+    help="Model name (lambert, oren-nayar, lambert+ggx, lambert+beckmann, "
+    "lambert+ward, lambert+blinn-phong, ...) or 'auto' to choose by BIC.",
+)
+@click.option(
+    "--candidates", default=None, help="Comma-separated candidate models for --model auto."
+)
+@click.option(
+    "--loss",
+    default="auto",
+    show_default=True,
+    type=click.Choice(["auto", "weighted_l2", "cosine_l2", "l2", "log"]),
+    help="auto: weighted_l2 when every sample has a sigma, else cosine_l2.",
+)
+@click.option(
+    "--robust",
+    default=None,
+    type=click.Choice(["soft_l1", "huber", "cauchy", "arctan"]),
+    help="Robust penalty against outliers (scale: --f-scale, residual units).",
+)
 @click.option("--f-scale", default=1.0, show_default=True, type=float)
-@click.option("--algorithm", default="auto", show_default=True,
-              help="auto (Sobol multistart + LD_LBFGS), a local nlopt algorithm (LD_SLSQP, "
-                   "LD_MMA, LN_BOBYQA) or a global one (GN_DIRECT_L, GN_CRS2_LM, G_MLSL_LDS).")
+@click.option(
+    "--algorithm",
+    default="auto",
+    show_default=True,
+    help="auto (Sobol multistart + LD_LBFGS), a local nlopt algorithm (LD_SLSQP, "
+    "LD_MMA, LN_BOBYQA) or a global one (GN_DIRECT_L, GN_CRS2_LM, G_MLSL_LDS).",
+)
 @click.option("--no-energy", is_flag=True, help="Do not enforce directional albedo <= 1.")
-@click.option("--out", "-o", "out", required=True,
-              type=click.Path(file_okay=False, path_type=Path),
-              help="Output folder: fit.json, material.xml (Mitsuba 3), slices.png, "
-                   "residuals.png.")
+@click.option(
+    "--out",
+    "-o",
+    "out",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Output folder: fit.json, material.xml (Mitsuba 3), slices.png, residuals.png.",
+)
 @click.option("--plots/--no-plots", default=True, show_default=True)
 @click.option("--force", is_flag=True, help="Replace the outputs of an earlier fit in --out.")
-def fit(source: Path, model: str, candidates: str | None, loss: str, robust: str | None,
-        f_scale: float, algorithm: str, no_energy: bool, out: Path, plots: bool,
-        force: bool) -> None:
+def fit(
+    source: Path,
+    model: str,
+    candidates: str | None,
+    loss: str,
+    robust: str | None,
+    f_scale: float,
+    algorithm: str,
+    no_energy: bool,
+    out: Path,
+    plots: bool,
+    force: bool,
+) -> None:
     """Fit a BRDF model to SOURCE and write the result to --out.
 
     SOURCE is a samples file (samples.h5 from `gonio capture reduce`) or a measured BRDF
@@ -65,31 +97,46 @@ def fit(source: Path, model: str, candidates: str | None, loss: str, robust: str
     Shape parameters (roughness) are shared by all colour channels; albedo and ks are fitted
     per channel.  The summary shows each parameter with its one-sigma uncertainty.
     """
+    from gonio.fitting import fit as run_fit
+    from gonio.fitting.export import mitsuba_xml, save_json
     from rich.console import Console
     from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from gonio.fitting import fit as run_fit
-    from gonio.fitting.export import mitsuba_xml, save_json
-
     console = Console(stderr=False)
     existing = [out / n for n in _OUTPUTS if (out / n).exists()]
     if existing and not force:
-        raise FitError(f"{out} already holds {', '.join(p.name for p in existing)}; "
-                       "use --force to replace them or choose another --out")
+        raise FitError(
+            f"{out} already holds {', '.join(p.name for p in existing)}; "
+            "use --force to replace them or choose another --out"
+        )
     samples, kind = _load_input(source)
     cands = tuple(c.strip() for c in candidates.split(",")) if candidates else None
     n_steps = (len(cands) if cands else 4) + 3 if model == "auto" else 4
-    with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
-                  TimeElapsedColumn(), console=console, transient=True) as prog:
+    with Progress(
+        SpinnerColumn(),
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as prog:
         task = prog.add_task(f"fitting {model} to {len(samples.wi)} samples", total=n_steps)
 
         def step(msg: str) -> None:
             prog.update(task, advance=1, description=msg)
 
-        r = run_fit(samples, model, loss=loss, robust=robust, f_scale=f_scale,
-                    algorithm=algorithm, energy_conservation=not no_energy,
-                    candidates=cands, progress=step)
+        r = run_fit(
+            samples,
+            model,
+            loss=loss,
+            robust=robust,
+            f_scale=f_scale,
+            algorithm=algorithm,
+            energy_conservation=not no_energy,
+            candidates=cands,
+            progress=step,
+        )
         prog.update(task, description="writing outputs")
         out.mkdir(parents=True, exist_ok=True)
         written = [save_json(r, out / "fit.json")]
@@ -114,7 +161,7 @@ def fit(source: Path, model: str, candidates: str | None, loss: str, robust: str
         table.add_column(c, justify="right")
     for name, v in r.params.items():
         s = r.std[name]
-        table.add_row(name, *[f"{x:.5g} ± {e:.2g}" for x, e in zip(v, s)])
+        table.add_row(name, *[f"{x:.5g} ± {e:.2g}" for x, e in zip(v, s, strict=True)])
     console.print(table)
     sel = r.diagnostics.get("selection")
     if sel:
@@ -123,9 +170,12 @@ def fit(source: Path, model: str, candidates: str | None, loss: str, robust: str
             st.add_column(col)
         for row in sel:
             ic = row.get("criterion")
-            st.add_row(row["model"], "failed" if ic is None else f"{ic:.1f}",
-                       "" if row.get("cost") is None else f"{row['cost']:.4g}",
-                       "" if row.get("gloss_60") is None else f"{row['gloss_60']:.1f}")
+            st.add_row(
+                row["model"],
+                "failed" if ic is None else f"{ic:.1f}",
+                "" if row.get("cost") is None else f"{row['cost']:.4g}",
+                "" if row.get("gloss_60") is None else f"{row['gloss_60']:.1f}",
+            )
         console.print(st)
         if r.diagnostics.get("selection_note"):
             console.print(r.diagnostics["selection_note"])

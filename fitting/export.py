@@ -19,9 +19,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from gonio.fitting.result import FitResult
 
 from gonio.errors import FitError
-from gonio.fitting.result import FitResult
 
 __all__ = ["mitsuba_dict", "mitsuba_xml", "result_to_dict", "save_json"]
 
@@ -99,11 +99,15 @@ def _rgb(v: np.ndarray) -> dict[str, Any]:
 def _specular(kind: str, alpha: float, ks: np.ndarray, options: dict[str, Any]) -> dict[str, Any]:
     fresnel = options.get("fresnel", "none")
     if fresnel != "none":
-        raise FitError(f"Mitsuba export: {kind} with fresnel={fresnel!r} has no exact Mitsuba 3 "
-                       "counterpart (only fresnel='none' maps to roughconductor material='none')")
+        raise FitError(
+            f"Mitsuba export: {kind} with fresnel={fresnel!r} has no exact Mitsuba 3 "
+            "counterpart (only fresnel='none' maps to roughconductor material='none')"
+        )
     if kind == "beckmann" and options.get("g1", "exact") != "rational":
-        raise FitError("Mitsuba export: Mitsuba's Beckmann uses the rational G1; fit with "
-                       "model_options={'g1': 'rational'}")
+        raise FitError(
+            "Mitsuba export: Mitsuba's Beckmann uses the rational G1; fit with "
+            "model_options={'g1': 'rational'}"
+        )
     return {
         "type": "roughconductor",
         "material": "none",

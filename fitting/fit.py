@@ -29,8 +29,6 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-
-from gonio.errors import FitError, UnknownNameError
 from gonio.fitting.losses import LOSSES, get_loss
 from gonio.fitting.objective import Problem, prepare_problem
 from gonio.fitting.optimize import (
@@ -43,6 +41,8 @@ from gonio.fitting.optimize import (
 from gonio.fitting.result import FitResult
 from gonio.fitting.uncertainty import covariance_at
 from gonio.fitting.varpro import VarPro, unit_values
+
+from gonio.errors import FitError, UnknownNameError
 
 __all__ = ["fit", "fit_model", "resolve_loss"]
 
@@ -266,8 +266,12 @@ def fit_model(
 
     # --- stage A: shape search by variable projection on a linear loss ------------------
     linear_ok = loss_obj.linear and robust is None
-    init_prob = prob if linear_ok else prepare_problem(m, samples, get_loss("cosine_l2"))
-    local_alg = algorithm if algorithm in ALGORITHMS and algorithm not in GLOBAL_ALGORITHMS else "LD_LBFGS"
+    # non-linear losses start from the variable-projection fit of the nearest linear loss
+    init_loss = loss_obj if loss_obj.linear else get_loss("cosine_l2")
+    init_prob = prob if linear_ok else prepare_problem(m, samples, init_loss)
+    local_alg = (
+        algorithm if algorithm in ALGORITHMS and algorithm not in GLOBAL_ALGORITHMS else "LD_LBFGS"
+    )
     user_u = None
     if x0:
         vp_tmp = prob
@@ -288,14 +292,22 @@ def fit_model(
         th0 = prob.from_u(user_u) if user_u is not None else vp.default_theta()
         d = dict(getattr(m, "defaults", {}) or {})
         a0 = np.array([[float(d.get(n, 0.5))] * prob.n_channels for n in prob.linear_names])
-        a0 = np.clip(a0.reshape(prob.n_linear, prob.n_channels), prob.lb_lin[:, None],
-                     prob.ub_lin[:, None]) if prob.n_linear else a0.reshape(0, prob.n_channels)
+        a0 = (
+            np.clip(
+                a0.reshape(prob.n_linear, prob.n_channels),
+                prob.lb_lin[:, None],
+                prob.ub_lin[:, None],
+            )
+            if prob.n_linear
+            else a0.reshape(0, prob.n_channels)
+        )
         x_start = prob.pack(th0, a0)
         if algorithm in GLOBAL_ALGORITHMS:
             lo, hi = prob.x_bounds()
             hi = np.where(np.isfinite(hi), hi, np.maximum(10 * np.abs(lo), 10.0))
-            r = nlopt_minimize(prob.full_cost, x_start, lo, hi, algorithm, maxeval=maxeval * 4,
-                               seed=seed)
+            r = nlopt_minimize(
+                prob.full_cost, x_start, lo, hi, algorithm, maxeval=maxeval * 4, seed=seed
+            )
             path.append(f"{algorithm}(full)")
             x_start = r.x
         x_best, status, message = _full_local(prob, x_start, local_alg, maxeval, path, say)
@@ -309,12 +321,12 @@ def fit_model(
             x_best, status, message = _energy_stage(prob, x_best, maxeval, path)
             max_alb = _max_albedo(prob, x_best)
 
-    return _finish(prob, x_best, status, message, path, absolute_sigma, max_alb,
-                   model_name, opts)
+    return _finish(prob, x_best, status, message, path, absolute_sigma, max_alb, model_name, opts)
 
 
-def _varpro_stage(prob: Problem, algorithm: str, local_alg: str, user_u, n_starts, maxeval,
-                  seed, path, say):
+def _varpro_stage(
+    prob: Problem, algorithm: str, local_alg: str, user_u, n_starts, maxeval, seed, path, say
+):
     vp = VarPro(prob)
     S = prob.n_shape
     if S == 0:
@@ -344,8 +356,15 @@ def _varpro_stage(prob: Problem, algorithm: str, local_alg: str, user_u, n_start
 
     starts: list[np.ndarray] = []
     if algorithm in GLOBAL_ALGORITHMS:
-        r = nlopt_minimize(fun, 0.5 * (lo + hi) if user_u is None else user_u, lo, hi,
-                           algorithm, maxeval=maxeval * 4, seed=seed)
+        r = nlopt_minimize(
+            fun,
+            0.5 * (lo + hi) if user_u is None else user_u,
+            lo,
+            hi,
+            algorithm,
+            maxeval=maxeval * 4,
+            seed=seed,
+        )
         path.append(f"{algorithm}({r.nfev})")
         starts.append(r.x)
     else:
@@ -370,7 +389,10 @@ def _varpro_stage(prob: Problem, algorithm: str, local_alg: str, user_u, n_start
     if screen is not prob:
         prob.njev += screen.njev
         path[-1] += f" (subset {screen.wi.shape[0]})"
-        best = nlopt_minimize(fun, best.x, lo, hi, local_alg, maxeval=maxeval, seed=seed)
+        # a step of 1e-9 in ln(alpha) changes the cost by ~1e-18 relative at the minimum
+        best = nlopt_minimize(
+            fun, best.x, lo, hi, local_alg, maxeval=maxeval, seed=seed, xtol_rel=1e-9
+        )
         path.append(f"{local_alg}(all {prob.wi.shape[0]})")
     say("local search")
     _, _, a = vp.evaluate(best.x, want_grad=False)
@@ -384,12 +406,26 @@ def _screen_problem(prob: Problem, seed: int) -> Problem:
         return prob
     idx = np.sort(np.random.default_rng(seed).choice(n, _SCREEN_MAX, replace=False))
     return Problem(
-        model=prob.model, wi=prob.wi[idx], wo=prob.wo[idx], y=prob.y[idx],
-        sigma=None if prob.sigma is None else prob.sigma[idx], cos_i=prob.cos_i[idx],
-        loss=prob.loss, robust=prob.robust, f_scale=prob.f_scale, used=prob.used,
-        channels=prob.channels, dropped={}, shape_names=prob.shape_names,
-        linear_names=prob.linear_names, log_shape=prob.log_shape, log_offset=prob.log_offset, lb_shape=prob.lb_shape,
-        ub_shape=prob.ub_shape, lb_lin=prob.lb_lin, ub_lin=prob.ub_lin,
+        model=prob.model,
+        wi=prob.wi[idx],
+        wo=prob.wo[idx],
+        y=prob.y[idx],
+        sigma=None if prob.sigma is None else prob.sigma[idx],
+        cos_i=prob.cos_i[idx],
+        loss=prob.loss,
+        robust=prob.robust,
+        f_scale=prob.f_scale,
+        used=prob.used,
+        channels=prob.channels,
+        dropped={},
+        shape_names=prob.shape_names,
+        linear_names=prob.linear_names,
+        log_shape=prob.log_shape,
+        log_offset=prob.log_offset,
+        lb_shape=prob.lb_shape,
+        ub_shape=prob.ub_shape,
+        lb_lin=prob.lb_lin,
+        ub_lin=prob.ub_lin,
     )
 
 
@@ -397,6 +433,13 @@ def _full_local(prob: Problem, x: np.ndarray, alg: str, maxeval: int, path, say)
     lo, hi = prob.x_bounds()
     r = nlopt_minimize(prob.full_cost, x, lo, hi, alg, maxeval=maxeval * 2)
     path.append(f"{alg}(full)")
+    if r.status < 0 and alg != "LD_SLSQP":
+        # nlopt's L-BFGS gives up with a bare failure when its line search stalls near
+        # the minimum (robust penalties): finish from its best point with SLSQP
+        r2 = nlopt_minimize(prob.full_cost, r.x, lo, hi, "LD_SLSQP", maxeval=maxeval * 2)
+        path.append("LD_SLSQP(full, after failure)")
+        if r2.fun <= r.fun:
+            r = r2
     say("full-space search")
     return r.x, r.status, r.message
 
@@ -467,18 +510,36 @@ def _energy_stage(prob: Problem, x: np.ndarray, maxeval: int, path: list[str]):
     a0 = a / np.maximum(worst, 1.0)[None, :] * (1 - 1e-9)
     x0 = prob.pack(theta, a0)
     lo, hi = prob.x_bounds()
-    r = nlopt_minimize(prob.full_cost, x0, lo, hi, "LD_SLSQP", maxeval=maxeval * 2,
-                       ineq=cons, n_ineq=C * T, ineq_tol=1e-10)
+    r = nlopt_minimize(
+        prob.full_cost,
+        x0,
+        lo,
+        hi,
+        "LD_SLSQP",
+        maxeval=maxeval * 2,
+        ineq=cons,
+        n_ineq=C * T,
+        ineq_tol=1e-10,
+    )
     path.append("LD_SLSQP(energy)")
     return r.x, r.status, r.message + " (albedo <= 1 enforced)"
 
 
-def _finish(prob: Problem, x: np.ndarray, status: int, message: str,
-            path: list[str], absolute_sigma: bool, max_alb, model_name: str,
-            opts: dict[str, Any]) -> FitResult:
+def _finish(
+    prob: Problem,
+    x: np.ndarray,
+    status: int,
+    message: str,
+    path: list[str],
+    absolute_sigma: bool,
+    max_alb,
+    model_name: str,
+    opts: dict[str, Any],
+) -> FitResult:
     if not np.all(np.isfinite(x)):
-        raise FitError(f"fit of {model_name} produced non-finite parameters ({message}); "
-                       f"x={x.tolist()}")
+        raise FitError(
+            f"fit of {model_name} produced non-finite parameters ({message}); x={x.tolist()}"
+        )
     theta, a = prob.unpack(x)
     unc = covariance_at(prob, x, absolute_sigma)
     cost = unc.cost

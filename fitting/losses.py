@@ -83,7 +83,9 @@ def get_loss(name: str) -> Loss:
     return Loss(name)
 
 
-def robust_rho(z: np.ndarray, kind: str | None, f_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def robust_rho(
+    z: np.ndarray, kind: str | None, f_scale: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Robust penalty ``rho(z)`` and ``rho'(z)`` of squared residuals ``z = r**2``.
 
     Scaled as in scipy: ``C**2 * rho0(z / C**2)`` with ``C = f_scale``, so the cost is

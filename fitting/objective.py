@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from gonio.fitting.losses import Loss, robust_rho
 
 from gonio.errors import FitError
-from gonio.fitting.losses import Loss, robust_rho
 
 __all__ = ["Problem", "prepare_problem"]
 
@@ -61,7 +61,9 @@ class Problem:
     njev: int = 0
 
     def __post_init__(self) -> None:
-        self.weights = self.loss.weights(self.y, self.sigma, self.cos_i) if self.loss.linear else None
+        self.weights = (
+            self.loss.weights(self.y, self.sigma, self.cos_i) if self.loss.linear else None
+        )
         self._wi_c = self.wi[:, None, :]
         self._wo_c = self.wo[:, None, :]
 
@@ -126,7 +128,7 @@ class Problem:
 
     def params_dict(self, theta: np.ndarray, a: np.ndarray) -> dict[str, Any]:
         """Model parameters: shape as floats, linear as (C,) arrays."""
-        p: dict[str, Any] = {n: float(t) for n, t in zip(self.shape_names, theta)}
+        p: dict[str, Any] = {n: float(t) for n, t in zip(self.shape_names, theta, strict=True)}
         for j, n in enumerate(self.linear_names):
             p[n] = np.asarray(a[j], dtype=np.float64)
         return p
@@ -251,8 +253,11 @@ def prepare_problem(
     if flags is not None:
         keep = drop(np.asarray(flags).reshape(n_in) != 0, "flagged", keep)
     keep = drop(~np.all(np.isfinite(y), axis=1), "non-finite brdf", keep)
-    keep = drop(~np.all(np.isfinite(wi), axis=1) | ~np.all(np.isfinite(wo), axis=1),
-                "non-finite direction", keep)
+    keep = drop(
+        ~np.all(np.isfinite(wi), axis=1) | ~np.all(np.isfinite(wo), axis=1),
+        "non-finite direction",
+        keep,
+    )
     with np.errstate(invalid="ignore"):
         keep = drop(~((wi[:, 2] > 0) & (wo[:, 2] > 0)), "below horizon", keep)
     if loss.name == "weighted_l2":

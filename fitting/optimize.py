@@ -28,8 +28,16 @@ __all__ = [
     "sobol_design",
 ]
 
-LOCAL_ALGORITHMS = ("LD_LBFGS", "LD_SLSQP", "LD_MMA", "LD_CCSAQ", "LN_BOBYQA", "LN_SBPLX",
-                    "LN_NELDERMEAD", "LN_COBYLA")
+LOCAL_ALGORITHMS = (
+    "LD_LBFGS",
+    "LD_SLSQP",
+    "LD_MMA",
+    "LD_CCSAQ",
+    "LN_BOBYQA",
+    "LN_SBPLX",
+    "LN_NELDERMEAD",
+    "LN_COBYLA",
+)
 GLOBAL_ALGORITHMS = ("GN_DIRECT_L", "GN_CRS2_LM", "G_MLSL_LDS", "GN_ISRES")
 ALGORITHMS = LOCAL_ALGORITHMS + GLOBAL_ALGORITHMS
 

@@ -10,7 +10,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from gonio.fitting.result import FitResult
 
 __all__ = ["plot_residual_map", "plot_slices"]
@@ -65,8 +64,14 @@ def plot_slices(r: FitResult, samples: Any, path: str | os.PathLike, n_bins: int
             col = colours[c]
             ax.scatter(signed[sel][ip], (y[sel, c] * cos_o)[ip], s=6, color=col, alpha=0.8)
             ax.scatter(signed[sel][~ip], (y[sel, c] * cos_o)[~ip], s=3, color=col, alpha=0.15)
-            ax.plot(signed[sel][line][order], (f[sel, c] * cos_o)[line][order], lw=0.8,
-                    color=col, alpha=0.8, label=f"fit {name}")
+            ax.plot(
+                signed[sel][line][order],
+                (f[sel, c] * cos_o)[line][order],
+                lw=0.8,
+                color=col,
+                alpha=0.8,
+                label=f"fit {name}",
+            )
         ax.set_title(
             f"theta_i {np.degrees(edges[b]):.0f}-{np.degrees(edges[b + 1]):.0f} deg", fontsize=9
         )
@@ -85,8 +90,9 @@ def plot_slices(r: FitResult, samples: Any, path: str | os.PathLike, n_bins: int
 
 
 def plot_residual_map(r: FitResult, samples: Any, path: str | os.PathLike) -> Path:
-    """Relative residual ``(fit - measured) / max(measured)`` over (theta_h, theta_d), one
-    panel per channel: structure in this map is what the model cannot represent."""
+    """Relative residual ``(fit - measured) / max(measured, 1 % of the peak)`` over
+    (theta_h, theta_d), one panel per channel, colour range at the 95th percentile:
+    structure in this map is what the model cannot represent."""
     from gonio.radiometry.frames import half_diff_from_directions
 
     plt = _plt()
@@ -99,13 +105,15 @@ def plot_residual_map(r: FitResult, samples: Any, path: str | os.PathLike) -> Pa
     fig, axes = plt.subplots(1, C, figsize=(4.0 * C, 3.4), squeeze=False)
     for c in range(C):
         ax = axes[0][c]
-        rel = (f[:, c] - y[:, c]) / max(float(np.max(np.abs(y[:, c]))), 1e-300)
-        lim = max(float(np.max(np.abs(rel))), 1e-12)
-        sc = ax.scatter(np.degrees(th), np.degrees(td), c=rel, s=5, cmap="coolwarm",
-                        vmin=-lim, vmax=lim)
+        floor = max(0.01 * float(np.max(np.abs(y[:, c]))), 1e-300)
+        rel = (f[:, c] - y[:, c]) / np.maximum(np.abs(y[:, c]), floor)
+        lim = max(float(np.percentile(np.abs(rel), 95)), 1e-12)
+        sc = ax.scatter(
+            np.degrees(th), np.degrees(td), c=rel, s=5, cmap="coolwarm", vmin=-lim, vmax=lim
+        )
         ax.set_xlabel("theta_h (deg)")
         ax.set_ylabel("theta_d (deg)")
-        ax.set_title(f"{r.channels[c]}: (fit - measured) / max", fontsize=9)
+        ax.set_title(f"{r.channels[c]}: (fit - measured) / measured", fontsize=9)
         fig.colorbar(sc, ax=ax)
     fig.suptitle(f"{r.model} residuals ({r.loss})", fontsize=10)
     fig.tight_layout()

@@ -101,10 +101,11 @@ class FitResult:
         return {k: float(v[i]) for k, v in self.params.items()}
 
     def bind(self) -> Any:
-        """The fitted model bound to its per-channel parameters (``eval(wi, wo) -> (..., C)``).
+        """The fitted model bound to its per-channel parameters.
 
-        Uses :meth:`gonio.brdf` models' ``bind`` when the fit has three channels, else a
-        small adapter that broadcasts the channel axis last.
+        Returns an object with ``eval(wi, wo) -> (..., C)`` (1/sr) and
+        ``albedo(theta_i) -> (..., C)``, for any number of channels C (the same interface
+        as a bound model or a measured file).
         """
         from gonio.brdf import get_model
 
@@ -122,7 +123,9 @@ class FitResult:
         ]
         for name, v in self.params.items():
             s = self.std[name]
-            vals = ", ".join(f"{c}={x:.6g}+-{e:.2g}" for c, x, e in zip(self.channels, v, s))
+            vals = ", ".join(
+                f"{c}={x:.6g}+-{e:.2g}" for c, x, e in zip(self.channels, v, s, strict=True)
+            )
             lines.append(f"  {name}: {vals}")
         return "\n".join(lines)
 

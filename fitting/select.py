@@ -31,9 +31,9 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from gonio.fitting.result import FitResult
 
 from gonio.errors import FitError, UnknownNameError
-from gonio.fitting.result import FitResult
 
 __all__ = [
     "DEFAULT_CANDIDATES",
@@ -56,8 +56,13 @@ def _fresnel_dielectric(cos_t: float, n: float) -> float:
     return float(0.5 * (rs * rs + rp * rp))
 
 
-def gloss_units(brdf: Any, theta_deg: float = 60.0, aperture_deg: tuple[float, float] = (4.4, 11.7),
-                n_standard: float = 1.567, n_nodes: int = 15) -> np.ndarray:
+def gloss_units(
+    brdf: Any,
+    theta_deg: float = 60.0,
+    aperture_deg: tuple[float, float] = (4.4, 11.7),
+    n_standard: float = 1.567,
+    n_nodes: int = 15,
+) -> np.ndarray:
     """Specular gloss (GU, per channel) of a BRDF in the ISO 2813 geometry.
 
     ``100 * (flux into the receptor aperture around the mirror direction) / (flux the black
@@ -87,7 +92,9 @@ def gloss_units(brdf: Any, theta_deg: float = 60.0, aperture_deg: tuple[float, f
     return 100.0 * flux / _fresnel_dielectric(np.cos(t), n_standard)
 
 
-def information_criterion(r: FitResult, criterion: str = "bic", m_eff: float | None = None) -> float:
+def information_criterion(
+    r: FitResult, criterion: str = "bic", m_eff: float | None = None
+) -> float:
     """AIC or BIC of a fit result, optionally with an effective sample count ``m_eff``.
 
     With ``m_eff`` the log-likelihood is rescaled by ``m_eff / m`` (each effective sample
@@ -161,18 +168,36 @@ def select_model(
             r = fit_model(samples, name, **fit_kwargs)
         except FitError as exc:
             errors.append(f"{name}: {exc}")
-            rows.append({"model": name, "criterion": None, "cost": None, "success": False,
-                         "error": str(exc)})
+            rows.append(
+                {
+                    "model": name,
+                    "criterion": None,
+                    "cost": None,
+                    "success": False,
+                    "error": str(exc),
+                }
+            )
             continue
         m_eff = None
         if effective_samples is not None:
             m_eff = effective_samples * len(r.channels)
         ic = information_criterion(r, criterion, m_eff)
-        rows.append({"model": name, "criterion": ic, "cost": r.cost, "success": r.success,
-                     "n_params": r.n_params, "at_bounds": list(r.diagnostics["at_bounds"])})
+        rows.append(
+            {
+                "model": name,
+                "criterion": ic,
+                "cost": r.cost,
+                "success": r.success,
+                "n_params": r.n_params,
+                "at_bounds": list(r.diagnostics["at_bounds"]),
+            }
+        )
         results.append(r)
-    ok = [(row["criterion"], i) for i, row in enumerate(rows)
-          if row["success"] and row["criterion"] is not None]
+    ok = [
+        (row["criterion"], i)
+        for i, row in enumerate(rows)
+        if row["success"] and row["criterion"] is not None
+    ]
     if not ok:
         raise FitError("model='auto': no candidate could be fitted: " + "; ".join(errors))
     by_name = {r.model: r for r in results}
@@ -186,8 +211,10 @@ def select_model(
     if gloss is not None and gloss < min_gloss:
         diffuse = [(ic, i) for ic, i in ok if rows[i]["model"] in DIFFUSE_MODELS]
         if diffuse:
-            note = (f"{rows[best_row]['model']} fits better but its lobe is matte "
-                    f"({gloss:.2f} GU < {min_gloss:g} GU at 60 deg): diffuse chosen")
+            note = (
+                f"{rows[best_row]['model']} fits better but its lobe is matte "
+                f"({gloss:.2f} GU < {min_gloss:g} GU at 60 deg): diffuse chosen"
+            )
             best_row = min(diffuse)[1]
     chosen = by_name[rows[best_row]["model"]]
     chosen.diagnostics["criterion"] = criterion

@@ -24,7 +24,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
 from gonio.fitting.losses import robust_rho
 from gonio.fitting.objective import Problem
 

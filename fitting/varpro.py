@@ -18,7 +18,6 @@ import itertools
 from typing import Any
 
 import numpy as np
-
 from gonio.fitting.objective import Problem
 
 __all__ = ["VarPro", "solve_box_qp"]
@@ -84,7 +83,7 @@ def _enumerate_active_sets(H, b, a, ok, lo, hi):
                 lambda v, i=i: (0.5 * v @ H[i] @ v - b[i] @ v, H[i] @ v - b[i]),
                 np.clip(a[i], lo[i], hi[i]),
                 jac=True,
-                bounds=list(zip(lo[i], hi[i])),
+                bounds=list(zip(lo[i], hi[i], strict=True)),
                 method="L-BFGS-B",
             )
             a[i] = res.x
@@ -120,9 +119,7 @@ def _enumerate_active_sets(H, b, a, ok, lo, hi):
 def unit_values(problem: Problem) -> np.ndarray:
     """A value inside the bounds for each linear parameter at which basis functions are
     evaluated (1, or the upper bound when it is below 1: Oren-Nayar albedo <= 0.99)."""
-    return np.array(
-        [min(1.0, hi) if hi > 0 else 1.0 for hi in problem.ub_lin], dtype=np.float64
-    )
+    return np.array([min(1.0, hi) if hi > 0 else 1.0 for hi in problem.ub_lin], dtype=np.float64)
 
 
 class VarPro:
@@ -144,7 +141,7 @@ class VarPro:
         self.coupling = self._detect_coupling()
 
     def _unit_params(self, theta: np.ndarray) -> dict[str, Any]:
-        p: dict[str, Any] = {n: float(t) for n, t in zip(self.p.shape_names, theta)}
+        p: dict[str, Any] = {n: float(t) for n, t in zip(self.p.shape_names, theta, strict=True)}
         for j, n in enumerate(self.p.linear_names):
             p[n] = float(self.unit[j])
         return p
@@ -261,8 +258,10 @@ class VarPro:
                 G[:, :, j] = np.broadcast_to(g[name], (m, n))
             K = p.n_linear
             Gt = np.swapaxes(G, 1, 2)  # (m, K, n)
-            H = np.stack([np.matmul(Gt * self.w2[None, None, :, c], G)
-                          for c in range(self.w2.shape[1])], axis=1)  # (m, C, K, K)
+            H = np.stack(
+                [np.matmul(Gt * self.w2[None, None, :, c], G) for c in range(self.w2.shape[1])],
+                axis=1,
+            )  # (m, C, K, K)
             b = np.swapaxes(np.matmul(Gt, self.w2y), 1, 2)  # (m, C, K)
             a = solve_box_qp(H.reshape(-1, K, K), b.reshape(-1, K), p.lb_lin, p.ub_lin)
             a = a.reshape(m, -1, K)  # (m, C, K)

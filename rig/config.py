@@ -216,9 +216,15 @@ class RigConfig(_Strict):
             raise ValueError(f"joint(s) {dupj} driven by more than one servo")
         missing = [j for j in JOINT_NAMES if j not in joints]
         if missing:
-            raise ValueError(f"no servo drives joint(s) {missing}; {self.geometry.kind} needs all of {JOINT_NAMES}")
+            raise ValueError(
+                f"no servo drives joint(s) {missing}; "
+                f"{self.geometry.kind} needs all of {JOINT_NAMES}"
+            )
         for pose_name in ("home_deg", "park_deg"):
             pose = getattr(self.motion, pose_name)
+            lacking = [j for j in JOINT_NAMES if pose is not None and j not in pose]
+            if lacking:
+                raise ValueError(f"motion.{pose_name} lacks joint(s) {lacking}")
             for s in self.servos if pose else ():
                 v = pose.get(s.joint)
                 if v is not None and not s.min_deg <= v <= s.max_deg:

@@ -34,10 +34,24 @@ HW_ERROR_NAMES = {
     HW_OVERLOAD: "overload",
 }
 
-OPERATING_MODES = {"current": 0, "velocity": 1, "position": 3, "extended_position": 4,
-                   "current_based_position": 5, "pwm": 16}
-BAUD_CODES = {0: 9600, 1: 57600, 2: 115200, 3: 1_000_000, 4: 2_000_000, 5: 3_000_000,
-              6: 4_000_000, 7: 4_500_000}
+OPERATING_MODES = {
+    "current": 0,
+    "velocity": 1,
+    "position": 3,
+    "extended_position": 4,
+    "current_based_position": 5,
+    "pwm": 16,
+}
+BAUD_CODES = {
+    0: 9600,
+    1: 57600,
+    2: 115200,
+    3: 1_000_000,
+    4: 2_000_000,
+    5: 3_000_000,
+    6: 4_000_000,
+    7: 4_500_000,
+}
 
 
 @dataclass(frozen=True)
@@ -215,7 +229,9 @@ def acceleration_register(accel_rad_s2: float) -> int:
     return max(1, round(rpm2 / RPM2_PER_ACCELERATION_UNIT))
 
 
-def profile_pulses(velocity_reg: int, acceleration_reg: int, model: ServoModel) -> tuple[float, float]:
+def profile_pulses(
+    velocity_reg: int, acceleration_reg: int, model: ServoModel
+) -> tuple[float, float]:
     """(speed pulses/s, acceleration pulses/s^2) of a velocity-based profile.
 
     Profile Velocity 0 -> the model's no-load speed; Profile Acceleration 0 -> infinite.

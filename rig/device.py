@@ -22,14 +22,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
-
-from gonio.errors import RigError, RigFault
 from gonio.rig import control_table as ct
 from gonio.rig.config import JOINT_NAMES, RigConfig
 from gonio.rig.kinematics import Kinematics, _angle_between
 from gonio.rig.servo import Servo, ServoState
 from gonio.rig.transport import Transport
+from numpy.typing import ArrayLike, NDArray
+
+from gonio.errors import RigError, RigFault
 
 log = logging.getLogger("gonio.rig")
 
@@ -115,7 +115,9 @@ class Rig:
     ...     result = rig.move_to(wi, wo)
     """
 
-    def __init__(self, config: RigConfig, *, port: str | None = None, baud_rate: int | None = None) -> None:
+    def __init__(
+        self, config: RigConfig, *, port: str | None = None, baud_rate: int | None = None
+    ) -> None:
         self.config = config
         bus = config.bus
         self.transport = Transport(
@@ -132,6 +134,8 @@ class Rig:
         self._abort = threading.Event()
         self._saved_handlers: dict[int, Any] = {}
         self._opened = False
+        #: Keep torque on when the ``with`` block ends normally (never after an error).
+        self.hold_on_exit = False
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> Rig:
@@ -149,7 +153,11 @@ class Rig:
                 s.torque(False)
                 if s.read("hardware_error_status"):
                     bits = s.read("hardware_error_status")
-                    log.warning("servo %d reports hardware error 0x%02X from before; rebooting it", s.id, bits)
+                    log.warning(
+                        "servo %d reports hardware error 0x%02X from before; rebooting it",
+                        s.id,
+                        bits,
+                    )
                     self.transport.reboot(s.id)
                 s.configure()
         except BaseException:
@@ -167,18 +175,23 @@ class Rig:
         if len(missing) == len(self._ids):
             raise RigError(
                 f"no servo answered on {port} at {baud} baud (IDs {list(self._ids)}): check the "
-                "baud rate (bus.baud_rate must match the servos' Baud Rate register), power and cabling"
+                "baud rate (bus.baud_rate must match the servos' Baud Rate register), power "
+                "and cabling"
             )
         if missing:
             names = ", ".join(f"{i} ({self._by_id[i].joint})" for i in missing)
-            raise RigError(f"servo(s) {names} did not answer on {port}; found {sorted(set(found) - set(missing))}")
+            raise RigError(
+                f"servo(s) {names} did not answer on {port}; "
+                f"found {sorted(set(found) - set(missing))}"
+            )
         for i, (number, fw) in found.items():
             s = self._by_id[i]
             model = ct.MODELS_BY_NUMBER.get(number)
             if model is None or model.name != s.config.model:
                 got = model.name if model else "an unknown model"
                 raise RigError(
-                    f"servo {i} ({s.joint}) is {got} (model number {number}, firmware {fw}) but the "
+                    f"servo {i} ({s.joint}) is {got} (model number {number}, firmware {fw}) "
+                    "but the "
                     f"configuration says {s.config.model} (model number {s.model.number})"
                 )
 
@@ -196,9 +209,13 @@ class Rig:
         self._install_signal_handlers()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, exc, tb) -> None:
         try:
-            self.close()
+            if exc_type is None and self.hold_on_exit:
+                log.info("leaving torque on (hold_on_exit)")
+                self.transport.close()
+            else:
+                self.close()
         finally:
             self._restore_signal_handlers()
 
@@ -263,17 +280,23 @@ class Rig:
         return self.kinematics.forward(self.joints())
 
     # ------------------------------------------------------------------ motion
-    def _check_target(self, target: Mapping[str, float], current: Mapping[str, float]) -> dict[int, int]:
+    def _check_target(
+        self, target: Mapping[str, float], current: Mapping[str, float]
+    ) -> dict[int, int]:
         missing = [j for j in JOINT_NAMES if j not in target]
         if missing:
             raise RigError(f"target pose lacks joint(s) {missing}")
         goals = {self.servos[j].id: self.servos[j].to_pulses(float(target[j])) for j in JOINT_NAMES}
-        reason = self.kinematics.check_joints(target) or self.kinematics._path_reason(current, target)
+        reason = self.kinematics.check_joints(target) or self.kinematics._path_reason(
+            current, target
+        )
         if reason:
             raise RigError(f"refusing to move: {reason}")
         return goals
 
-    def move_joints(self, target: Mapping[str, float], timeout: float | None = None) -> dict[str, float]:
+    def move_joints(
+        self, target: Mapping[str, float], timeout: float | None = None
+    ) -> dict[str, float]:
         """Move to joint angles (rad) and wait until every servo is in position.
 
         Everything is checked (limits, camera shadow, arm clearance, path) before anything
@@ -286,17 +309,23 @@ class Rig:
         RigFault
             Hardware error or timeout during the move (torque is off on every servo).
         """
-        current = self.joints()
+        states = self.read_states()
+        current = {j: st.position for j, st in states.items()}
         goals = self._check_target(target, current)
-        return self._move_pulses(goals, timeout)
+        return self._move_pulses(goals, timeout, states)
 
-    def _move_pulses(self, goals: dict[int, int], timeout: float | None) -> dict[str, float]:
+    def _move_pulses(
+        self,
+        goals: dict[int, int],
+        timeout: float | None,
+        states: Mapping[str, ServoState] | None = None,
+    ) -> dict[str, float]:
         motion = self.config.motion
         timeout = motion.move_timeout_s if timeout is None else timeout
         tol = motion.position_tolerance_pulses
         self._abort.clear()
         try:
-            states = self.read_states()
+            states = self.read_states() if states is None else states
             self._raise_on_fault(states)
             goal_reg = ct.MODELS[self.config.servos[0].model]["goal_position"]
             off = [s for s in states.values() if not s.torque]
@@ -309,13 +338,18 @@ class Rig:
             while True:
                 states = self.read_states()
                 self._raise_on_fault(states)
-                lost = {s.dxl_id: goals[s.dxl_id] for s in states.values() if s.goal_pulses != goals[s.dxl_id]}
+                lost = {
+                    s.dxl_id: goals[s.dxl_id]
+                    for s in states.values()
+                    if s.goal_pulses != goals[s.dxl_id]
+                }
                 if lost:  # a SYNC_WRITE has no reply: a lost one shows up here
                     self.transport.counters["goal_resends"] += 1
                     log.warning("goal not taken by servo(s) %s; sending it again", sorted(lost))
                     self.transport.sync_write(goal_reg, lost)
                 elif all(
-                    not s.moving and abs(s.position_pulses - goals[s.dxl_id]) <= tol for s in states.values()
+                    not s.moving and abs(s.position_pulses - goals[s.dxl_id]) <= tol
+                    for s in states.values()
                 ):
                     return {j: s.position for j, s in states.items()}
                 if time.monotonic() > deadline:
@@ -324,7 +358,9 @@ class Rig:
                         for s in states.values()
                         if abs(s.position_pulses - goals[s.dxl_id]) > tol or s.moving
                     ]
-                    raise _fault(f"move timed out after {timeout:.1f} s: servo(s) {'; '.join(late)}")
+                    raise _fault(
+                        f"move timed out after {timeout:.1f} s: servo(s) {'; '.join(late)}"
+                    )
                 # Wait for the next state poll; an abort (signal) wakes it at once.
                 self._abort.wait(motion.poll_interval_s)
         except BaseException:
@@ -338,14 +374,17 @@ class Rig:
                 bits = s.hardware_error or self._by_id[s.dxl_id].read("hardware_error_status")
                 names = ", ".join(s.error_names) or "alert bit without a register 70 code"
                 raise _fault(
-                    f"servo {s.dxl_id} ({s.joint}) hardware error 0x{bits:02X} ({names}); torque cut "
+                    f"servo {s.dxl_id} ({s.joint}) hardware error 0x{bits:02X} ({names}); "
+                    "torque cut "
                     f"on all servos; power-cycle or `gonio rig home` after fixing the cause "
                     f"(a REBOOT clears the error)",
                     s.dxl_id,
                     bits,
                 )
 
-    def quantised_goals(self, wi: ArrayLike, wo: ArrayLike, joints: Mapping[str, float]) -> dict[int, int]:
+    def quantised_goals(
+        self, wi: ArrayLike, wo: ArrayLike, joints: Mapping[str, float]
+    ) -> dict[int, int]:
         """Goal pulses near ``joints`` whose directions are closest to (wi, wo).
 
         Each joint can round down or up; of the 16 combinations the one with the smallest
@@ -359,7 +398,10 @@ class Rig:
             lo, hi = math.floor(p), math.ceil(p)
             options.append(sorted({lo, hi}))
         combos = np.array(list(itertools.product(*options)), dtype=np.float64)
-        q = {j: np.array([self.servos[j].to_joint(c) for c in combos[:, k]]) for k, j in enumerate(JOINT_NAMES)}
+        q = {
+            j: np.array([self.servos[j].to_joint(c) for c in combos[:, k]])
+            for k, j in enumerate(JOINT_NAMES)
+        }
         ai, ao = self.kinematics.forward(q)
         err = np.maximum(_angle_between(ai, np.asarray(wi)), _angle_between(ao, np.asarray(wo)))
         best = combos[int(np.argmin(err))]
@@ -387,13 +429,14 @@ class Rig:
         t0 = time.monotonic()
         wi = np.asarray(wi, dtype=np.float64)
         wo = np.asarray(wo, dtype=np.float64)
-        current = self.joints()
+        states = self.read_states()
+        current = {j: st.position for j, st in states.items()}
         q = self.kinematics.inverse(wi, wo, current=current)
         wi_u, wo_u = wi / np.linalg.norm(wi), wo / np.linalg.norm(wo)
         goals = self.quantised_goals(wi_u, wo_u, q)
         target = {j: self.servos[j].to_joint(goals[self.servos[j].id]) for j in JOINT_NAMES}
         self._check_target(target, current)
-        achieved = self._move_pulses(goals, timeout)
+        achieved = self._move_pulses(goals, timeout, states)
         ai, ao = self.kinematics.forward(achieved)
         return MoveResult(
             wi=wi_u,

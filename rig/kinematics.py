@@ -39,9 +39,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
-
-from gonio.errors import ConfigError, RigError
 from gonio.rig.config import JOINT_NAMES, RigConfig
 from gonio.rig.control_table import (
     MODELS,
@@ -49,6 +46,9 @@ from gonio.rig.control_table import (
     profile_pulses,
     velocity_register,
 )
+from numpy.typing import ArrayLike, NDArray
+
+from gonio.errors import ConfigError, RigError
 
 Array = NDArray[np.float64]
 Joints = Mapping[str, float]
@@ -102,6 +102,16 @@ def trapezoid_time(distance: ArrayLike, speed: ArrayLike, accel: ArrayLike) -> A
     return np.where(d >= ramp, t_full, t_tri)
 
 
+def _trapezoid_time_scalar(d: float, v: float, a: float) -> float:
+    # scalar twin of trapezoid_time: move_time runs inside the inverse's candidate loop
+    d = abs(d)
+    if math.isinf(a):
+        return d / v
+    if d >= v * v / a:
+        return d / v + v / a
+    return 2.0 * math.sqrt(d / a)
+
+
 def trapezoid_position(distance: float, speed: float, accel: float, t: ArrayLike) -> Array:
     """Distance covered at time ``t`` (s) along the move of :func:`trapezoid_time`."""
     t = np.asarray(t, dtype=np.float64)
@@ -112,13 +122,16 @@ def trapezoid_position(distance: float, speed: float, accel: float, t: ArrayLike
         return np.clip(t * speed, 0.0, d)
     v = min(speed, math.sqrt(d * accel))  # peak speed (triangle when the cruise is never reached)
     t_acc = v / accel
-    t_total = float(trapezoid_time(d, speed, accel))
+    t_total = _trapezoid_time_scalar(d, speed, accel)
     t_dec = t_total - t_acc
     out = np.where(
         t < t_acc,
         0.5 * accel * t * t,
-        np.where(t < t_dec, 0.5 * accel * t_acc**2 + v * (t - t_acc),
-                 d - 0.5 * accel * np.clip(t_total - t, 0.0, None) ** 2),
+        np.where(
+            t < t_dec,
+            0.5 * accel * t_acc**2 + v * (t - t_acc),
+            d - 0.5 * accel * np.clip(t_total - t, 0.0, None) ** 2,
+        ),
     )
     return np.clip(np.where(t <= 0, 0.0, out), 0.0, d)
 
@@ -187,7 +200,9 @@ class Kinematics:
         self._q = self._B.T @ np.cross(self._k, _Z)
         self._tilt_amp = math.hypot(self._p[2], self._q[2])
         if self._tilt_amp < 1e-9:
-            raise ConfigError("geometry: tilting about tilt_axis never changes the stage's inclination")
+            raise ConfigError(
+                "geometry: tilting about tilt_axis never changes the stage's inclination"
+            )
         self._tilt_phase = math.atan2(-self._q[2], self._p[2])
         self._eL = math.radians(g.light_elevation_deg)
         self._eC = math.radians(g.camera_elevation_deg)
@@ -197,7 +212,9 @@ class Kinematics:
         for s in config.servos:
             model = MODELS.get(s.model)
             if model is None:
-                raise ConfigError(f"servo {s.id}: unknown model {s.model!r}; known: {sorted(MODELS)}")
+                raise ConfigError(
+                    f"servo {s.id}: unknown model {s.model!r}; known: {sorted(MODELS)}"
+                )
             speed = math.radians(s.velocity_deg_s) * s.gear_ratio
             accel = math.radians(s.acceleration_deg_s2) * s.gear_ratio
             self._profile[s.joint] = profile_pulses(
@@ -219,7 +236,9 @@ class Kinematics:
     def _device(azimuth: ArrayLike, elevation: float) -> Array:
         a = np.asarray(azimuth, dtype=np.float64)
         ce = math.cos(elevation)
-        return np.stack(np.broadcast_arrays(ce * np.cos(a), ce * np.sin(a), math.sin(elevation) + 0 * a), -1)
+        return np.stack(
+            np.broadcast_arrays(ce * np.cos(a), ce * np.sin(a), math.sin(elevation) + 0 * a), -1
+        )
 
     def forward(self, joints: Joints) -> tuple[Array, Array]:
         """Light and camera directions in the sample frame.
@@ -284,11 +303,15 @@ class Kinematics:
         for j, (v, a) in self._profile.items():
             if j in joints_from and j in joints_to:
                 s = self._servo[j]
-                d = abs(round(s.pulses(float(joints_to[j]))) - round(s.pulses(float(joints_from[j]))))
-                t = max(t, float(trapezoid_time(d, v, a)))
+                d = abs(
+                    round(s.pulses(float(joints_to[j]))) - round(s.pulses(float(joints_from[j])))
+                )
+                t = max(t, _trapezoid_time_scalar(d, v, a))
         return t
 
-    def joint_trajectory(self, joints_from: Joints, joints_to: Joints, n: int = 65) -> dict[str, Array]:
+    def joint_trajectory(
+        self, joints_from: Joints, joints_to: Joints, n: int = 65
+    ) -> dict[str, Array]:
         """Joint angles (rad) at ``n`` instants of a move, every servo on its own profile."""
         total = self.move_time(joints_from, joints_to)
         ts = np.linspace(0.0, total, n)
@@ -298,7 +321,7 @@ class Kinematics:
             p0, p1 = s.pulses(float(joints_from[j])), s.pulses(float(joints_to[j]))
             v, a = self._profile[j]
             covered = trapezoid_position(abs(p1 - p0), v, a, ts)
-            out[j] = np.array([s.joint_rad(p0 + math.copysign(c, p1 - p0)) for c in covered])
+            out[j] = s.joint_rad(p0 + np.copysign(covered, p1 - p0))
         return out
 
     # ------------------------------------------------------------------ checks
@@ -344,7 +367,8 @@ class Kinematics:
         for name, th in (("theta_i", ti), ("theta_o", to)):
             if th > self.max_theta:
                 return (
-                    f"{name} = {math.degrees(th):.2f} deg beyond {math.degrees(self.max_theta):.1f} deg: "
+                    f"{name} = {math.degrees(th):.2f} deg beyond "
+                    f"{math.degrees(self.max_theta):.1f} deg: "
                     "the sample holder's rim blocks that direction"
                 )
         return None
@@ -387,13 +411,17 @@ class Kinematics:
                     k1 = math.floor((hi - base[j]) / (2 * math.pi) + 1e-9)
                     vals = [base[j] + 2 * math.pi * k for k in range(k0, k1 + 1)]
                     if not vals:  # keep the nearest so the reason names the joint
-                        vals = [base[j] + 2 * math.pi * round(((lo + hi) / 2 - base[j]) / (2 * math.pi))]
+                        vals = [
+                            base[j] + 2 * math.pi * round(((lo + hi) / 2 - base[j]) / (2 * math.pi))
+                        ]
                     options.append(vals)
                 for combo in itertools.product(*options):
                     out.append(dict(zip(JOINT_NAMES, combo, strict=True)))
         return out, reason
 
-    def _solve(self, wi: ArrayLike, wo: ArrayLike, current: Joints | None) -> tuple[dict | None, str | None]:
+    def _solve(
+        self, wi: ArrayLike, wo: ArrayLike, current: Joints | None
+    ) -> tuple[dict | None, str | None]:
         wi = np.asarray(wi, dtype=np.float64).reshape(3)
         wo = np.asarray(wo, dtype=np.float64).reshape(3)
         reason = self._direction_reason(wi, wo)
@@ -425,7 +453,9 @@ class Kinematics:
             return None, reasons[0] if reasons else "no solution"
         return best, None
 
-    def inverse(self, wi: ArrayLike, wo: ArrayLike, current: Joints | None = None) -> dict[str, float]:
+    def inverse(
+        self, wi: ArrayLike, wo: ArrayLike, current: Joints | None = None
+    ) -> dict[str, float]:
         """Joint angles (rad) that put the light along ``wi`` and the camera along ``wo``.
 
         Parameters

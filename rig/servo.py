@@ -8,13 +8,14 @@ block the rig sync-reads every cycle (:func:`decode_state`).
 from __future__ import annotations
 
 import math
+import struct
 from dataclasses import dataclass
 
-from gonio.errors import RigError
 from gonio.rig import control_table as ct
 from gonio.rig.config import ServoConfig
-from gonio.rig.protocol import from_le
 from gonio.rig.transport import Transport
+
+from gonio.errors import RigError
 
 
 @dataclass(frozen=True)
@@ -86,8 +87,24 @@ class Servo:
         self.joint = config.joint
         model = ct.MODELS.get(config.model)
         if model is None:
-            raise RigError(f"servo {config.id}: unknown model {config.model!r}; known: {sorted(ct.MODELS)}")
+            raise RigError(
+                f"servo {config.id}: unknown model {config.model!r}; known: {sorted(ct.MODELS)}"
+            )
         self.model = model
+        # Precompiled little-endian decoders of the state block: it is decoded every cycle.
+        fmt = {
+            (1, False): "<B",
+            (2, False): "<H",
+            (4, False): "<I",
+            (1, True): "<b",
+            (2, True): "<h",
+            (4, True): "<i",
+        }
+        self._fields = {
+            r.name: (struct.Struct(fmt[r.size, r.signed]), r.address - ct.STATE_BLOCK_START)
+            for r in model.registers.values()
+            if ct.STATE_BLOCK_START <= r.address and r.address + r.size <= ct.STATE_BLOCK_END
+        }
 
     # ---------------------------------------------------------- conversions
     def to_pulses(self, joint_rad: float) -> int:
@@ -106,12 +123,11 @@ class Servo:
 
     def decode_state(self, block: bytes) -> ServoState:
         """Decode the cyclic block (``STATE_BLOCK_START`` .. ``STATE_BLOCK_END``)."""
-        m = self.model
+        fields = self._fields
 
         def val(name: str) -> int:
-            r = m[name]
-            k = r.address - ct.STATE_BLOCK_START
-            return r.to_signed(from_le(block[k : k + r.size]))
+            st, k = fields[name]
+            return st.unpack_from(block, k)[0]
 
         pos, goal = val("present_position"), val("goal_position")
         vel = val("present_velocity") * ct.RPM_PER_VELOCITY_UNIT * 2 * math.pi / 60
@@ -141,7 +157,9 @@ class Servo:
 
     def state(self) -> ServoState:
         """Read and decode this servo's state block (one READ)."""
-        return self.decode_state(self.bus.read_bytes(self.id, ct.STATE_BLOCK_START, ct.STATE_BLOCK_LEN))
+        return self.decode_state(
+            self.bus.read_bytes(self.id, ct.STATE_BLOCK_START, ct.STATE_BLOCK_LEN)
+        )
 
     def configure(self) -> None:
         """Write operating mode, position limits and motion profile; read them back.
@@ -154,7 +172,9 @@ class Servo:
         accel = math.radians(c.acceleration_deg_s2) * c.gear_ratio
         wanted = {"operating_mode": mode, "drive_mode": 0}  # direction is handled here
         if c.operating_mode == "position":
-            lo, hi = sorted((round(c.pulses(math.radians(c.min_deg))), round(c.pulses(math.radians(c.max_deg)))))
+            lo, hi = sorted(
+                (round(c.pulses(math.radians(c.min_deg))), round(c.pulses(math.radians(c.max_deg))))
+            )
             wanted |= {"min_position_limit": max(0, lo), "max_position_limit": min(4095, hi)}
         wanted |= {
             "profile_velocity": ct.velocity_register(speed),

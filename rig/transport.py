@@ -32,10 +32,10 @@ from dynamixel_sdk import (
     PacketHandler,
     PortHandler,
 )
-
-from gonio.errors import RigError
 from gonio.rig import protocol
 from gonio.rig.control_table import Register
+
+from gonio.errors import RigError
 
 log = logging.getLogger("gonio.rig.bus")
 
@@ -177,8 +177,17 @@ class Transport:
                 break
             if attempt < self.retries:
                 self.counters["retries"] += 1
-                log.warning("retry %d/%d of %s on servo %s: %s", attempt + 1, self.retries, what,
-                            dxl_id, last)
+                # an absent ID during a scan is expected: keep PING retries out of warnings
+                level = logging.INFO if what == "PING" else logging.WARNING
+                log.log(
+                    level,
+                    "retry %d/%d of %s on servo %s: %s",
+                    attempt + 1,
+                    self.retries,
+                    what,
+                    dxl_id,
+                    last,
+                )
         raise RigError(
             f"servo {dxl_id} did not answer {what} after {self.retries + 1} attempts "
             f"({last}); check the port, baud rate ({self.baud_rate}), ID and power"
@@ -192,6 +201,7 @@ class Transport:
             self.retries = retries
         try:
             with self.lock:
+
                 def fn():
                     model, result, error = self._ph.ping(self._port, dxl_id)
                     fw = 0
@@ -209,16 +219,28 @@ class Transport:
         finally:
             self.retries = saved
 
+    def broadcast_ping(self) -> dict[int, tuple[int, int]]:
+        """Every servo on the bus: ID -> (model number, firmware).  Takes about 0.8 s."""
+        with self.lock:
+            found, result = self._ph.broadcastPing(self._port)
+            self.counters["transactions"] += 1
+            if result not in (COMM_SUCCESS, COMM_RX_TIMEOUT):
+                log.warning("broadcast ping: %s", self._ph.getTxRxResult(result))
+            return {int(i): (int(v[0]), int(v[1])) for i, v in sorted(found.items())}
+
     def read_bytes(self, dxl_id: int, address: int, length: int) -> bytes:
         """READ ``length`` raw bytes from ``address``."""
         with self.lock:
             data, err = self._attempt(
-                f"READ {address}+{length}", dxl_id,
+                f"READ {address}+{length}",
+                dxl_id,
                 lambda: self._ph.readTxRx(self._port, dxl_id, address, length),
             )
             self._status(f"READ {address}", dxl_id, COMM_SUCCESS, err)
             if len(data) != length:
-                raise RigError(f"servo {dxl_id} returned {len(data)} bytes for a {length}-byte READ")
+                raise RigError(
+                    f"servo {dxl_id} returned {len(data)} bytes for a {length}-byte READ"
+                )
             return bytes(data)
 
     def read(self, dxl_id: int, reg: Register) -> int:
@@ -230,11 +252,18 @@ class Transport:
         what = what or f"WRITE {address}"
         with self.lock:
             params = protocol.le(address, 2) + bytes(data)
-            if protocol.needs_stuffing(bytes([protocol.WRITE]) + params):
+            stuffed = protocol.needs_stuffing(bytes([protocol.WRITE]) + params)
+            if stuffed:
                 self.counters["stuffed"] += 1
-                fn = lambda: self._raw_txrx(protocol.build_packet(dxl_id, protocol.WRITE, params))  # noqa: E731
-            else:
-                fn = lambda: (None, *self._ph.writeTxRx(self._port, dxl_id, address, len(data), list(data)))  # noqa: E731
+
+            def fn():
+                if stuffed:  # the SDK would send FF FF FD unstuffed
+                    return self._raw_txrx(protocol.build_packet(dxl_id, protocol.WRITE, params))
+                return (
+                    None,
+                    *self._ph.writeTxRx(self._port, dxl_id, address, len(data), list(data)),
+                )
+
             _, err = self._attempt(what, dxl_id, fn)
             self._status(what, dxl_id, COMM_SUCCESS, err)
 
@@ -242,8 +271,12 @@ class Transport:
         """Write a register value (signed values are encoded as two's complement)."""
         if reg.access != "RW":
             raise RigError(f"register {reg.name} is read-only")
-        self.write_bytes(dxl_id, reg.address, protocol.le(reg.to_raw(value), reg.size),
-                         f"WRITE {reg.name}={value}")
+        self.write_bytes(
+            dxl_id,
+            reg.address,
+            protocol.le(reg.to_raw(value), reg.size),
+            f"WRITE {reg.name}={value}",
+        )
 
     def _raw_txrx(self, packet: bytes):
         """Send a packet built here (stuffed) and read the status with the SDK."""
@@ -286,12 +319,16 @@ class Transport:
     def sync_write(self, reg: Register, values: Mapping[int, int]) -> None:
         """SYNC_WRITE one register to several servos (no reply; verify by reading back)."""
         with self.lock:
-            payload = b"".join(bytes([i]) + protocol.le(reg.to_raw(v), reg.size) for i, v in values.items())
+            payload = b"".join(
+                bytes([i]) + protocol.le(reg.to_raw(v), reg.size) for i, v in values.items()
+            )
             params = protocol.le(reg.address, 2) + protocol.le(reg.size, 2) + payload
             self.counters["transactions"] += 1
             if protocol.needs_stuffing(bytes([protocol.SYNC_WRITE]) + params):
                 self.counters["stuffed"] += 1
-                self._raw_send(protocol.build_packet(protocol.BROADCAST_ID, protocol.SYNC_WRITE, params))
+                self._raw_send(
+                    protocol.build_packet(protocol.BROADCAST_ID, protocol.SYNC_WRITE, params)
+                )
                 return
             group = GroupSyncWrite(self._port, self._ph, reg.address, reg.size)
             for i, v in values.items():
@@ -304,7 +341,8 @@ class Transport:
         """WRITE to the broadcast ID (every servo, no reply): used for emergency torque off."""
         with self.lock:
             pkt = protocol.build_packet(
-                protocol.BROADCAST_ID, protocol.WRITE,
+                protocol.BROADCAST_ID,
+                protocol.WRITE,
                 protocol.le(reg.address, 2) + protocol.le(reg.to_raw(value), reg.size),
             )
             self._raw_send(pkt)
@@ -319,5 +357,7 @@ class Transport:
     def reboot(self, dxl_id: int) -> None:
         """REBOOT (clears a hardware error; torque comes back off)."""
         with self.lock:
-            _, err = self._attempt("REBOOT", dxl_id, lambda: (None, *self._ph.reboot(self._port, dxl_id)))
+            _, err = self._attempt(
+                "REBOOT", dxl_id, lambda: (None, *self._ph.reboot(self._port, dxl_id))
+            )
             self.alerts.discard(dxl_id)

@@ -19,12 +19,12 @@ from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
-
-from gonio.errors import CameraError, ConfigError
 from gonio.simulator.dng import dng_bytes
 from gonio.simulator.render import RenderResult, render
 from gonio.simulator.scene import Scene, scene_with_rig_poses
 from gonio.simulator.sensor import RawFrame, simulate_raw
+
+from gonio.errors import CameraError, ConfigError
 
 __all__ = ["SimulatedCamera"]
 
@@ -42,8 +42,12 @@ class SimulatedCamera:
         Albedo of the Lambertian reference target rendered for ``target="reference"``.
     """
 
-    def __init__(self, scene: Scene, pose_provider: Callable[[], Any] | None = None,
-                 reference_albedo: float | tuple[float, float, float] = 0.99) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        pose_provider: Callable[[], Any] | None = None,
+        reference_albedo: float | tuple[float, float, float] = 0.99,
+    ) -> None:
         self.scene = scene
         self.pose_provider = pose_provider
         self.reference_albedo = reference_albedo
@@ -86,16 +90,35 @@ class SimulatedCamera:
         self._cache = (key, result)
         return result
 
-    def capture_frame(self, exposure_time: float, iso: float, f_number: float, seed: int,
-                      target: Literal["sample", "reference"] = "sample") -> RawFrame:
+    def capture_frame(
+        self,
+        exposure_time: float,
+        iso: float,
+        f_number: float,
+        seed: int,
+        target: Literal["sample", "reference"] = "sample",
+    ) -> RawFrame:
         """The RAW frame (mosaic and metadata) of one exposure."""
         result = self.render(target)
-        return simulate_raw(result.radiance, self.scene.camera, exposure_time=exposure_time,
-                            iso=iso, f_number=f_number, seed=np.random.default_rng(seed))
+        return simulate_raw(
+            result.radiance,
+            self.scene.camera,
+            exposure_time=exposure_time,
+            iso=iso,
+            f_number=f_number,
+            seed=np.random.default_rng(seed),
+        )
 
-    def capture(self, exposure_time: float, iso: float, f_number: float, seed: int, *,
-                target: Literal["sample", "reference"] = "sample",
-                return_truth: bool = False) -> bytes | tuple[bytes, RenderResult]:
+    def capture(
+        self,
+        exposure_time: float,
+        iso: float,
+        f_number: float,
+        seed: int,
+        *,
+        target: Literal["sample", "reference"] = "sample",
+        return_truth: bool = False,
+    ) -> bytes | tuple[bytes, RenderResult]:
         """Take one exposure and return it as DNG bytes.
 
         Parameters

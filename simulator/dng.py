@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 import tifffile
+from gonio.simulator.sensor import RawFrame
 
 from gonio.errors import FileFormatError
-from gonio.simulator.sensor import RawFrame
 
 __all__ = ["dng_bytes", "write_dng"]
 
@@ -62,8 +62,13 @@ def _tags(frame: RawFrame) -> list[tuple]:
         (50717, _LONG, 1, frame.white_level, True),  # WhiteLevel
         (50721, 10, 9, tuple(_srational_flat(frame.colour_matrix)), True),  # ColorMatrix1
         (50778, _SHORT, 1, 21, True),  # CalibrationIlluminant1: D65
-        (50728, _RATIONAL, 3,
-         tuple(v for x in frame.as_shot_neutral for v in _rational(x, 100000)), True),
+        (
+            50728,
+            _RATIONAL,
+            3,
+            tuple(v for x in frame.as_shot_neutral for v in _rational(x, 100000)),
+            True,
+        ),
         (33434, _RATIONAL, 1, t_num, True),  # ExposureTime
         (33437, _RATIONAL, 1, _rational(frame.f_number, 1000), True),  # FNumber
         (37386, _RATIONAL, 1, _rational(frame.focal_length * 1000, 1000), True),  # mm

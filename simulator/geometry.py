@@ -8,7 +8,6 @@ cost more in setup and data transfer than these closed-form vectorised tests.
 from __future__ import annotations
 
 import numpy as np
-
 from gonio.simulator.scene import BoxOccluder, CylinderOccluder
 
 __all__ = [
@@ -22,9 +21,7 @@ __all__ = [
 _EPS = 1e-9
 
 
-def camera_rays(
-    K: np.ndarray, R: np.ndarray, u: np.ndarray, v: np.ndarray
-) -> np.ndarray:
+def camera_rays(K: np.ndarray, R: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """World-frame unit ray directions through image points (u, v) in pixels.
 
     Parameters
@@ -142,9 +139,7 @@ def _segment_cylinder(p, d, p0, axis, length, radius) -> np.ndarray:
     return hit
 
 
-def segments_blocked(
-    occluders: list[PreparedOccluder], p: np.ndarray, q: np.ndarray
-) -> np.ndarray:
+def segments_blocked(occluders: list[PreparedOccluder], p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Whether any occluder blocks each segment p -> q (broadcast shapes (..., 3))."""
     shape = np.broadcast_shapes(p.shape, q.shape)[:-1]
     out = np.zeros(shape, bool)

@@ -16,7 +16,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
 from gonio.simulator.scene import DiskLight, PointLight, RectangleLight, Scene, _unit
 
 __all__ = ["PreparedLight", "prepare_lights", "LEVELS"]
@@ -49,8 +48,36 @@ class PreparedLight:
         if self.is_point:
             return self.center[None]
         s1, s2 = (self.size[0], self.size[1]) if self.kind == "disk" else np.divide(self.size, 2)
-        return np.array([self.center + i * s1 * self.e1 + j * s2 * self.e2
-                         for i in (-1, 1) for j in (-1, 1)])
+        return np.array(
+            [self.center + i * s1 * self.e1 + j * s2 * self.e2 for i in (-1, 1) for j in (-1, 1)]
+        )
+
+    def probe_points(self) -> np.ndarray:
+        """Points whose visibility decides whether a surface point may be in penumbra:
+        the centre, 16 on the rim and 8 half-way (disk), or the same on the rectangle's
+        border and its half-size copy, (25, 3)."""
+        if self.is_point:
+            return self.center[None]
+        t = np.arange(16) / 16
+        h = np.arange(8) / 8
+        if self.kind == "disk":
+            a = np.concatenate([[0.0], np.ones(16), np.full(8, 0.25)])
+            b = np.concatenate([[0.0], t, h])
+        else:
+
+            def border(n, scale):
+                # walk the unit square's border, scaled about its centre
+                s = np.arange(n) * 4 / n
+                side, f = np.floor(s), s % 1
+                u = np.select([side == 0, side == 1, side == 2], [f, 1 + 0 * f, 1 - f], 0 * f)
+                v = np.select([side == 0, side == 1, side == 2], [0 * f, f, 1 + 0 * f], 1 - f)
+                return 0.5 + (u - 0.5) * scale, 0.5 + (v - 0.5) * scale
+
+            u1, v1 = border(16, 1.0)
+            u2, v2 = border(8, 0.5)
+            a = np.concatenate([[0.5], u1, u2])
+            b = np.concatenate([[0.5], v1, v2])
+        return self.map(a, b)
 
     def map(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Points on the emitter for unit-square coordinates (a, b), shape (..., 3)."""

@@ -16,7 +16,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-
 from gonio.simulator.lights import prepare_lights
 from gonio.simulator.scene import BoxOccluder, Scene
 
@@ -102,8 +101,12 @@ def to_mitsuba_dict(scene: Scene, mi: Any, spp: int, seed: int = 0) -> dict:
         sw, sh = scene.sample.width / 2, scene.sample.height / 2
         hw, hh = h.width / 2, h.height / 2
         alb = np.broadcast_to(np.asarray(h.albedo_white, float), (3,)).tolist()
-        strips = [((-hw, sh), (hw, hh)), ((-hw, -hh), (hw, -sh)),
-                  ((-hw, -sh), (-sw, sh)), ((sw, -sh), (hw, sh))]
+        strips = [
+            ((-hw, sh), (hw, hh)),
+            ((-hw, -hh), (hw, -sh)),
+            ((-hw, -sh), (-sw, sh)),
+            ((sw, -sh), (hw, sh)),
+        ]
         for i, ((x0, y0), (x1, y1)) in enumerate(strips):
             d[f"holder_{i}"] = {
                 "type": "rectangle",
@@ -114,8 +117,7 @@ def to_mitsuba_dict(scene: Scene, mi: Any, spp: int, seed: int = 0) -> dict:
     for i, light in enumerate(prepare_lights(scene)):
         rgb = {"type": "rgb", "value": light.rgb.tolist()}
         if light.is_point:
-            d[f"light_{i}"] = {"type": "point", "position": light.center.tolist(),
-                               "intensity": rgb}
+            d[f"light_{i}"] = {"type": "point", "position": light.center.tolist(), "intensity": rgb}
             continue
         s1, s2 = light.size if light.kind == "disk" else np.divide(light.size, 2)
         d[f"light_{i}"] = {
@@ -129,11 +131,21 @@ def to_mitsuba_dict(scene: Scene, mi: Any, spp: int, seed: int = 0) -> dict:
         if isinstance(occ, BoxOccluder):
             rot = occ.rotation()
             half = np.asarray(occ.size) / 2
-            d[f"occ_{i}"] = {"type": "cube", "bsdf": black, "to_world": _frame(
-                mi, rot[:, 0] * half[0], rot[:, 1] * half[1], rot[:, 2] * half[2], occ.center)}
+            d[f"occ_{i}"] = {
+                "type": "cube",
+                "bsdf": black,
+                "to_world": _frame(
+                    mi, rot[:, 0] * half[0], rot[:, 1] * half[1], rot[:, 2] * half[2], occ.center
+                ),
+            }
         else:
-            d[f"occ_{i}"] = {"type": "cylinder", "p0": list(occ.start), "p1": list(occ.end),
-                             "radius": occ.radius, "bsdf": black}
+            d[f"occ_{i}"] = {
+                "type": "cylinder",
+                "p0": list(occ.start),
+                "p1": list(occ.end),
+                "radius": occ.radius,
+                "bsdf": black,
+            }
             for j, (p, q) in enumerate(((occ.start, occ.end), (occ.end, occ.start))):
                 n = np.subtract(p, q)
                 n = n / np.linalg.norm(n)
@@ -141,6 +153,9 @@ def to_mitsuba_dict(scene: Scene, mi: Any, spp: int, seed: int = 0) -> dict:
                 e1 = np.cross(helper, n)
                 e1 /= np.linalg.norm(e1)
                 e2 = np.cross(n, e1)
-                d[f"occ_{i}_cap{j}"] = {"type": "disk", "bsdf": black, "to_world": _frame(
-                    mi, e1 * occ.radius, e2 * occ.radius, n, p)}
+                d[f"occ_{i}_cap{j}"] = {
+                    "type": "disk",
+                    "bsdf": black,
+                    "to_world": _frame(mi, e1 * occ.radius, e2 * occ.radius, n, p),
+                }
     return d

@@ -3,7 +3,7 @@
 For each pixel the camera ray meets the plane z = 0 at x; the radiance towards the camera
 is the area form of the rendering equation, summed over the lights,
 
-    L(x -> wo) = integral over the light of f_r(x, wi, wo) L_e V(x, y) cos(theta) cos(theta') / |x - y|^2 dA(y),
+    L(x -> wo) = int_light f_r(x, wi, wo) L_e V(x, y) cos(theta) cos(theta') / |x - y|^2 dA(y),
 
 evaluated by one of
 
@@ -15,6 +15,10 @@ evaluated by one of
   pilot set of pixels spread over the image; the first level whose difference to the
   next is below ``tolerance / 2`` wins.  The error measure is relative per pixel, with a
   floor of 1e-3 of the brightest pilot pixel so that near-black pixels do not dominate.
+
+Only the plane z = 0 is shaded: occluders seen by the camera are black (region 4), an
+emitter in view is not drawn, and there is no interreflection (the gonio scene has none
+worth the cost: the arms are matte black and far away).
 
 Work that the scene does not need is skipped and counted in :class:`RenderStats`: no
 visibility tests for occluders whose bounding box misses the box around the lit surface
@@ -30,8 +34,6 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
-
-from gonio.errors import ConfigError
 from gonio.simulator.geometry import (
     camera_rays,
     intersect_plane_z0,
@@ -41,11 +43,18 @@ from gonio.simulator.geometry import (
 from gonio.simulator.lights import LEVELS, PreparedLight, prepare_lights
 from gonio.simulator.scene import Scene
 
+from gonio.errors import ConfigError
+
 __all__ = ["REGION_NAMES", "RenderResult", "RenderStats", "Surface", "render", "save_truth"]
 
 NONE, SAMPLE, HOLDER, PATCH, OCCLUDED = 0, 1, 2, 3, 4
-REGION_NAMES = {NONE: "none", SAMPLE: "sample", HOLDER: "holder", PATCH: "patch",
-                OCCLUDED: "occluded"}
+REGION_NAMES = {
+    NONE: "none",
+    SAMPLE: "sample",
+    HOLDER: "holder",
+    PATCH: "patch",
+    OCCLUDED: "occluded",
+}
 _PILOT_PIXELS = 2048
 _SAFETY = 0.5
 _MC_MAX = 1024
@@ -64,6 +73,9 @@ class LightStats:
     tolerance_met: bool
     occluders_tested: int
     occluders_culled: int
+    penumbra_points: int = 0
+    penumbra_nodes: int = 0
+    penumbra_error: float = float("nan")
 
 
 @dataclass
@@ -136,8 +148,11 @@ class Surface:
                 self.board_half = np.array(h.board.extent) / 2
             if h.reference_patch is not None:
                 p = h.reference_patch
-                self.patch = (np.asarray(p.center, float), np.asarray(p.size, float) / 2,
-                              np.broadcast_to(np.asarray(p.albedo, float), (3,)))
+                self.patch = (
+                    np.asarray(p.center, float),
+                    np.asarray(p.size, float) / 2,
+                    np.broadcast_to(np.asarray(p.albedo, float), (3,)),
+                )
 
     def extent(self) -> tuple[np.ndarray, np.ndarray]:
         """Bounding box (lo, hi) of the surface, metres."""
@@ -155,7 +170,9 @@ class Surface:
             white = on_h & self._board_white(x)
             if self.patch is not None:
                 c, hs, _ = self.patch
-                on_p = on_h & (np.abs(x[..., 0] - c[0]) <= hs[0]) & (np.abs(x[..., 1] - c[1]) <= hs[1])
+                on_p = (
+                    on_h & (np.abs(x[..., 0] - c[0]) <= hs[0]) & (np.abs(x[..., 1] - c[1]) <= hs[1])
+                )
                 region[on_p] = PATCH
         on_s = front & (ax <= self.half[0]) & (ay <= self.half[1])
         region[on_s] = SAMPLE
@@ -192,8 +209,9 @@ class Surface:
         c = (x[..., 0] + self.half[0]) / (2 * self.half[0]) * cols - 0.5
         r = (self.half[1] - x[..., 1]) / (2 * self.half[1]) * rows - 0.5
         coords = np.stack([r.ravel(), c.ravel()])
-        out = np.stack([map_coordinates(m[..., k], coords, order=1, mode="nearest")
-                        for k in range(3)], -1)
+        out = np.stack(
+            [map_coordinates(m[..., k], coords, order=1, mode="nearest") for k in range(3)], -1
+        )
         return out.reshape(x.shape[:-1] + (3,))
 
 
@@ -228,8 +246,17 @@ class _Integrator:
         self.surface = surface
         self.camera = camera
 
-    def shade(self, x, region, white, strategy: str, level: int, n_mc: int = 0,
-              rng: np.random.Generator | None = None, chunk: int = 262144) -> np.ndarray:
+    def shade(
+        self,
+        x,
+        region,
+        white,
+        strategy: str,
+        level: int,
+        n_mc: int = 0,
+        rng: np.random.Generator | None = None,
+        chunk: int = 262144,
+    ) -> np.ndarray:
         """Radiance (M, 3) at points x (M, 3) towards the camera."""
         m = x.shape[0]
         out = np.zeros((m, 3))
@@ -249,6 +276,19 @@ class _Integrator:
             else:
                 y, w = nodes[None], weights[None]
             out[sl] = self._shade_nodes(x[sl], region[sl], white[sl], y, w)
+        return out
+
+    def partial(self, x: np.ndarray, chunk: int = 262144) -> np.ndarray:
+        """Whether the light may be partly hidden from each point (M,): the occluders
+        block some but not all of the light's probe points."""
+        out = np.zeros(x.shape[0], bool)
+        if not self.occ or self.light.is_point:
+            return out
+        probe = self.light.probe_points()
+        step = max(1, chunk // len(probe))
+        for s in range(0, x.shape[0], step):
+            blk = segments_blocked(self.occ, x[s : s + step, None, :], probe[None])
+            out[s : s + step] = blk.any(-1) & ~blk.all(-1)
         return out
 
     def _shade_nodes(self, x, region, white, y, w) -> np.ndarray:
@@ -293,7 +333,9 @@ def _levels_for(light: PreparedLight) -> tuple[int, ...]:
     return (0,) if light.is_point else LEVELS
 
 
-def _choose(integ: _Integrator, xs, region, white, tol, settings, rng) -> tuple[str, int, int, float, bool]:
+def _choose(
+    integ: _Integrator, xs, region, white, tol, settings, rng
+) -> tuple[str, int, int, float, bool]:
     """Pick (strategy, level, n_mc, estimated error, met) for one light on pilot points."""
     light = integ.light
     if light.is_point:
@@ -305,6 +347,11 @@ def _choose(integ: _Integrator, xs, region, white, tol, settings, rng) -> tuple[
         return "quadrature", settings.quadrature_order, 0, float("nan"), False
     if mode == "mc":
         return "mc", 0, settings.mc_samples, float("nan"), False
+    # Penumbra points are refined separately (see render): estimate on the others.
+    smooth = ~integ.partial(xs)
+    xs, region, white = xs[smooth], region[smooth], white[smooth]
+    if len(xs) == 0:  # nothing smooth to estimate on
+        return "quadrature", settings.quadrature_order, 0, float("nan"), False
 
     def rel_err(a, b):
         floor = 1e-3 * max(float(np.max(np.abs(b))), 1e-300)
@@ -333,7 +380,9 @@ def _choose(integ: _Integrator, xs, region, white, tol, settings, rng) -> tuple[
     return "quadrature", levels[-1], 0, err, False
 
 
-def _label(surface: Surface, occ_cam, C, x, front, light_vis) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _label(
+    surface: Surface, occ_cam, C, x, front, light_vis
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     region, white = surface.classify(x, front)
     if occ_cam:
         seen = region > 0
@@ -349,9 +398,15 @@ def _label(surface: Surface, occ_cam, C, x, front, light_vis) -> tuple[np.ndarra
     return region, white, code, x
 
 
-def render(scene: Scene, *, tolerance: float | None = None, strategy: str | None = None,
-           antialias: int | None = None, seed: int | None = None,
-           brdf: Any = None) -> RenderResult:
+def render(
+    scene: Scene,
+    *,
+    tolerance: float | None = None,
+    strategy: str | None = None,
+    antialias: int | None = None,
+    seed: int | None = None,
+    brdf: Any = None,
+) -> RenderResult:
     """Render the scene's camera view of the sample plane.
 
     Parameters
@@ -375,8 +430,13 @@ def render(scene: Scene, *, tolerance: float | None = None, strategy: str | None
         The camera does not see the sample (it is reported, not rendered black).
     """
     t0 = time.perf_counter()
-    upd = {k: v for k, v in dict(tolerance=tolerance, strategy=strategy, antialias=antialias,
-                                   seed=seed).items() if v is not None}
+    upd = {
+        k: v
+        for k, v in dict(
+            tolerance=tolerance, strategy=strategy, antialias=antialias, seed=seed
+        ).items()
+        if v is not None
+    }
     settings = scene.render.model_copy(update=upd)
     rng = np.random.default_rng(settings.seed)
     C, R = scene.camera_pose()
@@ -414,27 +474,80 @@ def render(scene: Scene, *, tolerance: float | None = None, strategy: str | None
             "check camera.position, look_at/rotation and the field of view"
         )
     corners = np.stack([code_k[:-1, :-1], code_k[1:, :-1], code_k[:-1, 1:], code_k[1:, 1:]])
-    edge = np.any(corners != code_c[None], axis=0) if settings.antialias > 1 else np.zeros((H, W), bool)
+    edge = (
+        np.any(corners != code_c[None], axis=0)
+        if settings.antialias > 1
+        else np.zeros((H, W), bool)
+    )
     surf = (region > 0) & (region != OCCLUDED)
 
     radiance = np.zeros((H, W, 3))
-    integrators = [_Integrator(li, oc, surface, C) for li, oc in zip(lights, light_occ, strict=True)]
+    integrators = [
+        _Integrator(li, oc, surface, C) for li, oc in zip(lights, light_occ, strict=True)
+    ]
     xs, rs, ws = x[surf], region[surf], white[surf]
     pilot = np.unique(np.linspace(0, len(xs) - 1, min(_PILOT_PIXELS, len(xs))).astype(int))
     light_stats = []
     plans = []
     for integ, oc in zip(integrators, light_occ, strict=True):
-        strat, level, n_mc, err, met = _choose(integ, xs[pilot], rs[pilot], ws[pilot],
-                                                settings.tolerance, settings, rng)
+        strat, level, n_mc, err, met = _choose(
+            integ, xs[pilot], rs[pilot], ws[pilot], settings.tolerance, settings, rng
+        )
         plans.append((strat, level, n_mc))
         nodes = n_mc if strat == "mc" else integ.light.n_nodes(level)
-        light_stats.append(LightStats(integ.light.kind, strat, None if strat == "mc" else level,
-                                      nodes, err, met, len(oc), len(occluders) - len(oc)))
+        light_stats.append(
+            LightStats(
+                integ.light.kind,
+                strat,
+                None if strat == "mc" else level,
+                nodes,
+                err,
+                met,
+                len(oc),
+                len(occluders) - len(oc),
+            )
+        )
+
+    # Penumbrae: where an occluder hides part of a light, the integrand jumps and the
+    # level chosen on smooth pixels is too coarse; those points get the finest rule.
+    penumbra = {}
+    for i, (integ, (_, level, _)) in enumerate(zip(integrators, plans, strict=True)):
+        if settings.strategy == "auto" and integ.occ and not integ.light.is_point:
+            lv = [k for k in LEVELS if integ.light.n_nodes(k) <= _QUAD_MAX]
+            if lv[-1] > level:
+                penumbra[i] = lv[-1]
+                pp = pilot[integ.partial(xs[pilot])]
+                if len(pp):
+                    fine = integ.shade(xs[pp], rs[pp], ws[pp], "quadrature", lv[-1])
+                    coarse = integ.shade(xs[pp], rs[pp], ws[pp], "quadrature", lv[-2])
+                    # relative to the unshadowed value: a tiny lit sliver of the light
+                    # is a small error however large relative to itself
+                    free = _Integrator(integ.light, [], surface, C).shade(
+                        xs[pp], rs[pp], ws[pp], "quadrature", max(level, 1)
+                    )
+                    floor = 1e-3 * max(float(np.max(np.abs(free))), 1e-300)
+                    light_stats[i].penumbra_error = float(
+                        np.max(np.abs(coarse - fine) / np.maximum(np.abs(free), floor))
+                    )
+                light_stats[i].penumbra_nodes = integ.light.n_nodes(lv[-1])
 
     def shade_all(xp, rp, wp):
         acc = np.zeros((len(xp), 3))
-        for integ, (strat, level, n_mc) in zip(integrators, plans, strict=True):
-            acc += integ.shade(xp, rp, wp, strat, level, n_mc, rng, settings.chunk_size)
+        for i, (integ, (strat, level, n_mc)) in enumerate(zip(integrators, plans, strict=True)):
+            out = integ.shade(xp, rp, wp, strat, level, n_mc, rng, settings.chunk_size)
+            if i in penumbra:
+                pm = integ.partial(xp, settings.chunk_size)
+                if pm.any():
+                    out[pm] = integ.shade(
+                        xp[pm],
+                        rp[pm],
+                        wp[pm],
+                        "quadrature",
+                        penumbra[i],
+                        chunk=settings.chunk_size,
+                    )
+                    light_stats[i].penumbra_points += int(pm.sum())
+            acc += out
         return acc
 
     radiance[surf] = shade_all(xs, rs, ws)
@@ -476,8 +589,9 @@ def render(scene: Scene, *, tolerance: float | None = None, strategy: str | None
     return RenderResult(radiance, wi, wo, pts, region, edge, stats)
 
 
-def save_truth(path, result: RenderResult, scene: Scene | None = None, *,
-               overwrite: bool = False) -> None:
+def save_truth(
+    path, result: RenderResult, scene: Scene | None = None, *, overwrite: bool = False
+) -> None:
     """Write a render's ground truth to HDF5 (atomic: temporary file, then rename).
 
     Datasets: ``radiance`` (H, W, 3) W/(sr m^2), ``wi``, ``wo`` (H, W, 3) sample frame,

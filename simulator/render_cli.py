@@ -9,27 +9,72 @@ import click
 
 @click.command("render")
 @click.argument("scene_file", metavar="SCENE.toml", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="DNG file to write (Bayer mosaic + metadata, readable by rawpy/LibRaw).")
-@click.option("--truth", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Also write the ground truth (noise-free radiance, wi, wo, masks) as HDF5.")
-@click.option("--seed", type=int, default=0, show_default=True,
-              help="Sensor-noise seed: the same seed gives the same file bit for bit.")
-@click.option("--exposure-time", type=float, default=None,
-              help="Seconds (default: camera.exposure_time in the scene).")
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="DNG file to write (Bayer mosaic + metadata, readable by rawpy/LibRaw).",
+)
+@click.option(
+    "--truth",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Also write the ground truth (noise-free radiance, wi, wo, masks) as HDF5.",
+)
+@click.option(
+    "--seed",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Sensor-noise seed: the same seed gives the same file bit for bit.",
+)
+@click.option(
+    "--exposure-time",
+    type=float,
+    default=None,
+    help="Seconds (default: camera.exposure_time in the scene).",
+)
 @click.option("--iso", type=float, default=None, help="ISO (default: camera.iso).")
 @click.option("--f-number", type=float, default=None, help="Aperture (default: camera.f_number).")
-@click.option("--tolerance", type=float, default=None,
-              help="Relative per-pixel error target of the light integral (default: render.tolerance).")
-@click.option("--strategy", type=click.Choice(["auto", "point", "quadrature", "mc"]), default=None,
-              help="Light integration (default: render.strategy, normally auto).")
-@click.option("--reference", is_flag=True,
-              help="Render a Lambertian reference target (albedo 0.99) in place of the sample.")
-@click.option("--preview", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Write a PNG preview of the radiance (and region mask) too.")
+@click.option(
+    "--tolerance",
+    type=float,
+    default=None,
+    help="Relative per-pixel error target of the light integral (default: render.tolerance).",
+)
+@click.option(
+    "--strategy",
+    type=click.Choice(["auto", "point", "quadrature", "mc"]),
+    default=None,
+    help="Light integration (default: render.strategy, normally auto).",
+)
+@click.option(
+    "--reference",
+    is_flag=True,
+    help="Render a Lambertian reference target (albedo 0.99) in place of the sample.",
+)
+@click.option(
+    "--preview",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Write a PNG preview of the radiance (and region mask) too.",
+)
 @click.option("--force", is_flag=True, help="Overwrite existing output files.")
-def render_cmd(scene_file, out, truth, seed, exposure_time, iso, f_number, tolerance, strategy,
-               reference, preview, force):
+def render_cmd(
+    scene_file,
+    out,
+    truth,
+    seed,
+    exposure_time,
+    iso,
+    f_number,
+    tolerance,
+    strategy,
+    reference,
+    preview,
+    force,
+):
     """Render SCENE.toml as the simulated camera would capture it, and write a DNG.
 
     \b
@@ -43,13 +88,13 @@ def render_cmd(scene_file, out, truth, seed, exposure_time, iso, f_number, toler
     Example:
       gonio sim render examples/scene.toml --out shot.dng --truth shot.h5 --seed 1
     """
-    from rich.console import Console
-
-    from gonio.errors import FileFormatError
     from gonio.simulator.dng import dng_bytes, write_dng
     from gonio.simulator.render import render, save_truth
     from gonio.simulator.scene import load_scene
     from gonio.simulator.sensor import simulate_raw
+    from rich.console import Console
+
+    from gonio.errors import FileFormatError
 
     console = Console(stderr=True)
     for p in (out, truth, preview):
@@ -60,8 +105,14 @@ def render_cmd(scene_file, out, truth, seed, exposure_time, iso, f_number, toler
         scene = scene.with_reference_target(0.99)
     with console.status("rendering..."):
         result = render(scene, tolerance=tolerance, strategy=strategy)
-    frame = simulate_raw(result.radiance, scene.camera, exposure_time=exposure_time, iso=iso,
-                         f_number=f_number, seed=seed)
+    frame = simulate_raw(
+        result.radiance,
+        scene.camera,
+        exposure_time=exposure_time,
+        iso=iso,
+        f_number=f_number,
+        seed=seed,
+    )
     write_dng(out, dng_bytes(frame), overwrite=force)
     if truth is not None:
         save_truth(truth, result, scene, overwrite=force)
@@ -69,13 +120,17 @@ def render_cmd(scene_file, out, truth, seed, exposure_time, iso, f_number, toler
         _preview(preview, result)
     s = result.stats
     for li in s.lights:
-        console.print(f"light {li.kind}: {li.strategy}, {li.nodes} node(s), "
-                      f"estimated error {li.estimated_error:.2g}, "
-                      f"occluders tested {li.occluders_tested}, culled {li.occluders_culled}")
+        console.print(
+            f"light {li.kind}: {li.strategy}, {li.nodes} node(s), "
+            f"estimated error {li.estimated_error:.2g}, "
+            f"occluders tested {li.occluders_tested}, culled {li.occluders_culled}"
+        )
     sat = float((frame.mosaic >= frame.white_level).mean())
-    console.print(f"{s.pixels_shaded}/{s.pixels} pixels shaded, {s.pixels_skipped} skipped, "
-                  f"{s.edge_pixels} edge pixels anti-aliased; {s.seconds:.2f} s; "
-                  f"saturated {sat:.1%}")
+    console.print(
+        f"{s.pixels_shaded}/{s.pixels} pixels shaded, {s.pixels_skipped} skipped, "
+        f"{s.edge_pixels} edge pixels anti-aliased; {s.seconds:.2f} s; "
+        f"saturated {sat:.1%}"
+    )
     console.print(f"wrote {out}" + (f" and {truth}" if truth else ""))
 
 

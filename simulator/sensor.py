@@ -21,9 +21,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from gonio.simulator.scene import Camera
 
 from gonio.errors import ParameterError
-from gonio.simulator.scene import Camera
 
 __all__ = [
     "RawFrame",
@@ -88,8 +88,9 @@ def _check(name: str, value: float) -> float:
     return v
 
 
-def mean_electrons(radiance: np.ndarray, camera: Camera, exposure_time: float,
-                   f_number: float) -> np.ndarray:
+def mean_electrons(
+    radiance: np.ndarray, camera: Camera, exposure_time: float, f_number: float
+) -> np.ndarray:
     """Expected photo-electrons per pixel and channel (H, W, 3), without dark current.
 
     Parameters
@@ -136,9 +137,15 @@ def colour_metadata(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     return cm / np.abs(cm @ colour.xy_to_XYZ([0.3127, 0.3290])).max(), neutral
 
 
-def simulate_raw(radiance: np.ndarray, camera: Camera, *, exposure_time: float | None = None,
-                 iso: float | None = None, f_number: float | None = None,
-                 seed: int | np.random.Generator = 0) -> RawFrame:
+def simulate_raw(
+    radiance: np.ndarray,
+    camera: Camera,
+    *,
+    exposure_time: float | None = None,
+    iso: float | None = None,
+    f_number: float | None = None,
+    seed: int | np.random.Generator = 0,
+) -> RawFrame:
     """Turn a radiance image into a noisy Bayer RAW frame.
 
     Parameters

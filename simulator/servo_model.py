@@ -142,7 +142,9 @@ class VirtualServo:
 
     # ------------------------------------------------------------- physics
     def _profile(self) -> tuple[float, float]:
-        return ct.profile_pulses(self.get_u("profile_velocity"), self.get_u("profile_acceleration"), self.model)
+        return ct.profile_pulses(
+            self.get_u("profile_velocity"), self.get_u("profile_acceleration"), self.model
+        )
 
     def _position_at(self, t: float) -> tuple[float, float, bool]:
         seg = self._seg
@@ -177,7 +179,9 @@ class VirtualServo:
         self._heat += (target - self._heat) * (1 - math.exp(-dt / 60.0))
         present = round(pos)
         self.set_u("present_position", le_int(present, 4))
-        self.set_u("present_velocity", le_int(round(speed * 60 / 4096 / ct.RPM_PER_VELOCITY_UNIT), 4))
+        self.set_u(
+            "present_velocity", le_int(round(speed * 60 / 4096 / ct.RPM_PER_VELOCITY_UNIT), 4)
+        )
         self.set_u("present_current", le_int(load if speed >= 0 else -load, 2))
         self.set_u("present_temperature", int(round(_AMBIENT_C + self._heat)))
         self.set_u("present_input_voltage", self.voltage_raw)

@@ -24,7 +24,6 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
-
 from gonio.rig import protocol as p
 from gonio.simulator.servo_model import VirtualServo
 
@@ -123,7 +122,9 @@ class VirtualBus:
         self.port = os.ttyname(self._slave)
         self._wake_r, self._wake_w = os.pipe()
         self._stop.clear()
-        self._thread = threading.Thread(target=self._serve, name="virtual-dynamixel-bus", daemon=True)
+        self._thread = threading.Thread(
+            target=self._serve, name="virtual-dynamixel-bus", daemon=True
+        )
         self._thread.start()
         return self
 

@@ -315,11 +315,13 @@ class Model:
         ):
             # Large batches with scalar parameters: evaluate in cache-sized chunks, which
             # is 2-4x faster than whole-array numpy passes (benchmarks/brdf_eval.py).
+            # Components are copied to contiguous rows first: strided (stride 3) operands
+            # slow every later numpy pass.
             out = np.empty(wi.shape[0])
             for s in range(0, wi.shape[0], _CHUNK):
-                out[s : s + _CHUNK] = self._eval_checked(
-                    wi[s : s + _CHUNK], wo[s : s + _CHUNK], p, False
-                )[0]
+                wi_c = np.ascontiguousarray(wi[s : s + _CHUNK].T).T
+                wo_c = np.ascontiguousarray(wo[s : s + _CHUNK].T).T
+                out[s : s + _CHUNK] = self._eval_checked(wi_c, wo_c, p, False)[0]
             return out, None
         return self._eval_checked(wi, wo, p, grad)
 
@@ -392,7 +394,7 @@ def _masked(f: Array, below: Array, shape: tuple[int, ...], inplace: bool = Fals
     f = np.asarray(f, dtype=np.float64)
     if inplace and f.shape == shape and below.shape == shape:
         # Saves a full pass on large batches; lobes return a fresh array for f.
-        f[below] = 0.0
+        np.copyto(f, 0.0, where=below)
         return f
     return np.where(below, 0.0, np.broadcast_to(f, shape))
 

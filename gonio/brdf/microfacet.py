@@ -118,7 +118,7 @@ class GGXLobe(_Microfacet):
     """GGX (Trowbridge-Reitz) microfacet lobe."""
 
     kind = "ggx"
-    summary = "Cook-Torrance, GGX normal distribution, Smith G (ks, alpha)"
+    summary = "Cook-Torrance, GGX normal distribution, Smith G"
 
     def _ndf(self, g, alpha, grad):
         a2 = alpha * alpha
@@ -182,7 +182,7 @@ class BeckmannLobe(_Microfacet):
     """Beckmann microfacet lobe with exact (erf) or rational Smith G1."""
 
     kind = "beckmann"
-    summary = "Cook-Torrance, Beckmann normal distribution, Smith G (ks, alpha)"
+    summary = "Cook-Torrance, Beckmann normal distribution, Smith G"
     option_choices = {"fresnel": FRESNEL_CHOICES, "g1": ("exact", "rational")}
 
     def _ndf(self, g, alpha, grad):

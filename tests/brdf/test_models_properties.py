@@ -36,7 +36,7 @@ SINGLE_LOBES = [c for c in CONFIGS if "+" not in c[0]]
 SINGLE_IDS = [i for i, c in zip(IDS, CONFIGS, strict=True) if "+" not in c[0]]
 
 PROFILE = settings(
-    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=False
 )
 
 
@@ -47,7 +47,9 @@ def _value(lo: float, hi: float, margin: float = 0.0) -> st.SearchStrategy[float
         lo, hi = lo + margin * span if lo == 0 else lo * (1 + margin), hi - margin * span
     parts = [st.floats(lo, hi)]
     if hi / max(lo, 1e-3) > 100:
-        parts.append(st.floats(math.log(max(lo, 1e-3)), math.log(hi)).map(math.exp))
+        log_lo, log_hi = math.log(max(lo, 1e-3)), math.log(hi)
+        # exp(log(x)) may round just outside the bounds: clip back
+        parts.append(st.floats(log_lo, log_hi).map(lambda v: min(max(math.exp(v), lo), hi)))
     if not margin:
         parts.append(st.sampled_from([lo, hi]))
     return st.one_of(*parts)
@@ -142,9 +144,15 @@ def test_gradients_match_central_differences(name, options):
         assert set(grads) == set(m.param_names)
         for k in m.param_names:
             h = 1e-6 * max(abs(p[k]), 1e-2)
+            if f > 0 and grads[k] != 0:
+                # steep exponentials (Ward/Beckmann tails): keep h * dlnf/dp <= 1e-4 so the
+                # truncation error stays ~1e-9 relative
+                h = min(h, 1e-4 * abs(f / grads[k]))
             fp = m.eval(wi, wo, dict(p, **{k: p[k] + h}))
             fm = m.eval(wi, wo, dict(p, **{k: p[k] - h}))
             fd = (fp - fm) / (2 * h)
+            if max(abs(f), abs(fp), abs(fm)) < 1e-290:
+                continue  # subnormal floats carry no relative precision
             # truncation O(h^2 f''') is ~1e-12 relative; rounding ~ eps |f| / h (x100)
             tol = 1e-5 * max(abs(grads[k]), abs(fd)) + 1e-14 * max(abs(f), abs(fp), abs(fm)) / h
             assert abs(grads[k] - fd) <= tol, (k, grads[k], fd)

@@ -5,10 +5,10 @@ from __future__ import annotations
 import colour_hdri
 import numpy as np
 import pytest
-
 from gonio.capture.hdr import merge_bracket
 from gonio.capture.noise import NoiseModel
 from gonio.capture.raw import RawFrame
+
 from gonio.errors import ReductionError
 
 GAIN, READ_E, BLACK, WHITE = 0.4, 3.0, 512, 16383
@@ -17,8 +17,18 @@ CH = np.tile(np.array([[0, 1], [1, 2]], np.int8), (SHAPE[0] // 2, SHAPE[1] // 2)
 
 
 def frame(dn, t, name, iso=100.0, f_number=8.0):
-    return RawFrame(name, dn - BLACK, CH, dn >= WHITE - 0.05 * (WHITE - BLACK),
-                    np.full(SHAPE, float(BLACK)), float(WHITE), "RGGB", t, iso, f_number)
+    return RawFrame(
+        name,
+        dn - BLACK,
+        CH,
+        dn >= WHITE - 0.05 * (WHITE - BLACK),
+        np.full(SHAPE, float(BLACK)),
+        float(WHITE),
+        "RGGB",
+        t,
+        iso,
+        f_number,
+    )
 
 
 def sensor(rng, radiance, t, iso=100.0, f_number=8.0, noise=True):
@@ -45,14 +55,20 @@ def test_matches_colour_hdri_where_both_weightings_agree():
     stack = colour_hdri.ImageStack()
     for f in frames:
         d = np.repeat((f.linear / (WHITE - BLACK))[..., None], 3, axis=2)
-        stack.append(colour_hdri.Image(f.name, d, colour_hdri.Metadata(
-            f_number=f.f_number, exposure_time=f.exposure_time, iso=f.iso)))
+        stack.append(
+            colour_hdri.Image(
+                f.name,
+                d,
+                colour_hdri.Metadata(f_number=f.f_number, exposure_time=f.exposure_time, iso=f.iso),
+            )
+        )
     ref = colour_hdri.image_stack_to_HDRI(stack, weighting_function=lambda d: d)[..., 0]
     # colour_hdri's unit: d * k N^2 / (t S), ours: DN * N^2 / (t ISO/100)
     ours = m.value * 12.5 / 100.0 / (WHITE - BLACK)
     np.testing.assert_allclose(ours, ref, rtol=1e-12)
 
 
+@pytest.mark.filterwarnings("ignore:.*negative or equal to zero values")
 def test_noisy_bracket_is_unbiased_and_its_variance_calibrated():
     rng = np.random.default_rng(1)
     # four decades of radiance across the image, so each frame saturates somewhere
@@ -69,8 +85,15 @@ def test_noisy_bracket_is_unbiased_and_its_variance_calibrated():
         stack = colour_hdri.ImageStack()
         for f in frames:
             d = np.repeat((f.linear / (WHITE - BLACK))[..., None], 3, axis=2)
-            stack.append(colour_hdri.Image(f.name, d, colour_hdri.Metadata(
-                f_number=f.f_number, exposure_time=f.exposure_time, iso=f.iso)))
+            stack.append(
+                colour_hdri.Image(
+                    f.name,
+                    d,
+                    colour_hdri.Metadata(
+                        f_number=f.f_number, exposure_time=f.exposure_time, iso=f.iso
+                    ),
+                )
+            )
         ref = colour_hdri.image_stack_to_HDRI(stack)[..., 0] * 100.0 / 12.5 * (WHITE - BLACK)
         ours_err.append(((m.value - truth) / truth)[ok])
         hdri_err.append(((ref - truth) / truth)[ok])
@@ -80,7 +103,8 @@ def test_noisy_bracket_is_unbiased_and_its_variance_calibrated():
     assert 0.97 < z.std() < 1.03
     # inverse-variance weights beat a hat function on the same frames
     assert np.sqrt(np.mean(np.concatenate(ours_err) ** 2)) < np.sqrt(
-        np.mean(np.concatenate(hdri_err) ** 2))
+        np.mean(np.concatenate(hdri_err) ** 2)
+    )
     # relative error distributions agree in the middle: both are unbiased estimators
     assert abs(np.median(np.concatenate(ours_err))) < 2e-3
 
@@ -88,8 +112,10 @@ def test_noisy_bracket_is_unbiased_and_its_variance_calibrated():
 def test_iso_and_aperture_normalise():
     rng = np.random.default_rng(2)
     rad = np.full(SHAPE, 2e8)
-    fr = [frame(sensor(rng, rad, 1e-3, iso=400, f_number=4.0), 1e-3, "a", 400, 4.0),
-          frame(sensor(rng, rad, 4e-3, iso=100, f_number=8.0), 4e-3, "b", 100, 8.0)]
+    fr = [
+        frame(sensor(rng, rad, 1e-3, iso=400, f_number=4.0), 1e-3, "a", 400, 4.0),
+        frame(sensor(rng, rad, 4e-3, iso=100, f_number=8.0), 4e-3, "b", 100, 8.0),
+    ]
     m = merge_bracket(fr, NoiseModel(GAIN, GAIN * READ_E))
     z = (m.value - rad * GAIN) / np.sqrt(m.variance)
     assert abs(z.mean()) < 0.05 and 0.9 < z.std() < 1.1
@@ -107,11 +133,31 @@ def test_bad_brackets():
     with pytest.raises(ReductionError, match="empty"):
         merge_bracket([], NoiseModel(GAIN, 1.2))
     a = frame(np.full(SHAPE, 1000.0), 1e-3, "a")
-    b = RawFrame("b", a.linear, a.channel, a.saturated, a.black_level, a.white_level,
-                 "GRBG", 1e-3, 100.0, 8.0)
+    b = RawFrame(
+        "b",
+        a.linear,
+        a.channel,
+        a.saturated,
+        a.black_level,
+        a.white_level,
+        "GRBG",
+        1e-3,
+        100.0,
+        8.0,
+    )
     with pytest.raises(ReductionError, match="GRBG"):
         merge_bracket([a, b], NoiseModel(GAIN, 1.2))
-    c = RawFrame("c", a.linear, a.channel, a.saturated, a.black_level, a.white_level,
-                 "RGGB", float("nan"), 100.0, 8.0)
+    c = RawFrame(
+        "c",
+        a.linear,
+        a.channel,
+        a.saturated,
+        a.black_level,
+        a.white_level,
+        "RGGB",
+        float("nan"),
+        100.0,
+        8.0,
+    )
     with pytest.raises(ReductionError, match="exposure_time"):
         merge_bracket([a, c], NoiseModel(GAIN, 1.2))

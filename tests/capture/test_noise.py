@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from gonio.capture.noise import NoiseModel, estimate_noise
 from gonio.capture.raw import RawFrame
+
 from gonio.errors import FileFormatError, ReductionError
 
 GAIN = 0.4  # DN per electron
@@ -21,15 +21,27 @@ def shoot(rng, electrons_mean, name, iso=100.0):
     e = rng.poisson(np.broadcast_to(electrons_mean, CH.shape)).astype(float)
     dn = np.round(BLACK + GAIN * (e + rng.normal(0, READ_E, CH.shape)))
     dn = np.clip(dn, 0, WHITE)
-    return RawFrame(name, dn - BLACK, CH, dn >= WHITE, np.full(CH.shape, float(BLACK)),
-                    float(WHITE), "RGGB", 0.01, iso, 8.0)
+    return RawFrame(
+        name,
+        dn - BLACK,
+        CH,
+        dn >= WHITE,
+        np.full(CH.shape, float(BLACK)),
+        float(WHITE),
+        "RGGB",
+        0.01,
+        iso,
+        8.0,
+    )
 
 
 def test_photon_transfer_recovers_gain_and_read_noise():
     rng = np.random.default_rng(1)
     qe = np.array([0.8, 1.0, 0.6])[CH]
-    flats = [(shoot(rng, lv * qe, f"f{lv}a"), shoot(rng, lv * qe, f"f{lv}b"))
-             for lv in (500, 2000, 5000, 10000, 20000, 30000)]
+    flats = [
+        (shoot(rng, lv * qe, f"f{lv}a"), shoot(rng, lv * qe, f"f{lv}b"))
+        for lv in (500, 2000, 5000, 10000, 20000, 30000)
+    ]
     darks = [(shoot(rng, 0.0, "d1"), shoot(rng, 0.0, "d2"))]
     pt = estimate_noise(flats, darks)
     # statistical precision: ~20000 pixels per point, 18 points -> slope to ~0.5 %

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import rawpy
-
 from gonio.capture.raw import (
     CameraSignature,
     channel_stats,
@@ -13,6 +12,7 @@ from gonio.capture.raw import (
     read_raw,
     roi_exposure_stats,
 )
+
 from gonio.errors import FileFormatError, ReductionError
 
 # rawpy's linear output (see shared/reference/libraries.md); half_size puts one 2x2 CFA
@@ -80,7 +80,9 @@ def test_linearisation_table_is_applied(refdata):
     frame = read_raw(path)
     # pixels on the table's ceiling are marked saturated
     raw_codes = frame.linear + frame.black_level
-    assert np.array_equal(frame.saturated[raw_codes >= 65472], np.ones((raw_codes >= 65472).sum(), bool))
+    assert np.array_equal(
+        frame.saturated[raw_codes >= 65472], np.ones((raw_codes >= 65472).sum(), bool)
+    )
 
 
 def test_kodak_exposure_metadata(refdata):
@@ -155,3 +157,70 @@ def test_camera_mismatch_is_refused(refdata):
     with pytest.raises(FileFormatError, match="ImageSize.*512x768.*480x640"):
         read_raw(path, expect=CameraSignature("GRBG", (480, 640)))
     assert read_raw(path, expect=CameraSignature("GRBG", (512, 768))).shape == (512, 768)
+
+
+def test_simulated_dng_round_trip_and_truncation(tmp_path):
+    """The simulator's DNG (uncompressed strips, ISO in an EXIF sub-IFD) decodes to its
+    mosaic minus black, with the exposure; cut short, it is refused (LibRaw alone would
+    fill the missing strips with zeros)."""
+    from gonio.simulator.dng import dng_bytes
+    from gonio.simulator.sensor import RawFrame as SimFrame
+
+    rng = np.random.default_rng(0)
+    mosaic = rng.integers(512, 16383, (64, 96)).astype(np.uint16)
+    data = dng_bytes(
+        SimFrame(mosaic, "GBRG", 512, 16383, np.eye(3), np.ones(3), 0.004, 5.6, 400.0, 0.035)
+    )
+    frame = read_raw(data, name="sim.dng")
+    assert frame.cfa_pattern == "GBRG"
+    np.testing.assert_array_equal(frame.linear, mosaic.astype(float) - 512)
+    assert (frame.exposure_time, frame.iso, frame.f_number) == pytest.approx(
+        (0.004, 400, 5.6), rel=1e-6
+    )
+    assert np.array_equal(frame.channel[:2, :2], [[1, 2], [0, 1]])
+    p = tmp_path / "cut.dng"
+    p.write_bytes(data[: len(data) - 2000])
+    with pytest.raises(FileFormatError, match="cut.dng.*truncated"):
+        read_raw(p)
+
+
+def test_dark_subtraction_and_flat_field():
+    from gonio.capture.raw import RawFrame, apply_flat, master_flat, subtract_dark
+
+    rng = np.random.default_rng(1)
+    ch = np.tile(np.array([[0, 1], [1, 2]], np.int8), (20, 20))
+    gain_map = 1 + 0.05 * rng.standard_normal(ch.shape)  # pixel response non-uniformity
+    offset = rng.uniform(0, 3, ch.shape)  # dark signal pattern
+    level = np.array([1000.0, 2000.0, 800.0])[ch]
+
+    def frame(signal, name):
+        return RawFrame(
+            name,
+            signal,
+            ch,
+            np.zeros(ch.shape, bool),
+            np.zeros(ch.shape),
+            16383.0,
+            "RGGB",
+            0.01,
+            100.0,
+            8.0,
+        )
+
+    dark = frame(offset, "dark")
+    flats = [frame(level * gain_map + offset, f"flat{k}") for k in range(2)]
+    flat = master_flat(flats, [dark])
+    # normalised to 1 per channel, proportional to the response within a channel
+    for c in range(3):
+        m = ch == c
+        assert flat[m].mean() == pytest.approx(1.0)
+        np.testing.assert_allclose(flat[m] / gain_map[m], (flat[m] / gain_map[m]).mean())
+    scene = np.full(ch.shape, 500.0)
+    shot = frame(scene * gain_map + offset, "shot")
+    corrected = apply_flat(subtract_dark(shot, dark), flat)
+    for c in range(3):
+        m = ch == c
+        v = corrected.linear[m]
+        assert v.std() / v.mean() < 1e-12  # flat again
+    with pytest.raises(ReductionError, match="flat field is"):
+        apply_flat(shot, flat[:10])

@@ -18,7 +18,9 @@ def random_directions(rng: np.random.Generator, n: int, max_theta_deg: float = 8
     return np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=-1)
 
 
-def specular_pairs(rng: np.random.Generator, n: int, spread: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+def specular_pairs(
+    rng: np.random.Generator, n: int, spread: float = 0.3
+) -> tuple[np.ndarray, np.ndarray]:
     """Pairs near the mirror configuration (half vector near the normal), so narrow lobes
     are sampled."""
     wi = random_directions(rng, n, 75.0)
@@ -30,8 +32,15 @@ def specular_pairs(rng: np.random.Generator, n: int, spread: float = 0.3) -> tup
     return wi, wo
 
 
-def model_samples(name: str, params: dict, n: int = 300, seed: int = 0, noise: float = 0.0,
-                  read: float = 0.0, options: dict | None = None) -> BRDFSamples:
+def model_samples(
+    name: str,
+    params: dict,
+    n: int = 300,
+    seed: int = 0,
+    noise: float = 0.0,
+    read: float = 0.0,
+    options: dict | None = None,
+) -> BRDFSamples:
     """Samples of model ``name`` at ``params`` (per-channel arrays); half random pairs, half
     near-mirror.  ``noise``: photon-noise factor (var = noise * f), ``read``: read-noise sigma;
     ``brdf_std`` is the true sigma."""

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from gonio.fitting import fit
 from scipy.optimize import nnls
 
 from gonio.brdf import get_model
-from gonio.fitting import fit
 
 ALB = [0.2, 0.4, 0.6]
 KS = [0.1, 0.2, 0.3]
@@ -42,12 +42,18 @@ CASES = [
     ("lambert+ward", "lambert+ggx", {"albedo": ALB, "ks": KS, "alpha": 0.05}),
     ("lambert+blinn-phong", "lambert+ggx", {"albedo": ALB, "ks": KS, "alpha": 0.25}),
     ("oren-nayar", "lambert+ggx", {"albedo": ALB, "ks": [0.02, 0.02, 0.02], "alpha": 0.6}),
-    ("lambert+ggx", "lambert+ggx+ggx",
-     {"albedo": ALB, "ks_2": KS, "alpha_2": 0.03, "ks_3": [0.05, 0.05, 0.05], "alpha_3": 0.5}),
+    (
+        "lambert+ggx",
+        "lambert+ggx+ggx",
+        {"albedo": ALB, "ks_2": KS, "alpha_2": 0.03, "ks_3": [0.05, 0.05, 0.05], "alpha_3": 0.5},
+    ),
     # two shape parameters
     ("oren-nayar+ggx", "oren-nayar+ggx", {"albedo": ALB, "sigma": 0.5, "ks": KS, "alpha": 0.1}),
-    ("lambert+ggx+ggx", "lambert+ggx+ggx",
-     {"albedo": ALB, "ks_2": KS, "alpha_2": 0.03, "ks_3": [0.05, 0.05, 0.05], "alpha_3": 0.5}),
+    (
+        "lambert+ggx+ggx",
+        "lambert+ggx+ggx",
+        {"albedo": ALB, "ks_2": KS, "alpha_2": 0.03, "ks_3": [0.05, 0.05, 0.05], "alpha_3": 0.5},
+    ),
 ]
 
 
@@ -63,10 +69,10 @@ def _search_coords(model, name):
 def _grid_cost(model, shape, lin, coords, U, wi, wo, y):
     """Reduced cost at grid points U (M, S) by nnls on model.eval basis functions."""
     th = [coords[k][2](U[:, k]) for k in range(len(shape))]
-    th = [np.clip(t, *model.bounds[n]) for t, n in zip(th, shape)]
+    th = [np.clip(t, *model.bounds[n]) for t, n in zip(th, shape, strict=True)]
     basis = []
     for j, n in enumerate(lin):
-        p = {s: t[:, None] for s, t in zip(shape, th)}
+        p = {s: t[:, None] for s, t in zip(shape, th, strict=True)}
         for jj, nn in enumerate(lin):
             p[nn] = min(1.0, model.bounds[nn][1]) if jj == j else 0.0
         basis.append(model.eval(wi, wo, p) / p[n])
@@ -86,14 +92,16 @@ def _dense_grid_min(model, wi, wo, y):
     lo = np.array([c[0] for c in coords])
     hi = np.array([c[1] for c in coords])
     n0 = 600 if len(shape) == 1 else 60
-    axes = [np.linspace(a, b, n0) for a, b in zip(lo, hi)]
+    axes = [np.linspace(a, b, n0) for a, b in zip(lo, hi, strict=True)]
     U = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], -1)
     cost = _grid_cost(model, shape, lin, coords, U, wi, wo, y)
     best_u, best = U[np.argmin(cost)], float(np.min(cost))
     step = (hi - lo) / (n0 - 1)
     for _ in range(7):  # zoom: +-2 cells, 21 points per axis
-        axes = [np.clip(np.linspace(u - 2 * h, u + 2 * h, 21), a, b)
-                for u, h, a, b in zip(best_u, step, lo, hi)]
+        axes = [
+            np.clip(np.linspace(u - 2 * h, u + 2 * h, 21), a, b)
+            for u, h, a, b in zip(best_u, step, lo, hi, strict=True)
+        ]
         U = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], -1)
         cost = _grid_cost(model, shape, lin, coords, U, wi, wo, y)
         if cost.min() < best:
@@ -103,8 +111,9 @@ def _dense_grid_min(model, wi, wo, y):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("fitted", "source", "truth"), CASES,
-                         ids=[f"{c[0]}<-{c[1]}-{i}" for i, c in enumerate(CASES)])
+@pytest.mark.parametrize(
+    ("fitted", "source", "truth"), CASES, ids=[f"{c[0]}<-{c[1]}-{i}" for i, c in enumerate(CASES)]
+)
 def test_default_reaches_grid_optimum_from_100_starts(fitted, source, truth, make_samples):
     s = make_samples(source, truth, n=48, seed=7, noise=1e-4, read=3e-3)
     s.brdf_std = None  # plain least squares: the grid reference needs no weights
@@ -114,7 +123,7 @@ def test_default_reaches_grid_optimum_from_100_starts(fitted, source, truth, mak
     worst = -np.inf
     for _ in range(100):
         x0 = {}
-        for n, (a, b, back) in zip(shape, coords):
+        for n, (a, b, back) in zip(shape, coords, strict=True):
             x0[n] = float(np.clip(back(rng.uniform(a, b)), *model.bounds[n]))
         r = fit(s, fitted, loss="l2", x0=x0, energy_conservation=False)
         assert r.success, r.message

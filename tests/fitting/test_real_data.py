@@ -8,15 +8,21 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from gonio.brdf import load
 from gonio.fitting import fit
 from gonio.fitting.sampling import sample_brdf
 from gonio.fitting.select import gloss_units
 
+from gonio.brdf import load
+
 MATERIALS = ("paper_white", "colodur_napoli_4f", "vch_golden_yellow", "cc_ibiza_sunset")
-MODELS = ("lambert", "oren-nayar", "lambert+ggx", "lambert+beckmann", "lambert+ward",
-          "lambert+blinn-phong")
+MODELS = (
+    "lambert",
+    "oren-nayar",
+    "lambert+ggx",
+    "lambert+beckmann",
+    "lambert+ward",
+    "lambert+blinn-phong",
+)
 # a coarser grid than the CLI's keeps the test fast
 GRID = {"theta_i_deg": (0, 20, 40, 60, 75), "n_theta_o": 12, "n_phi_o": 24}
 
@@ -42,14 +48,20 @@ def test_rgl_materials_fit_with_every_model(material, rgl_samples):
                 # a richer model never fits worse than Lambert (Lambert is nested in it;
                 # not so Oren-Nayar, whose albedo bound is 0.99)
                 assert r.cost <= lam.cost * (1 + 1e-9), (name, r.cost, lam.cost)
-            assert r.diagnostics["max_albedo"] is None or max(r.diagnostics["max_albedo"]) <= 1 + 1e-6
+            assert (
+                r.diagnostics["max_albedo"] is None or max(r.diagnostics["max_albedo"]) <= 1 + 1e-6
+            )
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("material", "kind"),
-    [("paper_white", "diffuse"), ("colodur_napoli_4f", "diffuse"),
-     ("vch_golden_yellow", "specular"), ("cc_ibiza_sunset", "specular")],
+    [
+        ("paper_white", "diffuse"),
+        ("colodur_napoli_4f", "diffuse"),
+        ("vch_golden_yellow", "specular"),
+        ("cc_ibiza_sunset", "specular"),
+    ],
 )
 def test_auto_chooses_diffuse_for_paper_and_paint_specular_for_vinyl(material, kind, rgl_samples):
     brdf, s = rgl_samples[material]

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from gonio.fitting import fit
 
 ALB = [0.2, 0.4, 0.6]
@@ -22,15 +21,27 @@ CASES = [
     ("lambert+ggx", {"albedo": ALB, "ks": KS, "alpha": 0.05}, {}),
     ("lambert+ggx", {"albedo": ALB, "ks": KS, "alpha": 0.3, "f0": 0.3}, {"fresnel": "schlick"}),
     ("lambert+beckmann", {"albedo": ALB, "ks": KS, "alpha": 0.2}, {}),
+    ("lambert+beckmann", {"albedo": ALB, "ks": KS, "alpha": 0.2}, {"g1": "rational"}),
+    (
+        "lambert+ggx",
+        {"albedo": ALB, "ks": KS, "alpha": 0.25, "eta": 1.6},
+        {"fresnel": "dielectric"},
+    ),
+    ("ggx", {"ks": KS, "alpha": 0.3, "eta": 0.9, "k": 3.0}, {"fresnel": "conductor"}),
     ("lambert+ward", {"albedo": ALB, "ks": KS, "alpha": 0.15}, {}),
     ("lambert+blinn-phong", {"albedo": ALB, "ks": KS, "n": 200.0}, {}),
     ("oren-nayar+ggx", {"albedo": ALB, "sigma": 0.3, "ks": KS, "alpha": 0.1}, {}),
-    ("lambert+ggx+ggx", {"albedo": ALB, "ks_2": KS, "alpha_2": 0.05, "ks_3": [0.05, 0.05, 0.05],
-                         "alpha_3": 0.4}, {}),
+    (
+        "lambert+ggx+ggx",
+        {"albedo": ALB, "ks_2": KS, "alpha_2": 0.05, "ks_3": [0.05, 0.05, 0.05], "alpha_3": 0.4},
+        {},
+    ),
 ]
 
 
-@pytest.mark.parametrize(("name", "truth", "options"), CASES, ids=[c[0] + str(i) for i, c in enumerate(CASES)])
+@pytest.mark.parametrize(
+    ("name", "truth", "options"), CASES, ids=[c[0] + str(i) for i, c in enumerate(CASES)]
+)
 def test_noise_free_recovery(name, truth, options, make_samples):
     s = make_samples(name, truth, n=400, seed=3, options=options)
     r = fit(s, name, loss="l2", model_options=options)

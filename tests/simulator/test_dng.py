@@ -9,17 +9,23 @@ import numpy as np
 import pytest
 import rawpy
 import tifffile
-
-from gonio.errors import FileFormatError
 from gonio.simulator.dng import dng_bytes, write_dng
 from gonio.simulator.scene import Camera
 from gonio.simulator.sensor import simulate_raw
 
+from gonio.errors import FileFormatError
+
 
 def frame(pattern="RGGB", seed=3, **kw):
-    cam = Camera(resolution=(64, 48), focal_length=0.035, pixel_pitch=5e-6, position=(0, 0, 1),
-                 sensor=dict(cfa_pattern=pattern, black_level=600, bits=12,
-                             quantum_efficiency=(0.4, 0.5, 0.35)))
+    cam = Camera(
+        resolution=(64, 48),
+        focal_length=0.035,
+        pixel_pitch=5e-6,
+        position=(0, 0, 1),
+        sensor=dict(
+            cfa_pattern=pattern, black_level=600, bits=12, quantum_efficiency=(0.4, 0.5, 0.35)
+        ),
+    )
     rad = np.random.default_rng(0).uniform(0, 0.3, (48, 64, 3))
     return simulate_raw(rad, cam, exposure_time=1 / 125, iso=800, f_number=5.6, seed=seed, **kw)
 
@@ -36,11 +42,18 @@ def test_rawpy_reads_mosaic_and_metadata(pattern):
         assert raw.white_level == 4095
         wb = np.array(raw.camera_whitebalance[:3])
         assert np.allclose(wb / wb[1], 1 / fr.as_shot_neutral, rtol=1e-4)
-        other = raw.other if not callable(raw.other) else raw.other()
+        other = raw.other
         assert np.isclose(other.shutter_speed, 1 / 125, rtol=1e-6)
         assert np.isclose(other.aperture, 5.6, rtol=1e-6)
         assert other.iso_speed == 800
         assert np.isclose(other.focal_length, 35.0)
+        # LibRaw turns ColorMatrix1 (XYZ -> camera) into camera -> sRGB the DNG way:
+        # cam_rgb = CM @ sRGB_to_XYZ with rows normalised to 1, then inverted.
+        import colour
+
+        cam_rgb = fr.colour_matrix @ colour.models.RGB_COLOURSPACE_sRGB.matrix_RGB_to_XYZ
+        cam_rgb /= cam_rgb.sum(1, keepdims=True)
+        assert np.allclose(raw.color_matrix[:, :3], np.linalg.inv(cam_rgb), atol=1e-3)
 
 
 def test_colour_matrix_and_neutral_tags():

@@ -5,24 +5,45 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from gonio.simulator.render import HOLDER, NONE, SAMPLE, render
+from gonio.simulator.scene import parse_scene
 
 from gonio.errors import ConfigError
 from gonio.radiometry.emitters import irradiance_disk, irradiance_rectangle
-from gonio.simulator.render import HOLDER, NONE, SAMPLE, render
-from gonio.simulator.scene import parse_scene
 
 
 def scene_dict(**over):
     d = dict(
         sample=dict(width=0.4, height=0.4, brdf=dict(model="lambert", params={"albedo": 0.6})),
-        lights=[dict(type="disk", position=[0, 0, 0.5], normal=[0, 0, -1], radius=0.01,
-                     radiance=[1.0, 2.0, 3.0])],
-        camera=dict(resolution=[33, 33], fov_deg=20, position=[0, 0, 0.6], look_at=[0, 0, 0],
-                    up=[0, 1, 0]),
+        lights=[
+            dict(
+                type="disk",
+                position=[0, 0, 0.5],
+                normal=[0, 0, -1],
+                radius=0.01,
+                radiance=[1.0, 2.0, 3.0],
+            )
+        ],
+        camera=dict(
+            resolution=[33, 33], fov_deg=20, position=[0, 0, 0.6], look_at=[0, 0, 0], up=[0, 1, 0]
+        ),
         render=dict(tolerance=1e-8),
     )
     d.update(over)
     return d
+
+
+def parallel_disk_irradiance(p, height, radius, radiance):
+    """Irradiance under a disk parallel to the receiver plane, centred above the origin
+    (the classic closed form for an off-axis receiver)."""
+    rho2 = p[..., 0] ** 2 + p[..., 1] ** 2
+    h2, r2 = height**2, radius**2
+    return (
+        np.pi
+        * radiance
+        / 2
+        * (1 - (h2 + rho2 - r2) / np.sqrt((h2 + rho2 + r2) ** 2 - 4 * r2 * rho2))
+    )
 
 
 def test_lambert_on_axis_disk_closed_form():
@@ -32,13 +53,21 @@ def test_lambert_on_axis_disk_closed_form():
     assert np.allclose(c, 0, atol=1e-15)
     expected = 0.6 * np.array([1.0, 2.0, 3.0]) * 0.01**2 / (0.5**2 + 0.01**2)
     assert np.max(np.abs(res.radiance[16, 16] / expected - 1)) < 1e-6
+    # ... and every other pixel against the off-axis closed form of a parallel disk
+    E = parallel_disk_irradiance(res.points, 0.5, 0.01, 1.0)
+    assert np.max(np.abs(res.radiance[..., 0] / (0.6 / np.pi * E) - 1)) < 1e-6
 
 
 def test_lambert_tilted_disk_every_pixel_vs_contour_integral():
     # Off-axis, tilted emitter: the lead's irradiance_disk integrates Lambert's contour
     # form along the rim, an independent method from our area quadrature.
-    light = dict(type="disk", position=[0.1, 0.2, 0.35], look_at=[0.03, -0.02, 0.0],
-                 radius=0.012, radiance=[5.0, 5.0, 5.0])
+    light = dict(
+        type="disk",
+        position=[0.1, 0.2, 0.35],
+        look_at=[0.03, -0.02, 0.0],
+        radius=0.012,
+        radiance=[5.0, 5.0, 5.0],
+    )
     d = scene_dict(lights=[light])
     d["camera"].update(resolution=[12, 10], position=[-0.1, -0.2, 0.5])
     res = render(parse_scene(d))
@@ -55,8 +84,15 @@ def test_lambert_tilted_disk_every_pixel_vs_contour_integral():
 # values it returns are finite and are checked.
 @pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")
 def test_lambert_rectangle_light_vs_polygon_irradiance():
-    light = dict(type="rectangle", position=[0.05, 0.1, 0.3], look_at=[0, 0, 0], width=0.04,
-                 height=0.02, up=[0, 0, 1], radiance=2.0)
+    light = dict(
+        type="rectangle",
+        position=[0.05, 0.1, 0.3],
+        look_at=[0, 0, 0],
+        width=0.04,
+        height=0.02,
+        up=[0, 0, 1],
+        radiance=2.0,
+    )
     d = scene_dict(lights=[light])
     d["camera"].update(resolution=[16, 16])
     res = render(parse_scene(d))
@@ -111,8 +147,9 @@ def test_box_shadow_boundary_matches_projection():
     # plate, i.e. X >= x0 h / (h - b + t/2) (it passes the plate's lower edge).
     h, b, t, x0 = 0.5, 0.2, 0.004, 0.01
     plate = dict(type="box", center=[x0 + 0.25, 0, b], size=[0.5, 1.0, t])
-    d = _top_down(0.15, 30, lights=[dict(type="point", position=[0, 0, h], intensity=1.0)],
-                  occluders=[plate])
+    d = _top_down(
+        0.15, 30, lights=[dict(type="point", position=[0, 0, h], intensity=1.0)], occluders=[plate]
+    )
     scene = parse_scene(d)
     res = render(scene, antialias=8)
     assert res.stats.pixels_occluded == 0
@@ -143,8 +180,9 @@ def test_cylinder_shadow_band_matches_tangent_lines():
     # the shadow is the band between the tangent lines from the light.
     h, b, c, a = 0.5, 0.25, 0.03, 0.01
     cyl = dict(type="cylinder", start=[c, -1, b], end=[c, 1, b], radius=a)
-    d = _top_down(0.2, 50, lights=[dict(type="point", position=[0, 0, h], intensity=1.0)],
-                  occluders=[cyl])
+    d = _top_down(
+        0.2, 50, lights=[dict(type="point", position=[0, 0, h], intensity=1.0)], occluders=[cyl]
+    )
     scene = parse_scene(d)
     res = render(scene, antialias=1)
     phi0 = np.arctan2(c, h - b)
@@ -188,8 +226,9 @@ def test_camera_not_seeing_sample_is_an_error():
 
 
 def test_pixels_off_the_sample_are_skipped_and_edges_only_on_boundaries():
-    d = scene_dict(sample=dict(width=0.05, height=0.03,
-                               brdf=dict(model="lambert", params={"albedo": 0.6})))
+    d = scene_dict(
+        sample=dict(width=0.05, height=0.03, brdf=dict(model="lambert", params={"albedo": 0.6}))
+    )
     d["camera"].update(resolution=[64, 64])
     res = render(parse_scene(d))
     st = res.stats
@@ -210,10 +249,14 @@ def test_pixels_off_the_sample_are_skipped_and_edges_only_on_boundaries():
 
 
 def test_tiny_light_uses_point_approximation_within_tolerance():
-    d = scene_dict(lights=[dict(type="disk", position=[0, 0.3, 1.0], look_at=[0, 0, 0],
-                                radius=0.001, radiance=1.0)],
-                   sample=dict(width=0.4, height=0.4, brdf=dict(
-                       model="ggx", params={"ks": 1.0, "alpha": 0.3})))
+    d = scene_dict(
+        lights=[
+            dict(type="disk", position=[0, 0.3, 1.0], look_at=[0, 0, 0], radius=0.001, radiance=1.0)
+        ],
+        sample=dict(
+            width=0.4, height=0.4, brdf=dict(model="ggx", params={"ks": 1.0, "alpha": 0.3})
+        ),
+    )
     scene = parse_scene(d)
     res = render(scene, tolerance=1e-3)
     assert res.stats.lights[0].strategy == "point"
@@ -223,10 +266,16 @@ def test_tiny_light_uses_point_approximation_within_tolerance():
 
 @pytest.mark.parametrize("tol", [1e-3, 1e-5, 1e-7])
 def test_auto_meets_tolerance_on_ggx(tol):
-    d = scene_dict(lights=[dict(type="disk", position=[0, 0.25, 0.433], look_at=[0, 0, 0],
-                                radius=0.01, radiance=1.0)],
-                   sample=dict(width=0.4, height=0.4, brdf=dict(
-                       model="ggx", params={"ks": 1.0, "alpha": 0.2})))
+    d = scene_dict(
+        lights=[
+            dict(
+                type="disk", position=[0, 0.25, 0.433], look_at=[0, 0, 0], radius=0.01, radiance=1.0
+            )
+        ],
+        sample=dict(
+            width=0.4, height=0.4, brdf=dict(model="ggx", params={"ks": 1.0, "alpha": 0.2})
+        ),
+    )
     d["camera"].update(position=[0, -0.25, 0.433], resolution=[24, 24])
     scene = parse_scene(d)
     res = render(scene, tolerance=tol)
@@ -239,14 +288,22 @@ def test_auto_meets_tolerance_on_ggx(tol):
 
 
 def _ref(scene):
-    s = scene.model_copy(update={"render": scene.render.model_copy(
-        update={"strategy": "quadrature", "quadrature_order": 16})})
+    s = scene.model_copy(
+        update={
+            "render": scene.render.model_copy(
+                update={"strategy": "quadrature", "quadrature_order": 16}
+            )
+        }
+    )
     return render(s).radiance
 
 
 def test_stratified_mc_is_unbiased_and_seeded():
-    d = scene_dict(lights=[dict(type="disk", position=[0, 0, 0.1], normal=[0, 0, -1],
-                                radius=0.05, radiance=1.0)])
+    d = scene_dict(
+        lights=[
+            dict(type="disk", position=[0, 0, 0.1], normal=[0, 0, -1], radius=0.05, radiance=1.0)
+        ]
+    )
     d["camera"].update(resolution=[16, 16])
     scene = parse_scene(d)
     a = render(scene, strategy="mc", seed=3)
@@ -254,30 +311,94 @@ def test_stratified_mc_is_unbiased_and_seeded():
     c = render(scene, strategy="mc", seed=4)
     assert np.array_equal(a.radiance, b.radiance) and not np.array_equal(a.radiance, c.radiance)
     p = a.points.reshape(-1, 3)
-    exact = 0.6 / np.pi * irradiance_disk(p, [0, 0, 1], [0, 0, 0.1], [0, 0, -1], 0.05, 1.0)
+    exact = 0.6 / np.pi * parallel_disk_irradiance(p, 0.1, 0.05, 1.0)
     rel = a.radiance.reshape(-1, 3)[:, 0] / exact - 1
     # Unbiased: the mean error over 256 independent pixels is within 4 standard errors.
     assert abs(rel.mean()) < 4 * rel.std() / np.sqrt(rel.size)
     # Stratification: 4x the samples cut the error by more than the 2x of plain MC.
     fine = render(scene, strategy="mc", seed=5).radiance
     ref_rms = np.sqrt(np.mean(rel**2))
-    scene256 = scene.model_copy(update={"render": scene.render.model_copy(
-        update={"mc_samples": 256})})
+    scene256 = scene.model_copy(
+        update={"render": scene.render.model_copy(update={"mc_samples": 256})}
+    )
     fine = render(scene256, strategy="mc", seed=5).radiance.reshape(-1, 3)[:, 0] / exact - 1
     assert np.sqrt(np.mean(fine**2)) < ref_rms / 2.5
 
 
 def test_holder_board_is_lambertian_black_and_white():
-    d = scene_dict(holder=dict(width=0.3, height=0.3, albedo_black=0.05, albedo_white=0.8,
-                               board=dict(squares_x=5, squares_y=5, square_length=0.05,
-                                          marker_length=0.035)),
-                   sample=dict(width=0.04, height=0.04,
-                               brdf=dict(model="lambert", params={"albedo": 0.6})))
+    d = scene_dict(
+        holder=dict(
+            width=0.3,
+            height=0.3,
+            albedo_black=0.05,
+            albedo_white=0.8,
+            board=dict(squares_x=5, squares_y=5, square_length=0.05, marker_length=0.035),
+        ),
+        sample=dict(width=0.04, height=0.04, brdf=dict(model="lambert", params={"albedo": 0.6})),
+    )
     d["camera"].update(resolution=[64, 64], fov_deg=35)
     res = render(parse_scene(d))
     h = (res.region == HOLDER) & ~res.edge
     p = res.points[h]
-    E = irradiance_disk(p, [0, 0, 1], [0, 0, 0.5], [0, 0, -1], 0.01, 1.0)
+    E = parallel_disk_irradiance(p, 0.5, 0.01, 1.0)
     albedo = res.radiance[h][:, 0] / (E / np.pi)
     assert np.all(np.isclose(albedo, 0.05, rtol=1e-6) | np.isclose(albedo, 0.8, rtol=1e-6))
     assert np.isclose(albedo, 0.05, rtol=1e-6).sum() > 50
+
+
+def test_albedo_map_scales_the_brdf(tmp_path):
+    m = np.ones((4, 8))
+    m[:, :4] = 0.5  # the -x half of the sample at half albedo
+    np.save(tmp_path / "map.npy", m)
+    d = scene_dict()
+    d["sample"]["albedo_map"] = "map.npy"
+    scene = parse_scene(d, base_dir=tmp_path)
+    plain = render(parse_scene(scene_dict())).radiance
+    res = render(scene)
+    x = res.points[..., 0]
+    ratio = res.radiance[..., 0] / plain[..., 0]
+    # bilinear between texel centres: exact halves away from the middle texel pair
+    assert np.allclose(ratio[x < -0.06], 0.5) and np.allclose(ratio[x > 0.06], 1.0)
+    assert np.all((ratio >= 0.5 - 1e-12) & (ratio <= 1 + 1e-12))
+
+
+# see test_lambert_rectangle_light_vs_polygon_irradiance
+@pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")
+def test_penumbra_of_rectangle_light_vs_visible_sub_rectangle():
+    # A rectangle light parallel to the ground, a plate over x >= x0.  For a ground point
+    # X < x0 the plate hides the light points u >= X + (x0 - X) h / (b + t/2) (the line
+    # passes the plate's top face), so the visible part is a sub-rectangle whose
+    # irradiance has a closed form (gonio.radiometry.irradiance_rectangle).
+    h, b, t, x0, w, hy = 0.5, 0.2, 0.002, 0.0, 0.06, 0.04
+    light = dict(
+        type="rectangle",
+        position=[0, 0, h],
+        normal=[0, 0, -1],
+        width=w,
+        height=hy,
+        up=[0, 1, 0],
+        radiance=1.0,
+    )
+    plate = dict(type="box", center=[x0 + 0.5, 0, b], size=[1.0, 1.0, t])
+    d = _top_down(0.15, 30, lights=[light], occluders=[plate])
+    d["camera"]["resolution"] = [32, 32]
+    res = render(parse_scene(d), tolerance=1e-4)
+    st = res.stats.lights[0]
+    assert st.penumbra_points > 0 and st.penumbra_nodes > st.nodes
+    X = res.points[..., 0]
+    p = res.points[(X < x0) & ~res.edge]
+    u_star = p[:, 0] + (x0 - p[:, 0]) * h / (b + t / 2)
+    hi = np.minimum(w / 2, u_star)
+    vis = hi > -w / 2
+    centre = np.stack([(hi - w / 2) / 2, 0 * hi, h + 0 * hi], -1)
+    size = np.stack([np.maximum(hi + w / 2, 1e-12), hy + 0 * hi], -1)
+    E = irradiance_rectangle(p, [0, 0, 1], centre, [0, 0, -1], [1, 0, 0], size, 1.0)
+    E = np.where(vis, E, 0.0)
+    E_free = irradiance_rectangle(p, [0, 0, 1], [0, 0, h], [0, 0, -1], [1, 0, 0], (w, hy), 1.0)
+    L = res.radiance[(X < x0) & ~res.edge][:, 0]
+    err = np.abs(L - 0.6 / np.pi * E) / (0.6 / np.pi * E_free)
+    partial = (u_star < w / 2) & vis
+    assert partial.sum() > 20
+    assert np.max(err[~partial]) < 1e-4  # fully lit: the smooth rule meets the tolerance
+    # penumbra: within the renderer's own estimate (relative to the unshadowed value)
+    assert np.max(err[partial]) < max(2 * st.penumbra_error, 1e-6) and st.penumbra_error < 1e-2

@@ -14,7 +14,6 @@ import tempfile
 
 import numpy as np
 import pytest
-
 from gonio.simulator.mitsuba_scene import to_mitsuba_dict
 from gonio.simulator.render import render
 from gonio.simulator.scene import parse_scene
@@ -41,19 +40,39 @@ def mi():
 
 
 def _scene(brdf: dict, res=(64, 64)):
-    return parse_scene(dict(
-        sample=dict(width=0.3, height=0.24, brdf=brdf),
-        lights=[dict(type="disk", position=[0.05, 0.25, 0.4330127], look_at=[0, 0, 0],
-                     radius=0.01, radiance=[1000.0, 800.0, 600.0])],
-        camera=dict(resolution=list(res), fov_deg=20, position=[0.0, -0.25, 0.4330127],
-                    look_at=[0.02, 0, 0], up=[0, 1, 0]),
-        render=dict(tolerance=1e-4),
-    ))
+    return parse_scene(
+        dict(
+            sample=dict(width=0.3, height=0.24, brdf=brdf),
+            lights=[
+                dict(
+                    type="disk",
+                    position=[0.05, 0.25, 0.4330127],
+                    look_at=[0, 0, 0],
+                    radius=0.01,
+                    radiance=[1000.0, 800.0, 600.0],
+                )
+            ],
+            camera=dict(
+                resolution=list(res),
+                fov_deg=20,
+                position=[0.0, -0.25, 0.4330127],
+                look_at=[0.02, 0, 0],
+                up=[0, 1, 0],
+            ),
+            render=dict(tolerance=1e-4),
+        )
+    )
 
 
 def _mitsuba_stats(mi, scene):
-    imgs = np.array([np.array(mi.render(mi.load_dict(to_mitsuba_dict(scene, mi, SPP, seed))),
-                              dtype=np.float64) for seed in range(1, K_RENDERS + 1)])
+    imgs = np.array(
+        [
+            np.array(
+                mi.render(mi.load_dict(to_mitsuba_dict(scene, mi, SPP, seed))), dtype=np.float64
+            )
+            for seed in range(1, K_RENDERS + 1)
+        ]
+    )
     return imgs.mean(0), imgs.std(0, ddof=1) / np.sqrt(K_RENDERS)
 
 
@@ -70,8 +89,10 @@ def _compare(ours, mean, stderr):
     # Heavy-tailed MC samples make the sample variance noisy: allow 25 % + 5 sd.
     assert abs(np.mean(t**2) / (nu / (nu - 2)) - 1) < 0.25 + 5 * sd_t2, np.mean(t**2)
     assert abs(np.mean(t)) < 5 * np.sqrt(nu / (nu - 2) / n), np.mean(t)
-    print(f"relative mean difference {rel_mean}, mean t^2 {np.mean(t**2):.3f} "
-          f"(expected {nu / (nu - 2):.3f}), mean t {np.mean(t):.3f}")
+    print(
+        f"relative mean difference {rel_mean}, mean t^2 {np.mean(t**2):.3f} "
+        f"(expected {nu / (nu - 2):.3f}), mean t {np.mean(t):.3f}"
+    )
     return rel_mean, np.mean(t**2)
 
 

@@ -7,10 +7,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
-from gonio.errors import ConfigError
 from gonio.simulator.render import render
 from gonio.simulator.scene import load_scene, look_at_rotation, parse_scene
+
+from gonio.errors import ConfigError
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "scene.toml"
 
@@ -50,7 +50,9 @@ def test_minimal_scene_defaults(tmp_path):
     scene = load_scene(write(tmp_path, GOOD))
     assert scene.holder is None and scene.render.strategy == "auto"
     assert scene.camera.sensor.cfa_pattern == "RGGB"
-    assert np.allclose(scene.lights[0].emit_normal(), -np.array([0, 0.25, 0.43]) / np.hypot(0.25, 0.43))
+    assert np.allclose(
+        scene.lights[0].emit_normal(), -np.array([0, 0.25, 0.43]) / np.hypot(0.25, 0.43)
+    )
 
 
 @pytest.mark.parametrize(
@@ -79,8 +81,10 @@ def test_unknown_brdf_model_names_the_field(tmp_path):
 
 
 def test_missing_measured_file_names_the_field(tmp_path):
-    text = GOOD.replace('model = "lambert+ggx"\nparams = { albedo = 0.5, ks = 0.2, alpha = 0.2 }',
-                        'file = "nope.bsdf"')
+    text = GOOD.replace(
+        'model = "lambert+ggx"\nparams = { albedo = 0.5, ks = 0.2, alpha = 0.2 }',
+        'file = "nope.bsdf"',
+    )
     scene = load_scene(write(tmp_path, text))
     with pytest.raises(ConfigError, match=r"sample\.brdf\.file: .*nope\.bsdf"):
         scene.build_brdf()
@@ -139,13 +143,27 @@ def test_spectrum_light_is_integrated_against_camera_sensitivities(tmp_path):
     cam = colour.MSDS_CAMERA_SENSITIVITIES["Nikon 5100 (NPL)"]
     expected = 2.0 * np.trapezoid(cam.values, cam.wavelengths, axis=0)
     assert np.allclose(rgb, expected, rtol=1e-2)
-    d65 = parse_scene({**_dict(GOOD), "lights": [dict(
-        type="point", position=[0, 0, 1], intensity={"illuminant": "D65"})]})
+    d65 = parse_scene(
+        {
+            **_dict(GOOD),
+            "lights": [dict(type="point", position=[0, 0, 1], intensity={"illuminant": "D65"})],
+        }
+    )
     a = d65.light_rgb(d65.lights[0].intensity)
     assert a[2] / a[0] > 0.8  # D65 is bluish against a flat spectrum
     with pytest.raises(ConfigError, match="exactly one"):
-        parse_scene({**_dict(GOOD), "lights": [dict(
-            type="point", position=[0, 0, 1], intensity={"illuminant": "D65", "blackbody": 5000})]})
+        parse_scene(
+            {
+                **_dict(GOOD),
+                "lights": [
+                    dict(
+                        type="point",
+                        position=[0, 0, 1],
+                        intensity={"illuminant": "D65", "blackbody": 5000},
+                    )
+                ],
+            }
+        )
 
 
 def _dict(text):
@@ -165,13 +183,17 @@ def test_poses_from_rig_joint_angles(tmp_path):
     joints = k.inverse(wi, wo)
     poses = k.poses(joints)
     text = GOOD.replace("position = [0.0, -0.25, 0.43]\n", "")
-    text += "[rig]\njoints_deg = { " + ", ".join(
-        f"{n} = {np.degrees(v)!r}" for n, v in joints.items()) + " }\n"
+    text += (
+        "[rig]\njoints_deg = { "
+        + ", ".join(f"{n} = {np.degrees(v)!r}" for n, v in joints.items())
+        + " }\n"
+    )
     scene = load_scene(write(tmp_path, text))
     C, R = scene.camera_pose()
     assert np.allclose(C, poses.camera_position) and np.allclose(R, poses.camera_rotation.T)
     assert np.allclose(scene.lights[0].position, poses.light_position)
-    res = render(scene.model_copy(update={"render": scene.render.model_copy(
-        update={"tolerance": 1e-3})}))
+    res = render(
+        scene.model_copy(update={"render": scene.render.model_copy(update={"tolerance": 1e-3})})
+    )
     centre = res.wo[12, 16]
     assert np.degrees(np.arccos(np.clip(centre @ wo, -1, 1))) < 0.5

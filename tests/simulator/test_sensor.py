@@ -4,17 +4,22 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from gonio.errors import ParameterError
 from gonio.simulator.scene import Camera
 from gonio.simulator.sensor import cfa_indices, simulate_raw
+
+from gonio.errors import ParameterError
 
 H_PLANCK, C_LIGHT = 6.62607015e-34, 299792458.0
 
 
 def camera(**sensor):
-    return Camera(resolution=(200, 100), focal_length=0.05, pixel_pitch=4e-6,
-                  position=(0, 0, 1), sensor=dict(vignetting=False, **sensor))
+    return Camera(
+        resolution=(200, 100),
+        focal_length=0.05,
+        pixel_pitch=4e-6,
+        position=(0, 0, 1),
+        sensor=dict(vignetting=False, **sensor),
+    )
 
 
 def expected_electrons(L, cam, t, N, channel):
@@ -27,8 +32,7 @@ def expected_electrons(L, cam, t, N, channel):
 def test_mean_and_variance_follow_photon_transfer():
     cam = camera(read_noise=4.0, dark_current=50.0)
     L, t, N, iso = 0.1, 0.02, 4.0, 400
-    fr = simulate_raw(np.full((100, 200, 3), L), cam, exposure_time=t, f_number=N, iso=iso,
-                      seed=1)
+    fr = simulate_raw(np.full((100, 200, 3), L), cam, exposure_time=t, f_number=N, iso=iso, seed=1)
     s = cam.sensor
     gain = s.gain_at_base_iso * iso / s.base_iso
     idx = cfa_indices("RGGB", (100, 200))
@@ -43,9 +47,20 @@ def test_mean_and_variance_follow_photon_transfer():
 
 
 def test_natural_vignetting_is_cos4():
-    cam = Camera(resolution=(400, 4), focal_length=0.01, pixel_pitch=2e-5, position=(0, 0, 1),
-                 sensor=dict(read_noise=0.0, dark_current=0.0, full_well=1e9, bits=16,
-                             black_level=0, gain_at_base_iso=0.001))
+    cam = Camera(
+        resolution=(400, 4),
+        focal_length=0.01,
+        pixel_pitch=2e-5,
+        position=(0, 0, 1),
+        sensor=dict(
+            read_noise=0.0,
+            dark_current=0.0,
+            full_well=1e9,
+            bits=16,
+            black_level=0,
+            gain_at_base_iso=0.001,
+        ),
+    )
     fr = simulate_raw(np.full((4, 400, 3), 100.0), cam, seed=0)
     assert fr.mosaic.max() < 65535
     g = fr.mosaic[0, 1::2].astype(float)  # green sites of an RGGB first row

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import serial
-
 from gonio.rig.protocol import Framer
 from gonio.simulator.servo_model import VirtualServo
 from gonio.simulator.virtual_bus import VirtualBus
@@ -92,9 +91,7 @@ def test_bulk_read_and_bulk_write():
     with manual_bus() as bus:
         bus.servos[1].voltage_raw = 119
         bus.servos[2]._heat = 6.0  # 30 degC ambient + 6
-        replies = exchange(
-            bus, h("FF FF FD 00 FE 0D 00 92 01 90 00 02 00 02 92 00 01 00 1A 05"), 2
-        )
+        replies = exchange(bus, h("FF FF FD 00 FE 0D 00 92 01 90 00 02 00 02 92 00 01 00 1A 05"), 2)
         assert replies == [
             h("FF FF FD 00 01 06 00 55 00 77 00 C3 69"),
             h("FF FF FD 00 02 05 00 55 00 24 8B A9"),

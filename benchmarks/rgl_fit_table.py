@@ -1,0 +1,83 @@
+"""Fit the four shared RGL materials with six models; print the cost table as one JSON object.
+
+For every material and model: the cosine-weighted L2 cost (fit with ``cosine_l2``) and the
+log-loss cost (fit with ``log``), both ``0.5 * sum(r^2)`` over the samples of the CLI's
+default direction grid (9 incidence angles x 18 x 36 outgoing directions), plus the RMS
+residual, and what ``model="auto"`` chooses.  The baseline of each row is Lambert.
+
+Run: .venv/bin/python benchmarks/rgl_fit_table.py [--refdata ../shared/data]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+from gonio.fitting import fit
+from gonio.fitting.sampling import sample_brdf
+from gonio.fitting.select import gloss_units
+
+from gonio.brdf import load
+
+MATERIALS = ("paper_white", "colodur_napoli_4f", "vch_golden_yellow", "cc_ibiza_sunset")
+MODELS = (
+    "lambert",
+    "oren-nayar",
+    "lambert+ggx",
+    "lambert+beckmann",
+    "lambert+ward",
+    "lambert+blinn-phong",
+)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    default = os.environ.get(
+        "GONIO_REFDATA", str(Path(__file__).resolve().parents[2] / "shared/data")
+    )
+    ap.add_argument("--refdata", default=default)
+    args = ap.parse_args()
+    table: dict = {}
+    t0 = time.process_time()
+    for mat in MATERIALS:
+        b = load(Path(args.refdata) / "rgl" / f"{mat}_rgb.bsdf")
+        s = sample_brdf(b)
+        rows = {}
+        for name in MODELS:
+            rc = fit(s, name, loss="cosine_l2")
+            rl = fit(s, name, loss="log")
+            rows[name] = {
+                "cosine_l2": rc.cost,
+                "log": rl.cost,
+                "rms_cosine_l2": rc.diagnostics["rms_residual"],
+                "rms_log": rl.diagnostics["rms_residual"],
+                "params_cosine_l2": {k: np.round(v, 5).tolist() for k, v in rc.params.items()},
+                "success": bool(rc.success and rl.success),
+            }
+        auto = fit(s, "auto")
+        table[mat] = {
+            "n_samples": int(len(s.wi)),
+            "gloss_60_measured_GU": np.round(gloss_units(b), 2).tolist(),
+            "auto": auto.model,
+            "auto_note": auto.diagnostics.get("selection_note", ""),
+            "models": rows,
+        }
+    print(
+        json.dumps(
+            {
+                "benchmark": "rgl_fit_table",
+                "figure": "cost per material and model (cosine_l2 and log losses)",
+                "baseline": "lambert row",
+                "cpu_seconds": time.process_time() - t0,
+                "table": table,
+            }
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()

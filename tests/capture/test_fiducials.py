@@ -1,0 +1,162 @@
+"""Camera pose from the holder's ChArUco board against the simulator's true pose."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gonio.capture.fiducials import (
+    BoardSpec,
+    detect_pose,
+    detect_pose_in_frame,
+    grey_from_mosaic,
+    map_regions,
+)
+from gonio.capture.raw import read_raw
+from gonio.capture.reduce import setup_from_scene
+
+from gonio.errors import ReductionError
+from gonio.radiometry import spherical_to_direction
+
+
+def scene_doc(resolution, board=True):
+    holder = {"width": 0.16, "height": 0.16}
+    if not board:
+        holder["board"] = None
+    return {
+        "sample": {
+            "width": 0.05,
+            "height": 0.05,
+            "brdf": {"model": "lambert", "params": {"albedo": 0.5}},
+        },
+        "holder": holder,
+        "lights": [
+            {
+                "type": "disk",
+                "position": [0.0, 0.25, 0.433],
+                "look_at": [0, 0, 0],
+                "radius": 0.01,
+                "radiance": [2e4, 2e4, 2e4],
+            }
+        ],
+        "camera": {
+            "resolution": list(resolution),
+            "focal_length": 0.016,
+            "fov_deg": 30.0,
+            "position": [0.1, -0.2, 0.35],
+            "look_at": [0, 0, 0],
+        },
+        "render": {"tolerance": 1e-3},
+    }
+
+
+@pytest.fixture(scope="module")
+def rig_views():
+    """Three views of the default rig (camera at 0.4 m), rendered at 800 x 600."""
+    from gonio.rig.config import default_rig_config
+    from gonio.rig.kinematics import Kinematics
+    from gonio.simulator.camera import SimulatedCamera
+    from gonio.simulator.scene import parse_scene
+
+    scene = parse_scene(scene_doc((800, 600)))
+    kin = Kinematics(default_rig_config())
+    state = {}
+    cam = SimulatedCamera(scene, pose_provider=lambda: state["p"])
+    views = []
+    for k, (ti, pi, to, po) in enumerate([(20, 0, 20, 180), (40, 0, 60, 180), (30, 90, 45, 270)]):
+        wi = spherical_to_direction(np.radians(ti), np.radians(pi))
+        wo = spherical_to_direction(np.radians(to), np.radians(po))
+        rp = kin.poses(kin.inverse(wi, wo))
+        state["p"] = rp
+        dng, truth = cam.capture(3e-4, 100, 8.0, seed=k, return_truth=True)
+        views.append((read_raw(dng, name=f"view{k}"), rp, truth))
+    return setup_from_scene(scene), views
+
+
+def test_pose_matches_the_simulators_true_pose(rig_views):
+    setup, views = rig_views
+    for frame, rp, _ in views:
+        R_true = rp.camera_rotation.T  # RigPoses gives camera-to-sample
+        for pose in (
+            detect_pose(grey_from_mosaic(frame), setup.board, setup.K),  # full resolution
+            detect_pose_in_frame(frame, setup.board, setup.K, max_width=400),  # binned + refined
+        ):
+            err_mm = np.linalg.norm(pose.position - rp.camera_position) * 1e3
+            err_deg = np.degrees(pose.angle_to(R_true))
+            rms = pose.reprojection_rms
+            print(f"{frame.name}: {err_mm:.3f} mm, {err_deg:.4f} deg, rms {rms:.3f} px")
+            assert err_mm < 0.5
+            assert err_deg < 0.1
+            assert pose.reprojection_rms < 0.5
+
+
+def test_regions_map_pixels_to_the_true_surface_points(rig_views):
+    setup, views = rig_views
+    for frame, _rp, truth in views:
+        pose = detect_pose_in_frame(frame, setup.board, setup.K)
+        reg = map_regions(pose, setup.K, frame.shape, setup.sample_size, grid=3)
+        inside = reg.label >= 0
+        true_pts = truth.points[reg.box][inside]
+        # every region pixel sees the sample in the simulator too
+        assert (truth.region[reg.box][inside] == 1).all()
+        err = np.linalg.norm(reg.points[inside] - true_pts, axis=-1)
+        assert np.max(err) < 5e-4  # metres
+        cosang = np.sum(reg.wo[inside] * truth.wo[reg.box][inside], axis=-1)
+        assert np.degrees(np.arccos(np.clip(cosang, -1, 1))).max() < 0.1
+        # nine regions, each with pixels, each inside its cell on the sample
+        for j in range(9):
+            p = reg.points[reg.label == j]
+            assert len(p) > 100
+            assert np.all(np.abs(p[:, :2] - reg.centers[j]) <= 0.05 * 0.6 / 3 / 2 + 1e-9)
+
+
+def test_no_visible_board_is_a_clear_error():
+    from gonio.simulator.camera import SimulatedCamera
+    from gonio.simulator.scene import parse_scene
+
+    scene = parse_scene(scene_doc((320, 240), board=False))
+    frame = read_raw(SimulatedCamera(scene).capture(3e-4, 100, 8.0, seed=0), name="noboard.dng")
+    with pytest.raises(ReductionError, match="noboard.dng.*board not visible"):
+        detect_pose_in_frame(
+            frame, BoardSpec(), np.array([[600.0, 0, 160], [0, 600, 120], [0, 0, 1]])
+        )
+
+
+def test_board_placement_matches_the_simulators_convention():
+    from gonio.simulator.scene import Board
+
+    b = Board()
+    R, t = BoardSpec.from_mapping(b.model_dump()).transform()
+    R2, t2 = b.board_to_sample()
+    np.testing.assert_array_equal(R, R2)
+    np.testing.assert_array_equal(t, t2)
+
+
+def test_geometry_mismatch_with_the_rig_is_flagged(rig_views):
+    from gonio.capture.reduce import measure_pose
+    from gonio.dataset import Flag
+
+    setup, views = rig_views
+    frame, rp, _ = views[1]
+    reported = (rp.camera_position, rp.camera_rotation.T)
+    ok = measure_pose(
+        [frame],
+        setup,
+        rp.light_position,
+        rp.light_normal,
+        reported_wo=rp.wo,
+        reported_camera=reported,
+    )
+    assert not (ok.flags & Flag.GEOMETRY_MISMATCH).any()
+    # the rig claims the camera 1 degree further round than the board shows
+    c, s = np.cos(np.radians(1.0)), np.sin(np.radians(1.0))
+    wo_claimed = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ rp.wo
+    bad = measure_pose(
+        [frame],
+        setup,
+        rp.light_position,
+        rp.light_normal,
+        reported_wo=wo_claimed,
+        reported_camera=reported,
+    )
+    assert (bad.flags & Flag.GEOMETRY_MISMATCH).all()
+    assert "deg from the rig's report" in bad.reasons[0][0]

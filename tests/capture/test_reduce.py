@@ -1,0 +1,281 @@
+"""``gonio capture reduce`` on a whole simulated session, and what bad input does to it."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from importlib import resources
+
+import numpy as np
+import pytest
+import rawpy
+from gonio.capture.journal import read_journal
+
+from gonio.cli import main
+from gonio.dataset import Flag, load_samples
+
+ALBEDO = np.array([0.6, 0.5, 0.4])
+
+PLAN = """
+name = "reduce-test"
+seed = 5
+[grid]
+theta_i_deg = [20, 40]
+phi_i_deg = [0]
+theta_o_deg = [30, 50]
+phi_o_deg = [180]
+[bracket]
+policy = "adaptive"
+roi = [0.42, 0.42, 0.58, 0.58]
+exposure_time_s = 0.0005
+[darks]
+count = 2
+[reference]
+poses = [{theta_i_deg = 0, theta_o_deg = 30}, {theta_i_deg = 30, theta_o_deg = 30, phi_o_deg = 180}]
+[simulation]
+scene = "scene.toml"
+"""
+
+SCENE = """
+[sample]
+width = 0.05
+height = 0.05
+[sample.brdf]
+model = "lambert"
+params = { albedo = [0.6, 0.5, 0.4] }
+[holder]
+width = 0.16
+height = 0.16
+[holder.board]
+[[lights]]
+type = "disk"
+position = [0.0, 0.25, 0.433]
+look_at = [0.0, 0.0, 0.0]
+radius = 0.01
+radiance = [2.0e4, 2.0e4, 2.0e4]
+[camera]
+resolution = [400, 300]
+focal_length = 0.016
+fov_deg = 30.0
+position = [0.1, -0.2, 0.35]
+look_at = [0.0, 0.0, 0.0]
+[render]
+strategy = "quadrature"
+quadrature_order = 1
+"""
+
+
+def run_cli(*args):
+    try:
+        main(list(args))
+    except SystemExit as exc:
+        return exc.code
+    return 0
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    """A simulated session: real dynamixel-sdk on the virtual bus, rendered DNGs."""
+    d = tmp_path_factory.mktemp("reduce")
+    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
+    (d / "rig.toml").write_text(rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"'))
+    (d / "plan.toml").write_text(PLAN)
+    (d / "scene.toml").write_text(SCENE)
+    code = run_cli(
+        "capture",
+        "run",
+        str(d / "plan.toml"),
+        "--rig",
+        str(d / "rig.toml"),
+        "--camera",
+        "simulated",
+        "--out",
+        str(d / "S"),
+        "--quiet",
+    )
+    assert code == 0
+    return d / "S"
+
+
+def copy_session(src, dst):
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("samples.*", "reduction.json"))
+    return dst
+
+
+def raw_hashes(s):
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in (s / "raw").iterdir()}
+
+
+def replace_frame(s, rel, data):
+    """Put other bytes in a frame *and* its journal record, as if the camera sent them."""
+    (s / rel).write_bytes(data)
+    lines = []
+    for line in (s / "journal.jsonl").read_text().splitlines():
+        r = json.loads(line)
+        if r.get("file") == rel:
+            r["sha256"] = hashlib.sha256(data).hexdigest()
+            r["bytes"] = len(data)
+        lines.append(json.dumps(r))
+    (s / "journal.jsonl").write_text("\n".join(lines) + "\n")
+
+
+def dng_like(path, *, pattern=None, value=None):
+    """A DNG with another frame's mosaic (or a constant), written by the simulator."""
+    from gonio.simulator.dng import dng_bytes
+    from gonio.simulator.sensor import RawFrame as SimFrame
+
+    with rawpy.imread(str(path)) as r:
+        mosaic = r.raw_image_visible.copy()
+    if value is not None:
+        mosaic[:] = value
+    return dng_bytes(
+        SimFrame(
+            mosaic, pattern or "RGGB", 512, 16383, np.eye(3), np.ones(3), 0.001, 8.0, 100.0, 0.016
+        )
+    )
+
+
+def sample_files(s, pose=None):
+    recs = [
+        r
+        for r in read_journal(s / "journal.jsonl")
+        if r.get("type") == "shot" and r["kind"] == "sample"
+    ]
+    poses = sorted({r["pose"] for r in recs})
+    p = poses[0] if pose is None else pose
+    return [r["file"] for r in recs if r["pose"] == p], p
+
+
+def test_reduce_cli_gives_calibrated_lambertian_samples(session, tmp_path):
+    s = copy_session(session, tmp_path / "S")
+    before = raw_hashes(s)
+    assert run_cli("capture", "reduce", str(s), "--quiet") == 0
+    assert raw_hashes(s) == before  # RAW files untouched
+    samples = load_samples(s / "samples.h5")
+    assert len(samples) == 4 * 9 and samples.valid.all()
+    truth = ALBEDO / np.pi  # a Lambertian BRDF, closed form
+    rel = np.abs(samples.brdf / truth - 1)
+    z = (samples.brdf - truth) / samples.brdf_std
+    print(f"median rel err {np.median(rel):.2e}, z mean {z.mean():+.2f} std {z.std():.2f}")
+    assert np.median(rel) <= 0.01
+    assert 0.8 <= z.std() <= 1.25
+    # the directions reported are those of the regions, close to the rig's
+    recs = [r for r in read_journal(s / "journal.jsonl") if r.get("kind") == "sample"]
+    wo_rig = np.array([r["wo_achieved"] for r in recs])
+    ang = np.degrees(np.arccos(np.clip(samples.wo @ wo_rig.T, -1, 1))).min(axis=1)
+    assert ang.max() < 3.0  # regions sit within ~1.5 cm of the centre at 0.4 m
+    assert samples.frames[0].startswith("raw/") and samples.frames[0].endswith(".dng")
+    summary = json.loads((s / "reduction.json").read_text())
+    assert summary["kept"] == 36 and summary["reference_poses"] == 2
+    assert (s / "samples.png").stat().st_size > 1000
+
+
+def test_reduce_twice_gives_the_same_file(session, tmp_path):
+    s = copy_session(session, tmp_path / "S")
+    assert run_cli("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
+    first = (s / "samples.h5").read_bytes()
+    assert run_cli("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
+    assert (s / "samples.h5").read_bytes() == first
+
+
+def test_bad_frames_are_reported_and_their_samples_flagged(session, tmp_path, capsys):
+    s = copy_session(session, tmp_path / "S")
+    files_a, pose_a = sample_files(s)
+    poses = sorted(
+        {r["pose"] for r in read_journal(s / "journal.jsonl") if r.get("kind") == "sample"}
+    )
+    files_b, pose_b = sample_files(s, poses[1])
+    files_c, pose_c = sample_files(s, poses[2])
+    files_d, pose_d = sample_files(s, poses[3])
+    # a: truncated after capture (the journal hash no longer matches)
+    for f in files_a:
+        data = (s / f).read_bytes()
+        (s / f).write_bytes(data[: len(data) // 2])
+    # b: the camera delivered a GRBG frame in an RGGB session
+    for f in files_b:
+        replace_frame(s, f, dng_like(s / f, pattern="GRBG"))
+    # c: an all-saturated bracket
+    for f in files_c:
+        replace_frame(s, f, dng_like(s / f, value=16383))
+    # d: frames in which the board cannot be seen (the light was off: dark frames)
+    dark = next(r["file"] for r in read_journal(s / "journal.jsonl") if r.get("kind") == "dark")
+    for f in files_d:
+        replace_frame(s, f, (s / dark).read_bytes())
+    assert run_cli("capture", "reduce", str(s)) == 0
+    out = capsys.readouterr().err
+    samples = load_samples(s / "samples.h5")
+    summary = json.loads((s / "reduction.json").read_text())
+    problems = summary["frame_problems"]
+    assert all("sha256 differs" in problems[f] for f in files_a)
+    assert all("CFA pattern is GRBG" in problems[f] and "RGGB" in problems[f] for f in files_b)
+    failed = {fp["pose"]: fp["reason"] for fp in summary["failed_poses"]}
+    assert pose_a in failed and pose_b in failed and "no decodable frame" in failed[pose_b]
+    by_pose = {}
+    for k, fr in enumerate(samples.frames):
+        pose = int(fr.split("/p")[1][:4])
+        by_pose.setdefault(pose, []).append(k)
+    for p in (pose_a, pose_b):
+        assert (samples.flags[by_pose[p]] & Flag.INVALID).all()
+    assert (samples.flags[by_pose[pose_c]] & Flag.SATURATED).all()
+    assert np.isnan(samples.brdf[by_pose[pose_c]]).all()
+    # no board: the rig's pose stands in, and the samples say so
+    assert (samples.flags[by_pose[pose_d]] & Flag.GEOMETRY_MISMATCH).all()
+    assert samples.valid.sum() == 0
+    assert "rejected: saturated" in out and f"wrote {s / 'samples.h5'}" in out
+
+
+def test_no_reference_and_not_a_session_are_clear_errors(session, tmp_path, capsys):
+    s = copy_session(session, tmp_path / "S")
+    lines = [
+        ln
+        for ln in (s / "journal.jsonl").read_text().splitlines()
+        if json.loads(ln).get("kind") != "reference"
+    ]
+    (s / "journal.jsonl").write_text("\n".join(lines) + "\n")
+    (s / "samples.h5").write_bytes(b"keep me")
+    assert run_cli("capture", "reduce", str(s), "--quiet") == 1
+    assert "no reference-target frames" in capsys.readouterr().err
+    assert (s / "samples.h5").read_bytes() == b"keep me"  # nothing overwritten
+    (tmp_path / "empty").mkdir()
+    assert run_cli("capture", "reduce", str(tmp_path / "empty")) == 1
+    assert "not a session directory" in capsys.readouterr().err
+
+
+def test_lab_session_with_reduction_toml_and_noise_json(session, tmp_path):
+    """A real camera's session has no simulated scene: the camera matrix, board, sample
+    size and light come from SESSION/reduction.toml, the noise model from noise.json."""
+    s = copy_session(session, tmp_path / "S")
+    manifest = json.loads((s / "manifest.json").read_text())
+    manifest["simulation"] = None
+    (s / "manifest.json").write_text(json.dumps(manifest))
+    f = 0.5 * 400 / np.tan(np.radians(15.0))  # fov 30 deg over 400 pixels
+    (s / "reduction.toml").write_text(f"""
+[camera]
+K = [[{f}, 0, 199.5], [0, {f}, 149.5], [0, 0, 1]]
+cfa_pattern = "RGGB"
+width = 400
+height = 300
+[noise]
+file = "noise.json"
+[board]
+squares_x = 7
+squares_y = 7
+square_length = 0.02
+marker_length = 0.015
+dictionary = "DICT_4X4_50"
+[sample]
+width = 0.05
+height = 0.05
+[light]
+radius = 0.01
+[reduction]
+grid = 2
+""")
+    (s / "noise.json").write_text('{"gain": 0.4, "read_noise": 1.2, "iso": 100}')
+    assert run_cli("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
+    samples = load_samples(s / "samples.h5")
+    assert len(samples) == 4 * 4 and samples.valid.all()
+    assert np.median(np.abs(samples.brdf / (ALBEDO / np.pi) - 1)) <= 0.01
+    (s / "reduction.toml").write_text("[camera]\nK = [[1, 0], [0, 1]]\n")
+    assert run_cli("capture", "reduce", str(s), "--quiet") == 1

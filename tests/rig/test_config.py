@@ -1,0 +1,81 @@
+"""Rig configuration: the shipped preset, the example file, and clear errors."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from gonio.rig.config import default_rig_config, load_rig_config
+
+from gonio.errors import ConfigError
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "rig.toml"
+
+
+def test_default_preset():
+    cfg = default_rig_config()
+    assert [s.joint for s in cfg.servos] == [
+        "light_azimuth",
+        "camera_azimuth",
+        "stage_tilt",
+        "stage_spin",
+    ]
+    assert cfg.geometry.kind == "arms_tilt_spin"
+    assert cfg.home_rad["light_azimuth"] == pytest.approx(math.radians(-45))
+
+
+def test_example_file_loads_and_converts():
+    cfg = load_rig_config(EXAMPLE)
+    tilt = cfg.servo_for("stage_tilt")
+    # gear 2, mirrored, zero at 180 deg: joint +10 deg -> servo 180 - 20 deg
+    assert tilt.pulses(math.radians(10)) == pytest.approx((180 - 20) * 4096 / 360)
+    assert tilt.joint_rad(tilt.pulses(0.3)) == pytest.approx(0.3, abs=1e-15)
+    assert cfg.park_rad["camera_azimuth"] == pytest.approx(math.radians(60))
+
+
+def write(tmp_path, text):
+    p = tmp_path / "rig.toml"
+    p.write_text(text)
+    return p
+
+
+def test_errors_name_file_and_field(tmp_path):
+    base = EXAMPLE.read_text()
+    with pytest.raises(ConfigError, match=r"rig.toml.*baud_rate.*4500000"):
+        load_rig_config(write(tmp_path, base.replace("baud_rate = 1000000", "baud_rate = 4500000")))
+    with pytest.raises(ConfigError, match=r"servos.0.joint.*unknown joint 'lamp'"):
+        load_rig_config(write(tmp_path, base.replace('joint = "light_azimuth"', 'joint = "lamp"')))
+    with pytest.raises(ConfigError, match=r"servos.*min_deg.*max_deg"):
+        load_rig_config(write(tmp_path, base.replace("min_deg = -150.0", "min_deg = 170.0", 1)))
+    with pytest.raises(ConfigError, match="outside 0..4095 of position mode"):
+        load_rig_config(write(tmp_path, base.replace("max_deg = 85.0", "max_deg = 120.0")))
+    with pytest.raises(ConfigError, match="geometry.*colour"):
+        load_rig_config(
+            write(
+                tmp_path,
+                base.replace('kind = "arms_tilt_spin"', 'kind = "arms_tilt_spin"\ncolour = 1'),
+            )
+        )
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_rig_config(write(tmp_path, "[bus\nport="))
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_rig_config(tmp_path / "missing.toml")
+
+
+def test_other_geometry_is_a_config_change(tmp_path):
+    """Raised camera arm (elevation 20 deg): still a round trip, now with a different tilt."""
+    from gonio.rig.kinematics import Kinematics
+
+    from gonio.radiometry import spherical_to_direction
+
+    text = EXAMPLE.read_text().replace("camera_elevation_deg = 0.0", "camera_elevation_deg = 20.0")
+    kin = Kinematics(load_rig_config(write(tmp_path, text)))
+    wi = spherical_to_direction(math.radians(30), 0.2)
+    wo = spherical_to_direction(math.radians(45), 2.4)
+    q = kin.inverse(wi, wo)
+    ai, ao = kin.forward(q)
+    assert max(abs(ai - wi).max(), abs(ao - wo).max()) < 1e-12
+    # the camera really is 20 deg above the horizontal plane in the world
+    cam_world = kin.sample_to_world(q["stage_tilt"], q["stage_spin"]) @ ao
+    assert math.degrees(math.asin(cam_world[2])) == pytest.approx(20.0, abs=1e-9)

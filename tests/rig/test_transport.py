@@ -1,0 +1,78 @@
+"""Transport: stuffing workaround, signed values, retries, timeouts."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+from dynamixel_sdk import COMM_SUCCESS, PacketHandler
+from gonio.rig.control_table import MODELS
+from gonio.rig.protocol import build_packet, crc16, stuff, unstuff
+from gonio.rig.transport import Transport
+
+from gonio.errors import RigError
+
+REG = MODELS["XM430-W350"].registers
+
+
+def test_protocol_helpers_against_manual():
+    assert build_packet(1, 0x01) == bytes.fromhex("FF FF FD 00 01 03 00 01 19 4E")
+    assert crc16(bytes.fromhex("FF FF FD 00 01 03 00 01")) == 0x4E19
+    assert unstuff(stuff(b"\xff\xff\xfd\xff\xff\xfd")) == b"\xff\xff\xfd\xff\xff\xfd"
+
+
+def test_stuffing_workaround(vbus):
+    value = bytes.fromhex("FF FF FD FD")
+    # the bare SDK sends the payload unstuffed: the servo sees a different packet
+    with Transport(vbus.port) as bus:
+        ph = PacketHandler(2.0)
+        res, err = ph.writeTxRx(bus._port, 1, 224, 4, list(value))
+        assert (res, err) != (COMM_SUCCESS, 0) or bytes(vbus.servos[1].mem[224:228]) != value
+        vbus.servos[1].mem[224:228] = bytes(4)
+        bus.write_bytes(1, 224, value)
+        assert bytes(vbus.servos[1].mem[224:228]) == value
+        assert bus.read_bytes(1, 224, 4) == value  # the stuffed reply is unstuffed
+        assert bus.counters["stuffed"] == 1
+
+
+def test_signed_conversions(vbus):
+    with Transport(vbus.port) as bus:
+        bus.write(1, REG["operating_mode"], 4)
+        vbus.servos[1].set_position(-1234)
+        assert bus.read(1, REG["present_position"]) == -1234
+        bus.write(2, REG["homing_offset"], -500)
+        assert bus.read(2, REG["homing_offset"]) == -500
+        with pytest.raises(RigError, match="read-only"):
+            bus.write(1, REG["present_position"], 3)
+
+
+def test_device_errors_are_raised_not_retried(vbus):
+    with Transport(vbus.port) as bus:
+        bus.write(1, REG["torque_enable"], 1)
+        with pytest.raises(RigError, match="servo 1 refused WRITE operating_mode=4: access error"):
+            bus.write(1, REG["operating_mode"], 4)
+        assert bus.counters["retries"] == 0
+
+
+def test_retries_are_counted_and_logged(gil_handover, caplog):
+    from gonio.simulator.virtual_bus import VirtualBus
+
+    caplog.set_level(logging.INFO, logger="gonio.rig.bus")
+    with (
+        VirtualBus([1, 2], fault_rate=0.2, seed=3) as vb,
+        Transport(vb.port, retries=8, timeout_ms=10) as bus,
+    ):
+        for _ in range(100):
+            assert bus.read(2, REG["model_number"]) == 1020
+        faults = vb.stats.corrupted + vb.stats.dropped
+    retries = [r for r in caplog.records if r.getMessage().startswith("retry ")]
+    assert faults > 5
+    assert bus.counters["retries"] == len(retries) >= faults  # load may add timeouts
+
+
+def test_silent_servo_gives_a_clear_error(vbus):
+    vbus.servos[2].silent = True
+    with Transport(vbus.port, retries=1, timeout_ms=5) as bus:
+        with pytest.raises(RigError, match="servo 2 did not answer READ .* after 2 attempts"):
+            bus.read(2, REG["present_position"])
+        assert bus.ping(2) is None and bus.ping(1) == (1020, 45)
