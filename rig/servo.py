@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import struct
-from dataclasses import dataclass
+from typing import NamedTuple
 
 from gonio.rig import control_table as ct
 from gonio.rig.config import ServoConfig
@@ -18,9 +18,9 @@ from gonio.rig.transport import Transport
 from gonio.errors import RigError
 
 
-@dataclass(frozen=True)
-class ServoState:
-    """One servo's state, decoded from the cyclic block.
+class ServoState(NamedTuple):
+    """One servo's state, decoded from the cyclic block (immutable; a named tuple
+    because it is built for every servo on every cycle).
 
     Attributes
     ----------
@@ -69,6 +69,35 @@ class ServoState:
         return [n for bit, n in ct.HW_ERROR_NAMES.items() if self.hardware_error & bit]
 
 
+_STATE_ITEMS = (
+    "torque_enable",
+    "hardware_error_status",
+    "goal_position",
+    "moving",
+    "moving_status",
+    "present_current",
+    "present_velocity",
+    "present_position",
+    "present_input_voltage",
+    "present_temperature",
+)
+_RAD_S_PER_VELOCITY_UNIT = ct.RPM_PER_VELOCITY_UNIT * 2 * math.pi / 60
+
+
+def _state_struct(model: ct.ServoModel) -> struct.Struct:
+    codes = {1: "B", 2: "H", 4: "I"}
+    fmt, at = "<", ct.STATE_BLOCK_START
+    for name in _STATE_ITEMS:
+        r = model[name]
+        if r.address < at:
+            raise ValueError(f"state items out of address order at {name}")
+        fmt += f"{r.address - at}x" if r.address > at else ""
+        code = codes[r.size]
+        fmt += code.lower() if r.signed else code
+        at = r.address + r.size
+    return struct.Struct(fmt + f"{ct.STATE_BLOCK_END - at}x")
+
+
 class Servo:
     """One configured servo on a transport.
 
@@ -91,20 +120,13 @@ class Servo:
                 f"servo {config.id}: unknown model {config.model!r}; known: {sorted(ct.MODELS)}"
             )
         self.model = model
-        # Precompiled little-endian decoders of the state block: it is decoded every cycle.
-        fmt = {
-            (1, False): "<B",
-            (2, False): "<H",
-            (4, False): "<I",
-            (1, True): "<b",
-            (2, True): "<h",
-            (4, True): "<i",
-        }
-        self._fields = {
-            r.name: (struct.Struct(fmt[r.size, r.signed]), r.address - ct.STATE_BLOCK_START)
-            for r in model.registers.values()
-            if ct.STATE_BLOCK_START <= r.address and r.address + r.size <= ct.STATE_BLOCK_END
-        }
+        # One precompiled little-endian decoder of the state block (decoded every cycle):
+        # the items below in address order, pad bytes between them.
+        self._block = _state_struct(model)
+        # joint = direction * (pulses - zero) * 2 pi / 4096 / gear (ServoConfig.joint_rad)
+        self._zero = config.zero_deg * ct.PULSES_PER_TURN / 360.0
+        self._scale = config.direction * ct.RAD_PER_PULSE / config.gear_ratio
+        self._vel_scale = config.direction * _RAD_S_PER_VELOCITY_UNIT / config.gear_ratio
 
     # ---------------------------------------------------------- conversions
     def to_pulses(self, joint_rad: float) -> int:
@@ -123,29 +145,25 @@ class Servo:
 
     def decode_state(self, block: bytes) -> ServoState:
         """Decode the cyclic block (``STATE_BLOCK_START`` .. ``STATE_BLOCK_END``)."""
-        fields = self._fields
-
-        def val(name: str) -> int:
-            st, k = fields[name]
-            return st.unpack_from(block, k)[0]
-
-        pos, goal = val("present_position"), val("goal_position")
-        vel = val("present_velocity") * ct.RPM_PER_VELOCITY_UNIT * 2 * math.pi / 60
+        (torque, hw, goal, moving, mstatus, cur, vel, pos, volt, temp) = self._block.unpack_from(
+            block
+        )
+        zero, scale = self._zero, self._scale
         return ServoState(
-            dxl_id=self.id,
-            joint=self.joint,
-            position=self.to_joint(pos),
-            goal=self.to_joint(goal),
-            position_pulses=pos,
-            goal_pulses=goal,
-            velocity=self.config.direction * vel / self.config.gear_ratio,
-            current=val("present_current") * ct.AMPS_PER_CURRENT_UNIT,
-            voltage=val("present_input_voltage") * ct.VOLTS_PER_VOLTAGE_UNIT,
-            temperature=float(val("present_temperature")),
-            torque=bool(val("torque_enable")),
-            moving=bool(val("moving")),
-            in_position=bool(val("moving_status") & 1),
-            hardware_error=val("hardware_error_status"),
+            self.id,
+            self.joint,
+            (pos - zero) * scale,
+            (goal - zero) * scale,
+            pos,
+            goal,
+            vel * self._vel_scale,
+            cur * ct.AMPS_PER_CURRENT_UNIT,
+            volt * ct.VOLTS_PER_VOLTAGE_UNIT,
+            float(temp),
+            bool(torque),
+            bool(moving),
+            bool(mstatus & 1),
+            hw,
         )
 
     # ---------------------------------------------------------- register access

@@ -124,6 +124,13 @@ def render_cmd(
             f"light {li.kind}: {li.strategy}, {li.nodes} node(s), "
             f"estimated error {li.estimated_error:.2g}, "
             f"occluders tested {li.occluders_tested}, culled {li.occluders_culled}"
+            + (
+                f"; {li.penumbra_points} penumbra points at {li.penumbra_nodes} nodes "
+                f"(estimated error {li.penumbra_error:.2g})"
+                if li.penumbra_points
+                else ""
+            )
+            + ("" if li.tolerance_met else " [tolerance NOT met]")
         )
     sat = float((frame.mosaic >= frame.white_level).mean())
     console.print(

@@ -70,7 +70,8 @@ TOML schema (every length in metres, angles in degrees where the name says ``_de
     antialias = 4                # sub-samples per axis on edge pixels (1: off)
 
     [rig]                        # optional: light and camera poses from joint angles
-    joints_deg = { light_azimuth = 0.0, camera_azimuth = 180.0, stage_tilt = 30.0, stage_spin = 0.0 }
+    joints_deg = { light_azimuth = 0.0, camera_azimuth = 180.0, stage_tilt = 30.0,
+                   stage_spin = 0.0 }    # (one line in TOML)
     config = "rig.toml"          # optional; the default rig preset otherwise
 
 The camera follows OpenCV's convention: camera x right, y down, z forward; ``rotation``

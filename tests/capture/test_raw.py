@@ -224,3 +224,27 @@ def test_dark_subtraction_and_flat_field():
         assert v.std() / v.mean() < 1e-12  # flat again
     with pytest.raises(ReductionError, match="flat field is"):
         apply_flat(shot, flat[:10])
+
+
+def test_per_channel_black_levels(monkeypatch):
+    """A DNG whose BlackLevel differs per CFA position (BlackLevelRepeatDim 2x2)."""
+    import gonio.simulator.dng as dng
+    from gonio.simulator.sensor import RawFrame as SimFrame
+
+    blacks = (500, 510, 520, 530)  # row-major over the 2x2 CFA cell
+    tags = dng._tags
+
+    def per_channel(frame):
+        return [(50714, t[1], 4, blacks, True) if t[0] == 50714 else t for t in tags(frame)]
+
+    monkeypatch.setattr(dng, "_tags", per_channel)
+    mosaic = np.random.default_rng(3).integers(600, 4000, (32, 48)).astype(np.uint16)
+    data = dng.dng_bytes(
+        SimFrame(mosaic, "RGGB", 512, 16383, np.eye(3), np.ones(3), 0.01, 8.0, 100.0, 0.035)
+    )
+    frame = read_raw(data)
+    expected_black = np.tile(np.array(blacks, float).reshape(2, 2), (16, 24))
+    np.testing.assert_array_equal(frame.black_level, expected_black)
+    np.testing.assert_array_equal(frame.linear, mosaic - expected_black)
+    lin, ch, _ = frame.region((slice(3, 9), slice(5, 12)))  # odd offsets: CFA phase kept
+    np.testing.assert_array_equal(lin, (mosaic - expected_black)[3:9, 5:12])

@@ -125,20 +125,25 @@ def test_round_trip_random_anisotropic_pairs_from_moving_pose(kin):
 
 
 def test_least_motion_choice(kin):
-    wi = spherical_to_direction(math.radians(40), 0.3)
-    wo = spherical_to_direction(math.radians(30), 2.0)
-    q0 = kin.inverse(wi, wo)
-    # from the solution itself, the chosen solution is the same pose (zero motion)
-    q1 = kin.inverse(wi, wo, current=q0)
-    assert kin.move_time(q0, q1) == 0.0
-    # spin has >1 turn of range: starting near spin + 2 pi picks that turn
-    start = dict(q0)
-    start["stage_spin"] = (
-        q0["stage_spin"] + 2 * math.pi if q0["stage_spin"] < -0.5 else q0["stage_spin"]
-    )
-    if abs(start["stage_spin"]) <= math.radians(200):
-        q2 = kin.inverse(wi, wo, current=start)
-        assert q2["stage_spin"] == pytest.approx(start["stage_spin"], abs=1e-9)
+    q_a = {
+        "light_azimuth": math.radians(-30),
+        "camera_azimuth": math.radians(20),
+        "stage_tilt": math.radians(10),
+        "stage_spin": math.radians(175),
+    }
+    wi, wo = kin.forward(q_a)
+    # from the pose itself: no motion at all
+    q1 = kin.inverse(wi, wo, current=q_a)
+    assert kin.move_time(q_a, q1) == 0.0
+    # the spin servo has more than one turn (+-200 deg): from spin -170 deg the same
+    # directions are reached at 175 - 360 = -185 deg, 15 deg away rather than 345
+    q2 = kin.inverse(wi, wo, current=dict(q_a, stage_spin=math.radians(-170)))
+    assert q2["stage_spin"] == pytest.approx(math.radians(-185), abs=1e-9)
+    for j in ("light_azimuth", "camera_azimuth", "stage_tilt"):
+        assert q2[j] == pytest.approx(q_a[j], abs=1e-9)
+    # the mirror solution (arms swapped, tilt negated) is also exact but would make the
+    # arms pass each other: with arms_can_cross = false it is never chosen
+    assert np.sign(q2["camera_azimuth"] - q2["light_azimuth"]) > 0
 
 
 @pytest.mark.parametrize(

@@ -400,5 +400,7 @@ def test_penumbra_of_rectangle_light_vs_visible_sub_rectangle():
     partial = (u_star < w / 2) & vis
     assert partial.sum() > 20
     assert np.max(err[~partial]) < 1e-4  # fully lit: the smooth rule meets the tolerance
-    # penumbra: within the renderer's own estimate (relative to the unshadowed value)
-    assert np.max(err[partial]) < max(2 * st.penumbra_error, 1e-6) and st.penumbra_error < 1e-2
+    # penumbra: within the renderer's own estimate (relative to the unshadowed value),
+    # which is reported as missing the tolerance (a step integrand: error ~ 1/n)
+    assert np.max(err[partial]) <= st.penumbra_error
+    assert not st.tolerance_met

@@ -1,0 +1,547 @@
+"""``gonio demo``: a whole simulated measurement session, from servos to fitted BRDF.
+
+The demo is a composition root like the CLI: it wires every subsystem together (a virtual
+servo bus on a pty driven through dynamixel-sdk, the simulated camera writing DNG files,
+reduction with rawpy and radiometric calibration, fitting with nlopt), so it is the one
+core module that imports them, and only inside the command.  It writes the rig, plan and
+scene files it used next to the session, so a user can rerun any stage by hand.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+
+from gonio.errors import ConfigError, GonioError, SessionError
+
+#: The default ground truth: a glossy plastic-like material.
+DEFAULT_MATERIAL = "lambert+ggx albedo=0.50,0.40,0.30 ks=0.05 alpha=0.15"
+DEFAULT_POSES = 240
+
+
+# --------------------------------------------------------------------------------------
+# Ground truth
+@dataclass
+class Material:
+    """The demo's ground truth: an analytic model with parameters, or a measured file."""
+
+    spec: str
+    model: str | None = None
+    params: dict[str, list[float]] = field(default_factory=dict)
+    file: Path | None = None
+
+    def scene_brdf(self) -> dict[str, Any]:
+        if self.file is not None:
+            return {"file": str(self.file)}
+        return {"model": self.model, "params": self.params}
+
+    def truth(self) -> Any:
+        """An object with ``eval(wi, wo) -> (..., 3)``."""
+        if self.file is not None:
+            from gonio.brdf import load
+
+            return load(self.file)
+        from gonio.brdf import get_model
+
+        return get_model(self.model).bind(self.params)
+
+
+def parse_material(spec: str) -> Material:
+    """Parse ``--material``.
+
+    Forms: ``"MODEL k=v k=v1,v2,v3 ..."`` (an analytic model; omitted parameters take the
+    model's defaults; three comma-separated values are R, G, B), a path to a measured
+    file (RGL ``.bsdf`` or MERL ``.binary``), or ``rgl:NAME`` for a file of the shared
+    reference data (``$GONIO_REFDATA/rgl/NAME_rgb.bsdf``).
+    """
+    spec = spec.strip()
+    if not spec:
+        raise ConfigError("--material is empty: give a model with parameters or a file")
+    if spec.startswith("rgl:"):
+        name = spec[4:]
+        root = Path(os.environ.get("GONIO_REFDATA", Path.cwd().parent / "shared" / "data"))
+        path = root / "rgl" / f"{name}_rgb.bsdf"
+        if not path.is_file():
+            raise ConfigError(
+                f"--material {spec}: {path} not found (set GONIO_REFDATA to the folder "
+                "holding rgl/, or give the file's path)"
+            )
+        return Material(spec, file=path.resolve())
+    tokens = spec.split()
+    if Path(tokens[0]).is_file():
+        from gonio.brdf import load
+
+        load(tokens[0])  # fail now, with the reader's message, not mid-session
+        return Material(spec, file=Path(tokens[0]).resolve())
+    from gonio.brdf import get_model
+
+    model = get_model(tokens[0])
+    params: dict[str, list[float]] = {k: [float(v)] * 3 for k, v in model.defaults.items()}
+    for tok in tokens[1:]:
+        if "=" not in tok:
+            raise ConfigError(f"--material: '{tok}' is not of the form name=value")
+        k, v = tok.split("=", 1)
+        if k not in model.param_names:
+            raise ConfigError(
+                f"--material: model {tokens[0]} has no parameter '{k}' "
+                f"(it has {', '.join(model.param_names)})"
+            )
+        try:
+            vals = [float(x) for x in v.split(",")]
+        except ValueError:
+            raise ConfigError(f"--material: {k}={v} is not a number or three numbers") from None
+        if len(vals) not in (1, 3):
+            raise ConfigError(f"--material: {k} takes one value or three (R,G,B), got {len(vals)}")
+        params[k] = vals * 3 if len(vals) == 1 else vals
+    model.check_params({k: np.asarray(v) for k, v in params.items()})
+    return Material(spec, model=tokens[0], params=params)
+
+
+# --------------------------------------------------------------------------------------
+# Files the demo writes
+def rig_document() -> str:
+    """The default rig preset with its bus on the simulator's virtual port."""
+    from importlib import resources
+
+    text = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
+    lines = []
+    for line in text.splitlines():
+        if line.strip().startswith("port ="):
+            line = 'port = "virtual"   # the simulator\'s Dynamixel bus on a pseudo-terminal'
+        lines.append(line)
+    return "\n".join(lines) + "\n"
+
+
+def _grid_for(n_poses: int) -> dict[str, Any]:
+    """A spherical grid whose isotropic, reciprocity-reduced pose count is near ``n_poses``."""
+    from gonio.capture.plan import expand_plan, plan_from_dict
+
+    candidates = []
+    for n_i in range(2, 12):
+        for n_o in range(3, 24):
+            for phis in ([0, 180], [0, 90, 180], [0, 45, 90, 135, 180]):
+                grid = {
+                    "kind": "spherical",
+                    "theta_i_deg": [float(round(v, 3)) for v in np.linspace(0, 60, n_i)],
+                    "phi_i_deg": [0.0],
+                    "theta_o_deg": [float(round(v, 3)) for v in np.linspace(0, 70, n_o)],
+                    "phi_o_deg": [float(p) for p in phis],
+                }
+                # Roughly half the grid survives the reciprocity reduction.
+                candidates.append((abs(n_i * n_o * len(phis) / 2 - n_poses), grid))
+    candidates.sort(key=lambda c: c[0])
+    best: tuple[float, dict[str, Any]] | None = None
+    for _, grid in candidates[:8]:  # count exactly only the most promising few
+        n = len(expand_plan(plan_from_dict(_plan_dict(grid, 0, 64, 48))).poses)
+        if best is None or abs(n - n_poses) < best[0]:
+            best = (abs(n - n_poses), grid)
+    assert best is not None
+    return best[1]
+
+
+def _plan_dict(grid: dict[str, Any], seed: int, width: int, height: int) -> dict[str, Any]:
+    return {
+        "name": "gonio demo",
+        "description": "isotropic in-plane and out-of-plane grid, adaptive brackets",
+        "seed": seed,
+        "settle_s": 0.0,
+        "grid": grid,
+        "reductions": {"isotropic": True, "reciprocity": True},
+        "exclusions": {"grazing_limit_deg": 75, "min_separation_deg": 12, "check_rig": True},
+        "bracket": {
+            "policy": "adaptive",
+            "exposure_time_s": 0.02,
+            "iso": 100,
+            "f_number": 8.0,
+            "max_frames": 4,
+        },
+        "darks": {"count": 0},
+        "reference": {
+            "when": "start",
+            "reflectance": 0.99,
+            "poses": [
+                {"theta_i_deg": 0, "theta_o_deg": 40, "phi_o_deg": 180},
+                {"theta_i_deg": 40, "theta_o_deg": 0},
+            ],
+        },
+        "simulation": {"scene": "scene.toml", "width": width, "height": height},
+    }
+
+
+def _toml(d: dict[str, Any], prefix: str = "") -> str:
+    """A small TOML writer for the demo's own documents (tomllib only reads)."""
+
+    def val(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, dict):
+            return "{ " + ", ".join(f"{k} = {val(x)}" for k, x in v.items()) + " }"
+        if isinstance(v, list | tuple):
+            return "[" + ", ".join(val(x) for x in v) + "]"
+        return repr(v)
+
+    scalars = [(k, v) for k, v in d.items() if not isinstance(v, dict) and not _is_table_list(v)]
+    tables = [(k, v) for k, v in d.items() if isinstance(v, dict)]
+    arrays = [(k, v) for k, v in d.items() if _is_table_list(v)]
+    out = [f"{k} = {val(v)}" for k, v in scalars]
+    for k, v in tables:
+        name = f"{prefix}{k}"
+        out.append(f"\n[{name}]")
+        out.append(_toml(v, name + "."))
+    for k, v in arrays:
+        for item in v:
+            out.append(f"\n[[{prefix}{k}]]")
+            out.append(_toml(item, f"{prefix}{k}."))
+    return "\n".join(x for x in out if x)
+
+
+def _is_table_list(v: Any) -> bool:
+    return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
+
+
+def scene_document(material: Material, width: int, height: int) -> dict[str, Any]:
+    """The simulated camera's scene with ``material`` as the sample's BRDF."""
+    from gonio.capture.sim_camera import minimal_scene
+
+    scene = minimal_scene(width, height)
+    scene["sample"]["brdf"] = material.scene_brdf()
+    return scene
+
+
+# --------------------------------------------------------------------------------------
+# The run
+@dataclass
+class DemoResult:
+    out: Path
+    session: Path
+    poses: int
+    frames: int
+    model: str
+    params: dict[str, list[float]]
+    sigma: dict[str, list[float]]
+    truth: dict[str, list[float]] | None
+    rel_error: dict[str, list[float]]
+    z: dict[str, list[float]]
+    brdf_rel_error_median: float
+    seconds: dict[str, float]
+    report: Path
+    material: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "out": str(self.out),
+            "session": str(self.session),
+            "material": self.material,
+            "poses": self.poses,
+            "frames": self.frames,
+            "model": self.model,
+            "params": self.params,
+            "truth": self.truth,
+            "rel_error": self.rel_error,
+            "sigma": self.sigma,
+            "z": self.z,
+            "brdf_rel_error_median": self.brdf_rel_error_median,
+            "seconds": self.seconds,
+            "report": str(self.report),
+        }
+
+
+def _list(v: Any) -> list[float]:
+    return [float(x) for x in np.broadcast_to(np.asarray(v, dtype=float), (3,))]
+
+
+def run_demo(
+    out: Path,
+    material: Material,
+    *,
+    seed: int = 0,
+    n_poses: int = DEFAULT_POSES,
+    width: int = 96,
+    height: int = 72,
+    model: str = "auto",
+    quiet: bool = False,
+    say: Callable[[str], None] = print,
+) -> DemoResult:
+    """Run capture, reduction and fit of a simulated session into ``out``."""
+    from gonio.capture.reduce import reduce_session
+    from gonio.capture.session_cli import run_cmd
+    from gonio.dataset import load_samples
+    from gonio.fitting import fit
+
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise SessionError(f"{out} exists and is not empty: choose a new --out (nothing touched)")
+    seconds: dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    t = time.perf_counter()
+    grid = _grid_for(n_poses)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "rig.toml").write_text(rig_document())
+    (out / "plan.toml").write_text(
+        "# Written by gonio demo: rerun with gonio capture run plan.toml --rig rig.toml "
+        "--camera simulated --out S/\n" + _toml(_plan_dict(grid, seed, width, height)) + "\n"
+    )
+    (out / "scene.toml").write_text(
+        "# Written by gonio demo: the simulated camera's scene (gonio sim render scene.toml)\n"
+        + _toml(scene_document(material, width, height))
+        + "\n"
+    )
+    seconds["setup"] = time.perf_counter() - t
+
+    session = out / "session"
+    say(f"capturing into {session} (virtual servo bus on a pty, simulated camera)")
+    t = time.perf_counter()
+    run_cmd.callback(
+        plan_file=out / "plan.toml",
+        rig_file=str(out / "rig.toml"),
+        out=session,
+        scene_file=None,
+        camera_backend="simulated",
+        camera_port=None,
+        sim_speed=None,
+        quiet=quiet,
+    )
+    seconds["capture"] = time.perf_counter() - t
+
+    say("reducing RAW brackets to BRDF samples")
+    t = time.perf_counter()
+    red = reduce_session(session, plot=True)
+    seconds["reduce"] = time.perf_counter() - t
+
+    say(f"fitting (model={model})")
+    t = time.perf_counter()
+    samples = load_samples(red.path)
+    result = fit(samples, model=model)
+    if not result.success:
+        raise GonioError(f"the fit did not succeed: {result.message}")
+    seconds["fit"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    params = {k: _list(v) for k, v in result.params.items()}
+    sigma = {k: _list(v) for k, v in result.std.items()}
+    truth = material.params if material.model else None
+    rel_error: dict[str, list[float]] = {}
+    z: dict[str, list[float]] = {}
+    if truth is not None and result.model == material.model:
+        for k, tv in truth.items():
+            if k in params:
+                f, s, tr = np.array(params[k]), np.array(sigma[k]), np.array(tv)
+                rel_error[k] = _list(np.abs(f - tr) / np.where(tr != 0, np.abs(tr), 1.0))
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    z[k] = _list(np.where(s > 0, (f - tr) / s, np.nan))
+    # Whatever model was chosen, how far the fitted BRDF is from the truth on the samples.
+    ok = samples.valid
+    f_true = material.truth().eval(samples.wi[ok], samples.wo[ok])
+    f_fit = result.bind().eval(samples.wi[ok], samples.wo[ok])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.abs(f_fit - f_true) / np.abs(f_true)
+    brdf_err = float(np.nanmedian(rel)) if rel.size else math.nan
+
+    frames = _count_frames(session)
+    from gonio.demo_report import write_report
+
+    report = write_report(
+        out,
+        session,
+        samples,
+        result,
+        material,
+        red,
+        params,
+        sigma,
+        truth,
+        rel_error,
+        z,
+        brdf_err,
+        seconds,
+        frames,
+    )
+    seconds["report"] = time.perf_counter() - t
+    seconds["total"] = time.perf_counter() - t_all
+    return DemoResult(
+        out=out,
+        session=session,
+        poses=_count_poses(session),
+        frames=frames,
+        model=result.model,
+        params=params,
+        sigma=sigma,
+        truth=truth,
+        rel_error=rel_error,
+        z=z,
+        brdf_rel_error_median=brdf_err,
+        seconds={k: round(v, 3) for k, v in seconds.items()},
+        report=report,
+        material=material.spec,
+    )
+
+
+def _journal(session: Path) -> list[dict[str, Any]]:
+    from gonio.capture.journal import read_journal
+
+    return read_journal(session / "journal.jsonl")
+
+
+def _count_frames(session: Path) -> int:
+    return sum(1 for r in _journal(session) if r.get("type") == "shot")
+
+
+def _count_poses(session: Path) -> int:
+    manifest = json.loads((session / "manifest.json").read_text())
+    return sum(1 for s in manifest["schedule"] if s.get("kind") == "sample")
+
+
+# --------------------------------------------------------------------------------------
+@click.command("demo")
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="New directory for everything the demo writes [default: ./gonio-demo-<time>].",
+)
+@click.option(
+    "--material",
+    default=DEFAULT_MATERIAL,
+    show_default=True,
+    help='Ground truth: "MODEL name=value ..." (three comma-separated values for R,G,B), '
+    "a measured file (.bsdf, .binary), or rgl:NAME from $GONIO_REFDATA/rgl.",
+)
+@click.option(
+    "--seed",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Seed of the session: the same seed gives the same RAW files.",
+)
+@click.option(
+    "--poses",
+    "n_poses",
+    type=click.IntRange(10, 5000),
+    default=DEFAULT_POSES,
+    show_default=True,
+    help="About how many sample poses to measure.",
+)
+@click.option(
+    "--model",
+    default="auto",
+    show_default=True,
+    help="Model to fit (auto: choose by information criterion and gloss).",
+)
+@click.option(
+    "--resolution",
+    type=(int, int),
+    default=(96, 72),
+    show_default=True,
+    help="Simulated camera resolution, pixels (width height).",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
+def demo(
+    out: Path | None,
+    material: str,
+    seed: int,
+    n_poses: int,
+    model: str,
+    resolution: tuple[int, int],
+    as_json: bool,
+) -> None:
+    """Run a whole simulated measurement session: no hardware, no network.
+
+    \b
+    1. starts a virtual Dynamixel bus on a pseudo-terminal and drives it through
+       dynamixel-sdk, exactly as the lab rig;
+    2. shoots adaptive RAW brackets with the simulated camera (the rendering equation,
+       a sensor noise model, DNG files);
+    3. reduces them (rawpy, HDR merge, radiometric calibration) to samples.h5;
+    4. fits a BRDF model (nlopt) and compares it with the ground truth;
+    5. writes report.md with plots, and prints a summary.
+
+    \b
+    Examples:
+      gonio demo
+      gonio demo --material "lambert albedo=0.7" --poses 100
+      gonio demo --material rgl:vch_golden_yellow --json
+    Ctrl-C stops it with the servos parked and torque off; continue the capture with
+    'gonio capture resume OUT/session'.
+    """
+    from rich.console import Console
+
+    console = Console(stderr=as_json)
+    out = out or Path(f"gonio-demo-{datetime.now():%Y%m%d-%H%M%S}")
+    mat = parse_material(material)
+    say = (lambda s: None) if as_json else (lambda s: console.print(f"[bold cyan]>[/] {s}"))
+    try:
+        res = run_demo(
+            out,
+            mat,
+            seed=seed,
+            n_poses=n_poses,
+            width=resolution[0],
+            height=resolution[1],
+            model=model,
+            quiet=as_json,
+            say=say,
+        )
+    except KeyboardInterrupt:
+        console.print(
+            f"[yellow]interrupted[/]: servos parked, torque off. Continue the capture with "
+            f"'gonio capture resume {out / 'session'}'."
+        )
+        raise SystemExit(130) from None
+    if as_json:
+        click.echo(json.dumps(res.to_json(), indent=1, default=float))
+        return
+    _print_summary(console, res)
+
+
+def _print_summary(console: Any, res: DemoResult) -> None:
+    from rich.table import Table
+
+    console.print(
+        f"\n[bold]{res.poses}[/] poses, [bold]{res.frames}[/] frames; "
+        f"chosen model [bold]{res.model}[/] (truth: {res.material})"
+    )
+    t = Table(
+        "parameter",
+        "channel",
+        "fitted",
+        "sigma",
+        "truth",
+        "rel. error",
+        "z",
+        title="fitted against true parameters",
+    )
+    for k, v in res.params.items():
+        for c, name in enumerate("RGB"):
+            tr = res.truth.get(k) if res.truth else None
+            t.add_row(
+                k,
+                name,
+                f"{v[c]:.5g}",
+                f"{res.sigma[k][c]:.2g}",
+                f"{tr[c]:.5g}" if tr else "-",
+                f"{res.rel_error[k][c]:.2%}" if k in res.rel_error else "-",
+                f"{res.z[k][c]:+.2f}" if k in res.z else "-",
+            )
+    console.print(t)
+    console.print(
+        f"median relative BRDF error against the truth on the samples: "
+        f"{res.brdf_rel_error_median:.2%}"
+    )
+    st = Table("stage", "seconds", title="time per stage")
+    for k, v in res.seconds.items():
+        st.add_row(k, f"{v:.1f}")
+    console.print(st)
+    console.print(f"report: [bold]{res.report}[/]   session: {res.session}")

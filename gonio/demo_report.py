@@ -1,0 +1,132 @@
+"""The Markdown report of ``gonio demo``: tables and PNG plots next to it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _sample_images(session: Path, out: Path, n: int = 3) -> list[tuple[Path, str]]:
+    """Render a few of the session's RAW frames to PNG (rawpy demosaic, for looking only)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import rawpy
+
+    from gonio.capture.journal import read_journal
+
+    shots = [
+        r
+        for r in read_journal(session / "journal.jsonl")
+        if r.get("type") == "shot" and r.get("kind") == "sample"
+    ]
+    if not shots:
+        return []
+    picks = [shots[int(k)] for k in np.linspace(0, len(shots) - 1, min(n, len(shots)))]
+    images = []
+    for r in picks:
+        with rawpy.imread(str(session / r["file"])) as raw:
+            rgb = raw.postprocess(
+                half_size=False, use_camera_wb=True, no_auto_bright=False, output_bps=8
+            )
+        path = out / f"frame_{Path(r['file']).stem}.png"
+        plt.imsave(path, rgb)
+        wi, wo = np.asarray(r["wi_achieved"]), np.asarray(r["wo_achieved"])
+        ti, to = np.degrees(np.arccos(np.clip([wi[2], wo[2]], -1, 1)))
+        caption = (
+            f"pose {r['pose']}, frame {r['frame']}: theta_i {ti:.1f} deg, "
+            f"theta_o {to:.1f} deg, exposure {r['exposure_time'] * 1e3:.2f} ms"
+        )
+        images.append((path, caption))
+    return images
+
+
+def write_report(
+    out: Path,
+    session: Path,
+    samples: Any,
+    result: Any,
+    material: Any,
+    red: Any,
+    params: dict,
+    sigma: dict,
+    truth: dict | None,
+    rel_error: dict,
+    z: dict,
+    brdf_err: float,
+    seconds: dict,
+    frames: int,
+) -> Path:
+    """Write ``out/report.md`` and its plots; return the report's path."""
+    from gonio.fitting.export import save_json
+    from gonio.fitting.plots import plot_residual_map, plot_slices
+
+    figs = out / "figures"
+    figs.mkdir(exist_ok=True)
+    slices = plot_slices(result, samples, figs / "slices.png")
+    resid = plot_residual_map(result, samples, figs / "residuals.png")
+    save_json(result, out / "fit.json")
+    images = _sample_images(session, figs)
+    lines = [
+        "# gonio demo report",
+        "",
+        f"Ground truth: `{material.spec}`. Session: `{session.name}/` "
+        f"({frames} RAW frames). Samples: `{Path(red.path).relative_to(out)}` "
+        f"({red.n_kept} kept of {red.n_samples}).",
+        "",
+        f"Chosen model: **{result.model}** (cost {result.cost:.6g}, {result.n_samples} samples, "
+        f"algorithm path {' -> '.join(result.algorithm)}).",
+        "",
+        "| parameter | channel | fitted | sigma | truth | rel. error | z |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for k, v in params.items():
+        for c, ch in enumerate("RGB"):
+            tr = truth.get(k) if truth else None
+            lines.append(
+                f"| {k} | {ch} | {v[c]:.5g} | {sigma[k][c]:.2g} | "
+                f"{f'{tr[c]:.5g}' if tr else '-'} | "
+                f"{f'{rel_error[k][c]:.2%}' if k in rel_error else '-'} | "
+                f"{f'{z[k][c]:+.2f}' if k in z else '-'} |"
+            )
+    lines += [
+        "",
+        f"Median relative difference between the fitted and the true BRDF at the measured "
+        f"directions: **{brdf_err:.2%}**.",
+        "",
+        "## Rejected samples",
+        "",
+    ]
+    if red.rejected:
+        lines += ["| reason | count |", "|---|---|"]
+        lines += [f"| {k} | {v} |" for k, v in red.rejected.items()]
+    else:
+        lines.append("None.")
+    lines += ["", "## Time per stage", "", "| stage | seconds |", "|---|---|"]
+    lines += [f"| {k} | {v:.1f} |" for k, v in seconds.items()]
+    lines += [
+        "",
+        "## Measured against fitted",
+        "",
+        f"![slices]({slices.relative_to(out)})",
+        "",
+        f"![residuals]({resid.relative_to(out)})",
+        "",
+    ]
+    if red.plot is not None:
+        lines += [
+            "## Samples over the angle domain",
+            "",
+            f"![samples]({Path(red.plot).resolve().relative_to(out.resolve())})",
+            "",
+        ]
+    if images:
+        lines += ["## What the camera saw", ""]
+        for path, caption in images:
+            lines += [f"![{caption}]({path.relative_to(out)})", "", f"*{caption}*", ""]
+    report = out / "report.md"
+    report.write_text("\n".join(lines) + "\n")
+    return report
