@@ -1,9 +1,10 @@
 """Full-state sync reads per second of four servos: gonio's controller vs bare dynamixel-sdk.
 
 Both loops read the same block (registers 64..146 of IDs 1-4: torque, hardware error,
-goal, moving, current, velocity, position, voltage, temperature) from the same virtual
-bus in the same run, alternating in rounds (order swapped every round) so that machine load
-affects both alike; medians over the rounds.
+goal, moving, current, velocity, position, voltage, temperature) through the same open
+port from the same virtual bus (`gonio sim bus`, its own process) in the same run,
+alternating in rounds (order swapped every round) so that machine load affects both
+alike; medians over the rounds (and the best round of each).
 The controller's figure includes decoding into SI units (``Rig.read_states``).
 Prints one JSON object.
 """

@@ -91,6 +91,15 @@ class ServoConfig(_Strict):
     acceleration_deg_s2: float = Field(default=240.0, ge=0)
     operating_mode: Literal["position", "extended_position"] = "position"
 
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, v: str) -> str:
+        from gonio.rig.control_table import MODELS
+
+        if v not in MODELS:
+            raise ValueError(f"unknown servo model {v!r}; known models: {sorted(MODELS)}")
+        return v
+
     @field_validator("joint")
     @classmethod
     def _known_joint(cls, v: str) -> str:

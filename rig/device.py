@@ -139,7 +139,10 @@ class Rig:
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> Rig:
-        """Open the port, check every configured servo and configure it (torque stays off).
+        """Open the port, check every configured servo and configure it.
+
+        Torque is left as found unless a servo must be reconfigured (EEPROM) or rebooted;
+        a servo holding a pose from ``gonio rig move --hold`` keeps holding it.
 
         Raises
         ------
@@ -150,9 +153,8 @@ class Rig:
         try:
             self._check_servos()
             for s in self.servos.values():
-                s.torque(False)
-                if s.read("hardware_error_status"):
-                    bits = s.read("hardware_error_status")
+                bits = s.read("hardware_error_status")
+                if bits:
                     log.warning(
                         "servo %d reports hardware error 0x%02X from before; rebooting it",
                         s.id,

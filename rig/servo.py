@@ -182,7 +182,9 @@ class Servo:
     def configure(self) -> None:
         """Write operating mode, position limits and motion profile; read them back.
 
-        Torque must be off (EEPROM items).  Raises RigError if a value does not stick.
+        Only values that differ are written.  EEPROM items (mode, limits) need torque off,
+        so torque is cut first when one of them must change; otherwise a servo holding
+        its position keeps holding.  Raises RigError if a value does not stick.
         """
         c = self.config
         mode = ct.OPERATING_MODES[c.operating_mode]
@@ -200,6 +202,8 @@ class Servo:
         }
         for name, v in wanted.items():
             if self.read(name) != v:
+                if self.model[name].eeprom and self.read("torque_enable"):
+                    self.torque(False)
                 self.write(name, v)
                 back = self.read(name)
                 if back != v:

@@ -196,28 +196,28 @@ class Transport:
     # ------------------------------------------------------------- instructions
     def ping(self, dxl_id: int, retries: int | None = None) -> tuple[int, int] | None:
         """(model number, firmware version) of ``dxl_id``, or None if it does not answer."""
-        saved = self.retries
-        if retries is not None:
-            self.retries = retries
-        try:
-            with self.lock:
 
-                def fn():
-                    model, result, error = self._ph.ping(self._port, dxl_id)
-                    fw = 0
-                    if result == COMM_SUCCESS:
-                        fw, r2, e2 = self._ph.readTxRx(self._port, dxl_id, 6, 1)
-                        fw = fw[0] if r2 == COMM_SUCCESS and fw else 0
-                    return (model, fw), result, error
+        def fn():
+            model, result, error = self._ph.ping(self._port, dxl_id)
+            fw = 0
+            if result == COMM_SUCCESS:
+                data, r2, _ = self._ph.readTxRx(self._port, dxl_id, 6, 1)
+                fw = data[0] if r2 == COMM_SUCCESS and data else 0
+            return (model, fw), result, error
 
+        with self.lock:
+            saved = self.retries
+            if retries is not None:
+                self.retries = retries
+            try:
                 (model, fw), err = self._attempt("PING", dxl_id, fn)
-                if err & protocol.ERR_ALERT:
-                    self.alerts.add(dxl_id)
-                return model, fw
-        except RigError:
-            return None
-        finally:
-            self.retries = saved
+            except RigError:
+                return None
+            finally:
+                self.retries = saved
+            if err & protocol.ERR_ALERT:
+                self.alerts.add(dxl_id)
+            return model, fw
 
     def broadcast_ping(self) -> dict[int, tuple[int, int]]:
         """Every servo on the bus: ID -> (model number, firmware).  Takes about 0.8 s."""

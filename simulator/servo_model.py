@@ -183,7 +183,10 @@ class VirtualServo:
             "present_velocity", le_int(round(speed * 60 / 4096 / ct.RPM_PER_VELOCITY_UNIT), 4)
         )
         self.set_u("present_current", le_int(load if speed >= 0 else -load, 2))
-        self.set_u("present_temperature", int(round(_AMBIENT_C + self._heat)))
+        temperature = int(round(_AMBIENT_C + self._heat))
+        self.set_u("present_temperature", temperature)
+        if temperature > self.get_u("temperature_limit"):
+            self._trip(ct.HW_OVERHEATING)
         self.set_u("present_input_voltage", self.voltage_raw)
         goal = self.model["goal_position"].to_signed(self.get_u("goal_position"))
         in_pos = abs(goal - present) <= 1 or not torque

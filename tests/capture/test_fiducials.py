@@ -72,6 +72,7 @@ def rig_views():
     return setup_from_scene(scene), views
 
 
+@pytest.mark.slow
 def test_pose_matches_the_simulators_true_pose(rig_views):
     setup, views = rig_views
     for frame, rp, _ in views:
@@ -89,6 +90,7 @@ def test_pose_matches_the_simulators_true_pose(rig_views):
             assert pose.reprojection_rms < 0.5
 
 
+@pytest.mark.slow
 def test_regions_map_pixels_to_the_true_surface_points(rig_views):
     setup, views = rig_views
     for frame, _rp, truth in views:
@@ -131,8 +133,10 @@ def test_board_placement_matches_the_simulators_convention():
     np.testing.assert_array_equal(t, t2)
 
 
+@pytest.mark.slow
 def test_geometry_mismatch_with_the_rig_is_flagged(rig_views):
     from gonio.capture.reduce import measure_pose
+
     from gonio.dataset import Flag
 
     setup, views = rig_views

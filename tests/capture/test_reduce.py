@@ -15,6 +15,8 @@ from gonio.capture.journal import read_journal
 from gonio.cli import main
 from gonio.dataset import Flag, load_samples
 
+pytestmark = pytest.mark.slow  # captures a simulated session (virtual bus, renders)
+
 ALBEDO = np.array([0.6, 0.5, 0.4])
 
 PLAN = """

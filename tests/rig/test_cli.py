@@ -73,7 +73,8 @@ def test_move_status_off(vbus, capsys):
     assert vbus.torque() == {1: 1, 2: 1, 3: 1, 4: 1}
     code, out, _ = run(capsys, "rig", "status", "--port", vbus.port, "--json")
     st = json.loads(out)
-    assert [s["torque"] for s in st["servos"]] == [False] * 4  # status cut it on exit
+    assert [s["torque"] for s in st["servos"]] == [True] * 4  # opening keeps them holding
+    assert vbus.torque() == {1: 0, 2: 0, 3: 0, 4: 0}  # ... and status cut torque on exit
     code, out, _ = run(capsys, "rig", "off", "--port", vbus.port)
     assert code == 0 and "torque off" in out
 

@@ -57,6 +57,8 @@ def test_errors_name_file_and_field(tmp_path):
                 base.replace('kind = "arms_tilt_spin"', 'kind = "arms_tilt_spin"\ncolour = 1'),
             )
         )
+    with pytest.raises(ConfigError, match=r"servos.1.model.*unknown servo model 'AX-12'"):
+        load_rig_config(write(tmp_path, base.replace('model = "XM430-W350"', 'model = "AX-12"', 2)))
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_rig_config(write(tmp_path, "[bus\nport="))
     with pytest.raises(ConfigError, match="cannot read"):

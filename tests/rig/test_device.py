@@ -238,3 +238,17 @@ def test_torque_off_on_exception_inside_with_block(vbus, fast_config):
             1 / 0  # noqa: B018
     assert vbus.torque() == {1: 0, 2: 0, 3: 0, 4: 0}
     assert os.path.exists(vbus.port)
+
+
+def test_open_reboots_a_servo_left_in_fault_and_keeps_holding_ones(vbus, fast_config):
+    vbus.servos[2].inject_fault(0x04)  # overheating from an earlier session
+    assert vbus.servos[2].get("hardware_error_status") == 0x04
+    with Rig(fast_config, port=vbus.port) as rig:
+        assert vbus.servos[2].get("hardware_error_status") == 0
+        rig.home()
+        rig.hold_on_exit = True
+    assert vbus.torque() == {1: 1, 2: 1, 3: 1, 4: 1}
+    with Rig(fast_config, port=vbus.port) as rig:  # reopening does not drop the arms
+        assert vbus.torque() == {1: 1, 2: 1, 3: 1, 4: 1}
+        assert all(s.torque for s in rig.status().servos)
+    assert vbus.torque() == {1: 0, 2: 0, 3: 0, 4: 0}

@@ -164,3 +164,25 @@ def test_current_and_temperature_follow_load(sdk):
     while s.clock() - t0 < 60.0 and not done.wait(0.01):  # one heating time constant
         pass
     assert s.get("present_temperature") > temp0 + 5
+
+
+def test_overheating_trips_at_the_temperature_limit(sdk):
+    bus, port, ph = sdk
+    s = bus.servos[1]
+    assert ph.write1ByteTxRx(port, 1, 31, 36) == (COMM_SUCCESS, 0)  # Temperature Limit 36 degC
+    ph.write4ByteTxRx(port, 1, 116, 2048)
+    ph.write1ByteTxRx(port, 1, 64, 1)
+    ph.write4ByteTxRx(port, 1, 112, 1)
+    ph.write4ByteTxRx(port, 1, 116, 4000)  # a long, loaded move heats the motor
+    t0, wait = s.clock(), threading.Event()
+    while s.clock() - t0 < 60.0 and not wait.wait(0.01):
+        pass
+    value, res, err = ph.read1ByteTxRx(port, 1, 70)
+    assert res == COMM_SUCCESS and value == 0x04 and err & 0x80  # overheating, alert bit
+    assert ph.read1ByteTxRx(port, 1, 64)[0] == 0  # shutdown cut torque
+    assert ph.write1ByteTxRx(port, 1, 64, 1)[1] & 0x7F == 7  # refused until REBOOT
+    assert ph.reboot(port, 1)[0] == COMM_SUCCESS
+    assert ph.read1ByteTxRx(port, 1, 70)[0] == 0x04  # still too hot: trips again at once
+    assert ph.write1ByteTxRx(port, 1, 31, 80) == (COMM_SUCCESS, 0x80)  # EEPROM: torque is off
+    assert ph.reboot(port, 1)[0] == COMM_SUCCESS
+    assert ph.read1ByteTxRx(port, 1, 70) == (0, COMM_SUCCESS, 0)
