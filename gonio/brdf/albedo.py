@@ -13,6 +13,12 @@ Every lobe here peaks at the half vector ``h = n``, so the integral is taken ove
   horizon, ``cos(phi_h) > -cos(theta_i) cos(2 theta_h) / (sin(theta_i) sin(2 theta_h))``,
   so no node is wasted below it and the integrand has no jump inside an interval.
 
+Measured accuracy (tests/brdf/test_models_albedo.py, against closed forms and scipy
+adaptive cubature): <= 1e-9 relative for the microfacet, Ward and Phong lobes, also at
+alpha = 1e-4 and near-mirror incidence up to 75 deg; ~1e-8 for anisotropic Ward; ~5e-5
+for Oren-Nayar and Blinn-Phong, whose max() terms put kinks inside the domain.
+About 5 ms per incidence angle and parameter set.
+
 Hand-written because scipy's adaptive cubature (``nquad``) is far too slow for vectorised
 use over many incidence angles and parameter sets, and knows nothing about lobe widths.
 """

@@ -5,6 +5,10 @@ A *lobe* (:class:`Lobe`) is one closed-form BRDF term with its own parameter nam
 names; it checks parameters against bounds, applies the below-horizon rule, broadcasts,
 and sums values and gradients.  ``gonio.brdf.registry.get_model`` builds models by name.
 
+Parameters not given take their defaults.  Bounds are inclusive and chosen so that each
+lobe's directional albedo is <= its weight (``albedo`` or ``ks``) <= 1; a sum of lobes
+conserves energy when its linear weights sum to <= 1 (``gonio brdf albedo`` checks).
+
 Conventions (ARCHITECTURE.md): local frame with +z the normal and +x the tangent; ``wi``
 towards the light, ``wo`` towards the camera, unit vectors of shape ``(..., 3)``;
 ``eval`` returns f_r in 1/sr (never times cos).

@@ -174,7 +174,8 @@ def plot_cmd(
     """Plot a BRDF: in-plane slices, a polar heat map and (models) the albedo curve.
 
     MODEL_OR_FILE is an analytic model name (see `gonio brdf list`, sums like lambert+ggx
-    work) or a measured BRDF file (RGL .bsdf, MERL .binary).
+    work) or a measured BRDF file (RGL .bsdf, MERL .binary).  Slices are drawn for every
+    --theta-i (default 0, 30, 60 deg); the heat map uses the first.
 
     \b
     Examples:
