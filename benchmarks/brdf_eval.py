@@ -1,10 +1,13 @@
 """Throughput of ``gonio.brdf`` GGX against Mitsuba 3's ``roughconductor``.
 
 Prints one JSON object: evaluations per second of ``get_model("ggx").eval`` on 10^6
-direction pairs (numpy, float64, one thread) and, in the same run, of Mitsuba 3's
-vectorised ``roughconductor`` (GGX, F = 1) in ``llvm_ad_rgb`` when libLLVM 19 works
-(else ``scalar_rgb``, named in the output), and their ratio.  Best of several repeats.
-Both results are compared, so the two sides are known to compute the same function.
+direction pairs (float64; the figure is the default path, the fused numba kernels of
+``gonio.brdf.kernels``; the numpy reference path, forced with ``GONIO_NUMBA=0``, is given
+for context) and, in the same run, of Mitsuba 3's vectorised ``roughconductor`` (GGX,
+F = 1) in ``llvm_ad_rgb`` when libLLVM 19 works (else ``scalar_rgb``, named in the
+output), and the ratios.  Best of several repeats, after a warm-up call (the numba compile,
+or the load of its on-disk cache, is reported separately as ``numba_first_call_s``).
+The results are compared, so all sides are known to compute the same function.
 
     .venv/bin/python benchmarks/brdf_eval.py [--pairs 1000000] [--repeats 5]
 """
@@ -52,8 +55,19 @@ def main() -> None:
 
     model = get_model("ggx")
     params = {"ks": 1.0, "alpha": alpha}
-    ours = model.eval(wi, wo, params)  # warm-up
+    os.environ.pop("GONIO_NUMBA", None)
+    t0 = time.perf_counter()
+    ours = model.eval(wi, wo, params)  # warm-up: numba compile or cache load
+    t_first = time.perf_counter() - t0
     t_ours = _best(lambda: model.eval(wi, wo, params), args.repeats)
+    import numba
+
+    os.environ["GONIO_NUMBA"] = "0"  # the numpy reference path, for context
+    ours_np = model.eval(wi, wo, params)
+    t_np = _best(lambda: model.eval(wi, wo, params), args.repeats)
+    del os.environ["GONIO_NUMBA"]
+    both = (ours_np != 0) & np.isfinite(ours_np)
+    numba_vs_numpy = np.abs(ours[both] - ours_np[both]) / ours_np[both]
 
     os.environ.setdefault("DRJIT_CACHE_DIR", tempfile.mkdtemp(prefix="drjit-"))
     from gonio.mitsuba_oracle import load_mitsuba
@@ -116,15 +130,24 @@ def main() -> None:
     rel = np.abs(ours[ok] * wo[ok, 2] - ref[ok]) / ref[ok]
     result.update(
         {
+            "figure": "gonio_ggx_evals_per_s",
             "gonio_ggx_evals_per_s": n / t_ours,
+            "baseline": "mitsuba_roughconductor_evals_per_s",
             "mitsuba_roughconductor_evals_per_s": n / t_mi,
             "ratio": t_mi / t_ours,
+            "gonio_ggx_numpy_evals_per_s": n / t_np,
+            "ratio_numpy": t_mi / t_np,
+            "numba_speedup_over_numpy": t_np / t_ours,
+            "numba_threads": numba.get_num_threads(),
+            "numba_first_call_s": t_first,
             "mitsuba_1thread_evals_per_s": n / t_mi_1,
             "ratio_vs_1thread": t_mi_1 / t_ours,
             "mitsuba_incl_numpy_transfer_evals_per_s": n / t_mi_np,
             "ratio_vs_incl_transfer": t_mi_np / t_ours,
             "max_rel_diff_vs_mitsuba": float(rel.max()),
-            "notes": "gonio: numpy float64, 1 thread, chunked; mitsuba: float32 JIT SIMD. "
+            "max_rel_diff_numba_vs_numpy": float(numba_vs_numpy.max(initial=0.0)),
+            "notes": "gonio: float64, numba fused kernel (numba_threads threads; numpy "
+            "path: 1 thread, chunked); mitsuba: float32 JIT SIMD, mitsuba_threads threads. "
             "best of repeats; 'incl_transfer' = numpy -> drjit -> numpy round trip",
         }
     )

@@ -6,20 +6,27 @@ Usage::
 
 Without ``--session`` a simulated session is captured first (virtual servo bus, rendered
 DNGs: 4 sample poses, 2 reference poses, adaptive brackets) in a temporary directory.
-Both timings are medians over ``--repeat`` runs in this process; the reduction includes
-everything ``gonio capture reduce`` does (hash check, decoding, darks, board detection,
-HDR merge, calibration, writing samples.h5) except the plot.  Prints one JSON object.
+All timings are medians over ``--repeat`` interleaved runs in this process; the reduction
+includes everything ``gonio capture reduce`` does (hash check, decoding, darks, board
+detection, HDR merge, calibration, writing samples.h5) except the plot.  The reduction
+runs with its default threads (``"threads"`` in the output: reading, hashing and decoding
+overlap the measurement) and with one thread (``ratio_single_thread``).  The baseline is
+``rawpy.imread(path)`` + unpack; ``rawpy.imread(BytesIO(bytes))`` + unpack, which is
+faster, is reported as a stricter second baseline.  Prints one JSON object.
 """
 
 from __future__ import annotations
 
 import argparse
 import hashlib
+import io
 import json
+import os
 import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 
@@ -108,13 +115,17 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=1600)
     ap.add_argument("--height", type=int, default=1200)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument(
+        "--threads", type=int, default=None, help="reduction threads (default: the default)"
+    )
     args = ap.parse_args()
 
     import rawpy
     from gonio.capture.journal import read_journal
     from gonio.capture.raw import read_raw
-    from gonio.capture.reduce import reduce_session
+    from gonio.capture.reduce import default_threads, reduce_session
 
+    threads = args.threads or default_threads()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         session = args.session or make_session(tmp, args.width, args.height)
@@ -129,49 +140,72 @@ def main() -> None:
                 with rawpy.imread(str(f)) as raw:
                     raw.raw_image_visible  # noqa: B018 (open + unpack)
 
-        def reduction() -> None:
-            reduce_session(session, out=tmp / "samples.h5", plot=False)
+        def bare_bytes() -> None:
+            # the fastest bare way we know: read the file, LibRaw on the buffer
+            for f in files:
+                with rawpy.imread(io.BytesIO(f.read_bytes())) as raw:
+                    raw.raw_image_visible  # noqa: B018 (open + unpack)
 
-        bare()
-        reduction()  # warm caches and imports for both
-        t_bare, t_red = [], []
-        for _ in range(args.repeat):
-            t0 = time.perf_counter()
-            bare()
-            t_bare.append(time.perf_counter() - t0)
-            t0 = time.perf_counter()
-            reduction()
-            t_red.append(time.perf_counter() - t0)
+        def reduction(n: int) -> Callable[[], None]:
+            return lambda: reduce_session(session, out=tmp / f"s{n}.h5", plot=False, threads=n)
+
+        runs = {
+            "bare": bare,
+            "bare_bytes": bare_bytes,
+            "reduce": reduction(threads),
+            "reduce_1": reduction(1),
+        }
+        for fn in runs.values():
+            fn()  # warm caches and imports for all
+        times: dict[str, list[float]] = {k: [] for k in runs}
+        for _ in range(args.repeat):  # interleaved, so load changes hit all alike
+            for k, fn in runs.items():
+                t0 = time.perf_counter()
+                fn()
+                times[k].append(time.perf_counter() - t0)
+        same = (tmp / f"s{threads}.h5").read_bytes() == (tmp / "s1.h5").read_bytes()
         with rawpy.imread(str(files[0])) as raw:
             h, w = raw.raw_image_visible.shape
-        # where the time goes, per frame: reading + journal hash check, and decoding
+        # where the single-thread time goes, per frame: reading + journal hash check, and
+        # decoding from those bytes
         t0 = time.perf_counter()
-        for f in files:
-            hashlib.sha256(f.read_bytes()).hexdigest()
+        datas = [f.read_bytes() for f in files]
+        for d in datas:
+            hashlib.sha256(d).hexdigest()
         t_hash = (time.perf_counter() - t0) / len(files)
         t0 = time.perf_counter()
-        for f in files:
-            read_raw(f.read_bytes())
+        for d in datas:
+            read_raw(d)
         t_decode = (time.perf_counter() - t0) / len(files)
     n = len(files)
-    per_bare = statistics.median(t_bare) / n
-    per_red = statistics.median(t_red) / n
+    per = {k: statistics.median(v) / n for k, v in times.items()}
     print(
         json.dumps(
             {
                 "benchmark": "reduce",
                 "what": "gonio capture reduce time per RAW frame vs rawpy open+unpack of the same "
-                "frames",
+                "frames (medians, same run, interleaved)",
                 "frames": n,
                 "frame_size": [w, h],
-                "reduce_s_per_frame": round(per_red, 5),
-                "baseline_rawpy_open_unpack_s_per_frame": round(per_bare, 5),
-                "ratio": round(per_red / per_bare, 3),
-                "of_which_read_and_sha256_s_per_frame": round(t_hash, 5),
-                "of_which_read_raw_s_per_frame": round(t_decode, 5),
-                "rest_per_frame_s": round(per_red - t_hash - t_decode, 5),
+                "threads": threads,
+                "reduce_s_per_frame": round(per["reduce"], 5),
+                "baseline_rawpy_open_unpack_s_per_frame": round(per["bare"], 5),
+                "ratio": round(per["reduce"] / per["bare"], 3),
+                "reduce_single_thread_s_per_frame": round(per["reduce_1"], 5),
+                "ratio_single_thread": round(per["reduce_1"] / per["bare"], 3),
+                "baseline_read_bytes_then_open_unpack_s_per_frame": round(per["bare_bytes"], 5),
+                "ratio_vs_bytes_baseline": round(per["reduce"] / per["bare_bytes"], 3),
+                "ratio_single_thread_vs_bytes_baseline": round(
+                    per["reduce_1"] / per["bare_bytes"], 3
+                ),
+                "single_thread_of_which_read_and_sha256_s_per_frame": round(t_hash, 5),
+                "single_thread_of_which_read_raw_s_per_frame": round(t_decode, 5),
+                "single_thread_rest_per_frame_s": round(per["reduce_1"] - t_hash - t_decode, 5),
+                "output_identical_1_vs_n_threads": same,
                 "target_ratio": 1.5,
                 "repeat": args.repeat,
+                "cpu_count": os.cpu_count(),
+                "load_average_1min": round(os.getloadavg()[0], 2),
             }
         )
     )

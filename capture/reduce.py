@@ -34,6 +34,7 @@ import os
 import tomllib
 from collections import Counter, defaultdict
 from collections.abc import Callable, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -95,6 +96,13 @@ class ReductionSetup:
         Central fraction of the sample used, and regions per side.
     geometry_tolerance_deg, position_tolerance_m
         Largest disagreement between the camera pose from the board and the rig's report.
+    geometry
+        Where the camera pose comes from: ``"board"`` (measured from the fiducials in each
+        pose, the default) or ``"rig"`` (the rig's read-back pose through its calibrated
+        kinematics; the board still checks it and flags disagreements).  Use ``"rig"``
+        when the rig's geometry is known better than one board view measures it (a
+        calibrated rig, or the simulator, whose rig is exact): on a sharp lobe's flank a
+        0.04 deg pose error is a percent of BRDF, shared by every region of the pose.
     min_snr
         Regions whose signal-to-noise ratio is lower are flagged UNDEREXPOSED.
     """
@@ -113,6 +121,7 @@ class ReductionSetup:
     geometry_tolerance_deg: float = 0.5
     position_tolerance_m: float = 0.01
     min_snr: float = 5.0
+    geometry: str = "board"
 
 
 def setup_from_scene(scene: Any, reflectance: Any = 0.99, **options: Any) -> ReductionSetup:
@@ -426,6 +435,9 @@ def measure_pose(
                     f"camera position from the board is {dpos * 1e3:.1f} mm from the rig's "
                     f"report (tolerance {setup.position_tolerance_m * 1e3:g} mm)"
                 )
+    if setup.geometry == "rig" and reported_camera is not None and not pose_flags:
+        C, R = (np.asarray(x, float) for x in reported_camera)
+        cam = CameraPose(R, -R @ C, C, cam.reprojection_rms, cam.n_corners)
     regions = map_regions(
         cam,
         setup.K,
@@ -475,9 +487,13 @@ def measure_pose(
     wi_px = lp - pts
     wi_px /= np.linalg.norm(wi_px, axis=-1, keepdims=True)
     npx = np.bincount(lab, minlength=n)
-    wi = np.stack([np.bincount(lab, wi_px[:, a], minlength=n) for a in range(3)], axis=1)
+    wi = np.stack(
+        [np.bincount(lab, wi_px[:, a], minlength=n) for a in range(3)], axis=1, dtype=float
+    )
     wo_px = regions.wo[inside]
-    wo = np.stack([np.bincount(lab, wo_px[:, a], minlength=n) for a in range(3)], axis=1)
+    wo = np.stack(
+        [np.bincount(lab, wo_px[:, a], minlength=n) for a in range(3)], axis=1, dtype=float
+    )
     flags = np.full(n, pose_flags, dtype=np.uint32)
     reasons = [list(pose_reasons) for _ in range(n)]
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -556,6 +572,91 @@ def brdf_of(
 
 
 # --------------------------------------------------------------------------------------
+# Reading frames, overlapped with the measurement
+
+
+def default_threads() -> int:
+    """Threads :func:`reduce_session` uses to read, hash and decode frames: 2 if the
+    machine has 2 or more cores (more give little: the measurement itself is serial)."""
+    return 2 if (os.cpu_count() or 1) >= 2 else 1
+
+
+def _load_frame(
+    session: Path, signature: CameraSignature | None, rec: Mapping[str, Any]
+) -> tuple[RawFrame | None, str | None]:
+    """Read one journal frame once, check its sha256 and decode it from the same bytes.
+
+    Returns ``(frame, None)``, or ``(None, problem)`` for a missing, changed, corrupt or
+    foreign file.  Runs in worker threads: it touches no shared state.
+    """
+    rel = rec.get("file", "")
+    path = session / rel
+    try:
+        if not path.is_file():
+            raise FileFormatError(path, "missing (the journal lists it)")
+        data = path.read_bytes()
+        if rec.get("sha256") and hashlib.sha256(data).hexdigest() != rec["sha256"]:
+            raise FileFormatError(
+                path,
+                "sha256 differs from the journal: the file was changed or corrupted after capture",
+            )
+        fr = read_raw(data, name=rel, expect=signature)
+    except GonioError as exc:
+        return None, str(exc)
+    return (
+        fr.with_exposure(
+            exposure_time=rec.get("exposure_time") if not np.isfinite(fr.exposure_time) else None,
+            iso=rec.get("iso") if not np.isfinite(fr.iso) else None,
+            f_number=rec.get("f_number") if not np.isfinite(fr.f_number) else None,
+        ),
+        None,
+    )
+
+
+class _FrameLoader:
+    """Reads, hashes and decodes frames in worker threads, handing them out in order.
+
+    File reads, ``hashlib.sha256`` on large buffers and LibRaw's unpack release the GIL,
+    so with two threads the next pose's frames are decoded while the current pose is
+    measured (board detection in OpenCV releases it too).  Every frame is decoded
+    independently and the results are collected in journal order, so the output does
+    not depend on the thread count.  With one thread frames are decoded on demand.
+    """
+
+    def __init__(self, session: Path, signature: CameraSignature | None, threads: int) -> None:
+        self._args = (session, signature)
+        self._pool = ThreadPoolExecutor(threads, "gonio-reduce") if threads > 1 else None
+        self._pending: dict[int, Future] = {}
+
+    def __enter__(self) -> _FrameLoader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for fut in self._pending.values():
+            fut.cancel()
+        self._pending.clear()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def prefetch(self, recs: list[dict[str, Any]]) -> None:
+        """Start decoding these frames (no-op with one thread or when already started)."""
+        if self._pool is None:
+            return
+        for rec in recs:
+            if id(rec) not in self._pending:
+                self._pending[id(rec)] = self._pool.submit(_load_frame, *self._args, rec)
+
+    def results(self, recs: list[dict[str, Any]]) -> list[tuple[RawFrame | None, str | None]]:
+        """``(frame, problem)`` of each record, in the order given."""
+        self.prefetch(recs)
+        out = []
+        for rec in recs:
+            fut = self._pending.pop(id(rec), None)
+            out.append(fut.result() if fut is not None else _load_frame(*self._args, rec))
+        return out
+
+
+# --------------------------------------------------------------------------------------
 # The session
 
 
@@ -617,6 +718,7 @@ def reduce_session(
     setup: ReductionSetup | None = None,
     plot: bool = True,
     progress: Callable[[int, int], None] | None = None,
+    threads: int | None = None,
 ) -> ReductionResult:
     """Reduce a session's RAW frames to calibrated BRDF samples (``samples.h5``).
 
@@ -634,6 +736,10 @@ def reduce_session(
         Write ``samples.png`` (angle-domain plot) next to the output.
     progress
         Called as ``progress(done, total)`` after each pose.
+    threads
+        Threads reading, hashing and decoding frames while poses are measured
+        (:func:`default_threads` when None; 1 does everything in this thread).  The
+        output is the same for any number.
 
     Returns
     -------
@@ -664,37 +770,10 @@ def reduce_session(
     rejected: Counter[str] = Counter()
 
     def load(rec: dict[str, Any]) -> RawFrame | None:
-        rel = rec.get("file", "")
-        path = session / rel
-        try:
-            if not path.is_file():
-                raise FileFormatError(path, "missing (the journal lists it)")
-            data = path.read_bytes()
-            if rec.get("sha256") and hashlib.sha256(data).hexdigest() != rec["sha256"]:
-                raise FileFormatError(
-                    path,
-                    "sha256 differs from the journal: the file was "
-                    "changed or corrupted after capture",
-                )
-            fr = read_raw(data, name=rel, expect=setup.signature)
-        except GonioError as exc:
-            frame_problems[rel] = str(exc)
-            return None
-        return fr.with_exposure(
-            exposure_time=rec.get("exposure_time") if not np.isfinite(fr.exposure_time) else None,
-            iso=rec.get("iso") if not np.isfinite(fr.iso) else None,
-            f_number=rec.get("f_number") if not np.isfinite(fr.f_number) else None,
-        )
-
-    # Master darks per (exposure time, ISO)
-    dark_groups: dict[tuple[float, float], list[RawFrame]] = defaultdict(list)
-    for recs in shots.values():
-        for rec in recs:
-            if rec.get("kind") == "dark":
-                fr = load(rec)
-                if fr is not None:
-                    dark_groups[(round(fr.exposure_time, 9), fr.iso)].append(fr)
-    masters = {k: (np.mean([f.linear for f in v], axis=0), len(v)) for k, v in dark_groups.items()}
+        fr, problem = _load_frame(session, setup.signature, rec)
+        if problem is not None:
+            frame_problems[rec.get("file", "")] = problem
+        return fr
 
     if setup.signature is None:
         first = next((r for recs in shots.values() for r in recs if r.get("kind") != "dark"), None)
@@ -703,70 +782,101 @@ def reduce_session(
             if fr is not None:
                 setup = _replace(setup, signature=fr.signature)
 
-    poses = sorted(
-        p for p, recs in shots.items() if recs and recs[0].get("kind") in ("sample", "reference")
-    )
-    measurements: list[PoseMeasurement] = []
-    failed_poses: list[dict[str, Any]] = []
-    for i, p in enumerate(poses):
-        recs = shots[p]
-        kind = recs[0]["kind"]
-        if p not in done:
-            failed_poses.append(
-                {"pose": p, "kind": kind, "reason": "pose not completed (no pose_done record)"}
-            )
-            rejected["pose not completed"] += 1
-            if progress:
-                progress(i + 1, len(poses))
-            continue
-        frames = []
-        dvar = 0.0
-        for rec in recs:
-            fr = load(rec)
-            if fr is None:
+    n_threads = default_threads() if threads is None else max(1, int(threads))
+    with _FrameLoader(session, setup.signature, n_threads) as loader:
+
+        def collect(recs: list[dict[str, Any]]) -> list[RawFrame | None]:
+            out = []
+            for rec, (fr, problem) in zip(recs, loader.results(recs), strict=True):
+                if problem is not None:
+                    frame_problems[rec.get("file", "")] = problem
+                out.append(fr)
+            return out
+
+        # Master darks per (exposure time, ISO)
+        dark_recs = [rec for recs in shots.values() for rec in recs if rec.get("kind") == "dark"]
+        loader.prefetch(dark_recs)
+        dark_groups: dict[tuple[float, float], list[RawFrame]] = defaultdict(list)
+        for fr in collect(dark_recs):
+            if fr is not None:
+                dark_groups[(round(fr.exposure_time, 9), fr.iso)].append(fr)
+        masters = {
+            k: (np.mean([f.linear for f in v], axis=0), len(v)) for k, v in dark_groups.items()
+        }
+        poses = sorted(
+            p
+            for p, recs in shots.items()
+            if recs and recs[0].get("kind") in ("sample", "reference")
+        )
+        measurements: list[PoseMeasurement] = []
+        failed_poses: list[dict[str, Any]] = []
+        for i, p in enumerate(poses):
+            recs = shots[p]
+            kind = recs[0]["kind"]
+            if p not in done:
+                failed_poses.append(
+                    {"pose": p, "kind": kind, "reason": "pose not completed (no pose_done record)"}
+                )
+                rejected["pose not completed"] += 1
+                if progress:
+                    progress(i + 1, len(poses))
                 continue
-            key = (round(fr.exposure_time, 9), fr.iso)
-            if key in masters:
-                mdark, nd = masters[key]
-                fr = subtract_dark(fr, mdark)
-                dvar = setup.noise.variance(0.0, iso=fr.iso) / nd
-            frames.append(fr)
-        last = recs[-1]
-        wi_rep = np.asarray(last.get("wi_achieved") or last.get("wi_requested"), float)
-        wo_rep = np.asarray(last.get("wo_achieved") or last.get("wo_requested"), float)
-        light_pos, light_n, cam_rep = _rig_pose(kin, last.get("joints"), wi_rep, wo_rep)
-        if not frames:
-            why = "; ".join(frame_problems.get(r.get("file", ""), "?") for r in recs)
-            failed_poses.append({"pose": p, "kind": kind, "reason": f"no decodable frame: {why}"})
-            rejected["no decodable frame"] += 1
-            if kind == "sample":
-                measurements.append(
-                    _invalid_pose(p, wi_rep, wo_rep, why, tuple(r["file"] for r in recs))
+            # decode the next completed pose's frames while this one is measured
+            loader.prefetch(recs)
+            nxt = next((q for q in poses[i + 1 :] if q in done), None)
+            if nxt is not None:
+                loader.prefetch(shots[nxt])
+            frames = []
+            dvar = 0.0
+            for fr in collect(recs):
+                if fr is None:
+                    continue
+                key = (round(fr.exposure_time, 9), fr.iso)
+                if key in masters:
+                    mdark, nd = masters[key]
+                    fr = subtract_dark(fr, mdark)
+                    dvar = setup.noise.variance(0.0, iso=fr.iso) / nd
+                frames.append(fr)
+            last = recs[-1]
+            wi_rep = np.asarray(last.get("wi_achieved") or last.get("wi_requested"), float)
+            wo_rep = np.asarray(last.get("wo_achieved") or last.get("wo_requested"), float)
+            light_pos, light_n, cam_rep = _rig_pose(kin, last.get("joints"), wi_rep, wo_rep)
+            if not frames:
+                why = "; ".join(frame_problems.get(r.get("file", ""), "?") for r in recs)
+                failed_poses.append(
+                    {"pose": p, "kind": kind, "reason": f"no decodable frame: {why}"}
                 )
-        else:
-            try:
-                m = measure_pose(
-                    frames,
-                    setup,
-                    light_pos,
-                    light_n,
-                    pose=p,
-                    kind=kind,
-                    reported_wo=wo_rep,
-                    reported_camera=cam_rep,
-                    dark_variance=dvar,
-                )
-            except ReductionError as exc:
-                failed_poses.append({"pose": p, "kind": kind, "reason": str(exc)})
-                rejected["pose could not be reduced"] += 1
+                rejected["no decodable frame"] += 1
                 if kind == "sample":
                     measurements.append(
-                        _invalid_pose(p, wi_rep, wo_rep, str(exc), tuple(f.name for f in frames))
+                        _invalid_pose(p, wi_rep, wo_rep, why, tuple(r["file"] for r in recs))
                     )
             else:
-                measurements.append(m)
-        if progress:
-            progress(i + 1, len(poses))
+                try:
+                    m = measure_pose(
+                        frames,
+                        setup,
+                        light_pos,
+                        light_n,
+                        pose=p,
+                        kind=kind,
+                        reported_wo=wo_rep,
+                        reported_camera=cam_rep,
+                        dark_variance=dvar,
+                    )
+                except ReductionError as exc:
+                    failed_poses.append({"pose": p, "kind": kind, "reason": str(exc)})
+                    rejected["pose could not be reduced"] += 1
+                    if kind == "sample":
+                        measurements.append(
+                            _invalid_pose(
+                                p, wi_rep, wo_rep, str(exc), tuple(f.name for f in frames)
+                            )
+                        )
+                else:
+                    measurements.append(m)
+            if progress:
+                progress(i + 1, len(poses))
 
     samples_m = [m for m in measurements if m.kind == "sample"]
     if not samples_m:
@@ -775,7 +885,11 @@ def reduce_session(
             + (f" ({failed_poses[0]['reason']})" if failed_poses else "")
         )
     I, I_var = light_scale([m for m in measurements if m.kind == "reference"], setup)
-    parts = [brdf_of(m, I, I_var) for m in samples_m]
+    # The calibration scale I is one number per channel shared by every sample: its
+    # uncertainty is fully correlated, so it is stored once (calibration_rel_std) for the
+    # fitter to add to the parameters it scales, not folded into each sample's sigma
+    # (which would let N samples average it down by sqrt(N)).
+    parts = [brdf_of(m, I, np.zeros_like(I_var)) for m in samples_m]
     f = np.concatenate([x[0] for x in parts])
     fstd = np.concatenate([x[1] for x in parts])
     E = np.concatenate([x[2] for x in parts])
@@ -796,6 +910,7 @@ def reduce_session(
         "irradiance_units": "same camera units x sr (relative); brdf = radiance / irradiance",
         "light_radiance_camera_units": I.tolist(),
         "light_radiance_std": np.sqrt(I_var).tolist(),
+        "calibration_rel_std": (np.sqrt(I_var) / I).tolist(),
         "noise_model": json.dumps(
             {"gain": setup.noise.gain, "read_noise": setup.noise.read_noise, "iso": setup.noise.iso}
         ),

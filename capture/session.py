@@ -809,6 +809,7 @@ def open_devices(
     simulation: dict[str, Any] | None = None,
     camera_port: str | None = None,
     seed: int = 0,
+    reference_reflectance: float | tuple[float, float, float] | None = None,
 ) -> Iterator[Devices]:
     """Open the rig (starting a virtual bus for ``bus.port = "virtual"``) and the camera.
 
@@ -825,6 +826,12 @@ def open_devices(
         gphoto2 port.
     seed
         Seed of the virtual bus.
+    reference_reflectance
+        The plan's ``reference.reflectance`` (the session manifest's on resume): the
+        simulated camera renders the reference target with this albedo, so that the
+        reduction, which reads it from the manifest, calibrates against what was shot.
+        Falls back to ``simulation["reference_reflectance"]``, then to the simulated
+        camera's default (0.99).
 
     Everything opened is closed on exit (torque off is the session's finalizer's job and
     is repeated here as a last resort).
@@ -868,6 +875,11 @@ def open_devices(
                 scene = dict(scene)
                 base = scene.pop("_base_dir", None)
                 scene = parse_scene(scene, "simulation scene", Path(base) if base else None)
+            refl = reference_reflectance
+            if refl is None:
+                refl = sim.get("reference_reflectance")
+            if isinstance(refl, list):
+                refl = tuple(float(x) for x in refl)
             camera = open_camera(
                 "simulated",
                 rig=rig,
@@ -875,6 +887,7 @@ def open_devices(
                 scene=scene,
                 width=sim.get("width"),
                 height=sim.get("height"),
+                **({"reference_albedo": refl} if refl is not None else {}),
             )
         else:
             camera = open_camera(camera_backend, **({"port": camera_port} if camera_port else {}))

@@ -39,7 +39,7 @@ from gonio.fitting.optimize import (
     sobol_design,
 )
 from gonio.fitting.result import FitResult
-from gonio.fitting.uncertainty import covariance_at
+from gonio.fitting.uncertainty import add_calibration_uncertainty, covariance_at
 from gonio.fitting.varpro import VarPro, unit_values
 
 from gonio.errors import FitError, UnknownNameError
@@ -163,6 +163,51 @@ def fit(
     UnknownNameError
         Unknown model, loss, robust penalty or algorithm.
     """
+    result = _fit_any(
+        samples,
+        model,
+        loss=loss,
+        robust=robust,
+        f_scale=f_scale,
+        algorithm=algorithm,
+        x0=x0,
+        n_starts=n_starts,
+        energy_conservation=energy_conservation,
+        absolute_sigma=absolute_sigma,
+        varpro=varpro,
+        maxeval=maxeval,
+        candidates=candidates,
+        criterion=criterion,
+        seed=seed,
+        model_options=model_options,
+        progress=progress,
+    )
+    rel = getattr(samples, "attrs", {}).get("calibration_rel_std")
+    if rel is not None:
+        add_calibration_uncertainty(result, rel)
+    return result
+
+
+def _fit_any(
+    samples,
+    model,
+    *,
+    loss,
+    robust,
+    f_scale,
+    algorithm,
+    x0,
+    n_starts,
+    energy_conservation,
+    absolute_sigma,
+    varpro,
+    maxeval,
+    candidates,
+    criterion,
+    seed,
+    model_options,
+    progress,
+) -> FitResult:
     if isinstance(model, str) and model == "auto":
         from gonio.fitting.select import select_model
 

@@ -22,12 +22,13 @@ parameter only its own), so 10^6 samples x 3 channels never need a dense Jacobia
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from gonio.fitting.losses import robust_rho
 from gonio.fitting.objective import Problem
 
-__all__ = ["Uncertainty", "covariance_at"]
+__all__ = ["Uncertainty", "add_calibration_uncertainty", "covariance_at"]
 
 
 @dataclass
@@ -129,3 +130,41 @@ def covariance_at(prob: Problem, x: np.ndarray, absolute_sigma: bool) -> Uncerta
         residuals=r,
         cost=cost,
     )
+
+
+def add_calibration_uncertainty(result: Any, rel_std: Any) -> Any:
+    """Add a radiometric calibration's fully correlated uncertainty to a fit result.
+
+    A reduced session's BRDF values share one calibration scale per channel (the light's
+    radiance from the reference target), with relative standard uncertainty ``rel_std``.
+    A common scale error multiplies every linear parameter (albedo, ks) of that channel
+    and leaves the shape parameters alone, so it adds ``p_i p_j rel_std_c^2`` to the
+    covariance of the linear parameters ``p_i, p_j`` of channel ``c``.  The samples' own
+    sigmas do not contain it (see ``calibration_rel_std`` in ``samples.h5``).
+
+    Parameters
+    ----------
+    result
+        A :class:`~gonio.fitting.result.FitResult`; updated in place and returned.
+    rel_std
+        Relative standard uncertainty of the calibration per channel, shape (C,).
+    """
+    rel = np.broadcast_to(np.asarray(rel_std, dtype=np.float64), (len(result.channels),))
+    if not np.all(np.isfinite(rel)) or not np.any(rel > 0):
+        return result
+    labels = list(result.param_labels)
+    cov = np.array(result.covariance, dtype=np.float64, copy=True)
+    for c, ch in enumerate(result.channels):
+        idx = [labels.index(f"{n}[{ch}]") for n in result.linear_params if f"{n}[{ch}]" in labels]
+        vals = np.array(
+            [result.params[n][c] for n in result.linear_params if f"{n}[{ch}]" in labels]
+        )
+        cov[np.ix_(idx, idx)] += np.outer(vals, vals) * rel[c] ** 2
+        for n, i in zip(
+            [n for n in result.linear_params if f"{n}[{ch}]" in labels], idx, strict=True
+        ):
+            if np.isfinite(result.std[n][c]):
+                result.std[n][c] = float(np.sqrt(max(cov[i, i], 0.0)))
+    result.covariance = cov
+    result.diagnostics["calibration_rel_std"] = rel.tolist()
+    return result

@@ -17,6 +17,7 @@ Beckmann's Smith G1 is offered in two forms (option ``g1=``):
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 from scipy.special import erfc
@@ -28,6 +29,10 @@ __all__ = ["BeckmannLobe", "GGXLobe", "beckmann_g1", "ggx_g1"]
 
 _INV_PI = 1.0 / math.pi
 _INV_2SQRTPI = 0.5 / math.sqrt(math.pi)
+# Batches (pairs x channels) from which the fused kernels are used; equals
+# gonio.brdf.kernels.MIN_PAIRS, repeated here so that small batches need not import numba.
+# GONIO_NUMBA=0 in the environment keeps every batch on the numpy (reference) path.
+_MIN_FUSED = 4096
 
 
 def ggx_g1(cos_t: Array, sin2_t: Array, alpha: Array, grad: bool = False):
@@ -85,6 +90,13 @@ class _Microfacet(Lobe):
     def lobe_width(self, p: dict[str, Array]) -> Array:
         return np.arctan(p["alpha"])
 
+    def fused_eval(self, wi: Array, wo: Array, p: dict[str, Array]) -> Array | None:
+        """Whole-batch f (1/sr) from the numba kernels, below-horizon pairs already 0, or
+        None when the batch is small or of a shape only the numpy path handles.
+
+        For :class:`gonio.brdf.base.Model`, which can then skip its chunked numpy loop."""
+        return _fused(self, wi, wo, p)
+
     def _ndf(self, g: Geometry, alpha: Array, grad: bool):
         raise NotImplementedError
 
@@ -92,6 +104,8 @@ class _Microfacet(Lobe):
         raise NotImplementedError
 
     def evaluate(self, g, p, grad):
+        if not grad and (f := _fused(self, g.wi, g.wo, p)) is not None:
+            return f, None
         alpha = p["alpha"]
         ks = p["ks"]
         D, dD = self._ndf(g, alpha, grad)
@@ -114,6 +128,69 @@ class _Microfacet(Lobe):
         return f, grads
 
 
+def _kernel_layout(w: Array) -> Array:
+    """``(N, 3)`` directions as the kernels read them without a copy where possible: C
+    order raveled to ``(3 N,)``, Fortran order (the model's chunks) as its ``(3, N)``
+    transpose; anything else is copied to C order.  Only these layouts vectorise."""
+    if w.flags.c_contiguous:
+        return w.reshape(-1)
+    if w.flags.f_contiguous:
+        return w.T
+    return np.ascontiguousarray(w).reshape(-1)
+
+
+def _fused(lobe: _Microfacet, wi: Array, wo: Array, p: dict[str, Array]) -> Array | None:
+    """f from the numba kernels of :mod:`gonio.brdf.kernels`, or None (numpy path) when
+    the batch is small or not of the common shapes: equal-shape direction arrays with
+    scalar parameters, or with per-channel ``(C,)`` parameters against ``(..., 1, 3)``
+    directions.  Pairs below the horizon are exactly 0 (the kernels apply the rule)."""
+    if wi.shape != wo.shape or wi.ndim < 2 or any(v.ndim > 1 for v in p.values()):
+        return None
+    lead = wi.shape[:-1]
+    sizes = {v.size for v in p.values() if v.ndim == 1}
+    if len(sizes - {1}) > 1 or (sizes - {1} and lead[-1] != 1):
+        return None
+    chans = max(sizes, default=1)
+    n = math.prod(lead)
+    if n * chans < _MIN_FUSED or os.environ.get("GONIO_NUMBA") == "0":
+        return None
+    # Imported only here: small evaluations (CLI, plots) never pay numba's import time.
+    from gonio.brdf import kernels
+
+    wi2, wo2 = _kernel_layout(wi.reshape(n, 3)), _kernel_layout(wo.reshape(n, 3))
+    if wi2.ndim != wo2.ndim:
+        wi2 = np.ascontiguousarray(wi.reshape(n, 3)).reshape(-1)
+        wo2 = np.ascontiguousarray(wo.reshape(n, 3)).reshape(-1)
+    kind = lobe.options["fresnel"]
+    if lobe.kind == "ggx" and kind == "none" and not sizes:
+        out = np.empty(lead)
+        hot = kernels.ggx_hot if n >= kernels.PARALLEL_PAIRS else kernels.ggx_hot_serial
+        hot(wi2, wo2, float(p["ks"]), float(p["alpha"]), out.reshape(n))
+        return out
+
+    def row(name: str) -> Array:
+        v = p.get(name, np.zeros(()))
+        return np.ascontiguousarray(np.broadcast_to(v, (chans,)), dtype=np.float64)
+
+    out = np.empty((n, chans))
+    parallel = n * chans >= kernels.PARALLEL_PAIRS
+    (kernels.microfacet_eval if parallel else kernels.microfacet_eval_serial)(
+        wi2,
+        wo2,
+        row("ks"),
+        row("alpha"),
+        row("f0"),
+        row("eta"),
+        row("k"),
+        kernels.DIST_GGX if lobe.kind == "ggx" else kernels.DIST_BECKMANN,
+        kernels.G1_RATIONAL if lobe.options.get("g1") == "rational" else kernels.G1_EXACT,
+        kernels.FRESNEL_CODES[kind],
+        out,
+    )
+    shape = np.broadcast_shapes(lead, (chans,)) if sizes else lead
+    return out.reshape(shape)
+
+
 class GGXLobe(_Microfacet):
     """GGX (Trowbridge-Reitz) microfacet lobe."""
 
@@ -133,6 +210,8 @@ class GGXLobe(_Microfacet):
         return ggx_g1(cos_t, sin2_t, alpha, grad)
 
     def evaluate(self, g, p, grad):
+        if not grad and (f := _fused(self, g.wi, g.wo, p)) is not None:
+            return f, None
         alpha = p["alpha"]
         if (
             grad

@@ -181,6 +181,30 @@ def test_reduce_twice_gives_the_same_file(session, tmp_path):
     assert (s / "samples.h5").read_bytes() == first
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_threads_give_the_same_file_and_a_changed_byte_is_caught(session, tmp_path, threads):
+    """Frames are decoded in worker threads while poses are measured: the output must not
+    depend on it, and the journal's sha256 check must still see one flipped pixel byte."""
+    from gonio.capture.reduce import reduce_session
+
+    s = copy_session(session, tmp_path / "S")
+    reduce_session(s, out=tmp_path / "one.h5", plot=False, threads=1)
+    reduce_session(s, out=tmp_path / "two.h5", plot=False, threads=2)
+    assert (tmp_path / "one.h5").read_bytes() == (tmp_path / "two.h5").read_bytes()
+    files, _ = sample_files(s)
+    data = bytearray((s / files[0]).read_bytes())
+    data[-1000] ^= 0x01  # a pixel's lowest bit: the decode alone cannot tell
+    (s / files[0]).write_bytes(bytes(data))
+    res = reduce_session(s, plot=False, threads=threads)
+    assert "sha256 differs" in res.summary["frame_problems"][files[0]]
+    samples = load_samples(res.path)
+    rows = [k for k, fr in enumerate(samples.frames) if files[0] in fr.split(";")]
+    if len(files) == 1:  # the pose has no other frame: its samples are invalid
+        assert rows and (samples.flags[rows] & Flag.INVALID).all()
+    else:  # measured without the changed frame
+        assert not rows
+
+
 def test_bad_frames_are_reported_and_their_samples_flagged(session, tmp_path, capsys):
     s = copy_session(session, tmp_path / "S")
     files_a, pose_a = sample_files(s)
@@ -281,3 +305,53 @@ grid = 2
     assert np.median(np.abs(samples.brdf / (ALBEDO / np.pi) - 1)) <= 0.01
     (s / "reduction.toml").write_text("[camera]\nK = [[1, 0], [0, 1]]\n")
     assert run_cli("capture", "reduce", str(s), "--quiet") == 1
+
+
+def test_reference_reflectance_of_the_plan_is_what_the_simulated_camera_renders(tmp_path):
+    """A plan whose reference target has reflectance 0.5: the simulated camera must render
+    the target at 0.5 (not its 0.99 default), else the reduction, which calibrates with
+    the manifest's 0.5, reports the sample's BRDF about half the truth.  The session is
+    captured the way ``gonio capture run`` does it (open_devices, create_session,
+    run_steps), with the plan's reflectance handed to open_devices."""
+    import tomllib
+
+    from gonio.capture.plan import load_plan
+    from gonio.capture.reduce import reduce_session
+    from gonio.capture.session import build_schedule, create_session, open_devices, run_steps
+    from gonio.rig.config import load_rig_config
+    from gonio.rig.kinematics import Kinematics
+
+    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
+    (tmp_path / "rig.toml").write_text(rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"'))
+    plan_text = PLAN.replace("[darks]\ncount = 2", "[darks]\ncount = 0").replace(
+        "[reference]\n", "[reference]\nreflectance = 0.5\n"
+    )
+    (tmp_path / "plan.toml").write_text(plan_text)
+    plan = load_plan(tmp_path / "plan.toml")
+    assert plan.reference.reflectance == 0.5
+    cfg = load_rig_config(tmp_path / "rig.toml")
+    kin = Kinematics(cfg)
+    sched = build_schedule(plan, kin, cfg.park_rad)
+    simulation = {"scene": tomllib.loads(SCENE), "width": None, "height": None, "time_scale": 100}
+    out = tmp_path / "S"
+    with open_devices(
+        cfg,
+        "simulated",
+        simulation=simulation,
+        seed=plan.seed,
+        reference_reflectance=plan.reference.reflectance,
+    ) as dev:
+        create_session(out, plan, cfg, sched, dev.camera.describe(), simulation=simulation)
+        manifest = json.loads((out / "manifest.json").read_text())
+        run_steps(
+            out, dev.rig, dev.camera, dev.kinematics, read_noise_dn=dev.read_noise_dn(manifest)
+        )
+    assert manifest["reference"]["reflectance"] == 0.5
+    res = reduce_session(out, plot=False)
+    samples = load_samples(res.path)
+    assert samples.attrs["reference_reflectance"] == pytest.approx([0.5, 0.5, 0.5])
+    ok = samples.valid
+    assert ok.sum() >= 0.5 * len(ok)
+    # closed form of the Lambertian sample; with the default 0.99 target the ratio is 0.505
+    rel = np.abs(samples.brdf[ok] / (ALBEDO / np.pi) - 1)
+    assert np.median(rel) <= 0.01
