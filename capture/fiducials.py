@@ -415,18 +415,20 @@ def map_regions(
     wo = np.empty((h, w, 3))
     # C - p = -s d: wo is the unit vector back along the ray (s > 0 in front of the camera)
     back = -np.sign(s) / np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    pk = [C[k] + s * d[k] for k in range(3)]
     for k in range(3):
-        p[..., k] = C[k] + s * d[k]
+        p[..., k] = pk[k]
         wo[..., k] = d[k] * back
     # a metre on the sample near the ROI is this many pixels: turns the pixel margin into
     # a margin on the sample plane
     dist = float(np.linalg.norm(pose.translation))
     m = margin_px * dist / K[0, 0] / max(float(pose.position[2]) / dist, 0.2)
     cell_x, cell_y = 2 * hw / grid, 2 * hh / grid
-    ix = np.floor((p[..., 0] + hw) / cell_x)
-    iy = np.floor((p[..., 1] + hh) / cell_y)
-    fx = (p[..., 0] + hw) - ix * cell_x
-    fy = (p[..., 1] + hh) - iy * cell_y
+    ux, uy = pk[0] + hw, pk[1] + hh
+    ix = np.floor(ux / cell_x)
+    iy = np.floor(uy / cell_y)
+    fx = ux - ix * cell_x
+    fy = uy - iy * cell_y
     inside = (ix >= 0) & (ix < grid) & (iy >= 0) & (iy < grid)
     inside &= (fx > m) & (fx < cell_x - m) & (fy > m) & (fy < cell_y - m)
     label = np.where(inside, iy * grid + ix, -1).astype(np.int64)

@@ -103,19 +103,31 @@ def merge_bracket(
     sl = region if region is not None else (slice(None), slice(None))
     e = np.array([f.exposure_factor() for f in frames])
     crops = [f.region(sl) for f in frames]
-    S = np.stack([c[0] for c in crops])  # (K, h, w)
-    ok = ~np.stack([c[2] for c in crops])
-    n_ok = ok.sum(axis=0)
+    # Accumulated frame by frame rather than over a stacked (K, h, w) array: the same sums
+    # in the same order (so the same numbers), without the K-fold temporaries.
+    shape = crops[0][0].shape
+    sum_s = np.zeros(shape)
+    sum_e = np.zeros(shape)
+    n_ok = np.zeros(shape, np.int64)
+    oks = []
+    for (S_k, _, sat_k), ek in zip(crops, e, strict=True):
+        ok_k = ~sat_k
+        oks.append(ok_k)
+        sum_s += np.where(ok_k, S_k, 0.0)
+        sum_e += np.where(ok_k, ek, 0.0)
+        n_ok += ok_k
+    dv = np.asarray(dark_variance, dtype=np.float64)
+    dv = dv[sl] if dv.ndim == 2 else dv
+    wsum = np.zeros(shape)
+    vsum = np.zeros(shape)
     with np.errstate(invalid="ignore", divide="ignore"):
-        r0 = np.where(ok, S, 0.0).sum(axis=0) / np.where(ok, e[:, None, None], 0.0).sum(axis=0)
-        dv = np.asarray(dark_variance, dtype=np.float64)
-        dv = dv[sl] if dv.ndim == 2 else dv
-        var_k = np.stack(
-            [noise.variance(r0 * ek, iso=f.iso) + dv for f, ek in zip(frames, e, strict=True)]
-        ) / (e[:, None, None] ** 2)
-        w = np.where(ok, 1.0 / var_k, 0.0)
-        wsum = w.sum(axis=0)
-        value = (w * S / e[:, None, None]).sum(axis=0) / wsum
+        r0 = sum_s / sum_e
+        for (S_k, _, _), ok_k, f, ek in zip(crops, oks, frames, e, strict=True):
+            var_k = (noise.variance(r0 * ek, iso=f.iso) + dv) / ek**2
+            w_k = np.where(ok_k, 1.0 / var_k, 0.0)
+            wsum += w_k
+            vsum += w_k * S_k / ek
+        value = vsum / wsum
         variance = 1.0 / wsum
     allsat = n_ok == 0
     value[allsat] = np.nan

@@ -20,7 +20,10 @@ misfit of a diffuse model is "significant".  Two safeguards keep the choice phys
   ``min_gloss`` (10 GU, the usual upper limit of "matte").  A broad forward-scattering
   sheen (paper: a GGX lobe with alpha ~ 0.55) or a faint highlight (matte wall paint:
   ks ~ 0.005) lowers the cost measurably yet leaves the surface matte; for such data the
-  best diffuse candidate is returned and the rejected lobe is recorded in the diagnostics.
+  best diffuse candidate is returned and the rejected lobe is recorded in the diagnostics,
+  unless the diffuse fit's cost exceeds ``MAX_DIFFUSE_COST_RATIO`` (10) times the best:
+  then the diffuse model plainly cannot describe the data and the lobe is kept, matte or
+  not.
 - Ties (a specular weight at zero, so the same cost and free-parameter count) go to the
   earlier, simpler candidate.
 """
@@ -46,6 +49,8 @@ __all__ = [
 DEFAULT_CANDIDATES = ("lambert", "oren-nayar", "lambert+ggx", "lambert+beckmann")
 DIFFUSE_MODELS = ("lambert", "oren-nayar")
 MIN_GLOSS = 10.0
+#: The matte rule applies only while the best diffuse fit's cost is within this factor.
+MAX_DIFFUSE_COST_RATIO = 10.0
 
 
 def _fresnel_dielectric(cos_t: float, n: float) -> float:
@@ -209,7 +214,17 @@ def select_model(
     note = ""
     gloss = rows[best_row].get("gloss_60")
     if gloss is not None and gloss < min_gloss:
-        diffuse = [(ic, i) for ic, i in ok if rows[i]["model"] in DIFFUSE_MODELS]
+        # The matte rule is a prior for dense measured data, where BIC finds any extra
+        # lobe significant (paper and wall paint: the diffuse cost is 1.6-2.1 times the
+        # best).  It must not override a diffuse model that plainly cannot describe the
+        # data (a low-gloss but strong lobe: thousands of times the cost).
+        best_cost = rows[best_row]["cost"]
+        diffuse = [
+            (ic, i)
+            for ic, i in ok
+            if rows[i]["model"] in DIFFUSE_MODELS
+            and rows[i]["cost"] <= MAX_DIFFUSE_COST_RATIO * best_cost
+        ]
         if diffuse:
             note = (
                 f"{rows[best_row]['model']} fits better but its lobe is matte "

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 
 import numpy as np
 from scipy.special import erfc
@@ -33,6 +34,10 @@ _INV_2SQRTPI = 0.5 / math.sqrt(math.pi)
 # gonio.brdf.kernels.MIN_PAIRS, repeated here so that small batches need not import numba.
 # GONIO_NUMBA=0 in the environment keeps every batch on the numpy (reference) path.
 _MIN_FUSED = 4096
+# Importing numba and loading the cached kernels costs ~0.5 s once per process, which a
+# CLI plot (< 10^5 evaluations, ~3 ms in numpy) would never win back: the kernels are
+# first loaded by a batch of this size, and from then on serve batches >= _MIN_FUSED.
+_FIRST_FUSED = 100_000
 
 
 def ggx_g1(cos_t: Array, sin2_t: Array, alpha: Array, grad: bool = False):
@@ -152,7 +157,10 @@ def _fused(lobe: _Microfacet, wi: Array, wo: Array, p: dict[str, Array]) -> Arra
         return None
     chans = max(sizes, default=1)
     n = math.prod(lead)
-    if n * chans < _MIN_FUSED or os.environ.get("GONIO_NUMBA") == "0":
+    size = n * chans
+    if size < _MIN_FUSED or os.environ.get("GONIO_NUMBA") == "0":
+        return None
+    if size < _FIRST_FUSED and "gonio.brdf.kernels" not in sys.modules:
         return None
     # Imported only here: small evaluations (CLI, plots) never pay numba's import time.
     from gonio.brdf import kernels

@@ -11,6 +11,9 @@ paths independently.
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -45,7 +48,9 @@ CHANNEL_VALUES = {
 @pytest.fixture
 def calls(monkeypatch):
     """Counts kernel invocations, to prove the fused path is the one under test."""
-    counts = {"ggx_hot": 0, "microfacet_eval": 0}
+    counts = dict.fromkeys(
+        ["ggx_hot", "ggx_hot_serial", "microfacet_eval", "microfacet_eval_serial"], 0
+    )
     for name in counts:
         fn = getattr(kernels, name)
 
@@ -136,7 +141,7 @@ def test_per_channel_params_match_numpy(monkeypatch, calls, name, opts):
         values["eta"] = [1.0, 1.5, 4.0]
     bound = m.bind(values)
     fast = bound.eval(wi, wo)
-    assert calls["microfacet_eval"] == 1
+    assert calls["microfacet_eval_serial"] == 1
     ref = _numpy_path(monkeypatch, lambda: bound.eval(wi, wo))
     assert fast.shape == (4000, 3)
     _assert_same(fast, ref)
@@ -167,6 +172,27 @@ def test_layouts_and_sums_match_numpy(monkeypatch, calls, name, opts):
         assert sum(calls.values()) > before, label
         ref = _numpy_path(monkeypatch, lambda model=model, a=a, b=b, p=p: model.eval(a, b, p))
         _assert_same(fast, ref)
+
+
+@pytest.mark.parametrize(
+    ("name", "opts"), [CONFIGS[0], CONFIGS[2], CONFIGS[4]], ids=IDS[:1] + [IDS[2], IDS[4]]
+)
+def test_multithreaded_kernels_match_numpy(monkeypatch, calls, name, opts):
+    """Batches of >= PARALLEL_PAIRS evaluations run on the multi-threaded kernels."""
+    rng = np.random.default_rng(13)
+    n = kernels.PARALLEL_PAIRS + 1000
+    wi, wo = _edge_pairs(rng, n)
+    m = get_model(name, **opts)
+    # (N, 1, 3) directions are not chunked by the model, so the lobe sees the whole batch.
+    fast = m.eval(wi[:, None, :], wo[:, None, :])
+    ref = _numpy_path(monkeypatch, lambda: m.eval(wi[:, None, :], wo[:, None, :]))
+    assert calls["ggx_hot"] + calls["microfacet_eval"] == 1
+    assert fast.shape == (n, 1)
+    _assert_same(fast, ref)
+    bound = m.bind({"alpha": [0.01, 0.2, 0.6]})
+    fast = bound.eval(wi[:30_000], wo[:30_000])
+    assert calls["microfacet_eval"] == 1 + (name != "ggx" or bool(opts))
+    _assert_same(fast, _numpy_path(monkeypatch, lambda: bound.eval(wi[:30_000], wo[:30_000])))
 
 
 @pytest.mark.parametrize("name", ["ggx", "beckmann"])
@@ -202,6 +228,27 @@ def test_small_batches_stay_on_numpy(calls):
     m.eval(_hemisphere(rng, kernels.MIN_PAIRS - 1), _hemisphere(rng, kernels.MIN_PAIRS - 1))
     m.eval_with_grad(_hemisphere(rng, 10_000), _hemisphere(rng, 10_000))
     assert sum(calls.values()) == 0
+
+
+def test_numba_is_loaded_only_by_a_large_batch():
+    """Small evaluations (CLI plots) must not pay numba's import and load time."""
+    code = (
+        "import sys, numpy as np\n"
+        "from gonio.brdf import get_model\n"
+        "w = np.tile([0.0, 0.6, 0.8], (60_000, 1))\n"
+        "m = get_model('ggx').bind({})\n"
+        "a = m.eval(w, w)\n"  # 180 000 evaluations: loads the kernels
+        "print('numba' in sys.modules)\n"
+    )
+    for n, loaded in (("20_000", "False"), ("60_000", "True")):
+        out = subprocess.run(
+            [sys.executable, "-c", code.replace("60_000", n)],
+            capture_output=True,
+            text=True,
+            check=True,
+            env={**os.environ, "GONIO_NUMBA": "1"},
+        )
+        assert out.stdout.split() == [loaded], (n, out.stdout, out.stderr)
 
 
 def test_threshold_matches_the_hook():
