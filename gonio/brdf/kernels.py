@@ -25,6 +25,7 @@ from __future__ import annotations
 import cmath
 import math
 
+import numpy as np
 from numba import njit, prange
 
 from gonio.brdf.base import Array
@@ -37,6 +38,7 @@ __all__ = [
     "ggx_hot_serial",
     "microfacet_eval",
     "microfacet_eval_serial",
+    "rgl_eval",
 ]
 
 #: Batches smaller than this (pairs times channels) stay on the numpy path.
@@ -53,6 +55,7 @@ FRESNEL_CODES = {"none": 0, "schlick": 1, "conductor": 2, "dielectric": 3}
 
 _INV_PI = 1.0 / math.pi
 _INV_2SQRTPI = 0.5 / math.sqrt(math.pi)
+_HALF_PI = 0.5 * math.pi
 
 _JIT = {"cache": True, "fastmath": False, "error_model": "numpy", "nogil": True}
 
@@ -284,3 +287,164 @@ def ggx_hot_serial(wi, wo, ks, alpha, out):
             out[i] = _ggx_hot_pair(
                 wi[0, i], wi[1, i], wi[2, i], wo[0, i], wo[1, i], wo[2, i], a2, one_m, scale
             )
+
+
+# ---------------------------------------------------------------------------------------
+# RGL-EPFL measured BRDFs: the per-pair form of gonio.brdf.rgl.RGLBRDF._eval_active, in
+# the same operation order (see there for the mathematics and the why of each step).
+
+
+@njit(**_JIT, inline="always")
+def _param_lerp(values, x):
+    n = values.size
+    if n == 1:
+        return 0, 0.0
+    i = 0  # searchsorted(values, x, side="left")
+    while i < n and values[i] < x:
+        i += 1
+    i = min(max(i - 1, 0), n - 2)
+    p0 = values[i]
+    p1 = values[i + 1]
+    return i, _clip01((x - p0) / (p1 - p0))
+
+
+@njit(**_JIT, inline="always")
+def _elevation(x, y, z):
+    d = math.sqrt(x * x + y * y + (z - 1.0) * (z - 1.0))
+    return 2.0 * math.asin(_clip01(0.5 * d))
+
+
+@njit(**_JIT, inline="always")
+def _cell(u, v, nx, ny):
+    """Bilinear cell (ix, iy) and fractions (fx, fy) of a unit-square position."""
+    px = _clip01(u) * (nx - 1)
+    py = _clip01(v) * (ny - 1)
+    ix = min(int(px), nx - 2)
+    iy = min(int(py), ny - 2)
+    return ix, iy, px - ix, py - iy
+
+
+@njit(**_JIT, inline="always")
+def _bilinear(table, u, v):
+    ny, nx = table.shape
+    ix, iy, fx, fy = _cell(u, v, nx, ny)
+    v00 = table[iy, ix]
+    v10 = table[iy, ix + 1]
+    v01 = table[iy + 1, ix]
+    v11 = table[iy + 1, ix + 1]
+    return (1 - fy) * ((1 - fx) * v00 + fx * v10) + fy * ((1 - fx) * v01 + fx * v11)
+
+
+@njit(**_JIT, inline="always")
+def _rgl_pair(
+    ix_, iy_, iz_, ox_, oy_, oz_, phi_vals, theta_vals, patch, spec, ndf, sigma,
+    vh, vw, ry, rx, reduction, isotropic, jacobian, sl, sw, packed, out,
+):  # fmt: skip
+    wix, wiy, wox, woy = ix_, iy_, ox_, oy_
+    if reduction >= 2:
+        sy = -1.0 if wiy >= 0 else 1.0
+        sx = sy
+        if reduction == 4:
+            sx = -1.0 if wix >= 0 else 1.0
+        wix *= sx
+        wiy *= sy
+        wox *= sx
+        woy *= sy
+    mx = wix + wox
+    my = wiy + woy
+    mz = iz_ + oz_
+    norm = math.sqrt(mx * mx + my * my + mz * mz)
+    mx /= norm
+    my /= norm
+    mz /= norm
+    theta_i = _elevation(wix, wiy, iz_)
+    phi_i = math.atan2(wiy, wix)
+    theta_m = _elevation(mx, my, mz)
+    phi_m = math.atan2(my, mx)
+    u_wi_x = math.sqrt(theta_i / _HALF_PI)
+    u_wi_y = (phi_i + math.pi) / (2 * math.pi)
+    rel = phi_m - phi_i if isotropic else phi_m
+    um_y = (rel + math.pi) / (2 * math.pi)
+    um_y -= math.floor(um_y)
+    um_x = math.sqrt(theta_m / _HALF_PI)
+
+    # (phi_i, theta_i) corner slices and weights (_Slices)
+    ip, wp = _param_lerp(phi_vals, phi_i)
+    it, wt = _param_lerp(theta_vals, theta_i)
+    n_t = theta_vals.size
+    it1 = min(it + 1, n_t - 1)
+    sl[0] = ip * n_t + it
+    sl[1] = ip * n_t + it1
+    sw[0] = (1 - wp) * (1 - wt)
+    sw[1] = (1 - wp) * wt
+    ns = 2
+    if phi_vals.size > 1:
+        ip1 = min(ip + 1, phi_vals.size - 1)
+        sl[2] = ip1 * n_t + it
+        sl[3] = ip1 * n_t + it1
+        sw[2] = wp * (1 - wt)
+        sw[3] = wp * wt
+        ns = 4
+
+    # inverse VNDF warp (_invert_vndf)
+    cx, cy, fx, fy = _cell(um_x, um_y, vw, vh)
+    cell = cy * (vw - 1) + cx
+    for j in range(9):
+        packed[j] = 0.0
+    for q in range(ns):
+        for j in range(9):
+            packed[j] += sw[q] * patch[j, sl[q], cell]
+    v00, v10, v01, v11 = packed[0], packed[1], packed[2], packed[3]
+    prev0, prev1, r0, r1, marg_prev = packed[4], packed[5], packed[6], packed[7], packed[8]
+    c0 = v00 + (v01 - v00) * fy
+    c1 = v10 + (v11 - v10) * fy
+    s_x = fx * (c0 + (c1 - c0) * 0.5 * fx) / (vw - 1) + prev0 + (prev1 - prev0) * fy
+    row = r0 + (r1 - r0) * fy
+    s_x = s_x / row if row > 0 else fx
+    s_y = fy * (r0 + (r1 - r0) * 0.5 * fy) / (vh - 1) + marg_prev
+
+    # bilinear over the sample-space position, multilinear over (phi_i, theta_i)
+    cx, cy, fx, fy = _cell(s_x, s_y, rx, ry)
+    cell = cy * (rx - 1) + cx
+    w0 = (1 - fx) * (1 - fy)
+    w1 = fx * (1 - fy)
+    w2 = (1 - fx) * fy
+    w3 = fx * fy
+    n_ch = out.shape[0]
+    if jacobian:
+        scale = _bilinear(ndf, um_x, um_y) / (4.0 * _bilinear(sigma, u_wi_x, u_wi_y))
+    for c in range(n_ch):
+        v0 = 0.0
+        v1 = 0.0
+        v2 = 0.0
+        v3 = 0.0
+        for q in range(ns):
+            v0 += sw[q] * spec[c, sl[q], cell]
+            v1 += sw[q] * spec[n_ch + c, sl[q], cell]
+            v2 += sw[q] * spec[2 * n_ch + c, sl[q], cell]
+            v3 += sw[q] * spec[3 * n_ch + c, sl[q], cell]
+        f = w0 * v0 + w1 * v1 + w2 * v2 + w3 * v3
+        if jacobian:
+            f = f * scale
+        out[c] = f / oz_
+
+
+@njit(**_JIT, parallel=True)
+def rgl_eval(
+    wi, wo, phi_vals, theta_vals, patch, spec, ndf, sigma,
+    vh, vw, ry, rx, reduction, isotropic, jacobian, out,
+):  # fmt: skip
+    """``f_r`` (1/sr) of an RGL measured BRDF for ``(N, 3)`` pairs above the horizon.
+
+    The arguments are the tables of :class:`gonio.brdf.rgl.RGLBRDF` (``_patch``,
+    ``_spec``, ``_ndf``, ``_sigma``, grid sizes and flags); ``out`` is ``(N, channels)``.
+    """
+    for i in prange(wi.shape[0]):
+        sl = np.empty(4, np.intp)
+        sw = np.empty(4)
+        packed = np.empty(9)
+        _rgl_pair(
+            wi[i, 0], wi[i, 1], wi[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], phi_vals,
+            theta_vals, patch, spec, ndf, sigma, vh, vw, ry, rx, reduction, isotropic,
+            jacobian, sl, sw, packed, out[i],
+        )  # fmt: skip
