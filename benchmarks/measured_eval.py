@@ -1,9 +1,12 @@
 """Evaluations per second of gonio's RGL evaluator vs Mitsuba 3's ``measured`` plugin.
 
 Same file, same random direction pairs, same process.  Mitsuba runs in its vectorised
-``llvm_ad_rgb`` variant when libLLVM 19 works (one thread, like numpy), else ``scalar_rgb``
-(a Python loop over single evaluations); the variant is named in the output.  Prints ONE
-JSON object: ``figure`` (gonio evals/s), ``baseline`` (Mitsuba evals/s), ``ratio``.
+``llvm_ad_rgb`` variant when libLLVM 19 works (one thread), else ``scalar_rgb`` (a Python
+loop over single evaluations); the variant is named in the output.  Prints ONE JSON
+object: ``figure`` (gonio evals/s, the default path, the numba kernel of
+``gonio.brdf.kernels``, on one thread like Mitsuba), ``baseline`` (Mitsuba evals/s),
+``ratio``; for context also gonio on numba's threads and the numpy reference path
+(``GONIO_NUMBA=0``).
 
     python benchmarks/measured_eval.py [--n 200000] [--file paper_white_rgb.bsdf]
 """
@@ -13,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -58,8 +62,23 @@ def main() -> None:
     wi, wo = _pairs(args.n)
     wi64, wo64 = wi.astype(np.float64), wo.astype(np.float64)
     brdf = load(args.file)
+    t0 = time.perf_counter()
+    ours = brdf.eval(wi64, wo64) * wo64[:, 2:3]  # warm-up: numba import + cache load
+    t_first = time.perf_counter() - t0
     t_gonio = _best_of(lambda: brdf.eval(wi64, wo64), args.repeats)
-    ours = brdf.eval(wi64, wo64) * wo64[:, 2:3]
+    fused = "gonio.brdf.kernels" in sys.modules
+    import numba
+
+    n_threads = numba.get_num_threads()
+    numba.set_num_threads(1)  # like for like with Mitsuba's one thread
+    t_gonio_1 = _best_of(lambda: brdf.eval(wi64, wo64), args.repeats)
+    numba.set_num_threads(n_threads)
+    os.environ["GONIO_NUMBA"] = "0"  # the numpy reference path, for context
+    ours_np = brdf.eval(wi64, wo64) * wo64[:, 2:3]
+    t_numpy = _best_of(lambda: brdf.eval(wi64, wo64), args.repeats)
+    del os.environ["GONIO_NUMBA"]
+    both = np.isfinite(ours_np) & (ours_np != 0)
+    numba_vs_numpy = np.abs(ours[both] - ours_np[both]) / ours_np[both]
 
     mi, variant = load_mitsuba("llvm")
     import drjit as dr
@@ -96,7 +115,7 @@ def main() -> None:
         ref = run_mi()
     sel = ref > 1e-3 * ref.max()
     rel = np.abs(ours[:n_mi] - ref)[sel[: len(ref)]] / ref[sel]
-    figure = args.n / t_gonio
+    figure = args.n / t_gonio_1
     baseline = n_mi / t_mi
     print(
         json.dumps(
@@ -105,10 +124,18 @@ def main() -> None:
                 "file": Path(args.file).name,
                 "pairs": args.n,
                 "figure": round(figure),
-                "figure_unit": "RGL evaluations/s (gonio numpy float64, 1 thread)",
+                "figure_unit": "RGL evaluations/s (gonio float64, numba kernel, 1 thread)",
                 "baseline": round(baseline),
                 "baseline_name": f"Mitsuba {mi.__version__} measured, {variant}, 1 thread",
                 "ratio": round(figure / baseline, 3),
+                "numba_path_used": fused,
+                "gonio_numba_threads": n_threads,
+                "gonio_all_threads": round(args.n / t_gonio),
+                "ratio_all_threads_vs_mitsuba_1thread": round(args.n / t_gonio / baseline, 3),
+                "gonio_numpy": round(args.n / t_numpy),
+                "ratio_numpy": round(args.n / t_numpy / baseline, 3),
+                "numba_first_call_s": round(t_first, 3),
+                "max_rel_diff_numba_vs_numpy": float(numba_vs_numpy.max(initial=0.0)),
                 "agreement_median_rel": float(np.median(rel)),
                 "load_average_1min": round(os.getloadavg()[0], 2),
             }

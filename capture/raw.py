@@ -79,9 +79,10 @@ class CameraSignature:
 class RawFrame:
     """One decoded RAW frame on its mosaic.
 
-    Decoded frames keep the camera's uint16 mosaic and compute float64 values lazily, for
-    the whole frame (:attr:`linear`) or only for a crop (:meth:`region`): a reduction
-    needs the sample's region of a large sensor, not all of it.
+    Decoded frames keep the camera's uint16 mosaic (a read-only view of LibRaw's own
+    buffer, never copied) and compute float64 values lazily, for the whole frame
+    (:attr:`linear`) or only for a crop (:meth:`region`): a reduction needs the sample's
+    region of a large sensor, not all of it.
 
     Attributes
     ----------

@@ -18,6 +18,10 @@ For every pose of the session (see DEVELOPING.md, "Session directory"):
    puts on point ``x`` (disk light), pooled over regions and reference poses;
    a sample region's BRDF is ``f = <L(x)> / (I <G(x)>)`` in 1/sr.
 
+Frames are read once (one buffer both hashed and decoded) in worker threads that run
+ahead of the measurement by one pose (see :class:`_FrameLoader`); results are taken in
+journal order, so the output is the same for any number of threads.
+
 Each region is one sample of ``samples.h5`` (:mod:`gonio.dataset`); its ``frames`` entry
 lists the bracket's RAW files joined by ``;``.  Nothing in ``raw/`` is touched;
 ``samples.h5`` is written atomically, and the same session gives the same file.  A summary
@@ -530,8 +534,9 @@ def measure_pose(
             flags[j] |= _flag("UNDEREXPOSED")
             txt = ", ".join(f"{CHANNELS[c]} {snr[j, c]:.1f}" for c in low)
             reasons[j].append(f"signal-to-noise below {setup.min_snr:g} ({txt})")
-    wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
-    wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):  # empty regions: NaN, flagged
+        wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+        wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
     return PoseMeasurement(pose, kind, wi, wo, L, Lv, G, Q, Qv, flags, reasons, names, cam, regions)
 
 
@@ -671,7 +676,10 @@ class _FrameLoader:
         out = []
         for rec in recs:
             fut = self._pending.pop(id(rec), None)
-            out.append(fut.result() if fut is not None else _load_frame(*self._args, rec))
+            if fut is None or fut.cancel():  # not started yet: do it here, not wait idle
+                out.append(_load_frame(*self._args, rec))
+            else:
+                out.append(fut.result())
         return out
 
 

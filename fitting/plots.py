@@ -1,4 +1,11 @@
-"""Figures of a fit: measured against fitted slices per incidence angle, and residual maps.
+"""Figures of a fit: how well the fitted model matches the measured samples.
+
+* :func:`plot_slices` - the classic BRDF plot: one panel per incidence angle, measured f_r
+  with error bars for the samples near the plane of incidence, and the fitted model as a
+  smooth curve along that plane.
+* :func:`plot_residual_map` - every sample (in and out of the plane) on a polar map of the
+  outgoing hemisphere per incidence angle, coloured by ``(measured - fitted) / sigma``, so
+  systematic misfit (a lobe too wide, a missing grazing rise) shows as coloured patches.
 
 matplotlib with the Agg backend (files only, no display needed).
 """
@@ -6,13 +13,31 @@ matplotlib with the Agg backend (files only, no display needed).
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from gonio.fitting.result import FitResult
 
-__all__ = ["plot_residual_map", "plot_slices"]
+__all__ = [
+    "plot_residual_map",
+    "plot_slices",
+    "residual_map_figure",
+    "scaled_residuals",
+    "slices_figure",
+]
+
+#: Samples whose outgoing direction lies within this angle of the plane of incidence are
+#: drawn in the slices (deg).
+IN_PLANE_TOL_DEG = 10.0
+#: Colour limit of the z map: |z| >= 5 is a misfit, whatever its size.
+Z_LIMIT = 5.0
+#: Colour limit of the log2(measured / fitted) map used when no sample has a sigma.
+LOG2_LIMIT = 2.0
+
+_CHANNEL_COLOURS = {"R": "tab:red", "G": "tab:green", "B": "tab:blue"}
+_OTHER_COLOURS = ["k", "tab:orange", "tab:purple", "tab:brown", "tab:olive", "tab:cyan"]
 
 
 def _plt():
@@ -24,100 +49,408 @@ def _plt():
     return plt
 
 
-def _angles(wi: np.ndarray, wo: np.ndarray):
-    ti = np.arccos(np.clip(wi[:, 2], -1, 1))
-    to = np.arccos(np.clip(wo[:, 2], -1, 1))
+def _colours(channels: tuple[str, ...]) -> list[str]:
+    if len(channels) == 1:
+        return ["k"]
+    out, k = [], 0
+    for name in channels:
+        if name.upper() in _CHANNEL_COLOURS:
+            out.append(_CHANNEL_COLOURS[name.upper()])
+        else:
+            out.append(_OTHER_COLOURS[k % len(_OTHER_COLOURS)])
+            k += 1
+    return out
+
+
+@dataclass
+class _Data:
+    """The samples that entered the fit, with their angles (deg) and fitted values."""
+
+    wi: np.ndarray
+    wo: np.ndarray
+    y: np.ndarray  # measured f_r (N, C), 1/sr
+    sigma: np.ndarray  # its std (N, C), NaN when unknown
+    f: np.ndarray  # fitted f_r at the same directions (N, C)
+    theta_i: np.ndarray  # deg
+    theta_o: np.ndarray  # deg
+    signed_o: np.ndarray  # deg, + on the mirror side of the normal
+    dphi: np.ndarray  # phi_o - phi_i, rad
+    off_plane: np.ndarray  # angle of wo from the plane of incidence, deg
+    n_hidden: int  # samples not shown (flagged or not used by the fit)
+
+
+def _data(r: FitResult, samples: Any) -> _Data:
+    wi_all = np.asarray(samples.wi, dtype=np.float64)
+    n = wi_all.shape[0]
+    used = np.asarray(r.used, dtype=bool).reshape(-1)
+    if used.shape[0] != n:
+        raise ValueError(f"the fit used a mask of {used.shape[0]} samples, samples has {n}")
+    valid = getattr(samples, "valid", None)
+    keep = used & (np.asarray(valid, dtype=bool) if valid is not None else True)
+    wi = wi_all[keep]
+    wo = np.asarray(samples.wo, dtype=np.float64)[keep]
+    y = np.asarray(samples.brdf, dtype=np.float64)[keep].reshape(len(wi), -1)
+    std = getattr(samples, "brdf_std", None)
+    sigma = (
+        np.full_like(y, np.nan)
+        if std is None
+        else np.asarray(std, dtype=np.float64)[keep].reshape(y.shape)
+    )
+    f = r.bind().eval(wi, wo).reshape(y.shape) if len(wi) else np.zeros_like(y)
+    ti = np.degrees(np.arccos(np.clip(wi[:, 2], -1.0, 1.0)))
+    to = np.degrees(np.arccos(np.clip(wo[:, 2], -1.0, 1.0)))
     dphi = np.arctan2(wo[:, 1], wo[:, 0]) - np.arctan2(wi[:, 1], wi[:, 0])
-    # + on the mirror side of the normal, - on the light's side
     signed = np.where(np.cos(dphi) <= 0, to, -to)
-    return ti, signed, dphi
+    # Angular distance of wo from the plane spanned by the normal and wi: near the normal
+    # every azimuth is close to the plane, so an azimuth tolerance alone would drop them.
+    off = np.degrees(np.arcsin(np.clip(np.abs(np.sin(np.radians(to)) * np.sin(dphi)), 0, 1)))
+    return _Data(wi, wo, y, sigma, f, ti, to, signed, dphi, off, int(n - keep.sum()))
+
+
+def _theta_i_bins(ti: np.ndarray, n_bins: int, gap: float = 2.0, max_span: float = 8.0):
+    """Bin index per sample and the list of bins.
+
+    A measurement plan has a few discrete incidence angles (each spread by a degree or two
+    over the sample's regions): group samples separated by gaps of more than ``gap`` deg.
+    When that does not give a few tight groups, fall back to ``n_bins`` quantile bins.
+    """
+    if ti.size == 0:
+        return np.zeros(0, dtype=int), 0
+    s = np.sort(ti)
+    cuts = np.nonzero(np.diff(s) > gap)[0]
+    starts = np.r_[0, cuts + 1]
+    ends = np.r_[cuts, s.size - 1]
+    spans = s[ends] - s[starts]
+    if len(starts) <= 12 and np.all(spans <= max_span):
+        edges = 0.5 * (s[ends[:-1]] + s[starts[1:]])
+    else:
+        q = np.quantile(ti, np.linspace(0, 1, n_bins + 1))
+        edges = np.unique(q[1:-1])
+    return np.searchsorted(edges, ti, side="right"), len(edges) + 1
+
+
+def _bin_title(ti: np.ndarray) -> str:
+    if ti.size == 0:
+        return "theta_i ?"
+    lo, hi = float(ti.min()), float(ti.max())
+    if hi - lo < 1.0:
+        return f"theta_i = {np.mean(ti):.1f}°"
+    return f"theta_i {lo:.1f}-{hi:.1f}° (curve at {np.mean(ti):.1f}°)"
+
+
+def _in_plane_curve(bound: Any, theta_i_deg: float, x_deg: np.ndarray) -> np.ndarray:
+    """Model f_r (M, C) with wi at ``theta_i_deg`` (azimuth 0) and wo in the plane of
+    incidence at signed angles ``x_deg`` (+ towards the mirror direction)."""
+    t = np.radians(theta_i_deg)
+    x = np.radians(x_deg)
+    wi = np.broadcast_to(np.array([np.sin(t), 0.0, np.cos(t)]), (x.size, 3))
+    wo = np.stack([-np.sin(x), np.zeros_like(x), np.cos(x)], axis=-1)
+    return np.asarray(bound.eval(wi, wo), dtype=np.float64).reshape(x.size, -1)
+
+
+def scaled_residuals(r: FitResult, samples: Any) -> tuple[np.ndarray, str, float]:
+    """Per-sample misfit of a fit, on a scale where systematic errors stand out.
+
+    Parameters
+    ----------
+    r
+        The fit.
+    samples
+        The :class:`~gonio.dataset.BRDFSamples` it was fitted to.
+
+    Returns
+    -------
+    values : ndarray, shape (N_shown, C)
+        ``(measured - fitted) / brdf_std`` (dimensionless z) when any shown sample has a
+        finite positive sigma (NaN for those that do not); otherwise
+        ``log2(measured / fitted)`` (NaN where either is not positive).  Rows are the
+        samples the fit used that are not flagged, in input order.
+    label : str
+        What ``values`` is, for a colour-bar label.
+    limit : float
+        Symmetric colour limit: 5 for z, 2 (a factor of 4) for the log ratio.
+    """
+    d = _data(r, samples)
+    return _scaled(d)
+
+
+def _scaled(d: _Data) -> tuple[np.ndarray, str, float]:
+    ok = np.isfinite(d.sigma) & (d.sigma > 0)
+    if ok.any():
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(ok, (d.y - d.f) / np.where(ok, d.sigma, 1.0), np.nan)
+        return z, "(measured - fitted) / sigma", Z_LIMIT
+    pos = (d.y > 0) & (d.f > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lr = np.where(pos, np.log2(np.where(pos, d.y, 1.0) / np.where(pos, d.f, 1.0)), np.nan)
+    return lr, "log2(measured / fitted)  (no sigmas)", LOG2_LIMIT
+
+
+def slices_figure(
+    r: FitResult, samples: Any, n_bins: int = 6, tol_deg: float = IN_PLANE_TOL_DEG
+) -> Any:
+    """The figure drawn by :func:`plot_slices` (a matplotlib ``Figure``, not saved).
+
+    The fitted curves are ``Line2D`` objects with ``gid`` ``"fit:<channel>"``; their x data
+    are signed theta_o in degrees, y data f_r in 1/sr.
+    """
+    plt = _plt()
+    d = _data(r, samples)
+    C = d.y.shape[1]
+    names = tuple(r.channels) if len(r.channels) == C else tuple(f"c{k}" for k in range(C))
+    colours = _colours(names)
+    bins, nb = _theta_i_bins(d.theta_i, n_bins)
+    nb = max(nb, 1)
+    cols = min(3, nb)
+    rows = int(np.ceil(nb / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.5 * rows), squeeze=False)
+    bound = r.bind()
+    xg = np.linspace(-89.0, 89.0, 713)
+    in_plane = d.off_plane <= tol_deg
+    for b in range(nb):
+        ax = axes[b // cols][b % cols]
+        sel = bins == b
+        sel_ip = sel & in_plane
+        ti_b = d.theta_i[sel]
+        if ti_b.size == 0:
+            ax.text(0.5, 0.5, "no usable samples", ha="center", va="center", transform=ax.transAxes)
+            ax.set_axis_off()
+            continue
+        t_mean = float(np.mean(ti_b))
+        curve = _in_plane_curve(bound, t_mean, xg)
+        # The bin's samples span a few degrees of theta_i: show the model over that span
+        # so a point off the central curve is not mistaken for misfit.
+        t_ip = d.theta_i[sel_ip] if sel_ip.any() else ti_b
+        band = None
+        if t_ip.max() - t_ip.min() > 0.5:
+            stack = np.stack(
+                [_in_plane_curve(bound, t, xg) for t in np.linspace(t_ip.min(), t_ip.max(), 5)]
+            )
+            band = (stack.min(axis=0), stack.max(axis=0))
+        x = d.signed_o[sel_ip]
+        positive = [curve[curve > 0]]
+        for c in range(C):
+            yc = d.y[sel_ip, c]
+            positive.append(yc[yc > 0])
+        positive = np.concatenate(positive)
+        top = float(positive.max()) if positive.size else 1.0
+        log = positive.size > 0 and top / max(float(positive.min()), 1e-300) > 30.0
+        floor = max(float(positive.min()), top * 1e-5) * 0.5 if log else None
+        for c in range(C):
+            col = colours[c]
+            if band is not None:
+                ax.fill_between(xg, band[0][:, c], band[1][:, c], color=col, alpha=0.12, lw=0)
+            ax.plot(
+                xg, curve[:, c], color=col, lw=1.4, label=f"fit {names[c]}", gid=f"fit:{names[c]}"
+            )
+            yc = d.y[sel_ip, c]
+            sc = d.sigma[sel_ip, c]
+            err = np.where(np.isfinite(sc) & (sc > 0), sc, 0.0)
+            shown = yc > 0 if log else np.isfinite(yc)
+            ax.errorbar(
+                x[shown],
+                yc[shown],
+                yerr=err[shown],
+                fmt="o",
+                ms=3.2,
+                mfc=col,
+                mec="none",
+                ecolor=col,
+                elinewidth=0.8,
+                alpha=0.75,
+                gid=f"measured:{names[c]}",
+            )
+            if log and (~shown).any():
+                # Non-positive measurements cannot sit on a log axis: mark them at its floor.
+                ax.plot(x[~shown], np.full((~shown).sum(), floor), "v", color=col, mfc="none", ms=4)
+        ax.axvline(t_mean, color="0.4", ls="--", lw=0.8)
+        ax.text(
+            t_mean,
+            1.0,
+            " mirror",
+            color="0.3",
+            fontsize=7,
+            va="top",
+            ha="left",
+            transform=ax.get_xaxis_transform(),
+        )
+        if log:
+            ax.set_yscale("log")
+            ax.set_ylim(bottom=floor, top=top * 2.0)
+        else:
+            ax.set_ylim(bottom=min(0.0, float(np.nanmin(d.y[sel_ip])) if sel_ip.any() else 0.0))
+        ax.set_xlim(-90, 90)
+        ax.set_xticks(np.arange(-90, 91, 30))
+        n_ip, n_all = int(sel_ip.sum()), int(sel.sum())
+        ax.set_title(f"{_bin_title(ti_b)}\n{n_ip} of {n_all} samples in plane", fontsize=9)
+        if not n_ip:
+            ax.text(
+                0.5,
+                0.5,
+                f"no samples within {tol_deg:g}° of the plane",
+                ha="center",
+                va="center",
+                transform=ax.transAxes,
+                fontsize=8,
+                color="0.3",
+            )
+        ax.set_xlabel("signed theta_o (deg, + = mirror side)", fontsize=8)
+        ax.set_ylabel("f_r (1/sr)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.25, lw=0.5)
+    for b in range(nb, rows * cols):
+        axes[b // cols][b % cols].set_axis_off()
+    axes[0][0].legend(fontsize=7, loc="upper left")
+    hidden = f"; {d.n_hidden} flagged/unused samples not shown" if d.n_hidden else ""
+    fig.suptitle(
+        f"{r.model}: measured f_r (dots, +-1 sigma) within {tol_deg:g}° of the plane of "
+        f"incidence vs fitted model (curve; band = bin's theta_i range){hidden}\n"
+        "out-of-plane samples: see residuals.png",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    return fig
 
 
 def plot_slices(r: FitResult, samples: Any, path: str | os.PathLike, n_bins: int = 6) -> Path:
-    """Measured and fitted ``f_r cos(theta_o)`` against signed theta_o, one panel per theta_i.
+    """Measured and fitted f_r in the plane of incidence, one panel per incidence angle.
 
-    Samples are grouped into ``n_bins`` incidence-angle bins; theta_o is signed positive on
-    the mirror side.  Samples near the plane of incidence (|sin dphi| < 0.26) are drawn
-    solid, the others faint, so in-plane highlights stand out.
+    Parameters
+    ----------
+    r
+        The fit.
+    samples
+        The :class:`~gonio.dataset.BRDFSamples` it was fitted to.
+    path
+        PNG file to write.
+    n_bins
+        Number of theta_i bins when the samples' incidence angles are not a few discrete
+        values (a plan's ``theta_i_deg`` list gives one panel per value).
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Notes
+    -----
+    Points: samples within 10° of the plane of incidence, f_r (1/sr) with one-sigma error
+    bars from ``brdf_std`` (none where it is NaN), per channel.  Curve: the fitted model
+    evaluated along the plane at the bin's mean theta_i, x = signed theta_o in degrees
+    (positive on the mirror side; the dashed line marks the mirror direction); the shaded
+    band is the model over the bin's theta_i spread.  Log y axis when the values span more
+    than a factor of 30.  Flagged samples and samples the fit did not use are not drawn.
     """
-    plt = _plt()
-    wi = np.asarray(samples.wi)[r.used]
-    wo = np.asarray(samples.wo)[r.used]
-    y = np.asarray(samples.brdf)[r.used]
-    f = r.bind().eval(wi, wo)
-    ti, signed, dphi = _angles(wi, wo)
-    edges = np.unique(np.quantile(ti, np.linspace(0, 1, n_bins + 1)))
-    nb = max(len(edges) - 1, 1)
-    cols = min(3, nb)
-    rows = int(np.ceil(nb / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
-    colours = ["tab:red", "tab:green", "tab:blue"] + ["k"] * 8
-    inplane = np.abs(np.sin(dphi)) < 0.26
-    for b in range(nb):
-        ax = axes[b // cols][b % cols]
-        sel = (ti >= edges[b]) & ((ti < edges[b + 1]) if b < nb - 1 else (ti <= edges[b + 1]))
-        cos_o = wo[sel, 2]
-        ip = inplane[sel]
-        line = ip if ip.sum() >= 3 else np.ones_like(ip)  # fitted curve along the plane
-        order = np.argsort(signed[sel][line])
-        for c, name in enumerate(r.channels):
-            col = colours[c]
-            ax.scatter(signed[sel][ip], (y[sel, c] * cos_o)[ip], s=6, color=col, alpha=0.8)
-            ax.scatter(signed[sel][~ip], (y[sel, c] * cos_o)[~ip], s=3, color=col, alpha=0.15)
-            ax.plot(
-                signed[sel][line][order],
-                (f[sel, c] * cos_o)[line][order],
-                lw=0.8,
-                color=col,
-                alpha=0.8,
-                label=f"fit {name}",
-            )
-        ax.set_title(
-            f"theta_i {np.degrees(edges[b]):.0f}-{np.degrees(edges[b + 1]):.0f} deg", fontsize=9
-        )
-        ax.set_xlabel("signed theta_o (rad, + = mirror side)", fontsize=8)
-        ax.set_ylabel("f_r cos theta_o (1/sr)", fontsize=8)
-        ax.set_yscale("symlog", linthresh=1e-3)
-    for b in range(nb, rows * cols):
-        axes[b // cols][b % cols].axis("off")
-    axes[0][0].legend(fontsize=7)
-    fig.suptitle(f"{r.model}: measured (dots) vs fitted (lines)", fontsize=10)
-    fig.tight_layout()
+    fig = slices_figure(r, samples, n_bins=n_bins)
     path = Path(path)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _plt().close(fig)
     return path
 
 
-def plot_residual_map(r: FitResult, samples: Any, path: str | os.PathLike) -> Path:
-    """Relative residual ``(fit - measured) / max(measured, 1 % of the peak)`` over
-    (theta_h, theta_d), one panel per channel, colour range at the 95th percentile:
-    structure in this map is what the model cannot represent."""
-    from gonio.radiometry.frames import half_diff_from_directions
-
+def residual_map_figure(r: FitResult, samples: Any, n_bins: int = 6) -> Any:
+    """The figure drawn by :func:`plot_residual_map` (a matplotlib ``Figure``, not saved)."""
     plt = _plt()
-    wi = np.asarray(samples.wi)[r.used]
-    wo = np.asarray(samples.wo)[r.used]
-    y = np.asarray(samples.brdf)[r.used]
-    f = r.bind().eval(wi, wo)
-    th, _, td, _ = half_diff_from_directions(wi, wo)
-    C = len(r.channels)
-    fig, axes = plt.subplots(1, C, figsize=(4.0 * C, 3.4), squeeze=False)
-    for c in range(C):
-        ax = axes[0][c]
-        floor = max(0.01 * float(np.max(np.abs(y[:, c]))), 1e-300)
-        rel = (f[:, c] - y[:, c]) / np.maximum(np.abs(y[:, c]), floor)
-        lim = max(float(np.percentile(np.abs(rel), 95)), 1e-12)
-        sc = ax.scatter(
-            np.degrees(th), np.degrees(td), c=rel, s=5, cmap="coolwarm", vmin=-lim, vmax=lim
-        )
-        ax.set_xlabel("theta_h (deg)")
-        ax.set_ylabel("theta_d (deg)")
-        ax.set_title(f"{r.channels[c]}: (fit - measured) / measured", fontsize=9)
-        fig.colorbar(sc, ax=ax)
-    fig.suptitle(f"{r.model} residuals ({r.loss})", fontsize=10)
-    fig.tight_layout()
+    d = _data(r, samples)
+    vals, label, lim = _scaled(d)
+    C = d.y.shape[1]
+    names = tuple(r.channels) if len(r.channels) == C else tuple(f"c{k}" for k in range(C))
+    bins, nb = _theta_i_bins(d.theta_i, n_bins)
+    nb = max(nb, 1)
+    size = 2.5
+    fig, axes = plt.subplots(
+        C, nb, figsize=(size * nb + 1.2, size * C + 0.9), squeeze=False, sharex=True, sharey=True
+    )
+    # Polar map of wo, x towards the mirror direction: (theta_o cos, theta_o sin) in deg.
+    px = -d.theta_o * np.cos(d.dphi)
+    py = d.theta_o * np.sin(d.dphi)
+    ring = np.linspace(0, 2 * np.pi, 181)
+    mappable = None
+    for b in range(nb):
+        sel = bins == b
+        ti_b = d.theta_i[sel]
+        n_b = int(sel.sum())
+        ms = float(np.clip(2500.0 / max(n_b, 1), 6.0, 60.0))
+        for c in range(C):
+            ax = axes[c][b]
+            for rad in (30, 60, 90):
+                ax.plot(rad * np.cos(ring), rad * np.sin(ring), color="0.8", lw=0.5, zorder=0)
+            ax.axhline(0, color="0.85", lw=0.5, zorder=0)
+            ax.set_aspect("equal")
+            ax.set_xlim(-92, 92)
+            ax.set_ylim(-92, 92)
+            ax.tick_params(labelsize=6)
+            if n_b == 0:
+                ax.text(0, 0, "no samples", ha="center", va="center", fontsize=7)
+                continue
+            v = vals[sel, c]
+            fin = np.isfinite(v)
+            if (~fin).any():
+                ax.scatter(px[sel][~fin], py[sel][~fin], s=ms, c="0.75", marker="x", lw=0.6)
+            mappable = ax.scatter(
+                px[sel][fin],
+                py[sel][fin],
+                s=ms,
+                c=v[fin],
+                cmap="RdBu_r",
+                vmin=-lim,
+                vmax=lim,
+                edgecolors="none",
+            )
+            t_mean = float(np.mean(ti_b))
+            ax.plot([t_mean], [0], marker="+", color="k", ms=7, mew=1.0)
+            summary = ""
+            if fin.any():
+                if label.startswith("(measured"):
+                    summary = f"chi2/n {np.mean(v[fin] ** 2):.3g}"
+                else:
+                    summary = f"median |log2| {np.median(np.abs(v[fin])):.2f}"
+            ax.set_title(f"{names[c]}  {_bin_title(ti_b).split(' (')[0]}\n{summary}", fontsize=7)
+    for ax in axes[-1]:
+        ax.set_xlabel("theta_o, + = mirror side (deg)", fontsize=7)
+    for row in axes:
+        row[0].set_ylabel("theta_o, out of plane (deg)", fontsize=7)
+    if mappable is not None:
+        cb = fig.colorbar(mappable, ax=axes.ravel().tolist(), shrink=0.8, extend="both")
+        cb.set_label(label, fontsize=8)
+    hidden = f"; {d.n_hidden} flagged/unused samples not shown" if d.n_hidden else ""
+    fig.suptitle(
+        f"{r.model} misfit over the outgoing hemisphere per theta_i "
+        f"(+ = mirror direction, grey x = no sigma){hidden}",
+        fontsize=9,
+    )
+    return fig
+
+
+def plot_residual_map(r: FitResult, samples: Any, path: str | os.PathLike) -> Path:
+    """Misfit of every sample, in and out of the plane of incidence, as polar maps of wo.
+
+    Parameters
+    ----------
+    r
+        The fit.
+    samples
+        The :class:`~gonio.dataset.BRDFSamples` it was fitted to.
+    path
+        PNG file to write.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Notes
+    -----
+    One column per incidence-angle bin, one row per channel.  Each sample is a dot at
+    (theta_o cos, theta_o sin) of its outgoing direction relative to the plane of incidence
+    (degrees; the mirror direction, marked +, lies on the positive x axis), coloured by
+    ``(measured - fitted) / sigma`` on a diverging scale centred on 0 with limits +-5: red
+    where the model is too low, blue where too high.  Without any sigma (a tabulated file
+    sampled on a grid) the colour is ``log2(measured / fitted)``, limits +-2 (a factor 4).
+    See :func:`scaled_residuals` for the values.
+    """
+    fig = residual_map_figure(r, samples)
     path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    fig.savefig(path, dpi=100)
+    _plt().close(fig)
     return path

@@ -25,7 +25,6 @@ from __future__ import annotations
 import cmath
 import math
 
-import numpy as np
 from numba import njit, prange
 
 from gonio.brdf.base import Array
@@ -336,9 +335,21 @@ def _bilinear(table, u, v):
 
 
 @njit(**_JIT, inline="always")
+def _take(rows, j, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3):
+    # _Slices.take: 0 + w0 v0 + w1 v1 (+ w2 v2 + w3 v3), in that order.
+    v = 0.0
+    v += w0 * rows[s0, cell, j]
+    v += w1 * rows[s1, cell, j]
+    if ns == 4:
+        v += w2 * rows[s2, cell, j]
+        v += w3 * rows[s3, cell, j]
+    return v
+
+
+@njit(**_JIT, inline="always")
 def _rgl_pair(
     ix_, iy_, iz_, ox_, oy_, oz_, phi_vals, theta_vals, patch, spec, ndf, sigma,
-    vh, vw, ry, rx, reduction, isotropic, jacobian, sl, sw, packed, out,
+    vh, vw, ry, rx, reduction, isotropic, jacobian, out,
 ):  # fmt: skip
     wix, wiy, wox, woy = ix_, iy_, ox_, oy_
     if reduction >= 2:
@@ -373,29 +384,33 @@ def _rgl_pair(
     it, wt = _param_lerp(theta_vals, theta_i)
     n_t = theta_vals.size
     it1 = min(it + 1, n_t - 1)
-    sl[0] = ip * n_t + it
-    sl[1] = ip * n_t + it1
-    sw[0] = (1 - wp) * (1 - wt)
-    sw[1] = (1 - wp) * wt
+    s0 = ip * n_t + it
+    s1 = ip * n_t + it1
+    w0 = (1 - wp) * (1 - wt)
+    w1 = (1 - wp) * wt
     ns = 2
+    s2 = s3 = 0
+    w2 = w3 = 0.0
     if phi_vals.size > 1:
         ip1 = min(ip + 1, phi_vals.size - 1)
-        sl[2] = ip1 * n_t + it
-        sl[3] = ip1 * n_t + it1
-        sw[2] = wp * (1 - wt)
-        sw[3] = wp * wt
+        s2 = ip1 * n_t + it
+        s3 = ip1 * n_t + it1
+        w2 = wp * (1 - wt)
+        w3 = wp * wt
         ns = 4
 
     # inverse VNDF warp (_invert_vndf)
     cx, cy, fx, fy = _cell(um_x, um_y, vw, vh)
     cell = cy * (vw - 1) + cx
-    for j in range(9):
-        packed[j] = 0.0
-    for q in range(ns):
-        for j in range(9):
-            packed[j] += sw[q] * patch[j, sl[q], cell]
-    v00, v10, v01, v11 = packed[0], packed[1], packed[2], packed[3]
-    prev0, prev1, r0, r1, marg_prev = packed[4], packed[5], packed[6], packed[7], packed[8]
+    v00 = _take(patch, 0, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
+    v10 = _take(patch, 1, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
+    v01 = _take(patch, 2, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
+    v11 = _take(patch, 3, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
+    prev0 = _take(patch, 4, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
+    prev1 = _take(patch, 5, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
+    r0 = _take(patch, 6, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
+    r1 = _take(patch, 7, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
+    marg_prev = _take(patch, 8, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
     c0 = v00 + (v01 - v00) * fy
     c1 = v10 + (v11 - v10) * fy
     s_x = fx * (c0 + (c1 - c0) * 0.5 * fx) / (vw - 1) + prev0 + (prev1 - prev0) * fy
@@ -406,24 +421,19 @@ def _rgl_pair(
     # bilinear over the sample-space position, multilinear over (phi_i, theta_i)
     cx, cy, fx, fy = _cell(s_x, s_y, rx, ry)
     cell = cy * (rx - 1) + cx
-    w0 = (1 - fx) * (1 - fy)
-    w1 = fx * (1 - fy)
-    w2 = (1 - fx) * fy
-    w3 = fx * fy
+    c00 = (1 - fx) * (1 - fy)
+    c10 = fx * (1 - fy)
+    c01 = (1 - fx) * fy
+    c11 = fx * fy
     n_ch = out.shape[0]
+    scale = 1.0
     if jacobian:
         scale = _bilinear(ndf, um_x, um_y) / (4.0 * _bilinear(sigma, u_wi_x, u_wi_y))
     for c in range(n_ch):
-        v0 = 0.0
-        v1 = 0.0
-        v2 = 0.0
-        v3 = 0.0
-        for q in range(ns):
-            v0 += sw[q] * spec[c, sl[q], cell]
-            v1 += sw[q] * spec[n_ch + c, sl[q], cell]
-            v2 += sw[q] * spec[2 * n_ch + c, sl[q], cell]
-            v3 += sw[q] * spec[3 * n_ch + c, sl[q], cell]
-        f = w0 * v0 + w1 * v1 + w2 * v2 + w3 * v3
+        f = c00 * _take(spec, c, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
+        f += c10 * _take(spec, n_ch + c, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
+        f += c01 * _take(spec, 2 * n_ch + c, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
+        f += c11 * _take(spec, 3 * n_ch + c, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
         if jacobian:
             f = f * scale
         out[c] = f / oz_
@@ -436,15 +446,16 @@ def rgl_eval(
 ):  # fmt: skip
     """``f_r`` (1/sr) of an RGL measured BRDF for ``(N, 3)`` pairs above the horizon.
 
-    The arguments are the tables of :class:`gonio.brdf.rgl.RGLBRDF` (``_patch``,
-    ``_spec``, ``_ndf``, ``_sigma``, grid sizes and flags); ``out`` is ``(N, channels)``.
+    The arguments are the tables of :class:`gonio.brdf.rgl.RGLBRDF` (``_patch`` and
+    ``_spec`` transposed to ``(slices, cells, rows)``, so that the rows one look-up reads
+    share a cache line; ``_ndf``, ``_sigma``, grid sizes and flags); ``out`` is
+    ``(N, channels)``.
+    Bit for bit the numpy path where numpy's and libm's ``arctan2``/``arcsin`` agree (they
+    differ in the last bit for ~8% of arguments; see tests/brdf/test_kernels.py).
     """
     for i in prange(wi.shape[0]):
-        sl = np.empty(4, np.intp)
-        sw = np.empty(4)
-        packed = np.empty(9)
         _rgl_pair(
             wi[i, 0], wi[i, 1], wi[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], phi_vals,
             theta_vals, patch, spec, ndf, sigma, vh, vw, ry, rx, reduction, isotropic,
-            jacobian, sl, sw, packed, out[i],
+            jacobian, out[i],
         )  # fmt: skip

@@ -31,6 +31,8 @@ the result of the inversion), as the reference does.
 
 from __future__ import annotations
 
+import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +47,9 @@ __all__ = ["RGLBRDF", "read_rgl"]
 Array = NDArray[np.float64]
 
 _HALF_PI = 0.5 * np.pi
+# Batch sizes for the numba kernel (see gonio.brdf.microfacet for the same two thresholds).
+_MIN_FUSED = 4096
+_FIRST_FUSED = 100_000
 
 
 def _elevation(v: Array) -> Array:
@@ -179,6 +184,7 @@ class RGLBRDF:
             np.stack(corners, axis=0).transpose(0, 2, 1, 3, 4).reshape(4 * n_ch, len(spec), -1)
         )
         self.wavelengths = f64["wavelengths"] if self.spectral else None
+        self._kernel_tables: tuple[Array, ...] | None = None  # built on first fused use
         valid = fields.get("valid")
         self.metadata: dict[str, Any] = {
             "path": str(self.path),
@@ -238,12 +244,16 @@ class RGLBRDF:
         out = np.zeros((wi.shape[0], n_ch))
         nan = np.isnan(wi).any(-1) | np.isnan(wo).any(-1)
         active = (wi[:, 2] > 0) & (wo[:, 2] > 0) & ~nan
-        if active.any():
+        if active.size and active.all():  # common: no copies of the inputs or the result
+            out = self._eval_active(wi, wo)
+        elif active.any():
             out[active] = self._eval_active(wi[active], wo[active])
         out[nan] = np.nan
         return out.reshape(*shape, n_ch)
 
     def _eval_active(self, wi: Array, wo: Array) -> Array:
+        if (f := self._eval_fused(wi, wo)) is not None:
+            return f
         wi = wi.copy()
         wo = wo.copy()
         if self.reduction >= 2:
@@ -289,6 +299,47 @@ class RGLBRDF:
             sigma = _bilinear(self._sigma, *u_wi)
             spec = spec * (ndf / (4.0 * sigma))[:, None]
         return spec / wo[:, 2:3]
+
+    def _eval_fused(self, wi: Array, wo: Array) -> Array | None:
+        """``_eval_active`` by the numba kernel of :mod:`gonio.brdf.kernels` (same
+        arithmetic, one pass per pair), or None for small batches or ``GONIO_NUMBA=0``.
+
+        Same lazy rule as the microfacet lobes: numba is first imported by a batch of
+        ``_FIRST_FUSED`` pairs, so that small evaluations never pay its load time."""
+        n = wi.shape[0]
+        if n < _MIN_FUSED or os.environ.get("GONIO_NUMBA") == "0":
+            return None
+        if n < _FIRST_FUSED and "gonio.brdf.kernels" not in sys.modules:
+            return None
+        from gonio.brdf import kernels
+
+        if self._kernel_tables is None:
+            # (slices, cells, rows): the rows one look-up reads share a cache line, where
+            # numpy's (rows, slices, cells) would cost a cache miss per row.
+            self._kernel_tables = (
+                np.ascontiguousarray(self._patch.transpose(1, 2, 0)),
+                np.ascontiguousarray(self._spec.transpose(1, 2, 0)),
+                np.ascontiguousarray(self._ndf.reshape(self._ndf.shape[-2:])),
+                np.ascontiguousarray(self._sigma.reshape(self._sigma.shape[-2:])),
+            )
+        out = np.empty((n, self._n_ch))
+        (h, w), (ry, rx) = self._vndf_shape, self._spec_grid
+        kernels.rgl_eval(
+            np.ascontiguousarray(wi),
+            np.ascontiguousarray(wo),
+            self.phi_i,
+            self.theta_i,
+            *self._kernel_tables,
+            h,
+            w,
+            ry,
+            rx,
+            self.reduction,
+            self.isotropic,
+            self.jacobian,
+            out,
+        )
+        return out
 
     def _invert_vndf(self, sl: _Slices, ux: Array, uy: Array) -> tuple[Array, Array]:
         """Inverse of the continuous marginal/conditional warp of the VNDF table.

@@ -63,6 +63,7 @@ def _triangle_solid_angle(r1: Array, r2: Array, r3: Array) -> Array:
     return 2.0 * np.arctan2(num, den)
 
 
+@np.errstate(invalid="ignore", divide="ignore")
 def solid_angle_polygon(point: ArrayLike, vertices: ArrayLike) -> Array:
     """Solid angle (sr) of a planar polygon seen from ``point``.
 
@@ -229,6 +230,7 @@ def _clip_polygon(v: Array, n: Array) -> tuple[Array, Array]:
     return pts, valid.sum(axis=-1)
 
 
+@np.errstate(invalid="ignore", divide="ignore")  # NaN in gives NaN out, without warnings
 def irradiance_polygon(
     point: ArrayLike, normal: ArrayLike, vertices: ArrayLike, radiance: ArrayLike
 ) -> Array:
@@ -268,7 +270,8 @@ def irradiance_polygon(
     phi = terms.sum(axis=-2)
     e = 0.5 * np.abs(dot(phi, n_b))
     e = np.where(facing & (count >= 3), e, 0.0)
-    return np.asarray(radiance, dtype=np.float64) * e
+    nan = np.isnan(v).any(axis=(-2, -1)) | np.isnan(n_b).any(axis=-1)
+    return np.asarray(radiance, dtype=np.float64) * np.where(nan, np.nan, e)
 
 
 def irradiance_rectangle(
@@ -288,6 +291,7 @@ def irradiance_rectangle(
     return irradiance_polygon(point, normal, verts, radiance)
 
 
+@np.errstate(invalid="ignore", divide="ignore")  # NaN in gives NaN out, without warnings
 def irradiance_disk(
     point: ArrayLike,
     normal: ArrayLike,
@@ -295,14 +299,16 @@ def irradiance_disk(
     emitter_normal: ArrayLike,
     radius: ArrayLike,
     radiance: ArrayLike,
-    n_nodes: int = 512,
+    n_nodes: int | None = None,
 ) -> Array:
     """Irradiance (W/m^2) from a uniform Lambertian disk emitting along ``emitter_normal``.
 
     The contour form of Lambert's formula is integrated along the part of the rim above
     the receiver's horizon with the trapezoidal rule (periodic case) or Gauss-Legendre
-    (clipped arc), and the chord closing a clipped disk exactly.  Relative error is below
-    1e-12 unless the receiver is within about ``20 R / n_nodes`` of the rim.
+    (clipped arc), and the chord closing a clipped disk exactly.  Both converge like
+    ``exp(-n delta / R)`` for a receiver at distance ``delta`` from the rim, so by default
+    the node count is chosen from the batch's closest receiver for a relative error below
+    about 1e-12 (32 nodes for a 1 cm light seen from 0.5 m; at most 4096).
 
     Parameters
     ----------
@@ -313,7 +319,7 @@ def irradiance_disk(
     radiance
         Emitted radiance L (W/(sr m^2)).
     n_nodes
-        Quadrature nodes along the rim.
+        Quadrature nodes along the rim; None chooses them from the geometry.
     """
     p = as_vectors(point)
     n = normalize(normal)
@@ -326,6 +332,13 @@ def irradiance_disk(
     R = np.broadcast_to(R, shape)
     u, v, m = F[..., 0, :], F[..., 1, :], F[..., 2, :]
     d = c - p  # receiver -> centre
+    if n_nodes is None:
+        h_ax = dot(d, m)
+        rho = np.sqrt(np.maximum(dot(d, d) - h_ax**2, 0.0))
+        delta = np.sqrt(h_ax**2 + (rho - R) ** 2) / np.where(R > 0, R, 1.0)
+        finite = delta[np.isfinite(delta)]
+        closest = float(finite.min()) if finite.size else 1.0
+        n_nodes = int(np.clip(np.ceil(32.0 / max(closest, 1e-6)), 32, 4096))
     facing = dot(d, m) < 0
     # Rim x(t) = d + R (cos t u + sin t v); horizon height h(t) = A + B cos t + C sin t.
     A, B, C = dot(d, n), R * dot(u, n), R * dot(v, n)
@@ -360,4 +373,5 @@ def irradiance_disk(
     phi_n = phi_n + np.where(full | none, 0.0, chord)
     e = 0.5 * np.abs(phi_n)
     e = np.where(facing & ~none, e, 0.0)
-    return np.asarray(radiance, dtype=np.float64) * e
+    nan = np.isnan(d).any(axis=-1) | np.isnan(n).any(axis=-1) | np.isnan(R)
+    return np.asarray(radiance, dtype=np.float64) * np.where(nan, np.nan, e)

@@ -163,5 +163,22 @@ def test_vectorised_over_many_points():
     assert omega.shape == (50, 7)
 
 
-def test_nan_in_nan_out():
+def test_nan_in_nan_out(recwarn):
     assert np.isnan(solid_angle_disk([np.nan, 0, 1], [0, 0, 0], [0, 0, 1], 1.0))
+    pts = [[np.nan, 0, 0], [0, 0, 0]]
+    e = irradiance_disk(pts, [0, 0, 1], [0, 0, 0.5], [0, 0, -1], 0.01, 1.0)
+    assert np.isnan(e[0]) and e[1] > 0
+    e = irradiance_rectangle(pts, [0, 0, 1], [0, 0, 0.5], [0, 0, -1], [1, 0, 0], [0.1, 0.1], 1)
+    assert np.isnan(e[0]) and e[1] > 0
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
+def test_adaptive_rim_quadrature_matches_a_fine_rule_near_and_far():
+    rng = np.random.default_rng(5)
+    for scale in (0.03, 0.3, 3.0):  # receivers far from, near and around the rim
+        pts = rng.normal(size=(200, 3)) * scale
+        pts[:, 2] = 0.0
+        auto = irradiance_disk(pts, [0, 0, 1], [0, 0.1, 0.3], [0, -0.3, -1], 0.05, 1.0)
+        fine = irradiance_disk(pts, [0, 0, 1], [0, 0.1, 0.3], [0, -0.3, -1], 0.05, 1.0,
+                               n_nodes=4096)
+        np.testing.assert_allclose(auto, fine, rtol=1e-11, atol=1e-300)
