@@ -24,8 +24,16 @@ from __future__ import annotations
 
 import cmath
 import math
+import os
 
-from numba import njit, prange
+# numba's OpenMP threading layer (GNU libgomp) spins its workers after every parallel
+# region by default; on a shared machine (2 busy cores in CI) that made the 2-thread
+# kernels 4x slower than with passive waiting (benchmarks/brdf_eval.py, 125 vs 470 M/s),
+# and passive costs nothing measurable on an idle one.  Read when libgomp loads, i.e.
+# at the first parallel launch; a value the user set wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from numba import njit, prange  # noqa: E402
 
 from gonio.brdf.base import Array
 
