@@ -459,14 +459,19 @@ def measure_pose(
     )
     merged = merge_bracket(frames, setup.noise, dark_variance, region=regions.box)
     n, nc = regions.n_regions, len(CHANNELS)
-    inside = regions.label >= 0
-    lab = regions.label[inside]
-    idx = lab * nc + merged.channel[inside]
-    vign = regions.vignetting[inside]
-    val = merged.value[inside] / vign
-    var = merged.variance[inside] / vign**2
-    sat = merged.saturated[inside]
-    pts = regions.points[inside]
+    # flat indices of the ROI's pixels, found once (each boolean-mask index searches again)
+    inside = np.flatnonzero(regions.label >= 0)
+
+    def at(a: NDArray) -> NDArray:
+        return a.reshape(-1, *a.shape[2:])[inside]
+
+    lab = at(regions.label)
+    idx = lab * nc + at(merged.channel)
+    vign = at(regions.vignetting)
+    val = at(merged.value) / vign
+    var = at(merged.variance) / vign**2
+    sat = at(merged.saturated)
+    pts = at(regions.points)
     lp = np.asarray(light_position, float)
     # G(x): a Lambertian disk of radius r whose axis passes through x gives exactly
     # E = pi L sin^2(a) cos(theta), sin^2(a) = r^2 / (r^2 + d^2): the small-source law
@@ -513,7 +518,7 @@ def measure_pose(
         axis=1,
         dtype=float,
     )
-    wo_px = regions.wo[inside]
+    wo_px = at(regions.wo)
     wo = np.stack(
         [np.bincount(lab, wo_px[:, a], minlength=n) for a in range(3)], axis=1, dtype=float
     )

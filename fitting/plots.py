@@ -31,6 +31,8 @@ __all__ = [
 #: Samples whose outgoing direction lies within this angle of the plane of incidence are
 #: drawn in the slices (deg).
 IN_PLANE_TOL_DEG = 10.0
+#: Below this theta_i (deg) the plane of incidence is undefined: every wo is "in plane".
+NORMAL_INCIDENCE_DEG = 1.0
 #: Colour limit of the z map: |z| >= 5 is a misfit, whatever its size.
 Z_LIMIT = 5.0
 #: Colour limit of the log2(measured / fitted) map used when no sample has a sigma.
@@ -47,6 +49,13 @@ def _plt():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def _wrap(text: str, fig: Any) -> str:
+    """Wrap a suptitle to the figure's width (about 13 characters per inch at 9 pt)."""
+    import textwrap
+
+    return textwrap.fill(text, width=max(40, int(fig.get_figwidth() * 13)))
 
 
 def _colours(channels: tuple[str, ...]) -> list[str]:
@@ -89,12 +98,13 @@ def _data(r: FitResult, samples: Any) -> _Data:
     keep = used & (np.asarray(valid, dtype=bool) if valid is not None else True)
     wi = wi_all[keep]
     wo = np.asarray(samples.wo, dtype=np.float64)[keep]
-    y = np.asarray(samples.brdf, dtype=np.float64)[keep].reshape(len(wi), -1)
+    b = np.asarray(samples.brdf, dtype=np.float64)
+    y = (b[:, None] if b.ndim == 1 else b)[keep]
     std = getattr(samples, "brdf_std", None)
     sigma = (
         np.full_like(y, np.nan)
         if std is None
-        else np.asarray(std, dtype=np.float64)[keep].reshape(y.shape)
+        else np.asarray(std, dtype=np.float64).reshape(b.shape[0], -1)[keep]
     )
     f = r.bind().eval(wi, wo).reshape(y.shape) if len(wi) else np.zeros_like(y)
     ti = np.degrees(np.arccos(np.clip(wi[:, 2], -1.0, 1.0)))
@@ -104,6 +114,9 @@ def _data(r: FitResult, samples: Any) -> _Data:
     # Angular distance of wo from the plane spanned by the normal and wi: near the normal
     # every azimuth is close to the plane, so an azimuth tolerance alone would drop them.
     off = np.degrees(np.arcsin(np.clip(np.abs(np.sin(np.radians(to)) * np.sin(dphi)), 0, 1)))
+    # At normal incidence the plane of incidence is undefined and, for the isotropic models
+    # fitted here, every azimuth is equivalent: all such samples belong to the slice.
+    off[ti < NORMAL_INCIDENCE_DEG] = 0.0
     return _Data(wi, wo, y, sigma, f, ti, to, signed, dphi, off, int(n - keep.sum()))
 
 
@@ -207,15 +220,14 @@ def slices_figure(
     bound = r.bind()
     xg = np.linspace(-89.0, 89.0, 713)
     in_plane = d.off_plane <= tol_deg
+    panels = []
     for b in range(nb):
-        ax = axes[b // cols][b % cols]
         sel = bins == b
         sel_ip = sel & in_plane
-        ti_b = d.theta_i[sel]
-        if ti_b.size == 0:
-            ax.text(0.5, 0.5, "no usable samples", ha="center", va="center", transform=ax.transAxes)
-            ax.set_axis_off()
+        if not sel.any():
+            panels.append(None)
             continue
+        ti_b = d.theta_i[sel]
         t_mean = float(np.mean(ti_b))
         curve = _in_plane_curve(bound, t_mean, xg)
         # The bin's samples span a few degrees of theta_i: show the model over that span
@@ -227,15 +239,23 @@ def slices_figure(
                 [_in_plane_curve(bound, t, xg) for t in np.linspace(t_ip.min(), t_ip.max(), 5)]
             )
             band = (stack.min(axis=0), stack.max(axis=0))
+        ys = d.y[sel_ip]
+        positive = np.concatenate([curve[curve > 0], ys[ys > 0]])
+        panels.append((sel, sel_ip, ti_b, t_mean, curve, band, positive))
+    # One y scale for all panels, so they compare at a glance: log when any spans > 30x.
+    log = any(
+        p is not None and p[6].size and p[6].max() / max(p[6].min(), 1e-300) > 30.0 for p in panels
+    )
+    for b in range(nb):
+        ax = axes[b // cols][b % cols]
+        if panels[b] is None:
+            ax.text(0.5, 0.5, "no usable samples", ha="center", va="center", transform=ax.transAxes)
+            ax.set_axis_off()
+            continue
+        sel, sel_ip, ti_b, t_mean, curve, band, positive = panels[b]
         x = d.signed_o[sel_ip]
-        positive = [curve[curve > 0]]
-        for c in range(C):
-            yc = d.y[sel_ip, c]
-            positive.append(yc[yc > 0])
-        positive = np.concatenate(positive)
         top = float(positive.max()) if positive.size else 1.0
-        log = positive.size > 0 and top / max(float(positive.min()), 1e-300) > 30.0
-        floor = max(float(positive.min()), top * 1e-5) * 0.5 if log else None
+        floor = max(float(positive.min()) if positive.size else top, top * 1e-5) * 0.5
         for c in range(C):
             col = colours[c]
             if band is not None:
@@ -247,19 +267,27 @@ def slices_figure(
             sc = d.sigma[sel_ip, c]
             err = np.where(np.isfinite(sc) & (sc > 0), sc, 0.0)
             shown = yc > 0 if log else np.isfinite(yc)
-            ax.errorbar(
-                x[shown],
-                yc[shown],
-                yerr=err[shown],
-                fmt="o",
-                ms=3.2,
-                mfc=col,
-                mec="none",
-                ecolor=col,
-                elinewidth=0.8,
-                alpha=0.75,
-                gid=f"measured:{names[c]}",
-            )
+            # Filled: within half the tolerance of the plane; hollow: further off, where a
+            # narrow lobe already differs from its in-plane value.
+            near = d.off_plane[sel_ip] <= 0.5 * tol_deg
+            for part, face, tag in ((near, col, "measured"), (~near, "none", "measured-off")):
+                m = shown & part
+                if not m.any():
+                    continue
+                ax.errorbar(
+                    x[m],
+                    yc[m],
+                    yerr=err[m],
+                    fmt="o",
+                    ms=3.4,
+                    mfc=face,
+                    mec=col,
+                    mew=0.7,
+                    ecolor=col,
+                    elinewidth=0.8,
+                    alpha=0.75,
+                    gid=f"{tag}:{names[c]}",
+                )
             if log and (~shown).any():
                 # Non-positive measurements cannot sit on a log axis: mark them at its floor.
                 ax.plot(x[~shown], np.full((~shown).sum(), floor), "v", color=col, mfc="none", ms=4)
@@ -274,7 +302,7 @@ def slices_figure(
             ha="left",
             transform=ax.get_xaxis_transform(),
         )
-        if log:
+        if log and positive.size:
             ax.set_yscale("log")
             ax.set_ylim(bottom=floor, top=top * 2.0)
         else:
@@ -282,7 +310,8 @@ def slices_figure(
         ax.set_xlim(-90, 90)
         ax.set_xticks(np.arange(-90, 91, 30))
         n_ip, n_all = int(sel_ip.sum()), int(sel.sum())
-        ax.set_title(f"{_bin_title(ti_b)}\n{n_ip} of {n_all} samples in plane", fontsize=9)
+        normal = " (normal incidence: all azimuths)" if ti_b.max() < NORMAL_INCIDENCE_DEG else ""
+        ax.set_title(f"{_bin_title(ti_b)}\n{n_ip} of {n_all} samples in plane{normal}", fontsize=9)
         if not n_ip:
             ax.text(
                 0.5,
@@ -300,14 +329,41 @@ def slices_figure(
         ax.grid(alpha=0.25, lw=0.5)
     for b in range(nb, rows * cols):
         axes[b // cols][b % cols].set_axis_off()
-    axes[0][0].legend(fontsize=7, loc="upper left")
-    hidden = f"; {d.n_hidden} flagged/unused samples not shown" if d.n_hidden else ""
-    fig.suptitle(
-        f"{r.model}: measured f_r (dots, +-1 sigma) within {tol_deg:g}° of the plane of "
-        f"incidence vs fitted model (curve; band = bin's theta_i range){hidden}\n"
-        "out-of-plane samples: see residuals.png",
-        fontsize=9,
+    ax0 = axes[0][0]
+    handles, _ = ax0.get_legend_handles_labels()
+    if handles:
+        from matplotlib.lines import Line2D
+
+        handles += [
+            Line2D(
+                [],
+                [],
+                ls="none",
+                marker="o",
+                color="0.4",
+                ms=4,
+                label=f"measured, <= {0.5 * tol_deg:g}° off plane",
+            ),
+            Line2D(
+                [],
+                [],
+                ls="none",
+                marker="o",
+                mfc="none",
+                color="0.4",
+                ms=4,
+                label=f"measured, <= {tol_deg:g}° off plane",
+            ),
+        ]
+        ax0.legend(handles=handles, fontsize=6.5, loc="upper left")
+    hidden = f" {d.n_hidden} flagged/unused samples not shown." if d.n_hidden else ""
+    text = (
+        f"{r.model}: measured f_r (dots; bars +-1 sigma where known) within {tol_deg:g}° of "
+        f"the plane of incidence vs the fitted model along that plane (curve; band = model "
+        f"over the bin's theta_i range).{hidden} All samples, out-of-plane too: "
+        "see residuals.png."
     )
+    fig.suptitle(_wrap(text, fig), fontsize=9)
     fig.tight_layout()
     return fig
 
@@ -359,12 +415,20 @@ def residual_map_figure(r: FitResult, samples: Any, n_bins: int = 6) -> Any:
     nb = max(nb, 1)
     size = 2.5
     fig, axes = plt.subplots(
-        C, nb, figsize=(size * nb + 1.2, size * C + 0.9), squeeze=False, sharex=True, sharey=True
+        C,
+        nb,
+        figsize=(size * nb + 1.6, size * C + 1.5),
+        squeeze=False,
+        sharex=True,
+        sharey=True,
+        layout="constrained",
     )
     # Polar map of wo, x towards the mirror direction: (theta_o cos, theta_o sin) in deg.
     px = -d.theta_o * np.cos(d.dphi)
     py = d.theta_o * np.sin(d.dphi)
     ring = np.linspace(0, 2 * np.pi, 181)
+    # Zoom to the measured part of the hemisphere (a plan may stop at theta_o = 50 deg).
+    extent = float(min(92.0, (np.max(d.theta_o) if d.theta_o.size else 90.0) + 8.0))
     mappable = None
     for b in range(nb):
         sel = bins == b
@@ -377,8 +441,8 @@ def residual_map_figure(r: FitResult, samples: Any, n_bins: int = 6) -> Any:
                 ax.plot(rad * np.cos(ring), rad * np.sin(ring), color="0.8", lw=0.5, zorder=0)
             ax.axhline(0, color="0.85", lw=0.5, zorder=0)
             ax.set_aspect("equal")
-            ax.set_xlim(-92, 92)
-            ax.set_ylim(-92, 92)
+            ax.set_xlim(-extent, extent)
+            ax.set_ylim(-extent, extent)
             ax.tick_params(labelsize=6)
             if n_b == 0:
                 ax.text(0, 0, "no samples", ha="center", va="center", fontsize=7)
@@ -411,14 +475,14 @@ def residual_map_figure(r: FitResult, samples: Any, n_bins: int = 6) -> Any:
     for row in axes:
         row[0].set_ylabel("theta_o, out of plane (deg)", fontsize=7)
     if mappable is not None:
-        cb = fig.colorbar(mappable, ax=axes.ravel().tolist(), shrink=0.8, extend="both")
+        cb = fig.colorbar(mappable, ax=axes.ravel().tolist(), shrink=0.6, extend="both")
         cb.set_label(label, fontsize=8)
-    hidden = f"; {d.n_hidden} flagged/unused samples not shown" if d.n_hidden else ""
-    fig.suptitle(
-        f"{r.model} misfit over the outgoing hemisphere per theta_i "
-        f"(+ = mirror direction, grey x = no sigma){hidden}",
-        fontsize=9,
+    hidden = f" {d.n_hidden} flagged/unused samples not shown." if d.n_hidden else ""
+    text = (
+        f"{r.model} misfit of every sample over the outgoing hemisphere, per theta_i "
+        f"(+ = mirror direction; grey x = no sigma).{hidden}"
     )
+    fig.suptitle(_wrap(text, fig), fontsize=9)
     return fig
 
 
@@ -451,6 +515,6 @@ def plot_residual_map(r: FitResult, samples: Any, path: str | os.PathLike) -> Pa
     """
     fig = residual_map_figure(r, samples)
     path = Path(path)
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=90)
     _plt().close(fig)
     return path

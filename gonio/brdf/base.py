@@ -310,6 +310,13 @@ class Model:
                 f"directions must have shape (..., 3); got wi {wi.shape}, wo {wo.shape}"
             )
         p = self.check_params(params)
+        if not grad and len(self._slots) == 1:
+            # A lobe with fused (numba) kernels evaluates the whole batch in one pass,
+            # below-horizon rule included; None means "not for these shapes".
+            fused = getattr(self._slots[0].lobe, "fused_eval", None)
+            f = None if fused is None else fused(wi, wo, self._local(self._slots[0], p))
+            if f is not None:
+                return f, None
         if (
             not grad
             and wi.ndim == 2

@@ -1,20 +1,24 @@
-"""Fused numba kernels for the microfacet lobes (``ggx``, ``beckmann``).
+"""Fused numba kernels: the microfacet lobes (``ggx``, ``beckmann``) and RGL measured BRDFs.
 
 Why hand-written: the numpy formulation in :mod:`gonio.brdf.microfacet` streams ~28 float64
 temporaries through memory per evaluation, which ``benchmarks/brdf_eval.py`` measured as the
-bottleneck (~0.13 of Mitsuba 3's vectorised ``roughconductor``).  These kernels compute the
-same expressions per direction pair in registers, in the same operation order as the numpy
-code, so the two paths agree to the last bit wherever only ``+ - * / sqrt`` are involved
-and to a few ulp where libm (``exp``, ``erfc``, ``pow``, complex ``sqrt``) replaces numpy's
-and scipy's implementations.  ``tests/brdf/test_kernels.py`` compares the two.
+bottleneck (~0.13 of Mitsuba 3's vectorised ``roughconductor``); the RGL evaluator
+(:mod:`gonio.brdf.rgl`) is dominated by gathers that numpy cannot fuse.  These kernels
+compute the same expressions per direction pair in registers, in the same operation order
+as the numpy code, so the two paths agree to the last bit wherever only ``+ - * / sqrt``
+are involved and to a few ulp where libm (``exp``, ``erfc``, ``pow``, complex ``sqrt``,
+``atan2``, ``asin``) replaces numpy's and scipy's implementations.
+``tests/brdf/test_kernels.py`` compares the two.
 
 Compilation is deliberately IEEE-strict: ``fastmath=False`` (no reassociation, NaN
-propagates, reciprocity is preserved bit for bit) and ``error_model="numpy"`` (x / 0 gives
-inf or NaN like numpy instead of raising).  ``cache=True`` stores the machine code next to
-this module, so the compile cost (a few seconds) is paid once per installation; the
-microfacet lobes import this module only for batches of at least :data:`MIN_PAIRS`
-evaluations, so small evaluations (CLI plots, tests) never import numba.  Threads: numba's
-default (all cores), overridden by ``NUMBA_NUM_THREADS``.
+propagates, reciprocity holds to rounding as in numpy) and ``error_model="numpy"`` (x / 0
+gives inf or NaN like numpy instead of raising).  ``cache=True`` stores the machine code
+next to this module, so the compile cost (~17 s for all kernels, cold) is paid once per
+installation.  Importing numba and loading the cached code still costs ~0.5 s per process,
+so the callers first import this module for a batch of 10^5 evaluations and from then on
+use it from :data:`MIN_PAIRS`; CLI plots never import numba.  ``GONIO_NUMBA=0`` keeps
+everything on numpy.  Threads: numba's default (all cores), overridden by
+``NUMBA_NUM_THREADS``; batches below :data:`PARALLEL_PAIRS` run on the calling thread.
 
 The numpy path stays the reference and handles everything the kernels do not (gradients,
 parameter arrays of other shapes).
@@ -24,16 +28,8 @@ from __future__ import annotations
 
 import cmath
 import math
-import os
 
-# numba's OpenMP threading layer (GNU libgomp) spins its workers after every parallel
-# region by default; on a shared machine (2 busy cores in CI) that made the 2-thread
-# kernels 4x slower than with passive waiting (benchmarks/brdf_eval.py, 125 vs 470 M/s),
-# and passive costs nothing measurable on an idle one.  Read when libgomp loads, i.e.
-# at the first parallel launch; a value the user set wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-from numba import njit, prange  # noqa: E402
+from numba import njit, prange
 
 from gonio.brdf.base import Array
 
