@@ -200,12 +200,13 @@ def irradiance_geometry(
             irradiance_disk(p, n, c, np.asarray(light_normal, float), radius, 1.0, n_nodes=64),
             float,
         )
-    v = c - p
-    d2 = np.sum(v * v, axis=-1)
-    g = np.maximum(np.sum(v * n, axis=-1), 0.0) / d2**1.5
+    v = [c[a] - p[..., a] for a in range(3)]  # sums over a trailing axis of 3 are slow
+    d2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    g = np.maximum(v[0] * n[0] + v[1] * n[1] + v[2] * n[2], 0.0) / d2**1.5
     if light_normal is not None:  # a small Lambertian emitter: intensity goes as cos
         ln = np.asarray(light_normal, float)
-        g = g * np.maximum(-np.sum(v * ln, axis=-1), 0.0) / np.sqrt(d2) / np.linalg.norm(ln)
+        cos_l = -(v[0] * ln[0] + v[1] * ln[1] + v[2] * ln[2])
+        g = g * np.maximum(cos_l, 0.0) / np.sqrt(d2) / np.linalg.norm(ln)
     return g
 
 

@@ -19,4 +19,4 @@ from gonio.cli import LazyGroup
     },
 )
 def capture() -> None:
-    """Measurement sessions: dry-run a plan, capture, resume after a fault, reduce to BRDF samples."""
+    """Measurement sessions: dry-run a plan, capture, resume, reduce to BRDF samples."""

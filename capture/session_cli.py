@@ -366,7 +366,12 @@ def run_cmd(
 
             simulation["scene"] = minimal_scene()
     with open_devices(
-        cfg, camera_backend, simulation=simulation, camera_port=camera_port, seed=plan.seed
+        cfg,
+        camera_backend,
+        simulation=simulation,
+        camera_port=camera_port,
+        seed=plan.seed,
+        reference_reflectance=plan.reference.reflectance,
     ) as dev:
         from gonio.capture.camera import LightSwitch
 
@@ -463,7 +468,12 @@ def resume_cmd(
         }
     backend = manifest["camera"]["backend"]
     with open_devices(
-        cfg, backend, simulation=sim, camera_port=camera_port, seed=int(manifest.get("seed", 0))
+        cfg,
+        backend,
+        simulation=sim,
+        camera_port=camera_port,
+        seed=int(manifest.get("seed", 0)),
+        reference_reflectance=(manifest.get("reference") or {}).get("reflectance"),
     ) as dev:
         _run_with_progress(session_dir, dev, resumed=True, quiet=quiet)
 
