@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, PacketHandler, PortHandler
+
 from gonio.rig import control_table as ct
 from gonio.rig.config import default_rig_config
 from gonio.rig.device import Rig

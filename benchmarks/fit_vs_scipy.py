@@ -17,13 +17,13 @@ import json
 import time
 
 import numpy as np
-from gonio.fitting import fit
-from gonio.fitting.losses import get_loss
-from gonio.fitting.objective import prepare_problem
 from scipy.optimize import least_squares
 
 from gonio.brdf import get_model
 from gonio.dataset import BRDFSamples
+from gonio.fitting import fit
+from gonio.fitting.losses import get_loss
+from gonio.fitting.objective import prepare_problem
 
 TRUTH = {"albedo": np.array([0.2, 0.4, 0.6]), "ks": np.array([0.1, 0.2, 0.3]), "alpha": 0.15}
 

@@ -121,6 +121,7 @@ def main() -> None:
     args = ap.parse_args()
 
     import rawpy
+
     from gonio.capture.journal import read_journal
     from gonio.capture.raw import read_file, read_raw
     from gonio.capture.reduce import default_threads, reduce_session

@@ -29,6 +29,7 @@ import tempfile
 import time
 
 import numpy as np
+
 from gonio.simulator.mitsuba_scene import to_mitsuba_dict
 from gonio.simulator.render import render
 from gonio.simulator.scene import parse_scene

@@ -17,11 +17,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from gonio.brdf import load
 from gonio.fitting import fit
 from gonio.fitting.sampling import sample_brdf
 from gonio.fitting.select import gloss_units
-
-from gonio.brdf import load
 
 MATERIALS = ("paper_white", "colodur_napoli_4f", "vch_golden_yellow", "cc_ibiza_sunset")
 MODELS = (

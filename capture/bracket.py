@@ -19,6 +19,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
 from gonio.capture.plan import BracketPolicy
 
 __all__ = ["FrameVerdict", "judge", "next_exposure", "predict_exposure", "roi_pixels"]

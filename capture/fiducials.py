@@ -24,9 +24,9 @@ from typing import Any
 
 import cv2
 import numpy as np
-from gonio.capture.raw import RawFrame
 from numpy.typing import ArrayLike, NDArray
 
+from gonio.capture.raw import RawFrame
 from gonio.errors import ReductionError
 
 

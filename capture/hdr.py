@@ -21,10 +21,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from gonio.capture.noise import NoiseModel
-from gonio.capture.raw import RawFrame
 from numpy.typing import NDArray
 
+from gonio.capture.noise import NoiseModel
+from gonio.capture.raw import RawFrame
 from gonio.errors import ReductionError
 
 

@@ -24,9 +24,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from gonio.capture.raw import CHANNELS, RawFrame
 from numpy.typing import ArrayLike, NDArray
 
+from gonio.capture.raw import CHANNELS, RawFrame
 from gonio.errors import FileFormatError, ReductionError
 
 

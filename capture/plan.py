@@ -20,16 +20,15 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import tomllib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from gonio.errors import ConfigError
+from gonio.config import read_toml, validate
 from gonio.radiometry import (
     direction_to_spherical,
     directions_from_half_diff,
@@ -261,16 +260,6 @@ class Plan(_Strict):
         return v
 
 
-def _format_validation(err: ValidationError, source: str) -> str:
-    lines = []
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"] if not str(p).startswith(("list[", "Range")))
-        lines.append(
-            f"{source}: field '{loc or '(top level)'}': {e['msg']} (got {e.get('input')!r})"
-        )
-    return "\n".join(lines)
-
-
 def plan_from_dict(data: dict, source: str = "<plan>") -> Plan:
     """Validate a parsed plan document.
 
@@ -279,10 +268,7 @@ def plan_from_dict(data: dict, source: str = "<plan>") -> Plan:
     ConfigError
         Naming ``source`` and each offending field, e.g. ``field 'bracket.iso'``.
     """
-    try:
-        return Plan.model_validate(data)
-    except ValidationError as exc:
-        raise ConfigError(_format_validation(exc, source)) from None
+    return validate(Plan, data, source)
 
 
 def load_plan(path: str | Path) -> Plan:
@@ -293,16 +279,7 @@ def load_plan(path: str | Path) -> Plan:
     ConfigError
         If the file is missing, is not TOML, or a field is invalid.
     """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read plan: {exc.strerror}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    return plan_from_dict(data, str(path))
+    return plan_from_dict(read_toml(path, "plan"), str(path))
 
 
 def plan_digest(obj: BaseModel | dict) -> str:

@@ -44,6 +44,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
+
 from gonio.capture.calibration import irradiance_geometry, reference_reflectance
 from gonio.capture.fiducials import (
     BoardSpec,
@@ -63,8 +65,6 @@ from gonio.capture.raw import (
     read_raw,
     subtract_dark,
 )
-from numpy.typing import NDArray
-
 from gonio.errors import FileFormatError, GonioError, ReductionError, SessionError
 
 SAMPLES_FILE = "samples.h5"
@@ -786,7 +786,6 @@ def reduce_session(
     """
     from gonio.capture.journal import read_journal
     from gonio.capture.session import load_manifest
-
     from gonio.dataset import BRDFSamples, save_samples
 
     session = Path(session_dir)

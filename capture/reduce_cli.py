@@ -72,12 +72,13 @@ def reduce_cmd(
     Example:
       gonio capture reduce runs/paper/ --grid 3
     """
-    from gonio.capture.noise import NoiseModel
-    from gonio.capture.reduce import _replace, reduce_session, resolve_setup
-    from gonio.capture.session import load_manifest
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
     from rich.table import Table
+
+    from gonio.capture.noise import NoiseModel
+    from gonio.capture.reduce import _replace, reduce_session, resolve_setup
+    from gonio.capture.session import load_manifest
 
     console = Console(stderr=True, quiet=quiet)
     noise = NoiseModel.load(noise_file) if noise_file else None
@@ -168,7 +169,6 @@ def calibrate_noise_cmd(
     """
     from gonio.capture.noise import estimate_noise
     from gonio.capture.raw import read_raw
-
     from gonio.errors import ReductionError
 
     if len(flats) % 2 or len(darks) % 2:

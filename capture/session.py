@@ -36,13 +36,13 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+
+from gonio import __version__
 from gonio.capture.bracket import FrameVerdict, judge, next_exposure, predict_exposure, roi_pixels
 from gonio.capture.camera import Camera, CameraInfo, LightSwitch, TargetChanger
 from gonio.capture.journal import Journal, fsync_dir, read_journal, sha256_bytes, write_atomic
 from gonio.capture.ordering import move_time_matrix, order_poses, tour_time
 from gonio.capture.plan import ExpandedPlan, Plan, Pose, expand_plan, plan_digest, plan_from_dict
-
-from gonio import __version__
 from gonio.errors import CameraError, GonioError, RigError, RigFault, SessionError
 
 __all__ = [

@@ -79,11 +79,12 @@ def plan_cmd(
     Example:
       gonio capture plan examples/plan.toml --rig rig.toml --plot poses.png
     """
+    from rich.console import Console
+    from rich.table import Table
+
     from gonio.capture.plan import load_plan
     from gonio.capture.session import build_schedule
     from gonio.rig.kinematics import Kinematics
-    from rich.console import Console
-    from rich.table import Table
 
     plan = load_plan(plan_file)
     cfg = _load_rig(rig_file)

@@ -16,8 +16,8 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
-from gonio.capture.camera import CameraInfo, Shot
 
+from gonio.capture.camera import CameraInfo, Shot
 from gonio.errors import CameraError, ConfigError
 
 __all__ = ["SimulatedRigCamera", "minimal_scene"]

@@ -18,9 +18,8 @@ def _load_input(path: Path):
         from gonio.dataset import load_samples
 
         return load_samples(path), "samples"
-    from gonio.fitting.sampling import sample_brdf
-
     from gonio.brdf import load
+    from gonio.fitting.sampling import sample_brdf
 
     return sample_brdf(load(path), source=str(path)), "measured file sampled on a grid"
 
@@ -97,11 +96,12 @@ def fit(
     Shape parameters (roughness) are shared by all colour channels; albedo and ks are fitted
     per channel.  The summary shows each parameter with its one-sigma uncertainty.
     """
-    from gonio.fitting import fit as run_fit
-    from gonio.fitting.export import mitsuba_xml, save_json
     from rich.console import Console
     from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
     from rich.table import Table
+
+    from gonio.fitting import fit as run_fit
+    from gonio.fitting.export import mitsuba_xml, save_json
 
     console = Console(stderr=False)
     existing = [out / n for n in _OUTPUTS if (out / n).exists()]

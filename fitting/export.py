@@ -19,9 +19,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from gonio.fitting.result import FitResult
 
 from gonio.errors import FitError
+from gonio.fitting.result import FitResult
 
 __all__ = ["mitsuba_dict", "mitsuba_xml", "result_to_dict", "save_json"]
 

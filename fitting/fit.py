@@ -29,6 +29,8 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+
+from gonio.errors import FitError, UnknownNameError
 from gonio.fitting.losses import LOSSES, get_loss
 from gonio.fitting.objective import Problem, prepare_problem
 from gonio.fitting.optimize import (
@@ -41,8 +43,6 @@ from gonio.fitting.optimize import (
 from gonio.fitting.result import FitResult
 from gonio.fitting.uncertainty import add_calibration_uncertainty, covariance_at
 from gonio.fitting.varpro import VarPro, unit_values
-
-from gonio.errors import FitError, UnknownNameError
 
 __all__ = ["fit", "fit_model", "resolve_loss"]
 
@@ -163,55 +163,10 @@ def fit(
     UnknownNameError
         Unknown model, loss, robust penalty or algorithm.
     """
-    result = _fit_any(
-        samples,
-        model,
-        loss=loss,
-        robust=robust,
-        f_scale=f_scale,
-        algorithm=algorithm,
-        x0=x0,
-        n_starts=n_starts,
-        energy_conservation=energy_conservation,
-        absolute_sigma=absolute_sigma,
-        varpro=varpro,
-        maxeval=maxeval,
-        candidates=candidates,
-        criterion=criterion,
-        seed=seed,
-        model_options=model_options,
-        progress=progress,
-    )
-    rel = getattr(samples, "attrs", {}).get("calibration_rel_std")
-    if rel is not None:
-        add_calibration_uncertainty(result, rel)
-    return result
-
-
-def _fit_any(
-    samples,
-    model,
-    *,
-    loss,
-    robust,
-    f_scale,
-    algorithm,
-    x0,
-    n_starts,
-    energy_conservation,
-    absolute_sigma,
-    varpro,
-    maxeval,
-    candidates,
-    criterion,
-    seed,
-    model_options,
-    progress,
-) -> FitResult:
     if isinstance(model, str) and model == "auto":
         from gonio.fitting.select import select_model
 
-        return select_model(
+        result = select_model(
             samples,
             candidates=candidates,
             criterion=criterion,
@@ -225,23 +180,28 @@ def _fit_any(
             seed=seed,
             progress=progress,
         )
-    return fit_model(
-        samples,
-        model,
-        loss=loss,
-        robust=robust,
-        f_scale=f_scale,
-        algorithm=algorithm,
-        x0=x0,
-        n_starts=n_starts,
-        energy_conservation=energy_conservation,
-        absolute_sigma=absolute_sigma,
-        varpro=varpro,
-        maxeval=maxeval,
-        seed=seed,
-        model_options=model_options,
-        progress=progress,
-    )
+    else:
+        result = fit_model(
+            samples,
+            model,
+            loss=loss,
+            robust=robust,
+            f_scale=f_scale,
+            algorithm=algorithm,
+            x0=x0,
+            n_starts=n_starts,
+            energy_conservation=energy_conservation,
+            absolute_sigma=absolute_sigma,
+            varpro=varpro,
+            maxeval=maxeval,
+            seed=seed,
+            model_options=model_options,
+            progress=progress,
+        )
+    rel = getattr(samples, "attrs", {}).get("calibration_rel_std")
+    if rel is not None:
+        add_calibration_uncertainty(result, rel)
+    return result
 
 
 def _check_algorithm(name: str) -> None:

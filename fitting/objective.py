@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from gonio.fitting.losses import Loss, robust_rho
 
 from gonio.errors import FitError
+from gonio.fitting.losses import Loss, robust_rho
 
 __all__ = ["Problem", "prepare_problem"]
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from gonio.fitting.result import FitResult
 
 __all__ = [

@@ -34,9 +34,9 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from gonio.fitting.result import FitResult
 
 from gonio.errors import FitError, UnknownNameError
+from gonio.fitting.result import FitResult
 
 __all__ = [
     "DEFAULT_CANDIDATES",

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
 from gonio.fitting.losses import robust_rho
 from gonio.fitting.objective import Problem
 

@@ -18,6 +18,7 @@ import itertools
 from typing import Any
 
 import numpy as np
+
 from gonio.fitting.objective import Problem
 
 __all__ = ["VarPro", "solve_box_qp"]

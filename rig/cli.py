@@ -7,14 +7,14 @@ import math
 
 import click
 import numpy as np
-from gonio.rig import control_table as ct
-from gonio.rig.config import default_rig_config, load_rig_config
-from gonio.rig.device import Rig
-from gonio.rig.transport import Transport
 from rich.console import Console
 from rich.table import Table
 
 from gonio.errors import RigError
+from gonio.rig import control_table as ct
+from gonio.rig.config import default_rig_config, load_rig_config
+from gonio.rig.device import Rig
+from gonio.rig.transport import Transport
 
 _console = Console()
 

@@ -16,8 +16,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from gonio.config import read_toml, validate
 from gonio.errors import ConfigError
 
 #: The joints the ``arms_tilt_spin`` geometry knows.  A servo drives exactly one of them.
@@ -262,14 +263,6 @@ class RigConfig(_Strict):
         return {j: math.radians(v) for j, v in pose.items()}
 
 
-def _format_validation(err: ValidationError, source: str) -> str:
-    lines = []
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
-        lines.append(f"{source}: field '{loc}': {e['msg']} (got {e.get('input')!r})")
-    return "\n".join(lines)
-
-
 def rig_config_from_dict(data: dict, source: str = "<dict>") -> RigConfig:
     """Validate a parsed TOML document into a :class:`RigConfig`.
 
@@ -278,10 +271,7 @@ def rig_config_from_dict(data: dict, source: str = "<dict>") -> RigConfig:
     ConfigError
         Naming ``source`` and each offending field.
     """
-    try:
-        return RigConfig.model_validate(data)
-    except ValidationError as exc:
-        raise ConfigError(_format_validation(exc, source)) from None
+    return validate(RigConfig, data, source)
 
 
 def load_rig_config(path: str | Path) -> RigConfig:
@@ -293,16 +283,7 @@ def load_rig_config(path: str | Path) -> RigConfig:
         If the file is missing, is not TOML, or a field is invalid (the message names the
         file and the field).
     """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read rig configuration: {exc.strerror}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    return rig_config_from_dict(data, str(path))
+    return rig_config_from_dict(read_toml(path, "rig configuration"), str(path))
 
 
 def default_rig_config() -> RigConfig:

@@ -22,14 +22,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from gonio.errors import RigError, RigFault
 from gonio.rig import control_table as ct
 from gonio.rig.config import JOINT_NAMES, RigConfig
 from gonio.rig.kinematics import Kinematics, _angle_between
 from gonio.rig.servo import Servo, ServoState
 from gonio.rig.transport import Transport
-from numpy.typing import ArrayLike, NDArray
-
-from gonio.errors import RigError, RigFault
 
 log = logging.getLogger("gonio.rig")
 

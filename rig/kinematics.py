@@ -39,6 +39,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from gonio.errors import ConfigError, RigError
 from gonio.rig.config import JOINT_NAMES, RigConfig
 from gonio.rig.control_table import (
     MODELS,
@@ -46,9 +49,6 @@ from gonio.rig.control_table import (
     profile_pulses,
     velocity_register,
 )
-from numpy.typing import ArrayLike, NDArray
-
-from gonio.errors import ConfigError, RigError
 
 Array = NDArray[np.float64]
 Joints = Mapping[str, float]

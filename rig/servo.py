@@ -11,11 +11,10 @@ import math
 import struct
 from typing import NamedTuple
 
+from gonio.errors import RigError
 from gonio.rig import control_table as ct
 from gonio.rig.config import ServoConfig
 from gonio.rig.transport import Transport
-
-from gonio.errors import RigError
 
 
 class ServoState(NamedTuple):

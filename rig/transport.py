@@ -32,10 +32,10 @@ from dynamixel_sdk import (
     PacketHandler,
     PortHandler,
 )
-from gonio.rig import protocol
-from gonio.rig.control_table import Register
 
 from gonio.errors import RigError
+from gonio.rig import protocol
+from gonio.rig.control_table import Register
 
 log = logging.getLogger("gonio.rig.bus")
 

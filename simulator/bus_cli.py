@@ -8,6 +8,7 @@ import sys
 import threading
 
 import click
+
 from gonio.rig.control_table import MODELS
 from gonio.simulator.virtual_bus import VirtualBus
 

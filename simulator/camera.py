@@ -19,12 +19,12 @@ from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
+
+from gonio.errors import CameraError, ConfigError
 from gonio.simulator.dng import dng_bytes
 from gonio.simulator.render import RenderResult, render
 from gonio.simulator.scene import Scene, scene_with_rig_poses
 from gonio.simulator.sensor import RawFrame, simulate_raw
-
-from gonio.errors import CameraError, ConfigError
 
 __all__ = ["SimulatedCamera"]
 

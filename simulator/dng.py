@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 import tifffile
-from gonio.simulator.sensor import RawFrame
 
 from gonio.errors import FileFormatError
+from gonio.simulator.sensor import RawFrame
 
 __all__ = ["dng_bytes", "write_dng"]
 

@@ -8,6 +8,7 @@ cost more in setup and data transfer than these closed-form vectorised tests.
 from __future__ import annotations
 
 import numpy as np
+
 from gonio.simulator.scene import BoxOccluder, CylinderOccluder
 
 __all__ = [

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from gonio.simulator.scene import DiskLight, PointLight, RectangleLight, Scene, _unit
 
 __all__ = ["PreparedLight", "prepare_lights", "LEVELS"]

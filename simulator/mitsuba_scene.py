@@ -16,6 +16,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+
 from gonio.simulator.lights import prepare_lights
 from gonio.simulator.scene import BoxOccluder, Scene
 

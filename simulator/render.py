@@ -41,6 +41,8 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
+
+from gonio.errors import ConfigError
 from gonio.simulator.geometry import (
     camera_rays,
     intersect_plane_z0,
@@ -49,8 +51,6 @@ from gonio.simulator.geometry import (
 )
 from gonio.simulator.lights import LEVELS, PreparedLight, prepare_lights
 from gonio.simulator.scene import Scene
-
-from gonio.errors import ConfigError
 
 __all__ = ["REGION_NAMES", "RenderResult", "RenderStats", "Surface", "render", "save_truth"]
 

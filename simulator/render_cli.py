@@ -88,13 +88,13 @@ def render_cmd(
     Example:
       gonio sim render examples/scene.toml --out shot.dng --truth shot.h5 --seed 1
     """
+    from rich.console import Console
+
+    from gonio.errors import FileFormatError
     from gonio.simulator.dng import dng_bytes, write_dng
     from gonio.simulator.render import render, save_truth
     from gonio.simulator.scene import load_scene
     from gonio.simulator.sensor import simulate_raw
-    from rich.console import Console
-
-    from gonio.errors import FileFormatError
 
     console = Console(stderr=True)
     for p in (out, truth, preview):

@@ -80,7 +80,6 @@ maps sample-frame vectors to camera-frame vectors.
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -89,11 +88,11 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
-    ValidationError,
     field_validator,
     model_validator,
 )
 
+from gonio.config import read_toml, validate
 from gonio.errors import ConfigError
 
 __all__ = [
@@ -613,14 +612,6 @@ class Scene(_Model):
         return self.model_copy(update={"camera": cam, "lights": lights})
 
 
-def _format_validation(exc: ValidationError, source: str) -> str:
-    lines = []
-    for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"]) or "<root>"
-        lines.append(f"field '{loc}': {err['msg']}")
-    return f"{source}: invalid scene: " + "; ".join(lines)
-
-
 def parse_scene(data: dict[str, Any], source: str = "<scene>", base_dir: Path | None = None):
     """Validate a scene given as a dict (e.g. parsed TOML).
 
@@ -629,10 +620,7 @@ def parse_scene(data: dict[str, Any], source: str = "<scene>", base_dir: Path | 
     ConfigError
         Naming the source and each offending field.
     """
-    try:
-        scene = Scene.model_validate({**data, "base_dir": base_dir})
-    except ValidationError as exc:
-        raise ConfigError(_format_validation(exc, source)) from None
+    scene = validate(Scene, {**data, "base_dir": base_dir}, f"{source}: invalid scene")
     if scene.rig is not None:
         scene = apply_rig_poses(scene)
     return scene
@@ -685,10 +673,4 @@ def load_scene(path: str | Path) -> Scene:
         The file is missing, is not TOML, or a field is invalid (the field is named).
     """
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: scene file not found") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{p}: not a valid TOML file: {exc}") from None
-    return parse_scene(data, str(p), p.resolve().parent)
+    return parse_scene(read_toml(p, "scene"), str(p), p.resolve().parent)

@@ -21,9 +21,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from gonio.simulator.scene import Camera
 
 from gonio.errors import ParameterError
+from gonio.simulator.scene import Camera
 
 __all__ = [
     "RawFrame",

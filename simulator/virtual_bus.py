@@ -24,6 +24,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from gonio.rig import protocol as p
 from gonio.simulator.servo_model import VirtualServo
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import colour
 import numpy as np
 import pytest
+
 from gonio.capture.calibration import (
     brdf_from_radiance,
     illuminance,
@@ -13,7 +14,6 @@ from gonio.capture.calibration import (
     luminance,
     reference_reflectance,
 )
-
 from gonio.errors import ConfigError, FileFormatError
 
 

@@ -16,6 +16,7 @@ import tempfile
 from pathlib import Path
 
 import pytest
+
 from gonio.capture.camera import (
     CAMERA_BACKENDS,
     Camera,
@@ -24,7 +25,6 @@ from gonio.capture.camera import (
     parse_iso,
     parse_shutter_speed,
 )
-
 from gonio.errors import CameraError, UnknownNameError
 
 # must be set before python-gphoto2 is first imported in this process
@@ -132,12 +132,11 @@ def test_camera_that_disappears_mid_session(vcam, tmp_path):
     from gonio.capture.journal import read_journal
     from gonio.capture.plan import plan_from_dict
     from gonio.capture.session import build_schedule, create_session, open_rig, run_steps
+    from gonio.errors import SessionError
     from gonio.rig.config import rig_config_from_dict
     from gonio.rig.kinematics import Kinematics
     from gonio.simulator.servo_model import VirtualServo
     from gonio.simulator.virtual_bus import VirtualBus
-
-    from gonio.errors import SessionError
 
     d, payload = vcam
     cfg = rig_config_from_dict(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from gonio.capture.fiducials import (
     BoardSpec,
     detect_pose,
@@ -13,7 +14,6 @@ from gonio.capture.fiducials import (
 )
 from gonio.capture.raw import read_raw
 from gonio.capture.reduce import setup_from_scene
-
 from gonio.errors import ReductionError
 from gonio.radiometry import spherical_to_direction
 
@@ -136,7 +136,6 @@ def test_board_placement_matches_the_simulators_convention():
 @pytest.mark.slow
 def test_geometry_mismatch_with_the_rig_is_flagged(rig_views):
     from gonio.capture.reduce import measure_pose
-
     from gonio.dataset import Flag
 
     setup, views = rig_views

@@ -5,10 +5,10 @@ from __future__ import annotations
 import colour_hdri
 import numpy as np
 import pytest
+
 from gonio.capture.hdr import merge_bracket
 from gonio.capture.noise import NoiseModel
 from gonio.capture.raw import RawFrame
-
 from gonio.errors import ReductionError
 
 GAIN, READ_E, BLACK, WHITE = 0.4, 3.0, 512, 16383

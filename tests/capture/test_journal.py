@@ -6,8 +6,8 @@ import json
 import os
 
 import pytest
-from gonio.capture.journal import Journal, read_journal, sha256_file, write_atomic
 
+from gonio.capture.journal import Journal, read_journal, sha256_file, write_atomic
 from gonio.errors import FileFormatError
 
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from gonio.capture.noise import NoiseModel, estimate_noise
 from gonio.capture.raw import RawFrame
-
 from gonio.errors import FileFormatError, ReductionError
 
 GAIN = 0.4  # DN per electron

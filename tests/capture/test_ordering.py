@@ -6,6 +6,7 @@ import itertools
 
 import numpy as np
 import pytest
+
 from gonio.capture.ordering import move_time_matrix, order_poses, tour_time
 
 

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 import pytest
-from gonio.capture.plan import expand_plan, load_plan, plan_from_dict
 
+from gonio.capture.plan import expand_plan, load_plan, plan_from_dict
 from gonio.errors import ConfigError, SessionError
 from gonio.radiometry import half_diff_from_directions
 
@@ -52,7 +52,7 @@ def test_invalid_plan_names_the_field(doc, field):
 def test_bad_toml_and_missing_file(tmp_path):
     p = tmp_path / "p.toml"
     p.write_text("[grid\n")
-    with pytest.raises(ConfigError, match="not valid TOML"):
+    with pytest.raises(ConfigError, match="not a valid TOML"):
         load_plan(p)
     with pytest.raises(ConfigError, match="cannot read"):
         load_plan(tmp_path / "missing.toml")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import rawpy
+
 from gonio.capture.raw import (
     CameraSignature,
     channel_stats,
@@ -12,7 +13,6 @@ from gonio.capture.raw import (
     read_raw,
     roi_exposure_stats,
 )
-
 from gonio.errors import FileFormatError, ReductionError
 
 # rawpy's linear output (see shared/reference/libraries.md); half_size puts one 2x2 CFA

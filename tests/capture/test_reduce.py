@@ -10,8 +10,8 @@ from importlib import resources
 import numpy as np
 import pytest
 import rawpy
-from gonio.capture.journal import read_journal
 
+from gonio.capture.journal import read_journal
 from gonio.cli import main
 from gonio.dataset import Flag, load_samples
 

@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from gonio.capture.raw import read_raw
 from gonio.capture.reduce import brdf_of, light_scale, measure_pose, setup_from_scene
-
 from gonio.radiometry import spherical_to_direction
 from gonio.radiometry.emitters import irradiance_disk
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from gonio.capture.journal import read_journal
 from gonio.capture.plan import load_plan
 from gonio.capture.session import (
@@ -20,11 +21,10 @@ from gonio.capture.session import (
     run_steps,
 )
 from gonio.capture.sim_camera import SimulatedRigCamera
-from gonio.rig.config import load_rig_config
-from gonio.rig.kinematics import Kinematics
-
 from gonio.cli import main
 from gonio.errors import SessionError
+from gonio.rig.config import load_rig_config
+from gonio.rig.kinematics import Kinematics
 
 PLAN = """
 name = "tiny"

@@ -7,10 +7,10 @@ from importlib import resources
 import numpy as np
 import pytest
 import rawpy
+
 from gonio.capture.bracket import FrameVerdict, next_exposure, predict_exposure, roi_pixels
 from gonio.capture.journal import read_journal
 from gonio.capture.plan import BracketPolicy
-
 from gonio.cli import main
 
 

@@ -7,10 +7,10 @@ import os
 
 import numpy as np
 import pytest
-from gonio.fitting import fit
-from gonio.fitting.export import mitsuba_dict, mitsuba_xml, save_json
 
 from gonio.errors import FitError
+from gonio.fitting import fit
+from gonio.fitting.export import mitsuba_dict, mitsuba_xml, save_json
 
 
 def test_json_has_the_documented_fields(tmp_path, make_samples):

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gonio.fitting import fit
 from scipy.optimize import nnls
 
 from gonio.brdf import get_model
+from gonio.fitting import fit
 
 ALB = [0.2, 0.4, 0.6]
 KS = [0.1, 0.2, 0.3]

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gonio.fitting import fit
-from gonio.fitting.fit import ENERGY_THETA
 
 from gonio.brdf import get_model
+from gonio.fitting import fit
+from gonio.fitting.fit import ENERGY_THETA
 
 TRUTH = {"albedo": [0.2, 0.4, 0.6], "ks": [0.1, 0.2, 0.3], "alpha": 0.15}
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gonio.fitting.optimize import nlopt_minimize, sobol_design
-from gonio.fitting.varpro import solve_box_qp
 
 from gonio.errors import FitError, UnknownNameError
+from gonio.fitting.optimize import nlopt_minimize, sobol_design
+from gonio.fitting.varpro import solve_box_qp
 
 
 def _rosen(x, want):

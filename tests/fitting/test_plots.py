@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from gonio.brdf import get_model
+from gonio.dataset import BRDFSamples
 from gonio.fitting.plots import (
     plot_residual_map,
     plot_slices,
@@ -12,9 +15,6 @@ from gonio.fitting.plots import (
     slices_figure,
 )
 from gonio.fitting.result import FitResult
-
-from gonio.brdf import get_model
-from gonio.dataset import BRDFSamples
 
 GGX = {"albedo": [0.4, 0.3, 0.2], "ks": [0.6, 0.5, 0.4], "alpha": [0.25, 0.25, 0.25]}
 THETA_I = (0.0, 20.0, 50.0)

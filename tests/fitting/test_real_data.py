@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from gonio.brdf import load
 from gonio.fitting import fit
 from gonio.fitting.sampling import sample_brdf
 from gonio.fitting.select import gloss_units
-
-from gonio.brdf import load
 
 MATERIALS = ("paper_white", "colodur_napoli_4f", "vch_golden_yellow", "cc_ibiza_sunset")
 MODELS = (

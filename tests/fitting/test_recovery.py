@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from gonio.fitting import fit
 
 ALB = [0.2, 0.4, 0.6]

@@ -1,10 +1,10 @@
 """model='auto': the matte (gloss) rule never overrides a lobe a diffuse model cannot replace."""
 
 import numpy as np
-from gonio.fitting import fit
-from gonio.fitting.select import MAX_DIFFUSE_COST_RATIO, gloss_units
 
 from gonio.brdf import get_model
+from gonio.fitting import fit
+from gonio.fitting.select import MAX_DIFFUSE_COST_RATIO, gloss_units
 
 
 def test_strong_broad_lobe_is_kept_even_below_the_gloss_threshold(make_samples):

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gonio.fitting import fit
 
 from gonio.brdf import get_model
 from gonio.dataset import BRDFSamples, Flag
 from gonio.errors import FitError, UnknownNameError
+from gonio.fitting import fit
 
 TRUTH = {"albedo": [0.2, 0.4, 0.6], "ks": [0.1, 0.2, 0.3], "alpha": 0.15}
 

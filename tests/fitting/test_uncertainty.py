@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gonio.fitting import fit
 
 from gonio.dataset import BRDFSamples
+from gonio.fitting import fit
 
 N_REAL = 200
 

@@ -6,6 +6,7 @@ import math
 import sys
 
 import pytest
+
 from gonio.rig.config import default_rig_config, rig_config_from_dict
 from gonio.simulator.virtual_bus import VirtualBus
 

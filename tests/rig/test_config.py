@@ -6,9 +6,9 @@ import math
 from pathlib import Path
 
 import pytest
-from gonio.rig.config import default_rig_config, load_rig_config
 
 from gonio.errors import ConfigError
+from gonio.rig.config import default_rig_config, load_rig_config
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "rig.toml"
 
@@ -59,7 +59,7 @@ def test_errors_name_file_and_field(tmp_path):
         )
     with pytest.raises(ConfigError, match=r"servos.1.model.*unknown servo model 'AX-12'"):
         load_rig_config(write(tmp_path, base.replace('model = "XM430-W350"', 'model = "AX-12"', 2)))
-    with pytest.raises(ConfigError, match="not valid TOML"):
+    with pytest.raises(ConfigError, match="not a valid TOML"):
         load_rig_config(write(tmp_path, "[bus\nport="))
     with pytest.raises(ConfigError, match="cannot read"):
         load_rig_config(tmp_path / "missing.toml")
@@ -67,9 +67,8 @@ def test_errors_name_file_and_field(tmp_path):
 
 def test_other_geometry_is_a_config_change(tmp_path):
     """Raised camera arm (elevation 20 deg): still a round trip, now with a different tilt."""
-    from gonio.rig.kinematics import Kinematics
-
     from gonio.radiometry import spherical_to_direction
+    from gonio.rig.kinematics import Kinematics
 
     text = EXAMPLE.read_text().replace("camera_elevation_deg = 0.0", "camera_elevation_deg = 20.0")
     kin = Kinematics(load_rig_config(write(tmp_path, text)))

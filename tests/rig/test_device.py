@@ -13,13 +13,13 @@ import threading
 
 import numpy as np
 import pytest
+
+from gonio.errors import ConfigError, RigError, RigFault
+from gonio.radiometry import spherical_to_direction
 from gonio.rig.config import default_rig_config, rig_config_from_dict
 from gonio.rig.device import Rig
 from gonio.simulator.servo_model import VirtualServo
 from gonio.simulator.virtual_bus import VirtualBus
-
-from gonio.errors import ConfigError, RigError, RigFault
-from gonio.radiometry import spherical_to_direction
 
 RESOLUTION = math.radians(0.088)  # one pulse of an XM430
 

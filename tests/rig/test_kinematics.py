@@ -6,12 +6,12 @@ import math
 
 import numpy as np
 import pytest
-from gonio.rig.config import default_rig_config, rig_config_from_dict
-from gonio.rig.control_table import RPM2_PER_ACCELERATION_UNIT, RPM_PER_VELOCITY_UNIT
-from gonio.rig.kinematics import Kinematics
 
 from gonio.errors import RigError
 from gonio.radiometry import spherical_to_direction
+from gonio.rig.config import default_rig_config, rig_config_from_dict
+from gonio.rig.control_table import RPM2_PER_ACCELERATION_UNIT, RPM_PER_VELOCITY_UNIT
+from gonio.rig.kinematics import Kinematics
 
 
 @pytest.fixture(scope="module")

@@ -6,11 +6,11 @@ import logging
 
 import pytest
 from dynamixel_sdk import COMM_SUCCESS, PacketHandler
+
+from gonio.errors import RigError
 from gonio.rig.control_table import MODELS
 from gonio.rig.protocol import build_packet, crc16, stuff, unstuff
 from gonio.rig.transport import Transport
-
-from gonio.errors import RigError
 
 REG = MODELS["XM430-W350"].registers
 

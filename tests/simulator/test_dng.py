@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import rawpy
 import tifffile
+
+from gonio.errors import FileFormatError
 from gonio.simulator.dng import dng_bytes, write_dng
 from gonio.simulator.scene import Camera
 from gonio.simulator.sensor import simulate_raw
-
-from gonio.errors import FileFormatError
 
 
 def frame(pattern="RGGB", seed=3, **kw):

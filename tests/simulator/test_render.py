@@ -5,11 +5,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from gonio.simulator.render import HOLDER, NONE, SAMPLE, render
-from gonio.simulator.scene import parse_scene
 
 from gonio.errors import ConfigError
 from gonio.radiometry.emitters import irradiance_disk, irradiance_rectangle
+from gonio.simulator.render import HOLDER, NONE, SAMPLE, render
+from gonio.simulator.scene import parse_scene
 
 
 def scene_dict(**over):

@@ -14,6 +14,7 @@ import tempfile
 
 import numpy as np
 import pytest
+
 from gonio.simulator.mitsuba_scene import to_mitsuba_dict
 from gonio.simulator.render import render
 from gonio.simulator.scene import parse_scene

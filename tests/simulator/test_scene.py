@@ -7,10 +7,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from gonio.simulator.render import render
-from gonio.simulator.scene import load_scene, look_at_rotation, parse_scene
 
 from gonio.errors import ConfigError
+from gonio.simulator.render import render
+from gonio.simulator.scene import load_scene, look_at_rotation, parse_scene
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "scene.toml"
 

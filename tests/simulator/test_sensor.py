@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gonio.simulator.scene import Camera
-from gonio.simulator.sensor import cfa_indices, simulate_raw
 
 from gonio.errors import ParameterError
+from gonio.simulator.scene import Camera
+from gonio.simulator.sensor import cfa_indices, simulate_raw
 
 H_PLANCK, C_LIGHT = 6.62607015e-34, 299792458.0
 

@@ -9,13 +9,13 @@ import h5py
 import numpy as np
 import pytest
 import rawpy
-from gonio.simulator.camera import SimulatedCamera
-from gonio.simulator.scene import look_at_rotation, parse_scene
-from gonio.simulator.sensor import cfa_indices
 
 from gonio.cli import main
 from gonio.errors import CameraError
 from gonio.radiometry.emitters import irradiance_disk
+from gonio.simulator.camera import SimulatedCamera
+from gonio.simulator.scene import look_at_rotation, parse_scene
+from gonio.simulator.sensor import cfa_indices
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "scene.toml"
 

@@ -17,6 +17,7 @@ from dynamixel_sdk import (
     PacketHandler,
     PortHandler,
 )
+
 from gonio.simulator.virtual_bus import VirtualBus
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import serial
+
 from gonio.rig.protocol import Framer
 from gonio.simulator.servo_model import VirtualServo
 from gonio.simulator.virtual_bus import VirtualBus
