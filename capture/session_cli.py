@@ -64,8 +64,14 @@ def _scene_for(plan, plan_path: Path | None, scene_path: str | None) -> dict[str
     default=None,
     help="Save a polar plot of the poses (measured and excluded) to this PNG.",
 )
+@click.option("--force", is_flag=True, help="Overwrite an existing --plot file.")
 def plan_cmd(
-    plan_file: Path, rig_file: str | None, show_poses: bool, as_json: bool, plot: Path | None
+    plan_file: Path,
+    rig_file: str | None,
+    show_poses: bool,
+    as_json: bool,
+    plot: Path | None,
+    force: bool,
 ) -> None:
     """Dry-run a measurement plan: nothing moves.
 
@@ -86,6 +92,8 @@ def plan_cmd(
     from gonio.capture.session import build_schedule
     from gonio.rig.kinematics import Kinematics
 
+    if plot is not None:
+        _check_image_path(plot, force, "--plot")
     plan = load_plan(plan_file)
     cfg = _load_rig(rig_file)
     kin = Kinematics(cfg)
@@ -154,6 +162,31 @@ def plan_cmd(
         f"estimated duration [bold]{_fmt_duration(sched.estimated_duration_s)}[/] "
         f"(bracket policy {plan.bracket.policy!r}; nothing was moved)"
     )
+
+
+def _check_image_path(path: Path, force: bool, hint: str) -> None:
+    """Refuse, before any work, a plot path matplotlib cannot write or that would clobber."""
+    if path.suffix.lower() not in (".png", ".pdf", ".svg"):
+        raise click.BadParameter(
+            f"expected a .png, .pdf or .svg file name, got '{path.name}'", param_hint=hint
+        )
+    if not path.parent.is_dir():
+        raise click.BadParameter(
+            f"folder '{path.parent}' of {path.name} does not exist; create it first",
+            param_hint=hint,
+        )
+    if path.exists() and not force:
+        raise click.BadParameter(
+            f"'{path}' exists; pass --force to overwrite it or choose another file",
+            param_hint=hint,
+        )
+
+
+def _sim_speed(ctx, param, value: float | None) -> float | None:
+    # Zero, negative or nan time would stall or crash the virtual servos mid-session.
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise click.BadParameter(f"expected a positive finite speed-up factor, got {value}")
+    return value
 
 
 def _plot_poses(path: Path, sched) -> None:
@@ -277,6 +310,7 @@ _COMMON_RUN = [
         "--sim-speed",
         type=float,
         default=None,
+        callback=_sim_speed,
         help='With a virtual bus (rig bus.port = "virtual"): servo time runs this many '
         "times faster than the wall clock [run: 20; resume: the session's own].",
     ),

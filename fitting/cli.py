@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import click
@@ -22,6 +23,12 @@ def _load_input(path: Path):
     from gonio.fitting.sampling import sample_brdf
 
     return sample_brdf(load(path), source=str(path)), "measured file sampled on a grid"
+
+
+def _positive_scale(ctx, param, value: float) -> float:
+    if not (math.isfinite(value) and value > 0):
+        raise click.BadParameter(f"expected a positive finite residual scale, got {value}")
+    return value
 
 
 @click.command(name="fit")
@@ -50,7 +57,14 @@ def _load_input(path: Path):
     type=click.Choice(["soft_l1", "huber", "cauchy", "arctan"]),
     help="Robust penalty against outliers (scale: --f-scale, residual units).",
 )
-@click.option("--f-scale", default=1.0, show_default=True, type=float)
+@click.option(
+    "--f-scale",
+    default=1.0,
+    show_default=True,
+    type=float,
+    callback=_positive_scale,
+    help="Residual size at which --robust starts to down-weight (residual units, > 0).",
+)
 @click.option(
     "--algorithm",
     default="auto",

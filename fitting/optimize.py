@@ -190,6 +190,12 @@ def nlopt_minimize(
         status, message = -4, "roundoff limited (best point kept)"
     except nlopt.ForcedStop:
         status, message = -5, "forced stop"
+    except nlopt.runtime_error as exc:
+        # L-BFGS reports a line search that cannot progress at the minimum as a generic
+        # failure (seen on well-conditioned demo data landing on the truth): like
+        # round-off, keep the best point; other algorithms still count it as a failure.
+        status = -4 if gradient_based else -1
+        message = f"{algorithm} failed ({type(exc).__name__})"
     except Exception as exc:  # noqa: BLE001 - nlopt raises bare Exception subclasses
         status = -1
         message = f"{algorithm} failed ({type(exc).__name__}{': ' + str(exc) if str(exc) else ''})"

@@ -81,6 +81,12 @@ def parse_material(spec: str) -> Material:
             )
         return Material(spec, file=path.resolve())
     tokens = spec.split()
+    looks_like_file = "/" in tokens[0] or Path(tokens[0]).suffix.lower() in (".bsdf", ".binary")
+    if looks_like_file and not Path(tokens[0]).is_file():
+        raise ConfigError(
+            f"--material {tokens[0]}: no such file (expected a measured BRDF file, "
+            ".bsdf or .binary, a model name, or rgl:NAME)"
+        )
     if Path(tokens[0]).is_file():
         from gonio.brdf import load
 
@@ -465,7 +471,7 @@ def _count_poses(session: Path) -> int:
 )
 @click.option(
     "--resolution",
-    type=(int, int),
+    type=(click.IntRange(8, 8192), click.IntRange(8, 8192)),
     default=(320, 240),
     show_default=True,
     help="Simulated camera resolution, pixels (width height).",
@@ -504,6 +510,11 @@ def demo(
     console = Console(stderr=as_json)
     out = out or Path(f"gonio-demo-{datetime.now():%Y%m%d-%H%M%S}")
     mat = parse_material(material)
+    # Checked before the capture, which takes minutes, rather than at the fit.
+    if model != "auto":
+        from gonio.brdf import get_model
+
+        get_model(model)
     say = (lambda s: None) if as_json else (lambda s: console.print(f"[bold cyan]>[/] {s}"))
     try:
         res = run_demo(

@@ -145,6 +145,21 @@ def status(config_path, port, baud, as_json) -> None:
         _print_status(r, as_json)
 
 
+def _polar(ctx, param, value: float | None) -> float | None:
+    # Checked here, before the port is opened: a bad angle is the user's typo, not a fault.
+    if value is not None and not (math.isfinite(value) and 0.0 <= value <= 90.0):
+        raise click.BadParameter(
+            f"expected a polar angle in [0, 90] degrees from the sample normal, got {value}"
+        )
+    return value
+
+
+def _azimuth(ctx, param, value: float | None) -> float | None:
+    if value is not None and not math.isfinite(value):
+        raise click.BadParameter(f"expected a finite azimuth in degrees, got {value}")
+    return value
+
+
 def _direction(theta_deg: float, phi_deg: float) -> np.ndarray:
     t, p = math.radians(theta_deg), math.radians(phi_deg)
     return np.array([math.sin(t) * math.cos(p), math.sin(t) * math.sin(p), math.cos(t)])
@@ -153,17 +168,31 @@ def _direction(theta_deg: float, phi_deg: float) -> np.ndarray:
 @rig.command()
 @cfg_options
 @click.option(
-    "--theta-i", type=float, required=True, help="Light polar angle from the normal (deg)."
+    "--theta-i",
+    type=float,
+    required=True,
+    callback=_polar,
+    help="Light polar angle from the normal (deg).",
 )
 @click.option(
     "--phi-i",
     type=float,
+    callback=_azimuth,
     default=0.0,
     show_default=True,
     help="Light azimuth from sample +x (deg).",
 )
-@click.option("--theta-o", type=float, required=True, help="Camera polar angle (deg).")
-@click.option("--phi-o", type=float, default=180.0, show_default=True, help="Camera azimuth (deg).")
+@click.option(
+    "--theta-o", type=float, required=True, callback=_polar, help="Camera polar angle (deg)."
+)
+@click.option(
+    "--phi-o",
+    type=float,
+    default=180.0,
+    show_default=True,
+    callback=_azimuth,
+    help="Camera azimuth (deg).",
+)
 @click.option(
     "--hold/--no-hold",
     default=False,

@@ -9,7 +9,7 @@ import threading
 
 import click
 
-from gonio.rig.control_table import MODELS
+from gonio.rig.control_table import BAUD_CODES, MODELS
 from gonio.simulator.virtual_bus import VirtualBus
 
 
@@ -48,8 +48,10 @@ def _int_list(ctx, param, value: str | None) -> list[int] | None:
     "--baud",
     default=1_000_000,
     show_default=True,
-    type=int,
-    help="The servos' baud rate; clients set to another rate are not heard.",
+    type=click.Choice([str(b) for b in BAUD_CODES.values()]),
+    callback=lambda ctx, param, value: int(value),
+    help="The servos' baud rate (one an X-series servo supports); clients set to another "
+    "rate are not heard.",
 )
 @click.option(
     "--positions",
@@ -86,6 +88,8 @@ def bus_cmd(servos, model, firmware, baud, positions, fault_rate, seed, time_sca
     Example:
       gonio sim bus --servos 1,2,3,4 --fault-rate 0.01 --seed 3
     """
+    if not servos:
+        raise click.BadParameter("expected at least one servo ID", param_hint="--servos")
     if positions is not None and len(positions) != len(servos):
         raise click.BadParameter(
             f"{len(positions)} positions for {len(servos)} servos", param_hint="--positions"

@@ -2,9 +2,17 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import click
+
+
+def _positive(ctx, param, value: float | None) -> float | None:
+    """Reject zero, negative, nan and infinite settings before anything is rendered."""
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise click.BadParameter(f"expected a positive finite number, got {value}")
+    return value
 
 
 @click.command("render")
@@ -32,14 +40,24 @@ import click
 @click.option(
     "--exposure-time",
     type=float,
+    callback=_positive,
     default=None,
     help="Seconds (default: camera.exposure_time in the scene).",
 )
-@click.option("--iso", type=float, default=None, help="ISO (default: camera.iso).")
-@click.option("--f-number", type=float, default=None, help="Aperture (default: camera.f_number).")
+@click.option(
+    "--iso", type=float, default=None, callback=_positive, help="ISO (default: camera.iso)."
+)
+@click.option(
+    "--f-number",
+    type=float,
+    default=None,
+    callback=_positive,
+    help="Aperture (default: camera.f_number).",
+)
 @click.option(
     "--tolerance",
     type=float,
+    callback=_positive,
     default=None,
     help="Relative per-pixel error target of the light integral (default: render.tolerance).",
 )
@@ -97,9 +115,23 @@ def render_cmd(
     from gonio.simulator.sensor import simulate_raw
 
     console = Console(stderr=True)
-    for p in (out, truth, preview):
-        if p is not None and p.exists() and not force:
+    if out.suffix.lower() != ".dng":
+        raise click.BadParameter(f"expected a .dng file name, got '{out.name}'", param_hint="--out")
+    if preview is not None and preview.suffix.lower() not in (".png", ".pdf", ".svg"):
+        raise click.BadParameter(
+            f"expected a .png, .pdf or .svg file name, got '{preview.name}'", param_hint="--preview"
+        )
+    for hint, p in (("--out", out), ("--truth", truth), ("--preview", preview)):
+        if p is None:
+            continue
+        if p.exists() and not force:
             raise FileFormatError(p, "exists; refusing to overwrite (use --force)")
+        # Checked before rendering so a bad path cannot leave the DNG without its truth.
+        if not p.parent.is_dir():
+            raise click.BadParameter(
+                f"folder '{p.parent}' of {p.name} does not exist; create it first",
+                param_hint=hint,
+            )
     scene = load_scene(scene_file)
     if reference:
         scene = scene.with_reference_target(0.99)

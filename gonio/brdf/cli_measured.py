@@ -120,6 +120,12 @@ def convert_cmd(src: Path, dst: Path, force: bool) -> None:
         )
     if dst.exists() and not force:
         raise FileFormatError(dst, "output exists; pass --force to overwrite it")
+    if not dst.parent.is_dir():
+        # Checked before the (slow) resampling so the user learns it at once.
+        raise click.BadParameter(
+            f"folder '{dst.parent}' of {dst.name} does not exist; create it first",
+            param_hint="DST",
+        )
     b = load(src)
     with Progress(transient=True) as prog:
         task = prog.add_task(f"resampling {src.name}", total=1.0)

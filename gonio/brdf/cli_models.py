@@ -161,6 +161,7 @@ def list_cmd() -> None:
     help="Output image (.png, .pdf or .svg).",
 )
 @click.option("--linear", is_flag=True, help="Linear instead of logarithmic f_r scale.")
+@click.option("--force", is_flag=True, help="Overwrite --out if it exists.")
 def plot_cmd(
     model_or_file: str,
     params: tuple[str, ...],
@@ -170,6 +171,7 @@ def plot_cmd(
     phi_i: float,
     out: Path,
     linear: bool,
+    force: bool,
 ) -> None:
     """Plot a BRDF: in-plane slices, a polar heat map and (models) the albedo curve.
 
@@ -190,8 +192,18 @@ def plot_cmd(
             f"unsupported image type {out.suffix or '(none)'!r}; use .png, .pdf or .svg",
             param_hint="--out",
         )
+    if not np.isfinite(phi_i):
+        raise click.BadParameter(
+            f"expected a finite angle in degrees, got {phi_i}", param_hint="--phi-i"
+        )
     thetas = _parse_thetas(theta_i, "0,30,60")
     brdf, label = _resolve(model_or_file, _parse_params(params), fresnel, g1)
+    # After the model and its parameters, whose errors the user should see first.
+    if out.exists() and not force:
+        raise click.BadParameter(
+            f"'{out}' exists; pass --force to overwrite it or choose another file",
+            param_hint="--out",
+        )
     is_model = getattr(brdf, "format", "") == "analytic"
     plot_brdf(
         brdf,

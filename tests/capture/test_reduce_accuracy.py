@@ -140,15 +140,18 @@ def reduce_material(brdf, rig, light, rgl_file=None):
     Le = np.asarray(LIGHT["radiance"], float)
     got, std, truth_px, truth_model = [], [], [], []
     for k, pose in enumerate(SAMPLE_POSES):
-        m, truth, rp, channel = shoot_and_measure(cam, rig, setup, "sample", k, pose)
+        m, truth, rp, _ = shoot_and_measure(cam, rig, setup, "sample", k, pose)
         assert (m.flags == 0).all(), m.reasons
         f, s, _, _ = brdf_of(m, I, I_var)
         box, lab = m.regions.box, m.regions.label
-        rad, pts, ch = truth.radiance[box], truth.points[box], channel[box]
+        rad, pts = truth.radiance[box], truth.points[box]
         tp = np.empty_like(f)
         for j in range(m.regions.n_regions):
             for c in range(3):
-                px = (lab == j) & (ch == c)
+                # every pixel of the region, whatever its filter: the reduction reports
+                # each channel at the region's pixel centroid (its directions), not at
+                # that channel's own CFA sites half a pixel away
+                px = lab == j
                 G = irradiance_disk(
                     pts[px],
                     [0, 0, 1],
