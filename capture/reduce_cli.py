@@ -42,6 +42,15 @@ import click
     help="Largest camera-direction disagreement between board and rig before the "
     "samples are flagged GEOMETRY_MISMATCH.",
 )
+@click.option(
+    "--geometry",
+    type=click.Choice(["board", "rig"]),
+    default="board",
+    show_default=True,
+    help="Camera pose from the ChArUco board in each pose, or from the rig's read-back "
+    "pose through its kinematics (a calibrated rig, or the exact simulated one); the "
+    "board checks the rig either way.",
+)
 @click.option("--no-plot", is_flag=True, help="Do not write SESSION/samples.png.")
 @click.option("--quiet", is_flag=True, help="No progress bar or summary table.")
 def reduce_cmd(
@@ -51,6 +60,7 @@ def reduce_cmd(
     grid: int | None,
     roi_fraction: float | None,
     tolerance_deg: float | None,
+    geometry: str,
     no_plot: bool,
     quiet: bool,
 ) -> None:
@@ -86,7 +96,10 @@ def reduce_cmd(
     upd = {
         k: v
         for k, v in dict(
-            grid=grid, roi_fraction=roi_fraction, geometry_tolerance_deg=tolerance_deg
+            grid=grid,
+            roi_fraction=roi_fraction,
+            geometry_tolerance_deg=tolerance_deg,
+            geometry=geometry,
         ).items()
         if v is not None
     }

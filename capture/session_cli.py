@@ -39,11 +39,16 @@ def _scene_for(plan, plan_path: Path | None, scene_path: str | None) -> dict[str
     if not p.is_absolute() and scene_path is None and plan_path is not None:
         p = plan_path.parent / p
     try:
-        return tomllib.loads(p.read_text(encoding="utf-8")) | {"_base_dir": str(p.resolve().parent)}
+        doc = tomllib.loads(p.read_text(encoding="utf-8"))
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read the simulation scene: {exc.strerror}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: scene is not valid TOML: {exc}") from None
+    from gonio.simulator.scene import parse_scene
+
+    # Validated here, so an error names this file and comes before the session starts.
+    parse_scene(doc, str(p), p.resolve().parent)
+    return doc | {"_base_dir": str(p.resolve().parent)}
 
 
 # --------------------------------------------------------------------------------------

@@ -277,7 +277,11 @@ def load_samples(path: str | os.PathLike) -> BRDFSamples:
         schema = f.attrs.get("schema")
         if schema != SCHEMA:
             raise FileFormatError(path, f"expected schema '{SCHEMA}', found {schema!r}", "schema")
-        version = int(f.attrs.get("schema_version", -1))
+        raw_version = f.attrs.get("schema_version", -1)
+        try:
+            version: Any = int(raw_version)
+        except (TypeError, ValueError):
+            version = repr(raw_version)
         if version != SCHEMA_VERSION:
             raise FileFormatError(
                 path, f"schema version {version} is not supported (expected {SCHEMA_VERSION})",
@@ -289,6 +293,8 @@ def load_samples(path: str | os.PathLike) -> BRDFSamples:
                 raise FileFormatError(path, "required dataset is missing", name)
         for name in ("wi", "wo", "brdf", "brdf_std", "flags", "radiance", "irradiance"):
             if name in f:
+                if f[name].dtype.kind not in "biuf":
+                    raise FileFormatError(path, f"expected numbers, found {f[name].dtype}", name)
                 out[name] = f[name][()]
         if "frames" in f:
             out["frames"] = f["frames"].asstr()[()]

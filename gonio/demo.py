@@ -344,7 +344,7 @@ def run_demo(
     # Regions of ~5 mm: a region's mean over its spread of directions flattens a lobe's
     # peak in proportion to (region size / lobe width)^2; 6 x 6 regions keep that below
     # the noise for alpha >= 0.1 while each region still has ~100 pixels.
-    setup = dataclasses.replace(setup, geometry="rig", grid=6)
+    setup = dataclasses.replace(setup, geometry="rig", grid=6)  # = --geometry rig --grid 6
     red = reduce_session(session, setup=setup, plot=True)
     seconds["reduce"] = time.perf_counter() - t
 

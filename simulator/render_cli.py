@@ -108,7 +108,7 @@ def render_cmd(
     """
     from rich.console import Console
 
-    from gonio.errors import FileFormatError
+    from gonio.errors import ConfigError, FileFormatError
     from gonio.simulator.dng import dng_bytes, write_dng
     from gonio.simulator.render import render, save_truth
     from gonio.simulator.scene import load_scene
@@ -133,6 +133,10 @@ def render_cmd(
                 param_hint=hint,
             )
     scene = load_scene(scene_file)
+    try:
+        scene.build_brdf()  # the sample's BRDF is resolved lazily; fail now, naming the file
+    except ConfigError as exc:
+        raise ConfigError(f"{scene_file}: {exc}") from None
     if reference:
         scene = scene.with_reference_target(0.99)
     with console.status("rendering..."):

@@ -45,6 +45,10 @@ def case(id, args, code, *expect, rgl=False) -> Case:
     return Case(id, tuple(args.split()), code, tuple(expect), rgl)
 
 
+RUN = "capture run {ex}/plan.toml --camera simulated --out {tmp}/S"
+VRUN = RUN + " --rig {bad}/rig_virtual.toml"
+NOISE = "capture calibrate-noise --flat {bad}/garbage.dng --flat {bad}/garbage.dng"
+
 # Placeholders: {bad} broken input files, {ex} examples/, {tmp} the case's own folder
 # (holding keep.* outputs and keepdir/ with a fit.json), {rgl} a real RGL .bsdf file.
 CASES = [
@@ -75,31 +79,135 @@ CASES = [
     case("plot-phi-nan", "brdf plot lambert --phi-i nan -o {tmp}/n.png", 2, "--phi-i", "nan"),
     case("plot-bounds", "brdf plot ggx -p alpha=2 -o {tmp}/keep.png", 1, "'alpha'", "bounds"),
     case("convert-garbage", "brdf convert {bad}/garbage.bsdf {tmp}/n.binary", 1, "garbage.bsdf"),
-    case("convert-exists", "brdf convert {rgl} {tmp}/keep.binary", 1, "keep.binary", "--force", rgl=True),
+    case(
+        "convert-exists",
+        "brdf convert {rgl} {tmp}/keep.binary",
+        1,
+        "keep.binary",
+        "--force",
+        rgl=True,
+    ),
     case("convert-suffix", "brdf convert {rgl} {tmp}/n.txt", 2, "n.txt", ".binary", rgl=True),
-    case("convert-no-folder", "brdf convert {rgl} {tmp}/no/n.binary", 2, "does not exist", rgl=True),
+    case(
+        "convert-no-folder", "brdf convert {rgl} {tmp}/no/n.binary", 2, "does not exist", rgl=True
+    ),
     # -- gonio sim ---------------------------------------------------------------------
-    case("render-not-toml", "sim render {bad}/bad.toml --out {tmp}/a.dng", 1, "bad.toml", "not a valid toml"),
-    case("render-empty", "sim render {bad}/empty.toml --out {tmp}/a.dng", 1, "empty.toml", "'camera'", "required"),
+    case(
+        "render-not-toml",
+        "sim render {bad}/bad.toml --out {tmp}/a.dng",
+        1,
+        "bad.toml",
+        "not a valid toml",
+    ),
+    case(
+        "render-empty",
+        "sim render {bad}/empty.toml --out {tmp}/a.dng",
+        1,
+        "empty.toml",
+        "'camera'",
+        "required",
+    ),
     case("render-dir", "sim render {bad}/adir --out {tmp}/a.dng", 2, "adir", "is a directory"),
-    case("render-missing", "sim render {bad}/nope.toml --out {tmp}/a.dng", 1, "nope.toml", "not found"),
-    case("render-type", "sim render {bad}/scene_type.toml --out {tmp}/a.dng", 1, "camera.exposure_time", "'fast'"),
-    case("render-unknown-key", "sim render {bad}/scene_key.toml --out {tmp}/a.dng", 1, "'bogus_key'", "not permitted"),
-    case("render-exists", "sim render {ex}/scene.toml --out {tmp}/keep.dng", 1, "keep.dng", "--force"),
-    case("render-truth-exists", "sim render {ex}/scene.toml --out {tmp}/a.dng --truth {tmp}/keep.h5", 1, "keep.h5", "--force"),
-    case("render-truth-folder", "sim render {ex}/scene.toml --out {tmp}/a.dng --truth {tmp}/no/t.h5", 2, "--truth", "does not exist"),
-    case("render-suffix", "sim render {ex}/scene.toml --out {tmp}/a.txt", 2, "--out", ".dng", "a.txt"),
-    case("render-preview-suffix", "sim render {ex}/scene.toml --out {tmp}/a.dng --preview {tmp}/p.txt", 2, "--preview", "p.txt"),
+    case(
+        "render-missing",
+        "sim render {bad}/nope.toml --out {tmp}/a.dng",
+        1,
+        "nope.toml",
+        "not found",
+    ),
+    case(
+        "render-type",
+        "sim render {bad}/scene_type.toml --out {tmp}/a.dng",
+        1,
+        "camera.exposure_time",
+        "'fast'",
+    ),
+    case(
+        "render-unknown-key",
+        "sim render {bad}/scene_key.toml --out {tmp}/a.dng",
+        1,
+        "'bogus_key'",
+        "not permitted",
+    ),
+    case(
+        "render-brdf-model",
+        "sim render {bad}/scene_model.toml --out {tmp}/a.dng",
+        1,
+        "scene_model.toml",
+        "sample.brdf",
+        "'nosuch'",
+    ),
+    case(
+        "render-brdf-file",
+        "sim render {bad}/scene_file.toml --out {tmp}/a.dng",
+        1,
+        "scene_file.toml",
+        "nope.bsdf",
+        "does not exist",
+    ),
+    case(
+        "render-exists", "sim render {ex}/scene.toml --out {tmp}/keep.dng", 1, "keep.dng", "--force"
+    ),
+    case(
+        "render-truth-exists",
+        "sim render {ex}/scene.toml --out {tmp}/a.dng --truth {tmp}/keep.h5",
+        1,
+        "keep.h5",
+        "--force",
+    ),
+    case(
+        "render-truth-folder",
+        "sim render {ex}/scene.toml --out {tmp}/a.dng --truth {tmp}/no/t.h5",
+        2,
+        "--truth",
+        "does not exist",
+    ),
+    case(
+        "render-suffix", "sim render {ex}/scene.toml --out {tmp}/a.txt", 2, "--out", ".dng", "a.txt"
+    ),
+    case(
+        "render-preview-suffix",
+        "sim render {ex}/scene.toml --out {tmp}/a.dng --preview {tmp}/p.txt",
+        2,
+        "--preview",
+        "p.txt",
+    ),
     case("render-iso", "sim render {ex}/scene.toml --out {tmp}/a.dng --iso -5", 2, "--iso", "-5"),
-    case("render-f-nan", "sim render {ex}/scene.toml --out {tmp}/a.dng --f-number nan", 2, "--f-number", "nan"),
-    case("render-exposure", "sim render {ex}/scene.toml --out {tmp}/a.dng --exposure-time 0", 2, "--exposure-time", "positive"),
-    case("render-tolerance", "sim render {ex}/scene.toml --out {tmp}/a.dng --tolerance -1", 2, "--tolerance", "-1"),
-    case("render-strategy", "sim render {ex}/scene.toml --out {tmp}/a.dng --strategy fast", 2, "'fast'", "auto"),
+    case(
+        "render-f-nan",
+        "sim render {ex}/scene.toml --out {tmp}/a.dng --f-number nan",
+        2,
+        "--f-number",
+        "nan",
+    ),
+    case(
+        "render-exposure",
+        "sim render {ex}/scene.toml --out {tmp}/a.dng --exposure-time 0",
+        2,
+        "--exposure-time",
+        "positive",
+    ),
+    case(
+        "render-tolerance",
+        "sim render {ex}/scene.toml --out {tmp}/a.dng --tolerance -1",
+        2,
+        "--tolerance",
+        "-1",
+    ),
+    case(
+        "render-strategy",
+        "sim render {ex}/scene.toml --out {tmp}/a.dng --strategy fast",
+        2,
+        "'fast'",
+        "auto",
+    ),
     case("bus-ids-text", "sim bus --servos a,b", 2, "--servos", "'a,b'", "integers"),
     case("bus-id-range", "sim bus --servos 1,300", 2, "--servos", "0..252", "300"),
     case("bus-id-dup", "sim bus --servos 1,1", 2, "--servos", "duplicate"),
     case("bus-no-ids", "sim bus --servos ,", 2, "--servos", "at least one"),
-    case("bus-positions", "sim bus --servos 1,2 --positions 1", 2, "--positions", "1 positions for 2"),
+    case(
+        "bus-positions", "sim bus --servos 1,2 --positions 1", 2, "--positions", "1 positions for 2"
+    ),
     case("bus-baud", "sim bus --baud 12345", 2, "--baud", "'12345'", "1000000"),
     case("bus-fault-rate", "sim bus --fault-rate 2", 2, "--fault-rate", "0<=x<=1"),
     case("bus-time-scale", "sim bus --time-scale 0", 2, "--time-scale", "x>=0.001"),
@@ -107,22 +215,69 @@ CASES = [
     # -- gonio rig ---------------------------------------------------------------------
     case("scan-no-port", f"rig scan --port {NOPORT}", 1, NOPORT, "cannot open serial port"),
     case("scan-dir-port", "rig scan --port {bad}/adir", 1, "adir", "cannot open serial port"),
-    case("scan-file-port", "rig scan --port {bad}/bad.toml", 1, "bad.toml", "cannot open serial port"),
-    case("scan-baud", f"rig scan --port {NOPORT} --baud 12345", 1, "baud rate 12345", "not supported"),
+    case(
+        "scan-file-port", "rig scan --port {bad}/bad.toml", 1, "bad.toml", "cannot open serial port"
+    ),
+    case(
+        "scan-baud", f"rig scan --port {NOPORT} --baud 12345", 1, "baud rate 12345", "not supported"
+    ),
     case("scan-no-option", "rig scan", 2, "--port"),
     case("status-no-port", f"rig status --port {NOPORT}", 1, NOPORT, "cannot open serial port"),
-    case("status-not-toml", "rig status --config {bad}/bad.toml", 1, "bad.toml", "not a valid toml"),
-    case("status-empty", "rig status --config {bad}/empty.toml", 1, "empty.toml", "'servos'", "required"),
+    case(
+        "status-not-toml", "rig status --config {bad}/bad.toml", 1, "bad.toml", "not a valid toml"
+    ),
+    case(
+        "status-empty",
+        "rig status --config {bad}/empty.toml",
+        1,
+        "empty.toml",
+        "'servos'",
+        "required",
+    ),
     case("status-dir", "rig status --config {bad}/adir", 2, "adir", "is a directory"),
     case("status-missing", "rig status --config {bad}/nope.toml", 1, "nope.toml", "not found"),
-    case("status-type", "rig status --config {bad}/rig_type.toml", 1, "bus.baud_rate", "'fast'", "integer"),
+    case(
+        "status-type",
+        "rig status --config {bad}/rig_type.toml",
+        1,
+        "bus.baud_rate",
+        "'fast'",
+        "integer",
+    ),
     case("status-id", "rig status --config {bad}/rig_id.toml", 1, "servos.0.id", "252", "999"),
-    case("status-model", "rig status --config {bad}/rig_model.toml", 1, "servos.0.model", "'XZ999'"),
-    case("status-unknown-key", "rig status --config {bad}/rig_key.toml", 1, "'bogus'", "not permitted"),
+    case(
+        "status-model", "rig status --config {bad}/rig_model.toml", 1, "servos.0.model", "'XZ999'"
+    ),
+    case(
+        "status-unknown-key",
+        "rig status --config {bad}/rig_key.toml",
+        1,
+        "'bogus'",
+        "not permitted",
+    ),
     case("move-no-port", f"rig move --port {NOPORT} --theta-i 30 --theta-o 30", 1, NOPORT),
-    case("move-theta-range", f"rig move --port {NOPORT} --theta-i 200 --theta-o 30", 2, "--theta-i", "[0, 90]", "200"),
-    case("move-theta-nan", f"rig move --port {NOPORT} --theta-i 30 --theta-o nan", 2, "--theta-o", "nan"),
-    case("move-phi-inf", f"rig move --port {NOPORT} --theta-i 30 --theta-o 30 --phi-o inf", 2, "--phi-o", "inf"),
+    case(
+        "move-theta-range",
+        f"rig move --port {NOPORT} --theta-i 200 --theta-o 30",
+        2,
+        "--theta-i",
+        "[0, 90]",
+        "200",
+    ),
+    case(
+        "move-theta-nan",
+        f"rig move --port {NOPORT} --theta-i 30 --theta-o nan",
+        2,
+        "--theta-o",
+        "nan",
+    ),
+    case(
+        "move-phi-inf",
+        f"rig move --port {NOPORT} --theta-i 30 --theta-o 30 --phi-o inf",
+        2,
+        "--phi-o",
+        "inf",
+    ),
     case("move-missing", f"rig move --port {NOPORT} --theta-i 30", 2, "--theta-o"),
     case("move-config", "rig move --config {bad}/bad.toml --theta-i 1 --theta-o 1", 1, "bad.toml"),
     case("home-no-port", f"rig home --port {NOPORT}", 1, NOPORT, "cannot open serial port"),
@@ -138,59 +293,248 @@ CASES = [
     case("plan-kind", "capture plan {bad}/plan_kind.toml", 1, "grid.kind", "'cubic'", "spherical"),
     case("plan-range", "capture plan {bad}/plan_range.toml", 1, "theta_i_deg", "[0, 90]", "400"),
     case("plan-step", "capture plan {bad}/plan_step.toml", 1, "theta_o_deg.step", "greater than 0"),
-    case("plan-rig", "capture plan {ex}/plan.toml --rig {bad}/rig_id.toml", 1, "rig_id.toml", "999"),
-    case("plan-plot-exists", "capture plan {ex}/plan.toml --plot {tmp}/keep.png", 2, "keep.png", "--force"),
-    case("plan-plot-folder", "capture plan {ex}/plan.toml --plot {tmp}/no/p.png", 2, "--plot", "does not exist"),
-    case("plan-plot-suffix", "capture plan {ex}/plan.toml --plot {tmp}/p.txt", 2, "--plot", "p.txt", ".png"),
-    case("run-nonempty-out", "capture run {ex}/plan.toml --camera simulated --out {tmp}/keepdir", 1, "keepdir", "not an empty directory"),
-    case("run-out-file", "capture run {ex}/plan.toml --camera simulated --out {tmp}/keep.h5", 2, "keep.h5", "is a file"),
-    case("run-not-toml", "capture run {bad}/bad.toml --camera simulated --out {tmp}/S", 1, "bad.toml", "not a valid toml"),
-    case("run-rig", "capture run {ex}/plan.toml --rig {bad}/bad.toml --camera simulated --out {tmp}/S", 1, "bad.toml"),
-    case("run-scene", "capture run {ex}/plan.toml --rig {bad}/rig_virtual.toml --scene {bad}/bad.toml --camera simulated --out {tmp}/S", 1, "bad.toml", "toml"),
-    case("run-no-port", "capture run {ex}/plan.toml --rig {bad}/rig_noport.toml --camera simulated --out {tmp}/S --quiet", 1, NOPORT, "cannot open serial port"),
-    case("run-sim-speed", "capture run {ex}/plan.toml --rig {bad}/rig_virtual.toml --camera simulated --out {tmp}/S --sim-speed -1", 2, "--sim-speed", "-1"),
-    case("run-sim-speed-nan", "capture run {ex}/plan.toml --rig {bad}/rig_virtual.toml --camera simulated --out {tmp}/S --sim-speed nan", 2, "--sim-speed", "nan"),
-    case("run-camera", "capture run {ex}/plan.toml --camera webcam --out {tmp}/S", 2, "'webcam'", "simulated"),
+    case(
+        "plan-rig", "capture plan {ex}/plan.toml --rig {bad}/rig_id.toml", 1, "rig_id.toml", "999"
+    ),
+    case(
+        "plan-plot-exists",
+        "capture plan {ex}/plan.toml --plot {tmp}/keep.png",
+        2,
+        "keep.png",
+        "--force",
+    ),
+    case(
+        "plan-plot-folder",
+        "capture plan {ex}/plan.toml --plot {tmp}/no/p.png",
+        2,
+        "--plot",
+        "does not exist",
+    ),
+    case(
+        "plan-plot-suffix",
+        "capture plan {ex}/plan.toml --plot {tmp}/p.txt",
+        2,
+        "--plot",
+        "p.txt",
+        ".png",
+    ),
+    case(
+        "run-nonempty-out",
+        "capture run {ex}/plan.toml --camera simulated --out {tmp}/keepdir",
+        1,
+        "keepdir",
+        "not an empty directory",
+    ),
+    case(
+        "run-out-file",
+        "capture run {ex}/plan.toml --camera simulated --out {tmp}/keep.h5",
+        2,
+        "keep.h5",
+        "is a file",
+    ),
+    case(
+        "run-not-toml",
+        "capture run {bad}/bad.toml --camera simulated --out {tmp}/S",
+        1,
+        "bad.toml",
+        "not a valid toml",
+    ),
+    case(
+        "run-rig",
+        "capture run {ex}/plan.toml --rig {bad}/bad.toml --camera simulated --out {tmp}/S",
+        1,
+        "bad.toml",
+    ),
+    case(
+        "run-scene",
+        VRUN + " --scene {bad}/bad.toml",
+        1,
+        "bad.toml",
+        "toml",
+    ),
+    case(
+        "run-scene-type",
+        VRUN + " --scene {bad}/scene_type.toml",
+        1,
+        "scene_type.toml",
+        "camera.exposure_time",
+        "'fast'",
+    ),
+    case(
+        "run-no-port",
+        RUN + " --rig {bad}/rig_noport.toml --quiet",
+        1,
+        NOPORT,
+        "cannot open serial port",
+    ),
+    case(
+        "run-sim-speed",
+        VRUN + " --sim-speed -1",
+        2,
+        "--sim-speed",
+        "-1",
+    ),
+    case(
+        "run-sim-speed-nan",
+        VRUN + " --sim-speed nan",
+        2,
+        "--sim-speed",
+        "nan",
+    ),
+    case(
+        "run-camera",
+        "capture run {ex}/plan.toml --camera webcam --out {tmp}/S",
+        2,
+        "'webcam'",
+        "simulated",
+    ),
     case("resume-missing", "capture resume {tmp}/nope", 2, "nope", "does not exist"),
-    case("resume-not-session", "capture resume {bad}/adir --camera simulated", 1, "adir", "no manifest.json"),
-    case("resume-corrupt", "capture resume {bad}/sess_corrupt --camera simulated", 1, "manifest.json", "cannot read"),
-    case("resume-schema", "capture resume {bad}/sess_empty --camera simulated", 1, "manifest.json", "schema_version"),
+    case(
+        "resume-not-session",
+        "capture resume {bad}/adir --camera simulated",
+        1,
+        "adir",
+        "no manifest.json",
+    ),
+    case(
+        "resume-corrupt",
+        "capture resume {bad}/sess_corrupt --camera simulated",
+        1,
+        "manifest.json",
+        "cannot read",
+    ),
+    case(
+        "resume-schema",
+        "capture resume {bad}/sess_empty --camera simulated",
+        1,
+        "manifest.json",
+        "schema_version",
+    ),
     case("resume-sim-speed", "capture resume {bad}/adir --sim-speed 0", 2, "--sim-speed", "0"),
     case("inspect-file", "capture inspect {bad}/bad.toml", 2, "bad.toml", "is a file"),
     case("inspect-not-session", "capture inspect {bad}/adir", 1, "adir", "no manifest.json"),
-    case("inspect-corrupt", "capture inspect {bad}/sess_corrupt", 1, "manifest.json", "cannot read"),
+    case(
+        "inspect-corrupt", "capture inspect {bad}/sess_corrupt", 1, "manifest.json", "cannot read"
+    ),
     case("reduce-not-session", "capture reduce {bad}/adir", 1, "adir", "no manifest.json"),
     case("reduce-corrupt", "capture reduce {bad}/sess_corrupt", 1, "manifest.json", "cannot read"),
     case("reduce-grid", "capture reduce {bad}/adir --grid 0", 2, "--grid", "1<=x<=20"),
-    case("reduce-noise-garbage", "capture reduce {bad}/sess_corrupt --noise {bad}/garbage.h5", 1, "garbage.h5", "noise model"),
-    case("noise-garbage", "capture calibrate-noise --flat {bad}/garbage.dng --flat {bad}/garbage.dng --out {tmp}/n.json", 1, "garbage.dng", "raw file"),
-    case("noise-empty", "capture calibrate-noise --flat {bad}/empty.h5 --flat {bad}/empty.h5 --out {tmp}/n.json", 1, "empty.h5", "empty"),
-    case("noise-missing", "capture calibrate-noise --flat {bad}/nope.dng --out {tmp}/n.json", 2, "nope.dng", "does not exist"),
-    case("noise-exists", "capture calibrate-noise --flat {bad}/garbage.dng --flat {bad}/garbage.dng --out {tmp}/keep.json", 1, "keep.json", "exists"),
+    case(
+        "reduce-noise-garbage",
+        "capture reduce {bad}/sess_corrupt --noise {bad}/garbage.h5",
+        1,
+        "garbage.h5",
+        "noise model",
+    ),
+    case(
+        "noise-garbage",
+        NOISE + " --out {tmp}/n.json",
+        1,
+        "garbage.dng",
+        "raw file",
+    ),
+    case(
+        "noise-empty",
+        "capture calibrate-noise --flat {bad}/empty.h5 --flat {bad}/empty.h5 --out {tmp}/n.json",
+        1,
+        "empty.h5",
+        "empty",
+    ),
+    case(
+        "noise-missing",
+        "capture calibrate-noise --flat {bad}/nope.dng --out {tmp}/n.json",
+        2,
+        "nope.dng",
+        "does not exist",
+    ),
+    case(
+        "noise-exists",
+        NOISE + " --out {tmp}/keep.json",
+        1,
+        "keep.json",
+        "exists",
+    ),
     # -- gonio fit ---------------------------------------------------------------------
-    case("fit-garbage-h5", "fit {bad}/garbage.h5 --out {tmp}/F", 1, "garbage.h5", "not a readable hdf5"),
+    case(
+        "fit-garbage-h5",
+        "fit {bad}/garbage.h5 --out {tmp}/F",
+        1,
+        "garbage.h5",
+        "not a readable hdf5",
+    ),
     case("fit-empty-h5", "fit {bad}/empty.h5 --out {tmp}/F", 1, "empty.h5", "hdf5"),
-    case("fit-other-h5", "fit {bad}/other.h5 --out {tmp}/F", 1, "other.h5", "'schema'", "gonio.samples"),
+    case(
+        "fit-other-h5",
+        "fit {bad}/other.h5 --out {tmp}/F",
+        1,
+        "other.h5",
+        "'schema'",
+        "gonio.samples",
+    ),
     case("fit-h5-field", "fit {bad}/nobrdf.h5 --out {tmp}/F", 1, "nobrdf.h5", "'brdf'", "missing"),
+    case("fit-h5-type", "fit {bad}/textwi.h5 --out {tmp}/F", 1, "textwi.h5", "'wi'", "numbers"),
+    case("fit-h5-version", "fit {bad}/version.h5 --out {tmp}/F", 1, "'schema_version'", "'one'"),
     case("fit-toml", "fit {bad}/bad.toml --out {tmp}/F", 1, "bad.toml", "unrecognised"),
     case("fit-garbage-bsdf", "fit {bad}/garbage.bsdf --out {tmp}/F", 1, "garbage.bsdf", "expected"),
     case("fit-dir", "fit {bad}/adir --out {tmp}/F", 2, "adir", "is a directory"),
     case("fit-missing", "fit {bad}/nope.h5 --out {tmp}/F", 2, "nope.h5", "does not exist"),
     case("fit-model", "fit {rgl} -m nosuch --out {tmp}/F", 1, "'nosuch'", "lambert", rgl=True),
-    case("fit-candidates", "fit {rgl} --candidates lambert,nosuch --out {tmp}/F", 1, "'nosuch'", rgl=True),
-    case("fit-algorithm", "fit {rgl} --algorithm NOPE --out {tmp}/F", 1, "'NOPE'", "LD_LBFGS", rgl=True),
+    case(
+        "fit-candidates",
+        "fit {rgl} --candidates lambert,nosuch --out {tmp}/F",
+        1,
+        "'nosuch'",
+        rgl=True,
+    ),
+    case(
+        "fit-algorithm",
+        "fit {rgl} --algorithm NOPE --out {tmp}/F",
+        1,
+        "'NOPE'",
+        "LD_LBFGS",
+        rgl=True,
+    ),
     case("fit-f-scale", "fit {rgl} --f-scale -1 --out {tmp}/F", 2, "--f-scale", "-1", rgl=True),
     case("fit-loss", "fit {bad}/garbage.h5 --loss l3 --out {tmp}/F", 2, "'l3'", "weighted_l2"),
-    case("fit-out-exists", "fit {rgl} -m lambert --out {tmp}/keepdir", 1, "keepdir", "fit.json", "--force", rgl=True),
+    case(
+        "fit-out-exists",
+        "fit {rgl} -m lambert --out {tmp}/keepdir",
+        1,
+        "keepdir",
+        "fit.json",
+        "--force",
+        rgl=True,
+    ),
     case("fit-out-file", "fit {rgl} --out {tmp}/keep.h5", 2, "keep.h5", "is a file", rgl=True),
     # -- gonio demo --------------------------------------------------------------------
     case("demo-model", "demo --material nosuch --out {tmp}/D", 1, "unknown brdf model 'nosuch'"),
     case("demo-bounds", "demo --material lambert_albedo=5 --out {tmp}/D", 1, "'albedo'", "[0, 1]"),
-    case("demo-number", "demo --material lambert_albedo=abc --out {tmp}/D", 1, "albedo=abc", "number"),
+    case(
+        "demo-number", "demo --material lambert_albedo=abc --out {tmp}/D", 1, "albedo=abc", "number"
+    ),
     case("demo-param", "demo --material lambert_foo=1 --out {tmp}/D", 1, "'foo'", "albedo"),
-    case("demo-file-missing", "demo --material {bad}/nope.bsdf --out {tmp}/D", 1, "nope.bsdf", "no such file"),
-    case("demo-file-garbage", "demo --material {bad}/garbage.bsdf --out {tmp}/D", 1, "garbage.bsdf", "expected"),
-    case("demo-rgl", "demo --material rgl:nosuch --out {tmp}/D", 1, "nosuch_rgb.bsdf", "not found", "gonio_refdata"),
+    case(
+        "demo-file-missing",
+        "demo --material {bad}/nope.bsdf --out {tmp}/D",
+        1,
+        "nope.bsdf",
+        "no such file",
+    ),
+    case(
+        "demo-file-garbage",
+        "demo --material {bad}/garbage.bsdf --out {tmp}/D",
+        1,
+        "garbage.bsdf",
+        "expected",
+    ),
+    case(
+        "demo-rgl",
+        "demo --material rgl:nosuch --out {tmp}/D",
+        1,
+        "nosuch_rgb.bsdf",
+        "not found",
+        "gonio_refdata",
+    ),
     case("demo-out-nonempty", "demo --out {tmp}/keepdir", 1, "keepdir", "not empty"),
     case("demo-out-file", "demo --out {tmp}/keep.h5", 2, "keep.h5", "is a file"),
     case("demo-resolution", "demo --resolution 0 0 --out {tmp}/D", 2, "--resolution", "8<=x"),
@@ -226,6 +570,13 @@ def bad(tmp_path_factory) -> Path:
         f["wi"] = np.tile([0.0, 0.0, 1.0], (4, 1))
         f["wo"] = np.tile([0.0, 0.0, 1.0], (4, 1))
     refdata = Path(os.environ.get("GONIO_REFDATA", REPO.parent / "shared" / "data"))
+    with h5py.File(d / "textwi.h5", "w") as f:  # a field of the wrong type
+        f.attrs.update(schema="gonio.samples", schema_version=1, channels=["R", "G", "B"])
+        f["wi"] = np.array([b"a"] * 4)
+        f["wo"] = np.tile([0.0, 0.0, 1.0], (4, 1))
+        f["brdf"] = np.ones((4, 3))
+    with h5py.File(d / "version.h5", "w") as f:
+        f.attrs.update(schema="gonio.samples", schema_version="one")
     rgl = refdata / "rgl" / "paper_white_rgb.bsdf"
     if rgl.is_file():
         (d / "trunc.bsdf").write_bytes(rgl.read_bytes()[:1000])
@@ -233,6 +584,8 @@ def bad(tmp_path_factory) -> Path:
     docs = {
         "scene_type.toml": _sed(scene, "exposure_time = ", 'exposure_time = "fast" # '),
         "scene_key.toml": "bogus_key = 1\n" + scene.read_text(),
+        "scene_model.toml": _sed(scene, 'model = "lambert+ggx"', 'model = "nosuch"'),
+        "scene_file.toml": _sed(scene, 'model = "lambert+ggx"', 'file = "nope.bsdf"\n# '),
         "rig_type.toml": _sed(rig, "baud_rate = 1000000", 'baud_rate = "fast"'),
         "rig_id.toml": _sed(rig, "id = 1\n", "id = 999\n"),
         "rig_model.toml": _sed(rig, 'model = "XM430-W350"', 'model = "XZ999"'),
@@ -339,3 +692,46 @@ def test_bad_input_is_refused_clearly_and_harmlessly(
     for s in c.expect:
         assert s.lower() in flat, f"{s!r} not in the message of gonio {' '.join(args)}:\n{err}"
     assert _snapshot(tmp_path, bad) == before, f"gonio {' '.join(args)} changed files on disk"
+
+
+@pytest.fixture(scope="module")
+def flats(tmp_path_factory) -> list[str]:
+    """Three pairs of small simulated flat fields: enough for a photon-transfer fit."""
+    import numpy as np
+
+    from gonio.simulator.dng import dng_bytes
+    from gonio.simulator.scene import Camera
+    from gonio.simulator.sensor import mean_electrons, simulate_raw
+
+    d = tmp_path_factory.mktemp("flats")
+    cam = Camera(resolution=(64, 48), fov_deg=40.0, position=(0, 0, 1))
+    rng = np.random.default_rng(7)
+    per_unit = mean_electrons(np.ones((48, 64, 3)), cam, 0.01, cam.f_number).max()
+    args = []
+    for level, electrons in enumerate((2000, 10000, 25000)):
+        for k in range(2):
+            f = simulate_raw(
+                np.full((48, 64, 3), electrons / per_unit), cam, exposure_time=0.01, seed=rng
+            )
+            p = d / f"flat{level}{k}.dng"
+            p.write_bytes(dng_bytes(f))
+            args += ["--flat", str(p)]
+    return args
+
+
+# capture/reduce_cli.py belongs to the reduction work in progress; these document its
+# remaining gaps (reported to the lead with the fix) and pass once it is fixed.
+@pytest.mark.xfail(reason="calibrate-noise does not check --plot before working", strict=False)
+@pytest.mark.parametrize(
+    "plot, expect",
+    [("keep.png", ("keep.png", "exists")), ("p.txt", ("p.txt", ".png"))],
+    ids=["plot-exists", "plot-suffix"],
+)
+def test_calibrate_noise_checks_its_plot_path_first(plot, expect, flats, tmp_path, capsys):
+    (tmp_path / "keep.png").write_bytes(PRECIOUS)
+    before = _snapshot(tmp_path)
+    args = ["capture", "calibrate-noise", *flats, "--out", str(tmp_path / "n.json")]
+    code, err = _run_in_process([*args, "--plot", str(tmp_path / plot)], capsys)
+    assert code in (1, 2) and "Traceback" not in err
+    assert all(s in err for s in expect), err
+    assert _snapshot(tmp_path) == before
