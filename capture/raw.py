@@ -347,8 +347,15 @@ def _check_tiff_strips(data: bytes, name: str) -> None:
     """
     if data[:4] not in (b"II*\x00", b"MM\x00*"):
         return
+    import logging
+
     import tifffile
 
+    # tifffile logs its own complaint about a damaged file before raising; the error we
+    # raise says it better, so keep stderr to one clear message.
+    log = logging.getLogger("tifffile")
+    level = log.level
+    log.setLevel(logging.CRITICAL)
     try:
         with tifffile.TiffFile(io.BytesIO(data)) as tf:
             for page in tf.pages:
@@ -368,6 +375,8 @@ def _check_tiff_strips(data: bytes, name: str) -> None:
         raise
     except Exception as exc:  # tifffile's own errors on a damaged header
         raise FileFormatError(name, f"damaged TIFF structure ({exc})") from None
+    finally:
+        log.setLevel(level)
 
 
 def _open(data: bytes, name: str) -> rawpy.RawPy:

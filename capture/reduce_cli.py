@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from gonio.errors import ReductionError
+
 
 @click.command("reduce")
 @click.argument("session_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
@@ -52,6 +54,9 @@ import click
     "board checks the rig either way.",
 )
 @click.option("--no-plot", is_flag=True, help="Do not write SESSION/samples.png.")
+@click.option(
+    "--force", is_flag=True, help="Replace an existing --out file that is not a samples file."
+)
 @click.option("--quiet", is_flag=True, help="No progress bar or summary table.")
 def reduce_cmd(
     session_dir: Path,
@@ -62,6 +67,7 @@ def reduce_cmd(
     tolerance_deg: float | None,
     geometry: str,
     no_plot: bool,
+    force: bool,
     quiet: bool,
 ) -> None:
     """Reduce a capture session's RAW brackets to calibrated BRDF samples.
@@ -105,6 +111,10 @@ def reduce_cmd(
     }
     if upd:
         setup = _replace(setup, **upd)
+    if out is not None and out.exists() and not force and not _is_samples_file(out):
+        raise ReductionError(
+            f"{out} exists and is not a gonio samples file; pass --force to replace it"
+        )
     with Progress(
         "[progress.description]{task.description}",
         BarColumn(),
@@ -129,6 +139,8 @@ def reduce_cmd(
     console.print(table)
     for fp in res.summary["failed_poses"]:
         console.print(f"[yellow]pose {fp['pose']} ({fp['kind']}): {fp['reason']}", soft_wrap=True)
+    for frame, why in res.summary.get("frame_problems", {}).items():
+        console.print(f"[yellow]frame {frame}: {why}", soft_wrap=True)
     console.print(f"wrote {res.path}", soft_wrap=True)
     if res.plot:
         console.print(f"plot: {res.plot}", soft_wrap=True)
@@ -182,7 +194,6 @@ def calibrate_noise_cmd(
     """
     from gonio.capture.noise import estimate_noise
     from gonio.capture.raw import read_raw
-    from gonio.errors import ReductionError
 
     if len(flats) % 2 or len(darks) % 2:
         raise ReductionError(
@@ -190,6 +201,14 @@ def calibrate_noise_cmd(
         )
     if out.exists():
         raise ReductionError(f"{out} exists; refusing to overwrite a noise model")
+    if plot_file is not None:  # checked before any work, so nothing is half written
+        pf = Path(plot_file)
+        if pf.suffix.lower() not in (".png", ".pdf", ".svg"):
+            raise click.BadParameter(
+                f"expected a .png, .pdf or .svg file name, got '{pf.name}'", param_hint="--plot"
+            )
+        if pf.exists():
+            raise ReductionError(f"{pf} exists; refusing to overwrite a plot")
     fr = [read_raw(p) for p in flats]
     dk = [read_raw(p) for p in darks]
     pt = estimate_noise(
@@ -219,3 +238,14 @@ def calibrate_noise_cmd(
         fig.tight_layout()
         fig.savefig(plot_file, dpi=90)
         plt.close(fig)
+
+
+def _is_samples_file(path: Path) -> bool:
+    """Whether ``path`` is a samples.h5 (re-running a reduction may replace it)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return f.attrs.get("schema") == "gonio.samples"
+    except OSError:
+        return False

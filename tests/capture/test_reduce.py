@@ -355,3 +355,23 @@ def test_reference_reflectance_of_the_plan_is_what_the_simulated_camera_renders(
     # closed form of the Lambertian sample; with the default 0.99 target the ratio is 0.505
     rel = np.abs(samples.brdf[ok] / (ALBEDO / np.pi) - 1)
     assert np.median(rel) <= 0.01
+
+
+def test_reduce_refuses_to_overwrite_a_file_that_is_not_samples(session, tmp_path):
+    s = copy_session(session, tmp_path / "S")
+    precious = tmp_path / "precious.h5"
+    precious.write_bytes(b"someone's thesis data")
+    assert run_cli("capture", "reduce", str(s), "--out", str(precious), "--quiet") == 1
+    assert precious.read_bytes() == b"someone's thesis data"
+    # an earlier samples file is replaced (re-running a reduction is safe), and --force
+    # replaces anything
+    out = tmp_path / "samples.h5"
+    assert run_cli("capture", "reduce", str(s), "--out", str(out), "--quiet", "--no-plot") == 0
+    assert run_cli("capture", "reduce", str(s), "--out", str(out), "--quiet", "--no-plot") == 0
+    assert (
+        run_cli(
+            "capture", "reduce", str(s), "--out", str(precious), "--quiet", "--no-plot", "--force"
+        )
+        == 0
+    )
+    assert load_samples(precious).n_channels == 3

@@ -719,9 +719,6 @@ def flats(tmp_path_factory) -> list[str]:
     return args
 
 
-# capture/reduce_cli.py belongs to the reduction work in progress; these document its
-# remaining gaps (reported to the lead with the fix) and pass once it is fixed.
-@pytest.mark.xfail(reason="calibrate-noise does not check --plot before working", strict=False)
 @pytest.mark.parametrize(
     "plot, expect",
     [("keep.png", ("keep.png", "exists")), ("p.txt", ("p.txt", ".png"))],
