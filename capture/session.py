@@ -557,6 +557,7 @@ def _run_all(d, plan, steps, state, rig, camera, kinematics, emit, read_noise_dn
             camera.set_target(kind)
             target = kind
         wi, wo = np.array(step["wi"]), np.array(step["wo"])
+        before = rig.read_joints()  # a RigError here is the bus failing: a fault
         try:
             rig.move_to(wi, wo)
         except RigFault:
@@ -564,6 +565,12 @@ def _run_all(d, plan, steps, state, rig, camera, kinematics, emit, read_noise_dn
         except RigError as exc:
             # Refused before anything moved (e.g. no collision-free path from here): the
             # pose is recorded as failed and the session goes on; 'inspect' lists it.
+            # But the rig's transport raises RigError too (a servo that did not answer,
+            # before or during the move): journaling that as a skip lost every remaining
+            # pose for good (resume never retries a skipped pose), so only a rig that
+            # still answers, in the pose it had, counts as having refused.
+            if not _refused_in_place(rig, before):
+                raise
             emit({"type": "pose_skipped", "pose": k, "reason": str(exc)})
             continue
         joints, temps = rig.read_state()
@@ -605,6 +612,20 @@ def _run_all(d, plan, steps, state, rig, camera, kinematics, emit, read_noise_dn
             t = _continue_exposure(plan, verdicts, done_shots)
         emit({"type": "pose_done", "pose": k, "frames": frame})
         prev_verdicts, prev_cos = verdicts, float(wi[2])
+
+
+#: Read-back joint change (rad) below which a refused move counts as "nothing moved":
+#: well above a holding servo's jitter (1-2 pulses, 0.09-0.18 deg), well below any move.
+_REFUSAL_TOLERANCE_RAD = math.radians(0.5)
+
+
+def _refused_in_place(rig: RigDevice, before: dict[str, float]) -> bool:
+    """True when the rig still answers and has not left the joints ``before`` (rad)."""
+    try:
+        after = rig.read_joints()
+    except RigError:
+        return False
+    return all(abs(after.get(j, math.inf) - v) <= _REFUSAL_TOLERANCE_RAD for j, v in before.items())
 
 
 def _first_exposure(plan, prev_verdicts, prev_cos, cos_i) -> float:

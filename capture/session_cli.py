@@ -258,14 +258,21 @@ class _Progress:
         )
         self.task = self.progress.add_task("poses", total=total, completed=done, shots=0)
         self.shots = 0
+        self.skipped = 0
 
     def __call__(self, rec: dict[str, Any]) -> None:
         t = rec.get("type")
         if t == "shot":
             self.shots += 1
             self.progress.update(self.task, shots=self.shots)
-        elif t == "pose_done":
+        elif t in ("pose_done", "pose_skipped"):
+            # a skipped pose is finished too: without this the bar stopped short of 100 %
             self.progress.advance(self.task)
+            if t == "pose_skipped":
+                self.skipped += 1
+                self.progress.console.print(
+                    f"[yellow]pose {rec.get('pose')} skipped: {rec.get('reason')}"
+                )
         elif t == "fault":
             self.progress.console.print(f"[red]fault ({rec.get('source')}): {rec.get('error')}")
 
@@ -294,7 +301,16 @@ def _run_with_progress(session_dir: Path, devices, resumed: bool, quiet: bool) -
             resumed=resumed,
             read_noise_dn=devices.read_noise_dn(manifest),
         )
-    click.echo(f"session {session_dir} completed")
+    if prog.skipped:
+        # a session that skipped poses must not read as complete at a glance
+        n = prog.skipped
+        click.echo(
+            f"session {session_dir} completed; {n} pose{'s' if n > 1 else ''} skipped "
+            f"(the rig refused {'them' if n > 1 else 'it'}): see 'gonio capture inspect "
+            f"{session_dir}'"
+        )
+    else:
+        click.echo(f"session {session_dir} completed")
 
 
 _COMMON_RUN = [
@@ -557,8 +573,10 @@ def inspect_cmd(session_dir: Path, verify: bool, as_json: bool) -> None:
         con.print(f"[bold]{session_dir}[/]  plan {info['plan']!r}, camera {info['camera']}")
         con.print(
             f"status: [bold]{info['status']}[/]; poses done {info['poses_done']}/"
-            f"{info['poses_total']}, shots {info['shots']} ({info['files_verified']} "
-            f"files verified)"
+            f"{info['poses_total']}"
+            # poses_done counts skipped poses (finished, never retried): say so
+            + (f" ({len(info['skipped'])} of them skipped)" if info["skipped"] else "")
+            + f", shots {info['shots']} ({info['files_verified']} files verified)"
         )
         if info["partial_poses"]:
             con.print(f"cut short (will be continued): poses {info['partial_poses']}")

@@ -31,6 +31,32 @@ def _positive_scale(ctx, param, value: float) -> float:
     return value
 
 
+def _parse_options(items: tuple[str, ...]) -> dict[str, str]:
+    opts: dict[str, str] = {}
+    for item in items:
+        key, eq, value = item.partition("=")
+        if not eq or not key.strip() or not value.strip():
+            raise click.BadParameter(
+                f"expected KEY=VALUE (e.g. fresnel=schlick), got {item!r}", param_hint="--option"
+            )
+        opts[key.strip()] = value.strip()
+    return opts
+
+
+def _split_candidates(text: str) -> tuple[str, ...]:
+    """Split at commas outside brackets: 'a,b[x=1,y=2]' -> ('a', 'b[x=1,y=2]')."""
+    parts, depth, cur = [], 0, ""
+    for ch in text:
+        depth += (ch == "[") - (ch == "]")
+        if ch == "," and depth == 0:
+            parts.append(cur.strip())
+            cur = ""
+        else:
+            cur += ch
+    parts.append(cur.strip())
+    return tuple(p for p in parts if p)
+
+
 @click.command(name="fit")
 @click.argument("source", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option(
@@ -42,7 +68,18 @@ def _positive_scale(ctx, param, value: float) -> float:
     "lambert+ward, lambert+blinn-phong, ...) or 'auto' to choose by BIC.",
 )
 @click.option(
-    "--candidates", default=None, help="Comma-separated candidate models for --model auto."
+    "--option",
+    "options",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Model option for --model (repeatable), e.g. --option fresnel=schlick (adds f0) "
+    "or fresnel=dielectric (adds eta); the same as -m 'lambert+ggx[fresnel=schlick]'.",
+)
+@click.option(
+    "--candidates",
+    default=None,
+    help="Comma-separated candidate models for --model auto, options in brackets: "
+    "lambert,oren-nayar,lambert+ggx,lambert+ggx[fresnel=schlick].",
 )
 @click.option(
     "--loss",
@@ -86,6 +123,7 @@ def _positive_scale(ctx, param, value: float) -> float:
 def fit(
     source: Path,
     model: str,
+    options: tuple[str, ...],
     candidates: str | None,
     loss: str,
     robust: str | None,
@@ -106,6 +144,7 @@ def fit(
       gonio fit S/samples.h5 --out fit/                 choose the model by BIC
       gonio fit S/samples.h5 -m lambert+ggx --out fit/  one model
       gonio fit paper_white_rgb.bsdf -m auto --out paper/
+      gonio fit film.bsdf -m lambert+ggx --option fresnel=schlick --out film/
 
     Shape parameters (roughness) are shared by all colour channels; albedo and ks are fitted
     per channel.  The summary shows each parameter with its one-sigma uncertainty.
@@ -116,6 +155,7 @@ def fit(
 
     from gonio.fitting import fit as run_fit
     from gonio.fitting.export import mitsuba_xml, save_json
+    from gonio.fitting.select import format_model_spec
 
     console = Console(stderr=False)
     existing = [out / n for n in _OUTPUTS if (out / n).exists()]
@@ -124,8 +164,14 @@ def fit(
             f"{out} already holds {', '.join(p.name for p in existing)}; "
             "use --force to replace them or choose another --out"
         )
+    model_options = _parse_options(options)
+    if model_options and model == "auto":
+        raise click.UsageError(
+            "--option sets options of one --model; with --model auto put them in the "
+            "candidates: --candidates 'lambert,lambert+ggx[fresnel=schlick]'"
+        )
     samples, kind = _load_input(source)
-    cands = tuple(c.strip() for c in candidates.split(",")) if candidates else None
+    cands = _split_candidates(candidates) if candidates else None
     n_steps = (len(cands) if cands else 4) + 3 if model == "auto" else 4
     with Progress(
         SpinnerColumn(),
@@ -149,6 +195,7 @@ def fit(
             algorithm=algorithm,
             energy_conservation=not no_energy,
             candidates=cands,
+            model_options=model_options or None,
             progress=step,
         )
         prog.update(task, description="writing outputs")
@@ -159,6 +206,8 @@ def fit(
         except FitError as exc:
             xml = None
             console.print(f"[yellow]no Mitsuba export: {exc}[/yellow]")
+            # (--force) a material.xml of an earlier fit must not pass for this one
+            (out / "material.xml").unlink(missing_ok=True)
         if xml is not None:
             (out / "material.xml").write_text(xml)
             written.append(out / "material.xml")
@@ -169,7 +218,7 @@ def fit(
             written.append(plot_residual_map(r, samples, out / "residuals.png"))
         prog.update(task, completed=n_steps)
 
-    table = Table(title=f"{r.model} fitted to {source.name} ({kind}, {r.n_samples} samples)")
+    table = Table(title=f"{format_model_spec(r.model, r.model_options)} fitted to {source.name} ({kind}, {r.n_samples} samples)")
     table.add_column("parameter")
     for c in r.channels:
         table.add_column(c, justify="right")

@@ -77,9 +77,14 @@ def resolve_loss(loss: str, samples: Any) -> str:
 def _get_model(model: Any, options: dict[str, Any]) -> tuple[Any, str, dict[str, Any]]:
     if isinstance(model, str):
         from gonio.brdf import get_model
+        from gonio.fitting.select import parse_model_spec
 
-        m = get_model(model, **options)
-        return m, model, dict(options)
+        # "lambert+ggx[fresnel=schlick]": options in the name (model selection candidates,
+        # the CLI's --model); explicit model_options win over them
+        name, spec_opts = parse_model_spec(model)
+        opts = {**spec_opts, **options}
+        m = get_model(name, **opts)
+        return m, name, opts
     name = getattr(model, "name", None)
     if name is None or not hasattr(model, "eval_with_grad"):
         raise FitError(f"model must be a name or a gonio.brdf model, got {model!r}")
@@ -115,7 +120,8 @@ def fit(
         ``brdf_std`` (N, C) in 1/sr, ``flags``).  Flagged and non-finite samples are left
         out and counted in ``diagnostics["dropped"]``.
     model
-        A model name for :func:`gonio.brdf.get_model` (``"lambert+ggx"``), a model object,
+        A model name for :func:`gonio.brdf.get_model` (``"lambert+ggx"``), optionally with
+        model options in brackets (``"lambert+ggx[fresnel=schlick]"``), a model object,
         or ``"auto"``: fit the candidates and choose by ``criterion``
         (see :func:`gonio.fitting.select.select_model`).
     loss
@@ -143,7 +149,10 @@ def fit(
     maxeval
         Evaluation budget of each local search (and of a global nlopt algorithm x 4).
     candidates, criterion
-        For ``model="auto"``: candidate models and ``"bic"`` or ``"aic"``.
+        For ``model="auto"``: candidate model specs (default
+        :data:`gonio.fitting.select.DEFAULT_CANDIDATES`; add
+        :data:`~gonio.fitting.select.FRESNEL_CANDIDATES` for Fresnel-weighted lobes) and
+        ``"bic"`` or ``"aic"``.
     seed
         Seed of the Sobol design and of nlopt's stochastic algorithms.
     model_options
@@ -165,6 +174,13 @@ def fit(
     """
     if isinstance(model, str) and model == "auto":
         from gonio.fitting.select import select_model
+
+        if model_options:
+            raise FitError(
+                f"model_options {model_options} apply to one model; with model='auto' write "
+                "them into the candidate specs, e.g. candidates=('lambert', "
+                "'lambert+ggx[fresnel=schlick]')"
+            )
 
         result = select_model(
             samples,

@@ -26,6 +26,15 @@ misfit of a diffuse model is "significant".  Two safeguards keep the choice phys
   not.
 - Ties (a specular weight at zero, so the same cost and free-parameter count) go to the
   earlier, simpler candidate.
+
+Candidates are model *specs*: a name, optionally with model options in brackets,
+``"lambert+ggx[fresnel=schlick]"`` (see :func:`parse_model_spec`).  The Fresnel-weighted
+lobes are not in :data:`DEFAULT_CANDIDATES`: on the shared RGL files they lower the
+cosine-L2 cost of ``cc_ibiza_sunset`` 7.5x and of the wall paint 4x, but not that of
+``vch_golden_yellow`` (``f0`` goes to its bound 1), each costs one more shape parameter
+(2-D search, up to 2x slower), and Mitsuba 3 has no exact counterpart for the export.  Ask
+for them with ``candidates=DEFAULT_CANDIDATES + FRESNEL_CANDIDATES`` (CLI:
+``--candidates lambert,oren-nayar,lambert+ggx,lambert+ggx[fresnel=schlick]``).
 """
 
 from __future__ import annotations
@@ -41,6 +50,9 @@ from gonio.fitting.result import FitResult
 __all__ = [
     "DEFAULT_CANDIDATES",
     "DIFFUSE_MODELS",
+    "FRESNEL_CANDIDATES",
+    "format_model_spec",
+    "parse_model_spec",
     "gloss_units",
     "information_criterion",
     "select_model",
@@ -48,9 +60,52 @@ __all__ = [
 
 DEFAULT_CANDIDATES = ("lambert", "oren-nayar", "lambert+ggx", "lambert+beckmann")
 DIFFUSE_MODELS = ("lambert", "oren-nayar")
+#: Opt-in candidates: microfacet lobes weighted by Schlick's Fresnel term (one more shape
+#: parameter, ``f0``, shared by the channels).
+FRESNEL_CANDIDATES = ("lambert+ggx[fresnel=schlick]", "lambert+beckmann[fresnel=schlick]")
 MIN_GLOSS = 10.0
 #: The matte rule applies only while the best diffuse fit's cost is within this factor.
 MAX_DIFFUSE_COST_RATIO = 10.0
+
+
+def parse_model_spec(spec: str) -> tuple[str, dict[str, str]]:
+    """Split a model spec ``"name[key=value,key=value]"`` into the name and its options.
+
+    ``"lambert+ggx[fresnel=schlick]"`` -> ``("lambert+ggx", {"fresnel": "schlick"})``;
+    a plain name has no options.  The name and values are checked later by
+    :func:`gonio.brdf.get_model`.
+
+    Raises
+    ------
+    UnknownNameError
+        Unbalanced brackets or an option not written ``key=value``.
+    """
+    s = spec.strip()
+    if "[" not in s and "]" not in s:
+        return s, {}
+    if not (s.endswith("]") and s.count("[") == 1 and s.count("]") == 1 and s.index("[") > 0):
+        raise UnknownNameError(
+            f"model spec {spec!r}: expected 'name' or 'name[key=value,...]', "
+            "e.g. 'lambert+ggx[fresnel=schlick]'"
+        )
+    name, body = s[:-1].split("[", 1)
+    opts: dict[str, str] = {}
+    for item in filter(None, (x.strip() for x in body.split(","))):
+        key, eq, value = item.partition("=")
+        if not eq or not key.strip() or not value.strip():
+            raise UnknownNameError(
+                f"model spec {spec!r}: option {item!r} is not written key=value "
+                "(e.g. fresnel=schlick)"
+            )
+        opts[key.strip()] = value.strip()
+    return name.strip(), opts
+
+
+def format_model_spec(name: str, options: dict[str, Any] | None) -> str:
+    """Inverse of :func:`parse_model_spec`: ``name`` or ``name[key=value,...]``."""
+    if not options:
+        return name
+    return f"{name}[{','.join(f'{k}={v}' for k, v in sorted(options.items()))}]"
 
 
 def _fresnel_dielectric(cos_t: float, n: float) -> float:
@@ -134,7 +189,8 @@ def select_model(
     samples
         BRDF samples (see :func:`gonio.fitting.fit`).
     candidates
-        Model names (default :data:`DEFAULT_CANDIDATES`).
+        Model specs (default :data:`DEFAULT_CANDIDATES`): names, or names with options,
+        ``"lambert+ggx[fresnel=schlick]"`` (see :data:`FRESNEL_CANDIDATES`).
     criterion
         ``"bic"`` (default) or ``"aic"``.
     effective_samples
@@ -183,6 +239,7 @@ def select_model(
                 }
             )
             continue
+        name = format_model_spec(r.model, r.model_options)
         m_eff = None
         if effective_samples is not None:
             m_eff = effective_samples * len(r.channels)
@@ -205,7 +262,7 @@ def select_model(
     ]
     if not ok:
         raise FitError("model='auto': no candidate could be fitted: " + "; ".join(errors))
-    by_name = {r.model: r for r in results}
+    by_name = {format_model_spec(r.model, r.model_options): r for r in results}
     for row in rows:
         r = by_name.get(row["model"])
         if r is not None and row["model"] not in DIFFUSE_MODELS:

@@ -1,0 +1,314 @@
+"""A planned pose the rig refuses at run time: ``pose_skipped`` through the real path.
+
+The session is interrupted (as by Ctrl-C) after its first sample pose; the operator then
+narrows the light arm's travel (say a cable snags beyond -35 deg) and resumes with that
+rig configuration and ``--force``.  The dry run had allowed theta_i = 40 deg (light arm
+at -40 deg); the narrowed rig refuses it before moving, so the session journals one
+``pose_skipped`` and shoots every other pose once.  Real dynamixel-sdk on the virtual
+bus's pty, rendered DNGs, the CLI for resume, inspect and reduce.
+
+Also: a servo that stops answering raises a transport ``RigError`` (not ``RigFault``)
+inside ``move_to``; that is a fault, not a refusal, and must stop the session instead of
+skipping every remaining pose.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from importlib import resources
+
+import numpy as np
+import pytest
+
+from gonio.capture.journal import read_journal
+from gonio.capture.plan import load_plan
+from gonio.capture.session import build_schedule, create_session, open_devices, run_steps
+from gonio.cli import main
+from gonio.dataset import load_samples
+from gonio.errors import SessionError
+from gonio.rig.config import load_rig_config
+from gonio.rig.kinematics import Kinematics
+
+# Steps: the reference (30, 30) first, the samples theta_i = 20, 30, 40 deg (light arm at
+# -20, -30, -40 deg) in travel order, then the darks.
+PLAN = """
+name = "skip"
+seed = 11
+[grid]
+theta_i_deg = [20, 30, 40]
+phi_i_deg = [0]
+theta_o_deg = [30]
+phi_o_deg = [180]
+[bracket]
+policy = "adaptive"
+exposure_time_s = 0.0005
+roi = [0.4, 0.4, 0.6, 0.6]
+[darks]
+count = 1
+[reference]
+poses = [{theta_i_deg = 30, theta_o_deg = 30, phi_o_deg = 180}]
+[simulation]
+width = 320
+height = 240
+"""
+
+# The reduction finds the reference target through the holder's fiducial board, so the
+# frames must be large enough for ArUco (160 x 120 px) and the scene must carry a board.
+SCENE = """
+[sample]
+width = 0.05
+height = 0.05
+[sample.brdf]
+model = "lambert"
+params = { albedo = [0.6, 0.5, 0.4] }
+[holder]
+width = 0.16
+height = 0.16
+[holder.board]
+[[lights]]
+type = "disk"
+position = [0.0, 0.25, 0.433]
+look_at = [0.0, 0.0, 0.0]
+radius = 0.01
+radiance = [2.0e4, 2.0e4, 2.0e4]
+[camera]
+resolution = [320, 240]
+focal_length = 0.016
+fov_deg = 30.0
+position = [0.1, -0.2, 0.35]
+look_at = [0.0, 0.0, 0.0]
+[render]
+strategy = "point"
+"""
+
+LIMIT_DEG = -35.0
+
+
+def _run_cli(*args):
+    try:
+        main(list(args))
+    except SystemExit as exc:
+        return exc.code
+    return 0
+
+
+@pytest.fixture
+def files(tmp_path):
+    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
+    rig = rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"')
+    assert 'port = "virtual"' in rig
+    (tmp_path / "rig.toml").write_text(rig)
+    # The narrowed light arm: limits [-35, 170] deg; home/park moved inside them.
+    light = 'joint = "light_azimuth"\nzero_deg = 180.0\nmin_deg = -170.0'
+    assert light in rig and "light_azimuth = -45.0" in rig
+    tight = rig.replace(light, light.replace("min_deg = -170.0", f"min_deg = {LIMIT_DEG}"))
+    tight = tight.replace("light_azimuth = -45.0", "light_azimuth = -30.0")
+    (tmp_path / "tight.toml").write_text(tight)
+    (tmp_path / "plan.toml").write_text(PLAN)
+    return tmp_path
+
+
+def _simulation(plan, time_scale=100.0):
+    return {
+        "scene": tomllib.loads(SCENE),
+        "width": plan.simulation.width,
+        "height": plan.simulation.height,
+        "time_scale": time_scale,
+    }
+
+
+def _start_and_interrupt(files, after_pose: int):
+    """Create the session as ``capture run`` does; Ctrl-C once ``after_pose`` is done."""
+    plan = load_plan(files / "plan.toml")
+    cfg = load_rig_config(files / "rig.toml")
+    sched = build_schedule(plan, Kinematics(cfg), cfg.park_rad)
+    out = files / "S"
+    sim = _simulation(plan)
+
+    def interrupt(rec):
+        if rec["type"] == "pose_done" and rec["pose"] == after_pose:
+            raise KeyboardInterrupt
+
+    with open_devices(cfg, "simulated", simulation=sim, seed=plan.seed) as dev:
+        create_session(out, plan, cfg, sched, dev.camera.describe(), simulation=sim)
+        with pytest.raises(SessionError, match="interrupted"):
+            run_steps(out, dev.rig, dev.camera, dev.kinematics, on_event=interrupt)
+    return out, sched
+
+
+def _sample_theta_i(step) -> float:
+    return round(math.degrees(math.acos(step["wi"][2])), 6)
+
+
+# About 3.5 s (two rig openings, renders at 320 x 240, a reduction): not marked slow.
+def test_pose_refused_by_a_narrowed_rig_is_skipped_and_the_rest_completes(files, capsys):
+    out, sched = _start_and_interrupt(files, after_pose=1)
+    steps = sched.steps
+    kinds = [s["kind"] for s in steps]
+    assert kinds == ["reference", "sample", "sample", "sample", "dark"]
+    thetas = [_sample_theta_i(s) if s["kind"] != "dark" else None for s in steps]
+    assert sorted(thetas[1:4]) == [20.0, 30.0, 40.0]
+    victim = thetas.index(40.0)  # light arm at -40 deg, beyond the narrowed -35 deg
+    assert victim > 1, "the refused pose must still be ahead when the session is cut"
+    before = read_journal(out / "journal.jsonl")
+    assert {r["pose"] for r in before if r["type"] == "pose_done"} == {0, 1}
+
+    # the narrowed rig is refused without --force, nothing is written
+    jbytes = (out / "journal.jsonl").read_bytes()
+    args = ["capture", "resume", str(out), "--rig", str(files / "tight.toml"), "--quiet"]
+    assert _run_cli(*args) == 1
+    assert "light_azimuth" in capsys.readouterr().err
+    assert (out / "journal.jsonl").read_bytes() == jbytes
+    assert _run_cli(*args, "--force", "--sim-speed", "100") == 0
+    said = capsys.readouterr().out
+    assert f"pose {victim} skipped" in said and "1 pose skipped" in said
+
+    recs = read_journal(out / "journal.jsonl")
+    skipped = [r for r in recs if r["type"] == "pose_skipped"]
+    assert len(skipped) == 1
+    assert skipped[0]["pose"] == victim
+    reason = skipped[0]["reason"]
+    # the reason names the joint, the angle it would need and the limit it breaks
+    assert "light_azimuth" in reason and "-40.0" in reason and f"{LIMIT_DEG:.1f}" in reason
+    assert "cannot reach" in reason
+    # nothing was shot for it; every other step was shot and closed exactly once
+    shots = [r for r in recs if r["type"] == "shot"]
+    assert victim not in {r["pose"] for r in shots}
+    keys = [(r["pose"], r["frame"]) for r in shots]
+    assert len(keys) == len(set(keys))
+    done = [r["pose"] for r in recs if r["type"] == "pose_done"]
+    assert sorted(done) == [k for k in range(len(steps)) if k != victim]
+    assert {r["pose"] for r in shots} == set(done)
+    assert recs[-1]["type"] == "stop" and recs[-1]["status"] == "completed"
+    assert recs[-1]["parked"] is True and recs[-1]["torque_off"] is True
+    # the pose after the skip was taken where it was asked (the skip moved nothing bad)
+    kin = Kinematics(load_rig_config(files / "tight.toml"))
+    for r in shots:
+        assert sum(1 for s in shots if s["file"] == r["file"]) == 1
+        data = (out / r["file"]).read_bytes()
+        assert hashlib.sha256(data).hexdigest() == r["sha256"]
+        if r["kind"] == "dark":
+            continue
+        assert r["joints"]["light_azimuth"] >= math.radians(LIMIT_DEG) - 1e-3 or r["pose"] <= 1
+        wi, _ = kin.forward(r["joints"])
+        err = math.degrees(math.acos(min(1.0, float(np.dot(wi, r["wi_requested"])))))
+        assert err < 0.3
+    assert {f"raw/{p.name}" for p in (out / "raw").iterdir()} == {r["file"] for r in shots}
+
+    # inspect: status completed, the pose listed as skipped with its reason, exit 0
+    # (a skip is a recorded outcome, not damage: only bad files make inspect fail)
+    assert _run_cli("capture", "inspect", str(out), "--json") == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["status"] == "completed"
+    assert info["skipped"] == [{"pose": victim, "reason": reason}]
+    assert info["poses_total"] == len(steps)
+    assert info["bad_files"] == [] and info["orphans"] == []
+    assert info["files_verified"] == len(shots)
+    assert _run_cli("capture", "inspect", str(out)) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"poses done {len(steps)}/{len(steps)} (1 of them skipped)" in text
+    assert f"skipped pose {victim}: cannot reach" in text
+
+    # a second resume does not retry or duplicate anything
+    jbytes = (out / "journal.jsonl").read_bytes()
+    assert _run_cli("capture", "resume", str(out), "--quiet", "--sim-speed", "100") == 0
+    capsys.readouterr()
+    again = read_journal(out / "journal.jsonl")
+    assert (out / "journal.jsonl").read_bytes().startswith(jbytes)
+    assert [r["type"] for r in again[len(recs) :]] == ["start", "stop"]
+
+    # reduce: no crash; the skipped pose is absent from samples.h5, the others present
+    assert _run_cli("capture", "reduce", str(out), "--quiet", "--no-plot") == 0
+    samples = load_samples(out / "samples.h5")
+    sample_poses = {k for k, s in enumerate(steps) if s["kind"] == "sample" and k != victim}
+    poses_in_file = {int(f.split("/p")[1][:4]) for f in samples.frames}
+    assert poses_in_file == sample_poses
+    assert not np.any(np.isclose(np.degrees(np.arccos(samples.wi[:, 2])), 40.0, atol=5.0))
+    # the calibration is intact: the Lambertian sample's closed form albedo / pi
+    assert samples.valid.all()
+    rel = np.abs(samples.brdf / (np.array([0.6, 0.5, 0.4]) / np.pi) - 1)
+    assert np.median(rel) <= 0.01
+    summary = json.loads((out / "reduction.json").read_text())
+    assert summary["sample_poses"] == len(sample_poses) and summary["failed_poses"] == []
+
+
+@pytest.mark.parametrize("when", ["between poses", "as the move starts"])
+def test_a_servo_that_stops_answering_is_a_fault_not_a_skipped_pose(files, when):
+    """A servo going silent makes the transport raise ``RigError`` ("did not answer"),
+    not ``RigFault``.  Before the fix the session journaled that as ``pose_skipped`` for
+    every remaining pose and ended "completed": the rest of the plan lost for good, as
+    resume never retries a skipped pose.  It must stop on a fault, ready to resume."""
+    from gonio.capture.session import SessionRig, open_rig
+    from gonio.capture.sim_camera import SimulatedRigCamera
+    from gonio.simulator.servo_model import VirtualServo
+    from gonio.simulator.virtual_bus import VirtualBus
+
+    plan = load_plan(files / "plan.toml")
+    cfg = load_rig_config(files / "rig.toml")
+    kin = Kinematics(cfg)
+    sched = build_schedule(plan, kin, cfg.park_rad)
+    park = cfg.park_rad
+    servos = [VirtualServo(s.id, position=round(s.pulses(park[s.joint]))) for s in cfg.servos]
+    out = files / "S"
+    with VirtualBus(servos, time_scale=100.0, seed=0) as bus:
+        real = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})
+
+        def unplug(rec):
+            if rec["type"] == "pose_done" and rec["pose"] == 1 and when == "between poses":
+                bus.servos[3].silent = True  # the stage tilt servo's cable comes loose
+
+        class UnplugAtMove(SessionRig):
+            """The real rig; the cable comes loose just as the move to pose 2 starts."""
+
+            moves = 0
+
+            def move_to(self, wi, wo):
+                UnplugAtMove.moves += 1
+                if UnplugAtMove.moves == 3 and when == "as the move starts":
+                    bus.servos[3].silent = True
+                return super().move_to(wi, wo)
+
+        with open_rig(real) as rig:
+            rig = UnplugAtMove(rig.rig)
+            cam = SimulatedRigCamera(rig, kin, width=32, height=24)
+            create_session(out, plan, cfg, sched, cam.describe())
+            with pytest.raises(SessionError, match="fault") as info:
+                run_steps(out, rig, cam, kin, on_event=unplug)
+            assert "resume" in str(info.value) and "did not answer" in str(info.value)
+        recs = read_journal(out / "journal.jsonl")
+        assert [r for r in recs if r["type"] == "pose_skipped"] == []
+        faults = [r for r in recs if r["type"] == "fault"]
+        assert len(faults) == 1 and faults[0]["source"] == "rig"
+        assert "did not answer" in faults[0]["error"]
+        assert recs[-1]["type"] == "stop" and recs[-1]["status"] == "fault"
+        assert {r["pose"] for r in recs if r["type"] == "pose_done"} == {0, 1}
+        # the cable is plugged back in: resume shoots every remaining pose
+        bus.servos[3].silent = False
+        with open_rig(real) as rig:
+            cam = SimulatedRigCamera(rig, kin, width=32, height=24)
+            assert run_steps(out, rig, cam, kin, resumed=True) == "completed"
+        assert all(v == 0 for v in bus.torque().values())
+    recs = read_journal(out / "journal.jsonl")
+    assert [r for r in recs if r["type"] == "pose_skipped"] == []
+    done = sorted(r["pose"] for r in recs if r["type"] == "pose_done")
+    assert done == list(range(len(sched.steps)))
+    keys = [(r["pose"], r["frame"]) for r in recs if r["type"] == "shot"]
+    assert len(keys) == len(set(keys))
+
+
+def test_progress_bar_counts_a_skipped_pose_as_finished():
+    """The progress bar reached only N-1 of N when a pose was skipped."""
+    from gonio.capture.session_cli import _Progress
+
+    with _Progress(total=3, done=0, quiet=True) as prog:
+        for rec in (
+            {"type": "pose_done", "pose": 0},
+            {"type": "pose_skipped", "pose": 1, "reason": "refused"},
+            {"type": "pose_done", "pose": 2},
+        ):
+            prog(rec)
+    task = prog.progress.tasks[0]
+    assert task.completed == task.total == 3 and prog.skipped == 1
