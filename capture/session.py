@@ -481,8 +481,9 @@ def run_steps(
             f"is in the journal; fix the cause and run 'gonio capture resume {d}'"
         ) from error
     if status == "interrupted":
+        safe = "torque is off" if fin["torque_off"] else "torque off NOT confirmed: check the rig"
         raise SessionError(
-            f"session {d} interrupted ({error}); torque is off. Continue with "
+            f"session {d} interrupted ({error}); {safe}. Continue with "
             f"'gonio capture resume {d}'"
         )
     return status
@@ -520,8 +521,13 @@ def _finalize(rig: RigDevice, camera: Camera) -> dict[str, Any]:
     except Exception as exc:  # noqa: BLE001 - the finalizer must reach torque off
         errors.append(f"park: {exc}")
     try:
-        rig.torque_off()
-        out["torque_off"] = True
+        unconfirmed = rig.torque_off()
+        # The journal must not claim a safe state nobody saw: a silent servo may still
+        # hold torque (the broadcast write reached it, or not).
+        out["torque_off"] = not unconfirmed
+        if unconfirmed:
+            out["torque_unconfirmed"] = list(unconfirmed)
+            errors.append(f"torque off not confirmed by servo(s) {list(unconfirmed)}")
     except Exception as exc:  # noqa: BLE001
         errors.append(f"torque off: {exc}")
     if errors:

@@ -218,7 +218,8 @@ def fit(
             written.append(plot_residual_map(r, samples, out / "residuals.png"))
         prog.update(task, completed=n_steps)
 
-    table = Table(title=f"{format_model_spec(r.model, r.model_options)} fitted to {source.name} ({kind}, {r.n_samples} samples)")
+    spec = format_model_spec(r.model, r.model_options)
+    table = Table(title=f"{spec} fitted to {source.name} ({kind}, {r.n_samples} samples)")
     table.add_column("parameter")
     for c in r.channels:
         table.add_column(c, justify="right")

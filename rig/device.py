@@ -237,10 +237,16 @@ class Rig:
             signal.signal(sig, h)
         self._saved_handlers.clear()
 
-    def torque_off(self) -> None:
+    def torque_off(self) -> list[int]:
         """Cut torque on every servo: one broadcast WRITE, then each servo verified.
 
         Signals are held off meanwhile so a second Ctrl-C cannot interrupt it.
+
+        Returns
+        -------
+        list of int
+            IDs of the servos whose torque off could not be confirmed (empty when every
+            servo confirmed it), so callers never report a safe state they did not see.
         """
         main = threading.current_thread() is threading.main_thread()
         old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
@@ -258,6 +264,7 @@ class Rig:
                 log.error("could not confirm torque off on servo(s) %s", "; ".join(failed))
             else:
                 log.info("torque off on servos %s", list(self._ids))
+            return [int(f.split(":", 1)[0]) for f in failed]
         finally:
             if main:
                 signal.signal(signal.SIGINT, old)

@@ -284,6 +284,9 @@ def test_a_servo_that_stops_answering_is_a_fault_not_a_skipped_pose(files, when)
         assert len(faults) == 1 and faults[0]["source"] == "rig"
         assert "did not answer" in faults[0]["error"]
         assert recs[-1]["type"] == "stop" and recs[-1]["status"] == "fault"
+        # the silent servo could not confirm torque off: the journal says so, it does not
+        # claim a safe state nobody saw
+        assert recs[-1]["torque_off"] is False and recs[-1]["torque_unconfirmed"] == [3]
         assert {r["pose"] for r in recs if r["type"] == "pose_done"} == {0, 1}
         # the cable is plugged back in: resume shoots every remaining pose
         bus.servos[3].silent = False
