@@ -58,7 +58,15 @@ def _int_list(ctx, param, value: str | None) -> list[int] | None:
     default=None,
     callback=_int_list,
     help="Initial Present Position of each servo (pulses, same order as --servos); "
-    "default 2048 (centre).",
+    "default: the rig's park pose (see --rig), 2048 (centre) for servos not in it.",
+)
+@click.option(
+    "--rig",
+    "rig_file",
+    default=None,
+    type=click.Path(dir_okay=False, exists=True),
+    help="Rig configuration whose park pose the servos start in (default: the built-in "
+    "four-servo preset), so a fresh virtual rig is in a pose a real one can be in.",
 )
 @click.option(
     "--fault-rate",
@@ -77,7 +85,9 @@ def _int_list(ctx, param, value: str | None) -> list[int] | None:
     type=click.FloatRange(min=1e-3),
     help="Servo time runs this many times faster than the wall clock.",
 )
-def bus_cmd(servos, model, firmware, baud, positions, fault_rate, seed, time_scale) -> None:
+def bus_cmd(
+    servos, model, firmware, baud, positions, rig_file, fault_rate, seed, time_scale
+) -> None:
     """Serve virtual Dynamixel X-series servos (Protocol 2.0) on a pseudo-terminal.
 
     The first line printed is the port path: point any Dynamixel tool at it, e.g.
@@ -99,6 +109,8 @@ def bus_cmd(servos, model, firmware, baud, positions, fault_rate, seed, time_sca
     bad = [i for i in servos if not 0 <= i <= 252]
     if bad:
         raise click.BadParameter(f"IDs must be 0..252, got {bad}", param_hint="--servos")
+    if positions is None:
+        positions = _park_positions(servos, rig_file)
     stop = threading.Event()
 
     def handler(signum, frame):
@@ -115,7 +127,7 @@ def bus_cmd(servos, model, firmware, baud, positions, fault_rate, seed, time_sca
             seed=seed,
             time_scale=time_scale,
         ) as bus:
-            for i, p in zip(servos, positions or [2048] * len(servos), strict=True):
+            for i, p in zip(servos, positions, strict=True):
                 bus.servos[i].set_position(p)
             click.echo(bus.port)
             sys.stdout.flush()
@@ -131,3 +143,20 @@ def bus_cmd(servos, model, firmware, baud, positions, fault_rate, seed, time_sca
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def _park_positions(servos: list[int], rig_file: str | None) -> list[int]:
+    """Initial pulses: the rig's park pose for its servos, the centre for the others.
+
+    At the centre (2048) the preset's two arms would both face the same azimuth, a state a
+    real rig cannot be in, and every move out of it is refused as an arm collision.
+    """
+    from gonio.rig.config import default_rig_config, load_rig_config
+
+    cfg = load_rig_config(rig_file) if rig_file else default_rig_config()
+    park = cfg.park_rad
+    by_id = {s.id: s for s in cfg.servos}
+    return [
+        int(round(by_id[i].pulses(park.get(by_id[i].joint, 0.0)))) if i in by_id else 2048
+        for i in servos
+    ]
