@@ -31,9 +31,14 @@ Candidates are model *specs*: a name, optionally with model options in brackets,
 ``"lambert+ggx[fresnel=schlick]"`` (see :func:`parse_model_spec`).  The Fresnel-weighted
 lobes are not in :data:`DEFAULT_CANDIDATES`: on the shared RGL files they lower the
 cosine-L2 cost of ``cc_ibiza_sunset`` 7.5x and of the wall paint 4x, but not that of
-``vch_golden_yellow`` (``f0`` goes to its bound 1), each costs one more shape parameter
-(2-D search, up to 2x slower), and Mitsuba 3 has no exact counterpart for the export.  Ask
-for them with ``candidates=DEFAULT_CANDIDATES + FRESNEL_CANDIDATES`` (CLI:
+``vch_golden_yellow`` (``f0`` goes to its bound 1: its coloured peak does not rise towards
+grazing as a Fresnel term would); each costs one more shape parameter (a 2-D search:
+``auto`` on the RGL files takes 2.3-5x longer, benchmarks/rgl_fit_table.py); on the wall
+paint the diffuse cost becomes 7.1x the Fresnel fit's, close to the
+``MAX_DIFFUSE_COST_RATIO`` (10) escape of the matte rule (on a coarser 5 x 12 x 24 grid it
+passes it, and the 1-GU sheen is kept); and Mitsuba 3 has no exact counterpart for the
+export (:func:`gonio.fitting.export.mitsuba_dict` refuses it).  Ask for them with
+``candidates=DEFAULT_CANDIDATES + FRESNEL_CANDIDATES`` (CLI:
 ``--candidates lambert,oren-nayar,lambert+ggx,lambert+ggx[fresnel=schlick]``).
 """
 
