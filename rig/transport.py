@@ -202,7 +202,11 @@ class Transport:
             fw = 0
             if result == COMM_SUCCESS:
                 data, r2, _ = self._ph.readTxRx(self._port, dxl_id, 6, 1)
-                fw = data[0] if r2 == COMM_SUCCESS and data else 0
+                if r2 != COMM_SUCCESS or not data:
+                    # A lost firmware read fails the attempt (and is retried): reporting
+                    # firmware 0 would be a value the servo never sent.
+                    return (model, fw), r2 if r2 != COMM_SUCCESS else COMM_RX_CORRUPT, error
+                fw = data[0]
             return (model, fw), result, error
 
         with self.lock:

@@ -75,4 +75,6 @@ def test_silent_servo_gives_a_clear_error(vbus):
     with Transport(vbus.port, retries=1, timeout_ms=5) as bus:
         with pytest.raises(RigError, match="servo 2 did not answer READ .* after 2 attempts"):
             bus.read(2, REG["present_position"])
-        assert bus.ping(2) is None and bus.ping(1) == (1020, 45)
+        # the healthy servo still answers; the 5 ms timeout is tight on a loaded machine,
+        # so it gets retries (a lost firmware read is retried, never reported as 0)
+        assert bus.ping(2) is None and bus.ping(1, retries=10) == (1020, 45)
