@@ -467,6 +467,12 @@ def bayer_region_weights(
     return AT.T.tocsr(), used
 
 
+def _reported_pose(reported_camera: Any, rms: float, n_corners: int) -> CameraPose:
+    """The rig's reported camera ``(position, world-to-camera rotation)`` as a CameraPose."""
+    C, R = (np.asarray(x, float) for x in reported_camera)
+    return CameraPose(R, -R @ C, C, rms, n_corners)
+
+
 def measure_pose(
     frames: list[RawFrame],
     setup: ReductionSetup,
@@ -513,8 +519,7 @@ def measure_pose(
     except ReductionError as exc:
         if reported_camera is None:
             raise
-        C, R = (np.asarray(x, float) for x in reported_camera)
-        cam = CameraPose(R, -R @ C, C, math.nan, 0)
+        cam = _reported_pose(reported_camera, math.nan, 0)
         pose_flags |= _flag("GEOMETRY_MISMATCH")
         pose_reasons.append(f"board not found ({exc}); the rig's camera pose was used")
     else:
@@ -541,8 +546,7 @@ def measure_pose(
                     f"report (tolerance {setup.position_tolerance_m * 1e3:g} mm)"
                 )
     if setup.geometry == "rig" and reported_camera is not None and not pose_flags:
-        C, R = (np.asarray(x, float) for x in reported_camera)
-        cam = CameraPose(R, -R @ C, C, cam.reprojection_rms, cam.n_corners)
+        cam = _reported_pose(reported_camera, cam.reprojection_rms, cam.n_corners)
     regions = map_regions(
         cam,
         setup.K,

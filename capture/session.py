@@ -483,8 +483,7 @@ def run_steps(
     if status == "interrupted":
         safe = "torque is off" if fin["torque_off"] else "torque off NOT confirmed: check the rig"
         raise SessionError(
-            f"session {d} interrupted ({error}); {safe}. Continue with "
-            f"'gonio capture resume {d}'"
+            f"session {d} interrupted ({error}); {safe}. Continue with 'gonio capture resume {d}'"
         )
     return status
 
@@ -876,12 +875,9 @@ def open_devices(
             from gonio.simulator.virtual_bus import VirtualBus
 
             # The virtual rig starts where a real one is left: parked.
-            park = rig_config.park_rad
+            park = rig_config.park_pulses
             servos = [
-                VirtualServo(
-                    s.id, model=s.model, position=int(round(s.pulses(park.get(s.joint, 0.0))))
-                )
-                for s in rig_config.servos
+                VirtualServo(s.id, model=s.model, position=park[s.id]) for s in rig_config.servos
             ]
             bus = VirtualBus(
                 servos,

@@ -156,14 +156,11 @@ def add_calibration_uncertainty(result: Any, rel_std: Any) -> Any:
     labels = list(result.param_labels)
     cov = np.array(result.covariance, dtype=np.float64, copy=True)
     for c, ch in enumerate(result.channels):
-        idx = [labels.index(f"{n}[{ch}]") for n in result.linear_params if f"{n}[{ch}]" in labels]
-        vals = np.array(
-            [result.params[n][c] for n in result.linear_params if f"{n}[{ch}]" in labels]
-        )
+        names = [n for n in result.linear_params if f"{n}[{ch}]" in labels]
+        idx = [labels.index(f"{n}[{ch}]") for n in names]
+        vals = np.array([result.params[n][c] for n in names])
         cov[np.ix_(idx, idx)] += np.outer(vals, vals) * rel[c] ** 2
-        for n, i in zip(
-            [n for n in result.linear_params if f"{n}[{ch}]" in labels], idx, strict=True
-        ):
+        for n, i in zip(names, idx, strict=True):
             if np.isfinite(result.std[n][c]):
                 result.std[n][c] = float(np.sqrt(max(cov[i, i], 0.0)))
     result.covariance = cov

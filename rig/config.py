@@ -262,6 +262,12 @@ class RigConfig(_Strict):
         pose = self.motion.park_deg if self.motion.park_deg is not None else self.motion.home_deg
         return {j: math.radians(v) for j, v in pose.items()}
 
+    @property
+    def park_pulses(self) -> dict[int, int]:
+        """Park pose as each servo's position, servo ID -> pulses (joints left out: 0 rad)."""
+        park = self.park_rad
+        return {s.id: int(round(s.pulses(park.get(s.joint, 0.0)))) for s in self.servos}
+
 
 def rig_config_from_dict(data: dict, source: str = "<dict>") -> RigConfig:
     """Validate a parsed TOML document into a :class:`RigConfig`.

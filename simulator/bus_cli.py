@@ -154,9 +154,5 @@ def _park_positions(servos: list[int], rig_file: str | None) -> list[int]:
     from gonio.rig.config import default_rig_config, load_rig_config
 
     cfg = load_rig_config(rig_file) if rig_file else default_rig_config()
-    park = cfg.park_rad
-    by_id = {s.id: s for s in cfg.servos}
-    return [
-        int(round(by_id[i].pulses(park.get(by_id[i].joint, 0.0)))) if i in by_id else 2048
-        for i in servos
-    ]
+    park = cfg.park_pulses
+    return [park.get(i, 2048) for i in servos]

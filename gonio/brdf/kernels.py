@@ -214,6 +214,9 @@ def microfacet_eval(
             )  # fmt: skip
 
 
+# The serial twins repeat their parallel kernels' bodies on purpose: compiling one Python
+# function twice (njit(parallel=True) and njit) with cache=True would share one on-disk
+# cache entry, since numba's cache index does not tell the two builds apart.
 @njit(**_JIT)
 def microfacet_eval_serial(wi, wo, ks, alpha, f0, eta, k, dist, g1form, fresnel, out):
     """:func:`microfacet_eval` on one thread (no launch cost: for small batches)."""

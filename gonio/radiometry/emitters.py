@@ -333,8 +333,7 @@ def irradiance_disk(
     u, v, m = F[..., 0, :], F[..., 1, :], F[..., 2, :]
     d = c - p  # receiver -> centre
     if n_nodes is None:
-        h_ax = dot(d, m)
-        rho = np.sqrt(np.maximum(dot(d, d) - h_ax**2, 0.0))
+        h_ax, rho = _disk_local(p, c, m)
         delta = np.sqrt(h_ax**2 + (rho - R) ** 2) / np.where(R > 0, R, 1.0)
         finite = delta[np.isfinite(delta)]
         closest = float(finite.min()) if finite.size else 1.0

@@ -153,8 +153,8 @@ def test_fault_on_the_bus_stops_with_torque_off_and_resume_completes(files):
     cfg = load_rig_config(files / "rig.toml")
     kin = Kinematics(cfg)
     sched = build_schedule(plan, kin, cfg.park_rad)
-    park = cfg.park_rad
-    servos = [VirtualServo(s.id, position=round(s.pulses(park[s.joint]))) for s in cfg.servos]
+    park = cfg.park_pulses
+    servos = [VirtualServo(s.id, position=park[s.id]) for s in cfg.servos]
     out = files / "S"
     with VirtualBus(servos, time_scale=100.0, seed=0) as bus:
         real = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})

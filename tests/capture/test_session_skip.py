@@ -250,8 +250,8 @@ def test_a_servo_that_stops_answering_is_a_fault_not_a_skipped_pose(files, when)
     cfg = load_rig_config(files / "rig.toml")
     kin = Kinematics(cfg)
     sched = build_schedule(plan, kin, cfg.park_rad)
-    park = cfg.park_rad
-    servos = [VirtualServo(s.id, position=round(s.pulses(park[s.joint]))) for s in cfg.servos]
+    park = cfg.park_pulses
+    servos = [VirtualServo(s.id, position=park[s.id]) for s in cfg.servos]
     out = files / "S"
     with VirtualBus(servos, time_scale=100.0, seed=0) as bus:
         real = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})
