@@ -212,6 +212,9 @@ CASES = [
     case("bus-fault-rate", "sim bus --fault-rate 2", 2, "--fault-rate", "0<=x<=1"),
     case("bus-time-scale", "sim bus --time-scale 0", 2, "--time-scale", "x>=0.001"),
     case("bus-model", "sim bus --model XZ999", 2, "'XZ999'", "XM430-W350"),
+    case("bus-rig-not-toml", "sim bus --rig {bad}/bad.toml", 1, "bad.toml", "not a valid toml"),
+    case("bus-rig-fields", "sim bus --rig {bad}/empty.toml", 1, "empty.toml", "'servos'"),
+    case("bus-rig-missing", "sim bus --rig {bad}/nope.toml", 2, "nope.toml", "does not exist"),
     # -- gonio rig ---------------------------------------------------------------------
     case("scan-no-port", f"rig scan --port {NOPORT}", 1, NOPORT, "cannot open serial port"),
     case("scan-dir-port", "rig scan --port {bad}/adir", 1, "adir", "cannot open serial port"),
