@@ -34,7 +34,7 @@ PLAN = """
 name = "bench-reduce"
 seed = 11
 [grid]
-theta_i_deg = [20, 40]
+theta_i_deg = [15, 30, 45, 60]
 phi_i_deg = [0]
 theta_o_deg = [30, 50]
 phi_o_deg = [180]

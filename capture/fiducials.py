@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 import cv2
@@ -28,6 +29,15 @@ from numpy.typing import ArrayLike, NDArray
 
 from gonio.capture.raw import RawFrame
 from gonio.errors import ReductionError
+
+
+@lru_cache(maxsize=8)
+def _cv_board(nx: int, ny: int, square: float, marker: float, dictionary: str) -> Any:
+    # built once per board: a session detects it in every pose
+    if not hasattr(cv2.aruco, dictionary):
+        raise ReductionError(f"unknown cv2.aruco dictionary {dictionary!r}")
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    return cv2.aruco.CharucoBoard((nx, ny), square, marker, d)
 
 
 @dataclass(frozen=True)
@@ -62,11 +72,8 @@ class BoardSpec:
 
     def cv_board(self) -> Any:
         """The OpenCV board (object points in metres, board frame)."""
-        if not hasattr(cv2.aruco, self.dictionary):
-            raise ReductionError(f"unknown cv2.aruco dictionary {self.dictionary!r}")
-        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
-        return cv2.aruco.CharucoBoard(
-            (self.squares_x, self.squares_y), self.square_length, self.marker_length, d
+        return _cv_board(
+            self.squares_x, self.squares_y, self.square_length, self.marker_length, self.dictionary
         )
 
     def transform(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -116,7 +123,9 @@ def _cell_scales(frame: RawFrame) -> tuple[NDArray[np.float64], NDArray[np.float
     """
     black = frame.cell_black if frame.raw is not None else frame.black_level[:2, :2]
     src = frame.raw if frame.raw is not None else frame.linear + frame.black_level
-    step = 2 * max(1, int(np.sqrt(src.size / 4e4)) // 2 * 2 + 1)  # ~10^4 samples each
+    # ~2500 samples per CFA position: the median is then good to ~2 %, plenty to
+    # equalise the channels for corner refinement
+    step = 2 * max(1, int(np.sqrt(src.size / 1e4)) // 2 * 2 + 1)
     level = np.empty((2, 2))
     for i in range(2):
         for j in range(2):
@@ -154,16 +163,82 @@ def grey_image(frame: RawFrame, factor: int = 1) -> NDArray[np.float32]:
 
 
 def to_uint8(img: NDArray[np.float32], name: str = "frame") -> NDArray[np.uint8]:
-    """Scale a grey image so its 99.5th percentile sits near white."""
+    """8-bit grey for marker detection: ``255 sqrt(img / top)``, ``top`` the 99.5th
+    percentile (brighter pixels clip).
+
+    The square root (a gamma of 1/2, which also evens out shot noise) keeps a dim board
+    next to a bright sample legible: under grazing light a glossy sample's highlight sets
+    the percentile, and a linear scale left the board a dozen grey levels, too few for
+    the markers' bits (a 60 deg pose lost 18 of its 24 corners that way).
+    """
     top = float(np.percentile(img[::4, ::4], 99.5))
     if not np.isfinite(top) or top <= 0:
         raise ReductionError(f"{name}: frame has no usable signal to find the board in")
-    return np.clip(img * (230.0 / top), 0, 255).astype(np.uint8)
+    x = np.clip(img * np.float32(1.0 / top), 0.0, 1.0)
+    return (np.sqrt(x) * 255.0 + 0.5).astype(np.uint8)
 
 
 def grey_from_mosaic(frame: RawFrame) -> NDArray[np.uint8]:
     """An 8-bit full-resolution grey image of the mosaic for marker detection."""
     return to_uint8(grey_image(frame, 1), frame.name)
+
+
+def binned_grey_uint8(frame: RawFrame, factor: int) -> NDArray[np.uint8]:
+    """``to_uint8(grey_image(frame, factor))``, faster for a camera mosaic.
+
+    The block mean (``INTER_AREA``) of the raw uint16 mosaic, minus the black level,
+    through to_uint8's tone curve.
+    """
+    if frame.raw is None or factor == 1:
+        return to_uint8(grey_image(frame, factor), frame.name)
+    if factor % 2:
+        raise ValueError(f"binning factor must be 1 or even, got {factor}")
+    H, W = frame.shape
+    h, w = H // factor * factor, W // factor * factor
+    low = cv2.resize(frame.raw[:h, :w], (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+    black = np.float32(np.mean(frame.cell_black))
+    top = float(np.percentile(low[::4, ::4], 99.5)) - float(black)
+    if not np.isfinite(top) or top <= 0:
+        raise ReductionError(f"{frame.name}: frame has no usable signal to find the board in")
+    # to_uint8's tone curve as a lookup table over the binned values (uint16): the same
+    # numbers for a fraction of the per-pixel arithmetic
+    codes = np.arange(int(low.max()) + 1, dtype=np.float32) - black
+    x = np.clip(codes * np.float32(1.0 / top), 0.0, 1.0)
+    lut = (np.sqrt(x) * 255.0 + 0.5).astype(np.uint8)
+    return lut[low]
+
+
+def _marker_corners(board: BoardSpec) -> NDArray[np.float64]:
+    """(n, 4, 3) corners of the board's markers in the sample frame, metres."""
+    R, t = board.transform()
+    return np.asarray(board.cv_board().getObjPoints(), float) @ R.T + t
+
+
+def binning_for(
+    board: BoardSpec,
+    K: ArrayLike,
+    expected: CameraPose,
+    shape: tuple[int, int],
+    *,
+    min_factor: int = 1,
+    min_marker_px: float = 20.0,
+) -> int:
+    """Coarsest binning (a power of 2, at least ``min_factor``) that keeps every marker,
+    as the expected camera pose shows it, at least ``min_marker_px`` pixels on a side.
+
+    Marker detection costs grow with the pixel count while the markers are often far
+    larger than their 6x6 cells need (3 pixels a cell decode reliably).
+    """
+    K = np.asarray(K, float)
+    pc = _marker_corners(board) @ expected.rotation.T + expected.translation
+    if not np.all(pc[..., 2] > 0):
+        return min_factor
+    uv = (pc @ K.T)[..., :2] / pc[..., 2:3]
+    side = float(np.linalg.norm(np.roll(uv, -1, axis=1) - uv, axis=-1).min())
+    factor = min_factor
+    while side / (2 * factor) >= min_marker_px and shape[1] / (2 * factor) >= 160:
+        factor *= 2
+    return factor
 
 
 def detect_pose_in_frame(
@@ -174,24 +249,44 @@ def detect_pose_in_frame(
     *,
     max_width: int = 800,
     min_corners: int = 6,
+    expected: CameraPose | None = None,
 ) -> CameraPose:
     """Find the board in a raw frame and solve the camera pose, fast on large sensors.
 
     Markers are detected on an image binned down to at most ``max_width`` pixels (marker
-    detection costs grow with the pixel count, and markers are large); each ChArUco
-    corner found there is then refined with ``cv2.cornerSubPix`` on the full-resolution
-    mosaic around it, so the pose keeps full-resolution accuracy.
+    detection costs grow with the pixel count, and markers are large), or coarser when
+    the ``expected`` pose (the rig's report) shows the markers big enough for it
+    (:func:`binning_for`; if the board is not found there, at ``max_width`` again); each
+    ChArUco corner found is then refined with ``cv2.cornerSubPix`` on the
+    full-resolution mosaic around it, so the pose keeps full-resolution accuracy.
     """
     H, W = frame.shape
     factor = 1
     while W / factor > max_width:
         factor *= 2
-    if factor == 1:
+    if factor == 1 and expected is None:
         return detect_pose(
             grey_from_mosaic(frame), board, K, dist, name=frame.name, min_corners=min_corners
         )
-    low = to_uint8(grey_image(frame, factor), frame.name)
-    corners, ids = _detect_corners(low, board, frame.name, min_corners)
+    coarse = factor
+    if expected is not None:
+        coarse = binning_for(board, K, expected, (H, W), min_factor=factor)
+    try:
+        corners, ids = _detect_corners(
+            binned_grey_uint8(frame, coarse), board, frame.name, min_corners
+        )
+        factor = coarse
+    except ReductionError:
+        if coarse == factor:
+            raise
+        corners, ids = _detect_corners(
+            binned_grey_uint8(frame, factor), board, frame.name, min_corners
+        )
+    if factor == 1:
+        try:
+            return _solve(board, corners, ids, K, dist)
+        except ReductionError as exc:
+            raise ReductionError(f"{frame.name}: {exc}") from None
     full = corners * factor + (factor - 1) / 2.0
     spacing = _corner_spacing(full, ids, board)
     half_win = int(np.clip(round(0.12 * spacing), 3, 15))
@@ -267,9 +362,13 @@ def _solve(
     obj = obj.reshape(-1, 3).astype(np.float64)
     img = img.reshape(-1, 2).astype(np.float64)
     ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
-        raise ReductionError("solvePnP found no pose for the board")
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
+    if ok:
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
+    # a degenerate corner set (a few corners on one line) can give NaN rather than fail
+    if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
+        raise ReductionError(
+            f"solvePnP found no pose for the board from {len(ids)} corners (degenerate set)"
+        )
     proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
     rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
     R_bc = cv2.Rodrigues(rvec)[0]
@@ -319,6 +418,105 @@ def detect_pose(
 
 
 @dataclass(frozen=True)
+class RoiGeometry:
+    """Where the sample's region of interest falls in one camera pose.
+
+    Attributes
+    ----------
+    box
+        ``(row_slice, col_slice)``: the image crop holding the ROI.
+    half_size
+        Half width and half height of the ROI on the sample, metres.
+    cell
+        Width and height of one grid cell, metres.
+    margin
+        Margin kept from every cell boundary, metres (``margin_px`` on the sample).
+    grid
+        Regions per side.
+    centers
+        (grid * grid, 2) cell centres on the sample, metres (x, y).
+    """
+
+    box: tuple[slice, slice]
+    half_size: tuple[float, float]
+    cell: tuple[float, float]
+    margin: float
+    grid: int
+    centers: NDArray[np.float64]
+
+
+def roi_geometry(
+    pose: CameraPose,
+    K: ArrayLike,
+    shape: tuple[int, int],
+    sample_size: tuple[float, float],
+    *,
+    roi_fraction: float = 0.6,
+    grid: int = 3,
+    margin_px: float = 2.0,
+) -> RoiGeometry:
+    """The ROI's crop and grid in one camera pose (see :func:`map_regions`).
+
+    Raises
+    ------
+    ReductionError
+        When the ROI is not in the image or not facing the camera.
+    """
+    K = np.asarray(K, float)
+    hw, hh = 0.5 * roi_fraction * sample_size[0], 0.5 * roi_fraction * sample_size[1]
+    corners = np.array([[-hw, -hh, 0], [hw, -hh, 0], [hw, hh, 0], [-hw, hh, 0]])
+    pc = corners @ pose.rotation.T + pose.translation
+    if not (np.all(pc[:, 2] > 0) and pose.position[2] > 0):
+        raise ReductionError("the sample's ROI is behind the camera or seen from below")
+    uv = (pc @ K.T)[:, :2] / pc[:, 2:3]
+    c0, r0 = np.floor(uv.min(0)).astype(int)
+    c1, r1 = np.ceil(uv.max(0)).astype(int) + 1
+    H, W = shape
+    if c0 < 0 or r0 < 0 or c1 > W or r1 > H:
+        raise ReductionError(
+            f"the sample's ROI (columns {c0}..{c1}, rows {r0}..{r1}) is not inside the "
+            f"{W}x{H} image"
+        )
+    # a metre on the sample near the ROI is this many pixels: turns the pixel margin into
+    # a margin on the sample plane
+    dist = float(np.linalg.norm(pose.translation))
+    m = margin_px * dist / K[0, 0] / max(float(pose.position[2]) / dist, 0.2)
+    cell_x, cell_y = 2 * hw / grid, 2 * hh / grid
+    g = np.arange(grid) + 0.5
+    cx, cy = np.meshgrid(-hw + g * cell_x, -hh + g * cell_y)
+    return RoiGeometry(
+        (slice(r0, r1), slice(c0, c1)),
+        (hw, hh),
+        (cell_x, cell_y),
+        m,
+        grid,
+        np.stack([cx.ravel(), cy.ravel()], axis=1),
+    )
+
+
+def pixel_rays(
+    pose: CameraPose, K: ArrayLike, box: tuple[slice, slice]
+) -> tuple[tuple[NDArray, NDArray, NDArray], NDArray[np.float64]]:
+    """Sample-plane point seen by every pixel of a crop, and its natural vignetting.
+
+    Returns ``((x, y, z), vignetting)``: (h, w) arrays; the points are in the sample
+    frame, metres (NaN off the plane), the vignetting is cos^4 of the angle to the optical
+    axis.  One (h, w) array per component: numpy's batched (h, w, 3) @ (3, 3) products and
+    norms over a last axis of 3 are several times slower.
+    """
+    K = np.asarray(K, float)
+    x = ((np.arange(box[1].start, box[1].stop, dtype=np.float64) - K[0, 2]) / K[0, 0])[None, :]
+    y = ((np.arange(box[0].start, box[0].stop, dtype=np.float64) - K[1, 2]) / K[1, 1])[:, None]
+    r2 = x * x + y * y + 1.0
+    vign = 1.0 / (r2 * r2)
+    Rm = pose.rotation
+    d = [Rm[0, k] * x + Rm[1, k] * y + Rm[2, k] for k in range(3)]  # sample frame (R^T d)
+    C = pose.position
+    s = -C[2] / d[2]
+    return (C[0] + s * d[0], C[1] + s * d[1], C[2] + s * d[2]), vign
+
+
+@dataclass(frozen=True)
 class RegionMap:
     """The sample's region of interest in one camera pose.
 
@@ -328,26 +526,53 @@ class RegionMap:
         ``(row_slice, col_slice)``: the image crop holding the ROI.
     label
         (h, w) int region index of each pixel in the crop, -1 outside the ROI.
-    points
-        (h, w, 3) sample-frame point seen by each pixel of the crop (NaN off the plane).
-    wo
-        (h, w, 3) unit direction from that point to the camera centre.
-    vignetting
-        (h, w) cos^4 of each pixel's angle to the optical axis (natural vignetting).
     n_regions
         Number of regions (grid cells).
     centers
         (n_regions, 2) cell centres on the sample, metres (x, y).
+    pose
+        The camera pose the regions were mapped with.
+    K
+        The camera matrix.
     """
 
     box: tuple[slice, slice]
     label: NDArray[np.int64]
-    points: NDArray[np.float64]
-    wo: NDArray[np.float64]
-    vignetting: NDArray[np.float64]
     n_regions: int
     centers: NDArray[np.float64]
+    pose: CameraPose
+    K: NDArray[np.float64]
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def _rays(self) -> tuple[tuple[NDArray, NDArray, NDArray], NDArray[np.float64]]:
+        if "_rays" not in self.extra:  # computed once, on first use
+            self.extra["_rays"] = pixel_rays(self.pose, self.K, self.box)
+        return self.extra["_rays"]
+
+    @property
+    def xyz(self) -> tuple[NDArray, NDArray, NDArray]:
+        """Three (h, w) arrays: the sample-frame point each pixel sees (NaN off the plane)."""
+        return self._rays()[0]
+
+    @property
+    def vignetting(self) -> NDArray[np.float64]:
+        """(h, w) cos^4 of each pixel's angle to the optical axis (natural vignetting)."""
+        return self._rays()[1]
+
+    @property
+    def camera_position(self) -> NDArray[np.float64]:
+        """(3,) camera centre in the sample frame, metres."""
+        return self.pose.position
+
+    @property
+    def points(self) -> NDArray[np.float64]:
+        """(h, w, 3) sample-frame point seen by each pixel of the crop."""
+        return np.stack(self.xyz, axis=-1)
+
+    @property
+    def wo(self) -> NDArray[np.float64]:
+        """(h, w, 3) unit direction from each pixel's point to the camera centre."""
+        return directions_to(self.points, self.camera_position)
 
 
 def map_regions(
@@ -386,45 +611,12 @@ def map_regions(
         When the ROI is not in the image or not facing the camera.
     """
     K = np.asarray(K, float)
-    hw, hh = 0.5 * roi_fraction * sample_size[0], 0.5 * roi_fraction * sample_size[1]
-    corners = np.array([[-hw, -hh, 0], [hw, -hh, 0], [hw, hh, 0], [-hw, hh, 0]])
-    pc = corners @ pose.rotation.T + pose.translation
-    if np.any(pc[:, 2] <= 0) or pose.position[2] <= 0:
-        raise ReductionError("the sample's ROI is behind the camera or seen from below")
-    uv = (pc @ K.T)[:, :2] / pc[:, 2:3]
-    c0, r0 = np.floor(uv.min(0)).astype(int)
-    c1, r1 = np.ceil(uv.max(0)).astype(int) + 1
-    H, W = shape
-    if c0 < 0 or r0 < 0 or c1 > W or r1 > H:
-        raise ReductionError(
-            f"the sample's ROI (columns {c0}..{c1}, rows {r0}..{r1}) is not inside the "
-            f"{W}x{H} image"
-        )
-    # Per-pixel rays, one (h, w) array per component: numpy's batched (h, w, 3) @ (3, 3)
-    # products and norms over a last axis of 3 are several times slower.
-    x = ((np.arange(c0, c1, dtype=np.float64) - K[0, 2]) / K[0, 0])[None, :]
-    y = ((np.arange(r0, r1, dtype=np.float64) - K[1, 2]) / K[1, 1])[:, None]
-    r2 = x * x + y * y + 1.0
-    vign = 1.0 / (r2 * r2)  # cos^4 of the angle to the optical axis
-    Rm = pose.rotation
-    d = [Rm[0, k] * x + Rm[1, k] * y + Rm[2, k] for k in range(3)]  # sample frame (R^T d)
-    C = pose.position
-    s = -C[2] / d[2]
-    h, w = r1 - r0, c1 - c0
-    p = np.empty((h, w, 3))
-    wo = np.empty((h, w, 3))
-    # C - p = -s d: wo is the unit vector back along the ray (s > 0 in front of the camera)
-    back = -np.sign(s) / np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-    pk = [C[k] + s * d[k] for k in range(3)]
-    for k in range(3):
-        p[..., k] = pk[k]
-        wo[..., k] = d[k] * back
-    # a metre on the sample near the ROI is this many pixels: turns the pixel margin into
-    # a margin on the sample plane
-    dist = float(np.linalg.norm(pose.translation))
-    m = margin_px * dist / K[0, 0] / max(float(pose.position[2]) / dist, 0.2)
-    cell_x, cell_y = 2 * hw / grid, 2 * hh / grid
-    ux, uy = pk[0] + hw, pk[1] + hh
+    roi = roi_geometry(
+        pose, K, shape, sample_size, roi_fraction=roi_fraction, grid=grid, margin_px=margin_px
+    )
+    xyz, vign = rays = pixel_rays(pose, K, roi.box)
+    (hw, hh), (cell_x, cell_y), m = roi.half_size, roi.cell, roi.margin
+    ux, uy = xyz[0] + hw, xyz[1] + hh
     ix = np.floor(ux / cell_x)
     iy = np.floor(uy / cell_y)
     fx = ux - ix * cell_x
@@ -432,17 +624,7 @@ def map_regions(
     inside = (ix >= 0) & (ix < grid) & (iy >= 0) & (iy < grid)
     inside &= (fx > m) & (fx < cell_x - m) & (fy > m) & (fy < cell_y - m)
     label = np.where(inside, iy * grid + ix, -1).astype(np.int64)
-    g = np.arange(grid) + 0.5
-    cx, cy = np.meshgrid(-hw + g * cell_x, -hh + g * cell_y)
-    return RegionMap(
-        (slice(r0, r1), slice(c0, c1)),
-        label,
-        p,
-        wo,
-        vign,
-        grid * grid,
-        np.stack([cx.ravel(), cy.ravel()], axis=1),
-    )
+    return RegionMap(roi.box, label, grid * grid, roi.centers, pose, K, {"_rays": rays})
 
 
 def directions_to(points: NDArray[np.float64], position: ArrayLike) -> NDArray[np.float64]:

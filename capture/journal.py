@@ -27,12 +27,28 @@ __all__ = [
     "sha256_bytes",
     "sha256_file",
     "write_atomic",
+    "xxh3_bytes",
 ]
 
 
 def sha256_bytes(data: bytes) -> str:
     """Hex sha256 of ``data``."""
     return hashlib.sha256(data).hexdigest()
+
+
+def xxh3_bytes(data: bytes) -> str:
+    """Hex XXH3-128 digest of ``data``: the journal's fast integrity check.
+
+    The reduction checks every frame it reads against the journal.  sha256 runs at about
+    1.3 GB/s here (half a LibRaw decode per frame); XXH3 at ~20 GB/s.  For what the check
+    is for, an accidental change or corruption after capture, a 128-bit non-cryptographic
+    digest is as good: anyone able to alter a RAW file can rewrite the unsigned journal
+    next to it, so sha256's collision resistance buys nothing here.  The sha256 stays in
+    the journal for ``sha256sum`` and ``gonio capture status --verify``.
+    """
+    import xxhash
+
+    return xxhash.xxh3_128_hexdigest(data)
 
 
 def sha256_file(path: str | os.PathLike) -> str:

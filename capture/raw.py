@@ -217,6 +217,12 @@ class RawFrame:
         return self._raw
 
     @property
+    def cell_saturation(self) -> NDArray[np.float64] | None:
+        """(2, 2) raw value from which each CFA position counts as saturated, when
+        decoded from a file."""
+        return self._cell_sat
+
+    @property
     def cell_black(self) -> NDArray[np.float64] | None:
         """(2, 2) black level of each CFA position, when decoded from a file."""
         return self._cell_black

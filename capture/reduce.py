@@ -56,8 +56,10 @@ from gonio.capture.fiducials import (
     angle_between,
     detect_pose_in_frame,
     map_regions,
+    roi_geometry,
 )
 from gonio.capture.hdr import merge_bracket
+from gonio.capture.journal import xxh3_bytes
 from gonio.capture.noise import NoiseModel
 from gonio.capture.raw import (
     CHANNELS,
@@ -74,6 +76,8 @@ SUMMARY_FILE = "reduction.json"
 PLOT_FILE = "samples.png"
 NOISE_FILE = "noise.json"
 CONFIG_FILE = "reduction.toml"
+#: Completed poses whose frames are decoded ahead of the one being measured.
+PREFETCH_POSES = 2
 
 
 # --------------------------------------------------------------------------------------
@@ -418,53 +422,130 @@ def bayer_region_weights(
     """
     from scipy.sparse import csr_matrix
 
-    h, w = label.shape
-    cell = np.asarray(channel)[:2, :2]
-    lab = np.asarray(label)
-    inner = np.full((h, w), False)
-    inner[1:-1, 1:-1] = True
+    site, row, weight = bayer_region_entries(label, channel, n_regions, n_channels)
+    used, col = np.unique(site, return_inverse=True)
+    A = csr_matrix((weight, (row, col.ravel())), shape=(n_regions * n_channels, used.size))
+    return A, used
+
+
+def _site_weights(cell: NDArray[np.integer], n_channels: int) -> dict:
+    """For each CFA position (y0, x0) of a site: the pixels that use it for the site's
+    own channel, as ``[(dy, dx, weight), ...]`` offsets from the site (the weights of
+    :func:`bayer_region_weights` seen from the site instead of the pixel)."""
     edge = ((0, 1), (0, -1), (1, 0), (-1, 0))
     diag = ((1, 1), (1, -1), (-1, 1), (-1, -1))
-    rows, cols, data = [], [], []
-    # The CFA repeats every 2x2 cell: each of the 4 pixel positions of a cell has the
-    # same neighbours of each channel, so its weights are found once.
-    for y0 in range(min(2, h)):
-        for x0 in range(min(2, w)):
-            sel = (lab[y0::2, x0::2] >= 0) & inner[y0::2, x0::2]
-            py, px = np.nonzero(sel)
-            if py.size == 0:
-                continue
-            py, px = py * 2 + y0, px * 2 + x0
-            p = py * w + px
-            lp = lab[py, px]
+    out: dict[tuple[int, int], list[tuple[int, int, float]]] = {
+        (a, b): [] for a in range(2) for b in range(2)
+    }
+    for a in range(2):
+        for b in range(2):
             for c in range(n_channels):
-                if cell[y0, x0] == c:
+                if cell[a, b] == c:
                     offs: list[tuple[int, int]] = [(0, 0)]
                 else:
-                    offs = [o for o in edge if cell[(y0 + o[0]) % 2, (x0 + o[1]) % 2] == c]
-                    offs = offs or [o for o in diag if cell[(y0 + o[0]) % 2, (x0 + o[1]) % 2] == c]
-                if not offs:
-                    continue
-                r = lp * n_channels + c
+                    offs = [o for o in edge if cell[(a + o[0]) % 2, (b + o[1]) % 2] == c]
+                    offs = offs or [o for o in diag if cell[(a + o[0]) % 2, (b + o[1]) % 2] == c]
                 for dy, dx in offs:
-                    rows.append(r)
-                    cols.append(p + dy * w + dx)
-                    data.append(np.full(p.size, 1.0 / len(offs)))
-    if not rows:
-        return csr_matrix((n_regions * n_channels, 0)), np.zeros(0, np.intp)
-    q = np.concatenate(cols)
-    hit = np.zeros(h * w, bool)
-    hit[q] = True
-    used = np.flatnonzero(hit)
-    col = (np.cumsum(hit) - 1)[q]
-    # built site-major: grouping ~7 entries per pixel by site is a linear pass, and the
-    # duplicates to sum (a site shared by a region's pixels) sit in short rows
-    AT = csr_matrix(
-        (np.concatenate(data), (col, np.concatenate(rows))),
-        shape=(used.size, n_regions * n_channels),
+                    # pixel (a, b) uses the site at (a + dy, b + dx): seen from the site,
+                    # the pixel sits at (-dy, -dx)
+                    out[((a + dy) % 2, (b + dx) % 2)].append((-dy, -dx, 1.0 / len(offs)))
+    return out
+
+
+def bayer_region_entries(
+    label: NDArray[np.integer],
+    channel: NDArray[np.integer],
+    n_regions: int,
+    n_channels: int = 3,
+) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
+    """The non-zero weights of :func:`bayer_region_weights` as ``(site, row, weight)``.
+
+    Each (site, row) pair appears once, its weight summed over the region's pixels that
+    use the site, so a region's weighted sum of ``x`` is
+    ``np.bincount(row, weight * x[site])`` (and its variance uses ``weight**2``).
+
+    Built site by site rather than pixel by pixel: a site of channel c is used by the
+    pixels of a fixed 3x3 stencil around it (the adjoint of bilinear interpolation), so
+    its weight in a region is the stencil's weight over its neighbours in that region,
+    one OpenCV 3x3 filter of the "pixel counts" mask; the region is the neighbours' label
+    (a 3x3 dilation).  Assembling a sparse matrix pixel by pixel, which has to sum ~7
+    duplicates per pixel, cost more than the rest of the pose.  A site with neighbours
+    in two regions (a boundary closer than the margin map_regions keeps) gets one entry
+    per region, computed neighbour by neighbour.
+
+    Returns
+    -------
+    site : ndarray
+        (m,) flat indices into the (h, w) crop.
+    row : ndarray
+        (m,) ``region * n_channels + channel``.
+    weight : ndarray
+        (m,) weights; per row they sum to the region's pixel count.
+    """
+    import cv2
+
+    lab = np.asarray(label)
+    h, w = lab.shape
+    cell = np.asarray(channel)[:2, :2]
+    if h < 3 or w < 3:  # no pixel with all its neighbours in the crop
+        return np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0)
+    # Labels of the pixels that count, padded by one so that a site's stencil never
+    # leaves the array; pixels on the crop's border (neighbours unknown) do not count.
+    # float32 holds labels exactly (to 2^24) and is what OpenCV's filters take.
+    P = np.full((h + 2, w + 2), -1, np.float32)
+    P[2:h, 2:w] = lab[1:-1, 1:-1]
+    counts = (P >= 0).astype(np.float32)
+    P_low = np.where(P >= 0, P, np.float32(np.inf))
+    filtered: dict[bytes, tuple[NDArray, NDArray, NDArray]] = {}
+    sites, rows, weights = [], [], []
+    o_sites, o_rows, o_weights = [], [], []
+    for (y0, x0), stencil in _site_weights(cell, n_channels).items():
+        if y0 >= h or x0 >= w or not stencil:
+            continue
+        c = int(cell[y0, x0])
+        kernel = np.zeros((3, 3), np.float32)
+        for dy, dx, wt in stencil:
+            kernel[1 + dy, 1 + dx] = wt  # powers of 2: the filtered sums are exact
+        key = kernel.tobytes()
+        if key not in filtered:
+            el = (kernel > 0).astype(np.uint8)
+            filtered[key] = (
+                cv2.filter2D(counts, -1, kernel, borderType=cv2.BORDER_CONSTANT),
+                cv2.dilate(P, el),  # highest label among the neighbours
+                cv2.erode(P_low, el),  # lowest (inf: none)
+            )
+        wsum, top, low = (a[1 + y0 : 1 + h : 2, 1 + x0 : 1 + w : 2] for a in filtered[key])
+        nx = top.shape[1]
+        keep = np.flatnonzero((top >= 0) & (low == top))
+        iy, ix = np.divmod(keep, nx)
+        sites.append((y0 + 2 * iy) * w + x0 + 2 * ix)
+        rows.append(top.ravel()[keep].astype(np.intp) * n_channels + c)
+        weights.append(wsum.ravel()[keep].astype(np.float64))
+        mixed = np.flatnonzero(low < top)
+        if mixed.size:
+            my, mx = np.divmod(mixed, nx)
+            for dy, dx, wt in stencil:
+                L = P[1 + y0 + 2 * my + dy, 1 + x0 + 2 * mx + dx]
+                ok = L >= 0
+                o_sites.append((y0 + 2 * my[ok]) * w + x0 + 2 * mx[ok])
+                o_rows.append(L[ok].astype(np.intp) * n_channels + c)
+                o_weights.append(np.full(int(ok.sum()), wt))
+    if o_sites:
+        # one entry per (site, row): several neighbours of a site may share the region
+        n_rows = n_regions * n_channels
+        key, inv = np.unique(
+            np.concatenate(o_sites) * n_rows + np.concatenate(o_rows), return_inverse=True
+        )
+        sites.append(key // n_rows)
+        rows.append(key % n_rows)
+        weights.append(np.bincount(inv.ravel(), np.concatenate(o_weights)))
+    if not sites:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0)
+    return (
+        np.concatenate(sites).astype(np.intp, copy=False),
+        np.concatenate(rows).astype(np.intp, copy=False),
+        np.concatenate(weights),
     )
-    AT.sum_duplicates()
-    return AT.T.tocsr(), used
 
 
 def _reported_pose(reported_camera: Any, rms: float, n_corners: int) -> CameraPose:
@@ -514,8 +595,9 @@ def measure_pose(
     pose_flags = 0
     pose_reasons: list[str] = []
     det = _detection_frame(frames)
+    expected = None if reported_camera is None else _reported_pose(reported_camera, math.nan, 0)
     try:
-        cam = detect_pose_in_frame(det, setup.board, setup.K, setup.dist)
+        cam = detect_pose_in_frame(det, setup.board, setup.K, setup.dist, expected=expected)
     except ReductionError as exc:
         if reported_camera is None:
             raise
@@ -547,83 +629,27 @@ def measure_pose(
                 )
     if setup.geometry == "rig" and reported_camera is not None and not pose_flags:
         cam = _reported_pose(reported_camera, cam.reprojection_rms, cam.n_corners)
-    regions = map_regions(
-        cam,
-        setup.K,
-        frames[0].shape,
-        setup.sample_size,
-        roi_fraction=setup.roi_fraction,
-        grid=setup.grid,
-    )
-    merged = merge_bracket(frames, setup.noise, dark_variance, region=regions.box)
-    n, nc = regions.n_regions, len(CHANNELS)
-    # flat indices of the ROI's pixels, found once (each boolean-mask index searches again)
-    inside = np.flatnonzero(regions.label >= 0)
-
-    def at(a: NDArray) -> NDArray:
-        return a.reshape(-1, *a.shape[2:])[inside]
-
-    lab = at(regions.label)
-    # Each region and channel is a weighted mean over that channel's CFA sites whose
-    # weighted centroid is the region's own pixel centroid (see bayer_region_weights):
-    # the directions below are that centroid's, so R and B (whose sites sit half a pixel
-    # off it) would otherwise be measured at other directions than reported.
-    A, used = bayer_region_weights(regions.label, merged.channel, n)
-
-    def on(a: NDArray) -> NDArray:
-        return a.reshape(-1, *a.shape[2:])[used]
-
-    vign = on(regions.vignetting)
-    val = on(merged.value) / vign
-    var = on(merged.variance) / vign**2
-    sat = on(merged.saturated) | ~np.isfinite(val)
-    pts = on(regions.points)
     lp = np.asarray(light_position, float)
-    # G(x): a Lambertian disk of radius r whose axis passes through x gives exactly
-    # E = pi L sin^2(a) cos(theta), sin^2(a) = r^2 / (r^2 + d^2): the small-source law
-    # (pi r^2 L cos(theta) cos(theta') / d^2) times d^2 / (d^2 + r^2).  The rig aims the
-    # light at the sample centre; off that axis the correction changes by < 1e-4 over a
-    # 5 cm sample at 0.5 m (checked against the exact rim integral in the tests).
-    g = irradiance_geometry(pts, lp, light_normal)
-    to_light_u = [lp[a] - pts[:, a] for a in range(3)]
-    d2u = to_light_u[0] ** 2 + to_light_u[1] ** 2 + to_light_u[2] ** 2
-    if setup.light_radius:
-        g = g * (np.pi * setup.light_radius**2) * d2u / (d2u + setup.light_radius**2)
-
-    has_sat = bool(sat.any())
-    if has_sat:
-        val = np.where(sat, 0.0, val)
-        var = np.where(sat, 0.0, var)
-    A2 = A.multiply(A).tocsr()
-    k = np.asarray(A.sum(axis=1)).reshape(n, nc)
+    ln = None if light_normal is None else np.asarray(light_normal, float)
+    fused = _fused_kernel() if all(f.raw is not None for f in frames) else None
+    if fused is not None:
+        regions, sums, dirs = _pose_sums_fused(fused, frames, setup, cam, lp, ln, dark_variance)
+    else:
+        regions, sums, dirs = _pose_sums_numpy(frames, setup, cam, lp, ln, dark_variance)
+    n, nc = regions.n_regions, len(CHANNELS)
+    k = sums[..., 0]
     with np.errstate(invalid="ignore", divide="ignore"):
-        L = (A @ val).reshape(n, nc) / k
-        Lv = (A2 @ var).reshape(n, nc) / k**2
-        G = (A @ g).reshape(n, nc) / k
-        Q = (A @ (val / g)).reshape(n, nc) / k
-        Qv = (A2 @ (var / g**2)).reshape(n, nc) / k**2
-    any_sat = (
-        (A @ sat.astype(np.float64)).reshape(n, nc) > 0 if has_sat else np.zeros((n, nc), bool)
-    )
+        L = sums[..., 1] / k
+        Lv = sums[..., 2] / k**2
+        G = sums[..., 3] / k
+        Q = sums[..., 4] / k
+        Qv = sums[..., 5] / k**2
+    any_sat = sums[..., 6] > 0
     for arr in (L, Lv, G, Q, Qv):
         arr[any_sat | (k == 0)] = np.nan
-    # per-pixel vector to the light over the region's own pixels, one component at a time
-    # (sums over a trailing axis of 3 are slow in numpy)
-    pts = at(regions.points)
-    to_light = [lp[a] - pts[:, a] for a in range(3)]
-    d2 = to_light[0] ** 2 + to_light[1] ** 2 + to_light[2] ** 2
-    # directions: mean over the region's pixels of the per-pixel directions
-    inv_d = 1.0 / np.sqrt(d2)
-    npx = np.bincount(lab, minlength=n)
-    wi = np.stack(
-        [np.bincount(lab, to_light[a] * inv_d, minlength=n) for a in range(3)],
-        axis=1,
-        dtype=float,
-    )
-    wo_px = at(regions.wo)
-    wo = np.stack(
-        [np.bincount(lab, wo_px[:, a], minlength=n) for a in range(3)], axis=1, dtype=float
-    )
+    npx = dirs[:, 0]
+    wi = dirs[:, 1:4].copy()
+    wo = dirs[:, 4:7].copy()
     flags = np.full(n, pose_flags, dtype=np.uint32)
     reasons = [list(pose_reasons) for _ in range(n)]
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -645,6 +671,192 @@ def measure_pose(
         wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
         wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
     return PoseMeasurement(pose, kind, wi, wo, L, Lv, G, Q, Qv, flags, reasons, names, cam, regions)
+
+
+def _pose_sums_numpy(
+    frames: list[RawFrame],
+    setup: ReductionSetup,
+    cam: CameraPose,
+    lp: NDArray[np.float64],
+    light_normal: NDArray[np.float64] | None,
+    dark_variance: float | NDArray[np.float64],
+) -> tuple[RegionMap, NDArray[np.float64], NDArray[np.float64]]:
+    """The regions of a pose, their weighted sums per channel and their direction sums.
+
+    Returns ``(regions, sums, dirs)``: ``sums`` (n, 3, 7) holds per region and channel the
+    sums of w, w L, w^2 var(L), w G, w L / G, w^2 var(L) / G^2 and w over saturated sites
+    (w the Bayer weights, :func:`bayer_region_weights`); ``dirs`` (n, 7) the pixel count
+    and the sums of the per-pixel unit vectors to the light and to the camera.  The
+    reference implementation of :mod:`gonio.capture.pose_kernel`.
+    """
+    regions = map_regions(
+        cam,
+        setup.K,
+        frames[0].shape,
+        setup.sample_size,
+        roi_fraction=setup.roi_fraction,
+        grid=setup.grid,
+    )
+    merged = merge_bracket(frames, setup.noise, dark_variance, region=regions.box)
+    n, nc = regions.n_regions, len(CHANNELS)
+    # flat indices of the ROI's pixels, found once (each boolean-mask index searches again)
+    inside = np.flatnonzero(regions.label >= 0)
+
+    def at(a: NDArray) -> NDArray:
+        return a.reshape(-1)[inside]
+
+    lab = at(regions.label)
+    # Each region and channel is a weighted mean over that channel's CFA sites whose
+    # weighted centroid is the region's own pixel centroid (see bayer_region_weights):
+    # the directions below are that centroid's, so R and B (whose sites sit half a pixel
+    # off it) would otherwise be measured at other directions than reported.
+    site, row, wt = bayer_region_entries(regions.label, merged.channel, n)
+
+    def on(a: NDArray) -> NDArray:
+        return a.reshape(-1)[site]
+
+    def region_sum(x: NDArray) -> NDArray:
+        return np.bincount(row, x, minlength=n * nc).reshape(n, nc)
+
+    vign = on(regions.vignetting)
+    val = on(merged.value) / vign
+    var = on(merged.variance) / vign**2
+    sat = on(merged.saturated) | ~np.isfinite(val)
+    pts = np.stack([on(a) for a in regions.xyz], axis=-1)
+    # G(x): a Lambertian disk of radius r whose axis passes through x gives exactly
+    # E = pi L sin^2(a) cos(theta), sin^2(a) = r^2 / (r^2 + d^2): the small-source law
+    # (pi r^2 L cos(theta) cos(theta') / d^2) times d^2 / (d^2 + r^2).  The rig aims the
+    # light at the sample centre; off that axis the correction changes by < 1e-4 over a
+    # 5 cm sample at 0.5 m (checked against the exact rim integral in the tests).
+    g = irradiance_geometry(pts, lp, light_normal)
+    to_light_u = [lp[a] - pts[:, a] for a in range(3)]
+    d2u = to_light_u[0] ** 2 + to_light_u[1] ** 2 + to_light_u[2] ** 2
+    if setup.light_radius:
+        g = g * (np.pi * setup.light_radius**2) * d2u / (d2u + setup.light_radius**2)
+    val = np.where(sat, 0.0, val)
+    var = np.where(sat, 0.0, var)
+    wt2 = wt * wt
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cols = (wt, wt * val, wt2 * var, wt * g, wt * val / g, wt2 * var / g**2, wt * sat)
+    sums = np.stack([region_sum(x) for x in cols], axis=-1, dtype=float)
+    # directions: mean over the region's pixels of the per-pixel unit vectors to the light
+    # and to the camera, one component at a time (sums over a trailing axis of 3 are slow)
+    xyz = [at(a) for a in regions.xyz]
+
+    def direction_sum(to: NDArray) -> list[NDArray]:
+        v = [to[a] - xyz[a] for a in range(3)]
+        inv = 1.0 / np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        return [np.bincount(lab, v[a] * inv, minlength=n) for a in range(3)]
+
+    dirs = np.stack(
+        [
+            np.bincount(lab, minlength=n),
+            *direction_sum(lp),
+            *direction_sum(regions.camera_position),
+        ],
+        axis=1,
+        dtype=float,  # bincount of no pixels at all gives integers
+    )
+    return regions, sums, dirs
+
+
+def _fused_kernel() -> Any | None:
+    """:func:`gonio.capture.pose_kernel.pose_sums`, or None when ``GONIO_NUMBA=0``."""
+    if os.environ.get("GONIO_NUMBA") == "0":
+        return None
+    from gonio.capture.pose_kernel import pose_sums
+
+    return pose_sums
+
+
+def _pose_sums_fused(
+    kernel: Any,
+    frames: list[RawFrame],
+    setup: ReductionSetup,
+    cam: CameraPose,
+    lp: NDArray[np.float64],
+    light_normal: NDArray[np.float64] | None,
+    dark_variance: float | NDArray[np.float64],
+) -> tuple[RegionMap, NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`_pose_sums_numpy` in one pass of :mod:`gonio.capture.pose_kernel`."""
+    ref = frames[0]
+    for f in frames[1:]:  # what merge_bracket checks
+        if f.shape != ref.shape or f.cfa_pattern != ref.cfa_pattern:
+            raise ReductionError(
+                f"{f.name}: {f.cfa_pattern} {f.shape} does not match {ref.name}: "
+                f"{ref.cfa_pattern} {ref.shape} in the same bracket"
+            )
+    roi = roi_geometry(
+        cam,
+        setup.K,
+        ref.shape,
+        setup.sample_size,
+        roi_fraction=setup.roi_fraction,
+        grid=setup.grid,
+    )
+    box = roi.box
+    r0, c0 = box[0].start, box[1].start
+    frames = sorted(frames, key=lambda f: f.exposure_factor())  # merge_bracket's order
+
+    def crop_cell(cell: NDArray) -> NDArray:  # a (2, 2) cell as seen from the crop origin
+        return np.roll(np.asarray(cell, float), (-(r0 % 2), -(c0 % 2)), axis=(0, 1))
+
+    def stack(key: str) -> NDArray:
+        if all(f.extra.get(key) is None for f in frames):
+            return np.zeros((len(frames), 0, 0))
+        return np.stack(
+            [
+                np.zeros(ref.shape)[box] if f.extra.get(key) is None else f.extra[key][box]
+                for f in frames
+            ]
+        )
+
+    gains = stack("_gain")
+    if gains.size and any(f.extra.get("_gain") is None for f in frames):
+        gains[[f.extra.get("_gain") is None for f in frames]] = 1.0
+    models = [setup.noise.at_iso(f.iso) for f in frames]
+    dv = np.asarray(dark_variance, dtype=np.float64)
+    st_n = np.zeros(4, np.int64)
+    st = np.zeros((3, 4, 9))
+    cell = crop_cell(ref.cell_channel).astype(np.int64)
+    for (y0, x0), entries in _site_weights(cell, len(CHANNELS)).items():
+        st_n[2 * y0 + x0] = len(entries)
+        for t, e in enumerate(entries):
+            st[:, 2 * y0 + x0, t] = e
+    K = np.asarray(setup.K, float)
+    hw, hh = roi.half_size
+    label, sums, dirs = kernel(
+        np.stack([f.raw[box] for f in frames]),
+        np.stack([crop_cell(f.cell_black) for f in frames]),
+        np.stack([crop_cell(f.cell_saturation) for f in frames]),
+        stack("_offset"),
+        gains,
+        np.array([f.exposure_factor() for f in frames]),
+        np.array([m.gain for m in models]),
+        np.array([m.read_noise**2 for m in models]),
+        1.0 / 12.0 if setup.noise.quantisation else 0.0,
+        dv[box] if dv.ndim == 2 else np.zeros((0, 0)),
+        float(dv) if dv.ndim != 2 else 0.0,
+        cell,
+        st_n,
+        st[0].astype(np.int64),
+        st[1].astype(np.int64),
+        st[2],
+        np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]),
+        np.asarray(cam.rotation, float),
+        np.asarray(cam.position, float),
+        r0,
+        c0,
+        np.array([hw, hh, *roi.cell, roi.margin]),
+        roi.grid,
+        lp,
+        np.zeros(3) if light_normal is None else light_normal,
+        light_normal is not None,
+        float(setup.light_radius or 0.0),
+        len(CHANNELS),
+    )
+    regions = RegionMap(box, label, roi.grid**2, roi.centers, cam, K)
+    return regions, sums, dirs
 
 
 def light_scale(
@@ -707,16 +919,20 @@ def brdf_of(
 
 
 def default_threads() -> int:
-    """Threads :func:`reduce_session` uses to read, hash and decode frames: 2 if the
-    machine has 2 or more cores (more give little: the measurement itself is serial)."""
+    """Threads :func:`reduce_session` uses, the calling one included: 2 if the machine has
+    2 or more cores (one measures poses and decodes, the other decodes ahead; more give
+    little, since the measurement is serial and LibRaw's decoding is bound by memory)."""
     return 2 if (os.cpu_count() or 1) >= 2 else 1
 
 
 def _load_frame(
     session: Path, signature: CameraSignature | None, rec: Mapping[str, Any]
 ) -> tuple[RawFrame | None, str | None]:
-    """Read one journal frame once, check its sha256 and decode it from the same bytes.
+    """Read one journal frame once, check it against the journal and decode it from the
+    same bytes.
 
+    The check is the journal's byte count and XXH3-128 digest (sessions from before it
+    was recorded: sha256); see :func:`gonio.capture.journal.xxh3_bytes` for why.
     Returns ``(frame, None)``, or ``(None, problem)`` for a missing, changed, corrupt or
     foreign file.  Runs in worker threads: it touches no shared state.
     """
@@ -726,11 +942,16 @@ def _load_frame(
         if not path.is_file():
             raise FileFormatError(path, "missing (the journal lists it)")
         data = read_file(path)
-        if rec.get("sha256") and hashlib.sha256(data).hexdigest() != rec["sha256"]:
+        changed = "the file was changed, truncated or corrupted after capture"
+        if rec.get("bytes") is not None and len(data) != int(rec["bytes"]):
             raise FileFormatError(
-                path,
-                "sha256 differs from the journal: the file was changed or corrupted after capture",
+                path, f"{len(data)} bytes, the journal recorded {int(rec['bytes'])}: {changed}"
             )
+        if rec.get("xxh3_128"):
+            if xxh3_bytes(data) != rec["xxh3_128"]:
+                raise FileFormatError(path, f"XXH3-128 digest differs from the journal: {changed}")
+        elif rec.get("sha256") and hashlib.sha256(data).hexdigest() != rec["sha256"]:
+            raise FileFormatError(path, f"sha256 differs from the journal: {changed}")
         fr = read_raw(data, name=rel, expect=signature)
     except GonioError as exc:
         return None, str(exc)
@@ -747,16 +968,19 @@ def _load_frame(
 class _FrameLoader:
     """Reads, hashes and decodes frames in worker threads, handing them out in order.
 
-    File reads, ``hashlib.sha256`` on large buffers and LibRaw's unpack release the GIL,
-    so with two threads the next pose's frames are decoded while the current pose is
-    measured (board detection in OpenCV releases it too).  Every frame is decoded
-    independently and the results are collected in journal order, so the output does
-    not depend on the thread count.  With one thread frames are decoded on demand.
+    File reads, hashing, LibRaw's unpack, OpenCV's board detection and the fused pose
+    kernel release the GIL, so with two threads the worker decodes the next poses' frames
+    while this thread measures the current pose.  When this thread needs frames the
+    worker has not started, it decodes them itself rather than wait (decoding takes
+    longer than measuring, so the two threads share it).  Every frame is decoded
+    independently and the results are collected in journal order, so the output does not
+    depend on the thread count.  With one thread frames are decoded on demand.
     """
 
     def __init__(self, session: Path, signature: CameraSignature | None, threads: int) -> None:
         self._args = (session, signature)
-        self._pool = ThreadPoolExecutor(threads, "gonio-reduce") if threads > 1 else None
+        # ``threads`` counts this thread: the pool has the others
+        self._pool = ThreadPoolExecutor(threads - 1, "gonio-reduce") if threads > 1 else None
         self._pending: dict[int, Future] = {}
 
     def __enter__(self) -> _FrameLoader:
@@ -770,7 +994,7 @@ class _FrameLoader:
             self._pool.shutdown(wait=True, cancel_futures=True)
 
     def prefetch(self, recs: list[dict[str, Any]]) -> None:
-        """Start decoding these frames (no-op with one thread or when already started)."""
+        """Queue these frames for decoding (no-op with one thread or when already queued)."""
         if self._pool is None:
             return
         for rec in recs:
@@ -779,14 +1003,16 @@ class _FrameLoader:
 
     def results(self, recs: list[dict[str, Any]]) -> list[tuple[RawFrame | None, str | None]]:
         """``(frame, problem)`` of each record, in the order given."""
-        self.prefetch(recs)
-        out = []
-        for rec in recs:
-            fut = self._pending.pop(id(rec), None)
-            if fut is None or fut.cancel():  # not started yet: do it here, not wait idle
-                out.append(_load_frame(*self._args, rec))
-            else:
-                out.append(fut.result())
+        futs = [self._pending.pop(id(rec), None) for rec in recs]
+        # frames no worker has started are decoded here (cancel() fails once started)
+        local = [fut is None or fut.cancel() for fut in futs]
+        out: list[Any] = [
+            _load_frame(*self._args, rec) if here else None
+            for rec, here in zip(recs, local, strict=True)
+        ]
+        for k, (fut, here) in enumerate(zip(futs, local, strict=True)):
+            if not here:
+                out[k] = fut.result()
         return out
 
 
@@ -871,9 +1097,9 @@ def reduce_session(
     progress
         Called as ``progress(done, total)`` after each pose.
     threads
-        Threads reading, hashing and decoding frames while poses are measured
-        (:func:`default_threads` when None; 1 does everything in this thread).  The
-        output is the same for any number.
+        Threads, this one included: the others read, hash and decode frames ahead while
+        poses are measured (:func:`default_threads` when None; 1 does everything in
+        this thread).  The output is the same for any number.
 
     Returns
     -------
@@ -954,11 +1180,9 @@ def reduce_session(
                 if progress:
                     progress(i + 1, len(poses))
                 continue
-            # decode the next completed pose's frames while this one is measured
-            loader.prefetch(recs)
-            nxt = next((q for q in poses[i + 1 :] if q in done), None)
-            if nxt is not None:
-                loader.prefetch(shots[nxt])
+            # keep the worker two completed poses ahead of the measurement
+            for q in [q for q in poses[i + 1 :] if q in done][:PREFETCH_POSES]:
+                loader.prefetch(shots[q])
             frames = []
             dvar = 0.0
             for fr in collect(recs):
@@ -982,7 +1206,13 @@ def reduce_session(
                 rejected["no decodable frame"] += 1
                 if kind == "sample":
                     measurements.append(
-                        _invalid_pose(p, wi_rep, wo_rep, why, tuple(r["file"] for r in recs))
+                        _invalid_pose(
+                            p,
+                            wi_rep,
+                            wo_rep,
+                            f"no decodable frame: {why}",
+                            tuple(r["file"] for r in recs),
+                        )
                     )
             else:
                 try:
@@ -1003,7 +1233,11 @@ def reduce_session(
                     if kind == "sample":
                         measurements.append(
                             _invalid_pose(
-                                p, wi_rep, wo_rep, str(exc), tuple(f.name for f in frames)
+                                p,
+                                wi_rep,
+                                wo_rep,
+                                f"pose could not be reduced: {exc}",
+                                tuple(f.name for f in frames),
                             )
                         )
                 else:
@@ -1092,6 +1326,7 @@ def _reason_key(reason: str) -> str:
         "camera direction",
         "camera position",
         "no decodable frame",
+        "pose could not be reduced",
         "no pixels",
     ):
         if key in reason:
@@ -1106,6 +1341,8 @@ def _reason_key(reason: str) -> str:
 def _invalid_pose(
     p: int, wi: NDArray, wo: NDArray, why: str, frames: tuple[str, ...]
 ) -> PoseMeasurement:
+    """A sample pose that gave no measurement: one INVALID sample at the rig's directions,
+    ``why`` its reason."""
     nan3 = np.full((1, 3), np.nan)
     return PoseMeasurement(
         p,
@@ -1118,7 +1355,7 @@ def _invalid_pose(
         nan3,
         nan3,
         np.array([_flag("INVALID")], np.uint32),
-        [[f"no decodable frame: {why}" if "decod" not in why else why]],
+        [[why]],
         frames,
     )
 

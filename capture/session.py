@@ -40,7 +40,14 @@ import numpy as np
 from gonio import __version__
 from gonio.capture.bracket import FrameVerdict, judge, next_exposure, predict_exposure, roi_pixels
 from gonio.capture.camera import Camera, CameraInfo, LightSwitch, TargetChanger
-from gonio.capture.journal import Journal, fsync_dir, read_journal, sha256_bytes, write_atomic
+from gonio.capture.journal import (
+    Journal,
+    fsync_dir,
+    read_journal,
+    sha256_bytes,
+    write_atomic,
+    xxh3_bytes,
+)
 from gonio.capture.ordering import move_time_matrix, order_poses, tour_time
 from gonio.capture.plan import ExpandedPlan, Plan, Pose, expand_plan, plan_digest, plan_from_dict
 from gonio.errors import CameraError, GonioError, RigError, RigFault, SessionError
@@ -674,6 +681,7 @@ def _store_shot(
         "f_number": _finite(shot.f_number),
         "file": name,
         "sha256": sha256_bytes(shot.data),
+        "xxh3_128": xxh3_bytes(shot.data),
         "bytes": len(shot.data),
     }
     if shot.extra:

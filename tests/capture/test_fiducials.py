@@ -7,10 +7,15 @@ import pytest
 
 from gonio.capture.fiducials import (
     BoardSpec,
+    CameraPose,
+    binned_grey_uint8,
+    binning_for,
     detect_pose,
     detect_pose_in_frame,
     grey_from_mosaic,
+    grey_image,
     map_regions,
+    to_uint8,
 )
 from gonio.capture.raw import read_raw
 from gonio.capture.reduce import setup_from_scene
@@ -77,9 +82,15 @@ def test_pose_matches_the_simulators_true_pose(rig_views):
     setup, views = rig_views
     for frame, rp, _ in views:
         R_true = rp.camera_rotation.T  # RigPoses gives camera-to-sample
+        rig = CameraPose(R_true, -R_true @ rp.camera_position, rp.camera_position, np.nan, 0)
+        # seen at 20 deg the markers are big enough to be found on a 2x binned image, at
+        # 60 deg (foreshortened by half) they are not
+        factor = binning_for(setup.board, setup.K, rig, frame.shape)
+        assert factor == {"view0": 2, "view1": 1}.get(frame.name, factor)
         for pose in (
             detect_pose(grey_from_mosaic(frame), setup.board, setup.K),  # full resolution
             detect_pose_in_frame(frame, setup.board, setup.K, max_width=400),  # binned + refined
+            detect_pose_in_frame(frame, setup.board, setup.K, expected=rig),  # binned by size
         ):
             err_mm = np.linalg.norm(pose.position - rp.camera_position) * 1e3
             err_deg = np.degrees(pose.angle_to(R_true))
@@ -163,3 +174,56 @@ def test_geometry_mismatch_with_the_rig_is_flagged(rig_views):
     )
     assert (bad.flags & Flag.GEOMETRY_MISMATCH).all()
     assert "deg from the rig's report" in bad.reasons[0][0]
+
+
+def looking_down(height):
+    """A camera ``height`` metres above the sample centre, looking straight down."""
+    R = np.diag([1.0, -1.0, -1.0])  # world -> camera: x right, y down the image, z forward
+    C = np.array([0.0, 0.0, height])
+    return CameraPose(R, -R @ C, C, np.nan, 0)
+
+
+@pytest.mark.parametrize(("height", "factor"), [(0.6, 1), (0.3, 2), (0.15, 4)])
+def test_binning_follows_the_expected_marker_size(height, factor):
+    """Seen square on, a marker of side L at distance Z is f L / Z pixels: 25, 50 and 100
+    pixels at f = 1000 for the 15 mm markers; the coarsest binning keeps >= 20 pixels."""
+    K = np.array([[1000.0, 0, 1500], [0, 1000.0, 1000], [0, 0, 1]])
+    got = binning_for(BoardSpec(), K, looking_down(height), (2000, 3000), min_marker_px=20)
+    assert got == factor
+    # never finer than asked, never so coarse the image is under 160 pixels wide
+    assert binning_for(BoardSpec(), K, looking_down(0.6), (2000, 3000), min_factor=4) == 4
+    assert binning_for(BoardSpec(), K, looking_down(0.01), (2000, 3000)) == 16  # 187 px wide
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("factor", [2, 4])
+def test_fast_binned_grey_is_to_uint8_of_the_grey_image(rig_views, factor):
+    _setup, views = rig_views
+    for frame, _rp, _ in views:
+        want = to_uint8(grey_image(frame, factor)).astype(int)
+        got = binned_grey_uint8(frame, factor).astype(int)
+        assert got.shape == want.shape
+        assert np.abs(got - want).max() <= 1
+
+
+def test_a_dim_board_beside_a_bright_sample_is_still_found():
+    """Under grazing light a glossy sample's highlight sets the grey scale; the board at
+    4 % of it must still decode (a linear scale leaves it ~10 grey levels, none found)."""
+    from gonio.capture.fiducials import _detect_corners
+
+    board = BoardSpec()
+    img = board.cv_board().generateImage((700, 700), marginSize=20).astype(np.float32) / 255
+    canvas = np.zeros((900, 1200), np.float32)
+    canvas[100:800, 250:950] = 0.04 * img
+    canvas[300:600, 450:750] = 1.0  # the sample's highlight
+    _corners, ids = _detect_corners(to_uint8(canvas), board, "dim", 6)
+    assert len(ids) == 24  # every corner the sample leaves uncovered
+
+
+def test_a_degenerate_corner_set_is_an_error_not_a_nan_pose():
+    from gonio.capture.fiducials import _solve
+
+    K = np.array([[1000.0, 0, 400], [0, 1000.0, 300], [0, 0, 1]])
+    corners = np.stack([np.linspace(100, 500, 5), np.full(5, 300.0)], axis=1)  # one line
+    with pytest.raises(ReductionError, match="degenerate"):
+        _solve(BoardSpec(), corners, np.arange(5), K, None)

@@ -10,6 +10,7 @@ from importlib import resources
 import numpy as np
 import pytest
 import rawpy
+import xxhash
 
 from gonio.capture.journal import read_journal
 from gonio.cli import main
@@ -117,6 +118,7 @@ def replace_frame(s, rel, data):
         r = json.loads(line)
         if r.get("file") == rel:
             r["sha256"] = hashlib.sha256(data).hexdigest()
+            r["xxh3_128"] = xxhash.xxh3_128_hexdigest(data)
             r["bytes"] = len(data)
         lines.append(json.dumps(r))
     (s / "journal.jsonl").write_text("\n".join(lines) + "\n")
@@ -184,7 +186,8 @@ def test_reduce_twice_gives_the_same_file(session, tmp_path):
 @pytest.mark.parametrize("threads", [1, 2])
 def test_threads_give_the_same_file_and_a_changed_byte_is_caught(session, tmp_path, threads):
     """Frames are decoded in worker threads while poses are measured: the output must not
-    depend on it, and the journal's sha256 check must still see one flipped pixel byte."""
+    depend on it, and the journal's digest check must still see one flipped pixel byte
+    (XXH3-128; sha256 for a journal written before XXH3 was recorded)."""
     from gonio.capture.reduce import reduce_session
 
     s = copy_session(session, tmp_path / "S")
@@ -196,7 +199,14 @@ def test_threads_give_the_same_file_and_a_changed_byte_is_caught(session, tmp_pa
     data[-1000] ^= 0x01  # a pixel's lowest bit: the decode alone cannot tell
     (s / files[0]).write_bytes(bytes(data))
     res = reduce_session(s, plot=False, threads=threads)
-    assert "sha256 differs" in res.summary["frame_problems"][files[0]]
+    assert "XXH3-128 digest differs from the journal" in res.summary["frame_problems"][files[0]]
+    # an older journal has only the sha256: that is checked instead
+    journal = s / "journal.jsonl"
+    old = [json.loads(ln) for ln in journal.read_text().splitlines()]
+    assert any("xxh3_128" in r for r in old)
+    journal.write_text("".join(json.dumps(r | {"xxh3_128": None}) + "\n" for r in old))
+    res = reduce_session(s, plot=False, threads=threads)
+    assert "sha256 differs from the journal" in res.summary["frame_problems"][files[0]]
     samples = load_samples(res.path)
     rows = [k for k, fr in enumerate(samples.frames) if files[0] in fr.split(";")]
     if len(files) == 1:  # the pose has no other frame: its samples are invalid
@@ -214,7 +224,7 @@ def test_bad_frames_are_reported_and_their_samples_flagged(session, tmp_path, ca
     files_b, pose_b = sample_files(s, poses[1])
     files_c, pose_c = sample_files(s, poses[2])
     files_d, pose_d = sample_files(s, poses[3])
-    # a: truncated after capture (the journal hash no longer matches)
+    # a: truncated after capture (the journal's byte count no longer matches)
     for f in files_a:
         data = (s / f).read_bytes()
         (s / f).write_bytes(data[: len(data) // 2])
@@ -233,7 +243,7 @@ def test_bad_frames_are_reported_and_their_samples_flagged(session, tmp_path, ca
     samples = load_samples(s / "samples.h5")
     summary = json.loads((s / "reduction.json").read_text())
     problems = summary["frame_problems"]
-    assert all("sha256 differs" in problems[f] for f in files_a)
+    assert all("bytes, the journal recorded" in problems[f] for f in files_a)
     assert all("CFA pattern is GRBG" in problems[f] and "RGGB" in problems[f] for f in files_b)
     failed = {fp["pose"]: fp["reason"] for fp in summary["failed_poses"]}
     assert pose_a in failed and pose_b in failed and "no decodable frame" in failed[pose_b]

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import xxhash
 
 from gonio.capture.journal import read_journal
 from gonio.capture.plan import load_plan
@@ -71,6 +72,7 @@ def _check_journal_against_files(session: Path) -> list[dict]:
     for r in shots:
         data = (session / r["file"]).read_bytes()
         assert hashlib.sha256(data).hexdigest() == r["sha256"]
+        assert xxhash.xxh3_128_hexdigest(data) == r["xxh3_128"]
         assert len(data) == r["bytes"]
     on_disk = {f"raw/{p.name}" for p in (session / "raw").iterdir()}
     assert on_disk == {r["file"] for r in shots}

@@ -1,0 +1,249 @@
+"""One pose's pixel work in one fused numba kernel: ROI labels, HDR merge, Bayer-centred
+region sums, irradiance geometry and mean directions.
+
+Why hand-written: after the board is found, the numpy path of
+:func:`gonio.capture.reduce.measure_pose` (:func:`gonio.capture.fiducials.map_regions`,
+:func:`gonio.capture.hdr.merge_bracket`, :func:`gonio.capture.reduce.bayer_region_entries`
+and the weighted sums) streams ~60 full-size temporaries per pose through memory, ~12 ms
+per pose at 1600x1200, which ``benchmarks/reduce.py`` measured as the largest part of the
+reduction besides LibRaw's decoding.  This kernel computes the same quantities pixel by
+pixel in registers: the labels and the direction sums in the numpy path's operation order
+(so the same bit for bit), the merged values and weighted sums with reciprocals taken once
+and in another summation order (so the same to rounding, ~1e-15 relative);
+``tests/capture/test_pose_kernel.py`` compares the two paths.  The numpy path stays the
+reference, and handles what the kernel does not (frames given as linear arrays rather than
+a camera mosaic).  ``GONIO_NUMBA=0`` keeps the reduction on numpy.
+
+It runs serially on the calling thread (``nogil``): the reduction decodes the next frames
+on the other core meanwhile, and a serial sum is the same for any thread count.  Compiled
+code is cached next to this module (``cache=True``, ~3 s cold, once per installation).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_JIT = {"cache": True, "fastmath": False, "error_model": "numpy", "nogil": True}
+
+#: Columns of the per-(region, channel) sums: weight, weight * L, weight^2 * var(L),
+#: weight * G, weight * L / G, weight^2 * var(L) / G^2, weight * saturated.
+SUM_K, SUM_L, SUM_LV, SUM_G, SUM_Q, SUM_QV, SUM_SAT = range(7)
+#: Columns of the per-region direction sums: pixels, sum of wi (3), sum of wo (3).
+DIR_N, DIR_WI, DIR_WO = 0, 1, 4
+
+
+@njit(**_JIT, inline="always")
+def _max0(x: float) -> float:
+    # np.maximum(x, 0.0): NaN stays NaN
+    return 0.0 if x < 0.0 else x
+
+
+@njit(**_JIT)
+def pose_sums(
+    raws,  # (F, h, w) uint16: the frames' mosaic crops, shortest exposure first
+    black,  # (F, 2, 2) black level per CFA position of the crop
+    sat_level,  # (F, 2, 2) raw value from which a pixel is saturated
+    offset,  # (F, h, w) float64 dark offset, or (F, 0, 0) for none
+    gain,  # (F, h, w) float64 flat-field gain, or (F, 0, 0) for none
+    expo,  # (F,) exposure factors
+    noise_gain,  # (F,) photon-transfer gain at each frame's ISO, DN per electron
+    noise_read2,  # (F,) read noise squared at each frame's ISO
+    noise_quant,  # quantisation variance added (0 or 1/12)
+    dark_var,  # (h, w) variance of the subtracted master dark, or (0, 0)
+    dark_var0,  # its value when constant
+    cell_channel,  # (2, 2) channel of each CFA position of the crop
+    st_n,  # (4,) stencil sizes per CFA position (2 y + x)
+    st_dy,  # (4, 9) stencil offsets and weights (see reduce._site_weights)
+    st_dx,
+    st_w,
+    cam,  # (4,) fx, fy, cx, cy (pixels, OpenCV convention)
+    rot,  # (3, 3) world-to-camera rotation
+    cpos,  # (3,) camera centre, sample frame
+    r0,  # crop origin in the image
+    c0,
+    roi,  # (5,) half width, half height, cell width, cell height, margin (metres)
+    grid,
+    light,  # (3,) light position
+    light_normal,  # (3,) its emitting normal (ignored when has_normal is False)
+    has_normal,
+    light_radius,  # disk radius (0: a point source)
+    n_channels,
+):
+    """Region labels of the crop, per-(region, channel) sums and per-region directions.
+
+    Returns ``(label (h, w) int64, sums (n, n_channels, 7), dirs (n, 7))``; see
+    :data:`SUM_K` and :data:`DIR_N` for the columns.
+    """
+    F, h, w = raws.shape
+    n = grid * grid
+    label = np.full((h, w), -1, np.int64)
+    sums = np.zeros((n, n_channels, 7))
+    dirs = np.zeros((n, 7))
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    hw, hh, cell_x, cell_y, m = roi[0], roi[1], roi[2], roi[3], roi[4]
+    # pass 1: which region each pixel sees (map_regions), and the mean directions
+    for i in range(h):
+        y = (r0 + i - cy) / fy
+        for j in range(w):
+            x = (c0 + j - cx) / fx
+            d0 = rot[0, 0] * x + rot[1, 0] * y + rot[2, 0]
+            d1 = rot[0, 1] * x + rot[1, 1] * y + rot[2, 1]
+            d2 = rot[0, 2] * x + rot[1, 2] * y + rot[2, 2]
+            s = -cpos[2] / d2
+            p0 = cpos[0] + s * d0
+            p1 = cpos[1] + s * d1
+            p2 = cpos[2] + s * d2
+            ux = p0 + hw
+            uy = p1 + hh
+            ix = math.floor(ux / cell_x)
+            iy = math.floor(uy / cell_y)
+            ex = ux - ix * cell_x
+            ey = uy - iy * cell_y
+            if not (ix >= 0 and ix < grid and iy >= 0 and iy < grid):
+                continue
+            if not (ex > m and ex < cell_x - m and ey > m and ey < cell_y - m):
+                continue
+            r = int(iy * grid + ix)
+            label[i, j] = r
+            dirs[r, DIR_N] += 1.0
+            v0 = light[0] - p0
+            v1 = light[1] - p1
+            v2 = light[2] - p2
+            inv = 1.0 / math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            dirs[r, DIR_WI] += v0 * inv
+            dirs[r, DIR_WI + 1] += v1 * inv
+            dirs[r, DIR_WI + 2] += v2 * inv
+            v0 = cpos[0] - p0
+            v1 = cpos[1] - p1
+            v2 = cpos[2] - p2
+            inv = 1.0 / math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            dirs[r, DIR_WO] += v0 * inv
+            dirs[r, DIR_WO + 1] += v1 * inv
+            dirs[r, DIR_WO + 2] += v2 * inv
+    # pass 2: every CFA site used by a region (bayer_region_entries), merged and summed
+    regs = np.empty(9, np.int64)
+    wts = np.empty(9)
+    lin = np.empty(F)
+    oks = np.empty(F, np.bool_)
+    inv_e = 1.0 / expo
+    expo2 = expo * expo  # 1 / var(S / e) = e^2 / var(S)
+    xs = np.empty(w)
+    for j in range(w):
+        xs[j] = (c0 + j - cx) / fx
+    ys = np.empty(h)
+    for i in range(h):
+        ys[i] = (r0 + i - cy) / fy
+    nrm = math.sqrt(
+        light_normal[0] * light_normal[0]
+        + light_normal[1] * light_normal[1]
+        + light_normal[2] * light_normal[2]
+    )
+    rr = light_radius * light_radius
+    disk_area = math.pi * rr
+    has_offset = offset.shape[1] > 0
+    has_gain = gain.shape[1] > 0
+    has_dark = dark_var.shape[0] > 0
+    for i in range(h):
+        for j in range(w):
+            a, b = i % 2, j % 2
+            ps = 2 * a + b
+            nr = 0
+            for t in range(st_n[ps]):
+                yy = i + st_dy[ps, t]
+                xx = j + st_dx[ps, t]
+                # pixels on the crop's border do not count (their neighbours are unknown)
+                if yy < 1 or yy > h - 2 or xx < 1 or xx > w - 2:
+                    continue
+                lab = label[yy, xx]
+                if lab < 0:
+                    continue
+                for u in range(nr):
+                    if regs[u] == lab:
+                        wts[u] += st_w[ps, t]
+                        break
+                else:
+                    regs[nr] = lab
+                    wts[nr] = st_w[ps, t]
+                    nr += 1
+            if nr == 0:
+                continue
+            # the HDR merge of this site (merge_bracket)
+            sum_s = 0.0
+            sum_e = 0.0
+            n_ok = 0
+            for k in range(F):
+                sk = raws[k, i, j] - black[k, a, b]
+                if has_offset:
+                    sk -= offset[k, i, j]
+                if has_gain:
+                    sk /= gain[k, i, j]
+                ok = raws[k, i, j] < sat_level[k, a, b]
+                lin[k] = sk
+                oks[k] = ok
+                if ok:
+                    sum_s += sk
+                    sum_e += expo[k]
+                    n_ok += 1
+            dv = dark_var[i, j] if has_dark else dark_var0
+            r0e = sum_s / sum_e
+            wsum = 0.0
+            vsum = 0.0
+            for k in range(F):
+                if not oks[k]:
+                    continue
+                sig = r0e * expo[k]
+                if sig < 0.0:
+                    sig = 0.0
+                w_k = expo2[k] / (noise_gain[k] * sig + noise_read2[k] + noise_quant + dv)
+                wsum += w_k
+                vsum += w_k * lin[k] * inv_e[k]
+            # natural vignetting (1 / cos^4) and the point this pixel sees
+            x = xs[j]
+            y = ys[i]
+            r2 = x * x + y * y + 1.0
+            r4 = r2 * r2
+            inv_w = 1.0 / wsum
+            val = vsum * inv_w * r4
+            var = r4 * r4 * inv_w
+            sat = n_ok == 0 or not math.isfinite(val)
+            if sat:
+                val = 0.0
+                var = 0.0
+            d0 = rot[0, 0] * x + rot[1, 0] * y + rot[2, 0]
+            d1 = rot[0, 1] * x + rot[1, 1] * y + rot[2, 1]
+            d2 = rot[0, 2] * x + rot[1, 2] * y + rot[2, 2]
+            s = -cpos[2] / d2
+            v0 = light[0] - (cpos[0] + s * d0)
+            v1 = light[1] - (cpos[1] + s * d1)
+            v2 = light[2] - (cpos[2] + s * d2)
+            # irradiance_geometry (surface normal +z: cos = v2 / d, over d^2), the emitter's
+            # cosine when it has a normal, and the disk's finite-size factor
+            # A d^2 / (d^2 + r^2), as one numerator over one denominator
+            dd = v0 * v0 + v1 * v1 + v2 * v2
+            num = _max0(v2)
+            if has_normal:
+                num *= _max0(-(v0 * light_normal[0] + v1 * light_normal[1] + v2 * light_normal[2]))
+                den = dd * dd * nrm
+            else:
+                den = dd * math.sqrt(dd)
+            if light_radius > 0.0:
+                num *= disk_area * dd
+                den *= dd + rr
+            g = num / den
+            inv_g = den / num
+            c = cell_channel[a, b]
+            for u in range(nr):
+                wt = wts[u]
+                r = regs[u]
+                sums[r, c, SUM_K] += wt
+                sums[r, c, SUM_L] += wt * val
+                sums[r, c, SUM_LV] += wt * wt * var
+                sums[r, c, SUM_G] += wt * g
+                sums[r, c, SUM_Q] += wt * val * inv_g
+                sums[r, c, SUM_QV] += wt * wt * var * (inv_g * inv_g)
+                if sat:
+                    sums[r, c, SUM_SAT] += wt
+    return label, sums, dirs

@@ -1,0 +1,134 @@
+"""The fused pose kernel (:mod:`gonio.capture.pose_kernel`) against the numpy path.
+
+The numpy path of :func:`gonio.capture.reduce.measure_pose` is the reference (itself
+checked against closed forms in ``test_reduce_bayer.py`` and against the simulator's truth
+in ``test_reduce_accuracy.py``).  Both run on the same decoded DNG brackets, rendered by
+the simulator at the rig's poses, with and without the parts the kernel handles apart:
+saturated pixels, a subtracted master dark with a per-pixel variance, a flat field, a
+point light and a light without a normal.  Labels and directions must agree bit for bit
+(same operations in the same order), the region sums to rounding.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gonio.capture.raw import apply_flat, read_raw, subtract_dark
+from gonio.capture.reduce import measure_pose, setup_from_scene
+from gonio.radiometry import spherical_to_direction
+
+LIGHT = {
+    "type": "disk",
+    "position": [0.0, 0.25, 0.433],
+    "look_at": [0, 0, 0],
+    "radius": 0.01,
+    "radiance": [2e4, 2e4, 2e4],
+}
+
+
+@pytest.fixture(scope="module")
+def brackets():
+    """Two poses of a GGX sample, each a 3-frame bracket whose longest frame clips the
+    highlight; and the setup."""
+    from gonio.rig.config import default_rig_config
+    from gonio.rig.kinematics import Kinematics
+    from gonio.simulator.camera import SimulatedCamera
+    from gonio.simulator.scene import parse_scene
+    from gonio.simulator.sensor import mean_electrons
+
+    scene = parse_scene(
+        {
+            "sample": {
+                "width": 0.05,
+                "height": 0.05,
+                "brdf": {"model": "ggx", "params": {"alpha": 0.15, "ks": 0.8}},
+            },
+            "holder": {"width": 0.16, "height": 0.16, "board": {}},
+            "lights": [LIGHT],
+            "camera": {
+                "resolution": [400, 300],
+                "focal_length": 0.016,
+                "fov_deg": 30.0,
+                "position": [0.1, -0.2, 0.35],
+                "look_at": [0, 0, 0],
+            },
+        }
+    )
+    kin = Kinematics(default_rig_config())
+    state = {}
+    cam = SimulatedCamera(scene, pose_provider=lambda: state["poses"])
+    out = []
+    for k, (ti, to) in enumerate(((30, 30), (50, 40))):
+        wi = spherical_to_direction(np.radians(ti), 0.0)
+        wo = spherical_to_direction(np.radians(to), np.pi)
+        state["poses"] = rp = kin.poses(kin.inverse(wi, wo))
+        truth = cam.render("sample")
+        e_per_s = mean_electrons(truth.radiance, scene.camera, 1.0, 8.0)
+        gain = scene.camera.sensor.gain_at_base_iso
+        t = 0.5 * 15871.0 / gain / e_per_s[truth.region == 1].max()  # highlight at half scale
+        frames = [
+            read_raw(cam.capture(tt, 100, 8.0, seed=10 * k + j), name=f"p{k}f{j}")
+            for j, tt in enumerate((t / 4, t, 3 * t))
+        ]
+        out.append((frames, rp))
+    return setup_from_scene(scene, 0.99), out
+
+
+def both_paths(monkeypatch, frames, setup, rp, **kw):
+    args = (frames, setup, rp.light_position, kw.pop("light_normal", rp.light_normal))
+    kw.setdefault("reported_camera", (rp.camera_position, rp.camera_rotation.T))
+    monkeypatch.setenv("GONIO_NUMBA", "0")
+    ref = measure_pose(*args, **kw)
+    monkeypatch.setenv("GONIO_NUMBA", "1")
+    got = measure_pose(*args, **kw)
+    return ref, got
+
+
+def assert_same(ref, got):
+    assert np.array_equal(ref.regions.label, got.regions.label)
+    assert ref.regions.box == got.regions.box
+    assert (ref.regions.label >= 0).sum() > 1000
+    np.testing.assert_array_equal(got.wi, ref.wi)
+    np.testing.assert_array_equal(got.wo, ref.wo)
+    for name in ("radiance", "radiance_var", "geometry", "ratio", "ratio_var"):
+        a, b = getattr(ref, name), getattr(got, name)
+        assert np.array_equal(np.isnan(a), np.isnan(b)), name
+        ok = np.isfinite(a)
+        assert ok.any(), name
+        np.testing.assert_allclose(b[ok], a[ok], rtol=1e-12, atol=0, err_msg=name)
+    np.testing.assert_array_equal(got.flags, ref.flags)
+    assert got.reasons == ref.reasons
+
+
+@pytest.mark.parametrize("pose", [0, 1])
+def test_fused_kernel_matches_numpy_path(brackets, monkeypatch, pose):
+    setup, poses = brackets
+    frames, rp = poses[pose]
+    assert any(f.saturated.any() for f in frames)  # the bracket clips somewhere
+    assert_same(*both_paths(monkeypatch, frames, setup, rp))
+
+
+def test_fused_kernel_with_dark_flat_and_saturated_regions(brackets, monkeypatch):
+    setup, poses = brackets
+    frames, rp = poses[0]
+    rng = np.random.default_rng(1)
+    dark = rng.normal(3.0, 1.0, frames[0].shape)
+    flat = rng.uniform(0.95, 1.05, frames[0].shape)
+    frames = [apply_flat(subtract_dark(f, dark), flat) for f in frames]
+    dark_var = rng.uniform(0.5, 2.0, frames[0].shape)
+    ref, got = both_paths(monkeypatch, frames, setup, rp, dark_variance=dark_var)
+    assert_same(ref, got)
+    # only the longest frame: the highlight's regions are saturated in every frame
+    ref, got = both_paths(monkeypatch, frames[2:], setup, rp, dark_variance=1.5)
+    assert np.isnan(ref.radiance).any() and np.isfinite(ref.radiance).any()
+    assert_same(ref, got)
+
+
+def test_fused_kernel_with_a_point_light_without_normal(brackets, monkeypatch):
+    from dataclasses import replace
+
+    setup, poses = brackets
+    frames, rp = poses[1]
+    point = replace(setup, light_radius=None)
+    assert_same(*both_paths(monkeypatch, frames, point, rp, light_normal=None))
