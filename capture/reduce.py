@@ -760,12 +760,23 @@ def _pose_sums_numpy(
     return regions, sums, dirs
 
 
-def _fused_kernel() -> Any | None:
-    """:func:`gonio.capture.pose_kernel.pose_sums`, or None when ``GONIO_NUMBA=0``."""
-    if os.environ.get("GONIO_NUMBA") == "0":
-        return None
-    from gonio.capture.pose_kernel import pose_sums
+_numba_broken = False
 
+
+def _fused_kernel() -> Any | None:
+    """:func:`gonio.capture.pose_kernel.pose_sums`, or None (the numpy path) when
+    ``GONIO_NUMBA=0`` or numba cannot load here."""
+    global _numba_broken
+    if _numba_broken or os.environ.get("GONIO_NUMBA") == "0":
+        return None
+    try:
+        from gonio.capture.pose_kernel import pose_sums
+    except ImportError as exc:  # a broken numba/llvmlite install: slower, not wrong
+        import warnings
+
+        warnings.warn(f"numba unavailable ({exc}); reducing with the numpy path", stacklevel=2)
+        _numba_broken = True
+        return None
     return pose_sums
 
 
