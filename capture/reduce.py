@@ -637,19 +637,17 @@ def measure_pose(
     else:
         regions, sums, dirs = _pose_sums_numpy(frames, setup, cam, lp, ln, dark_variance)
     n, nc = regions.n_regions, len(CHANNELS)
-    k = sums[..., 0]
+    k, s_L, s_Lv, s_G, s_Q, s_Qv, s_sat = np.moveaxis(sums, -1, 0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        L = sums[..., 1] / k
-        Lv = sums[..., 2] / k**2
-        G = sums[..., 3] / k
-        Q = sums[..., 4] / k
-        Qv = sums[..., 5] / k**2
-    any_sat = sums[..., 6] > 0
+        L = s_L / k
+        Lv = s_Lv / k**2
+        G = s_G / k
+        Q = s_Q / k
+        Qv = s_Qv / k**2
+    any_sat = s_sat > 0
     for arr in (L, Lv, G, Q, Qv):
         arr[any_sat | (k == 0)] = np.nan
-    npx = dirs[:, 0]
-    wi = dirs[:, 1:4].copy()
-    wo = dirs[:, 4:7].copy()
+    npx, wi, wo = dirs[:, 0], dirs[:, 1:4].copy(), dirs[:, 4:7].copy()
     flags = np.full(n, pose_flags, dtype=np.uint32)
     reasons = [list(pose_reasons) for _ in range(n)]
     with np.errstate(invalid="ignore", divide="ignore"):
