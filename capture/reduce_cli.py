@@ -53,6 +53,14 @@ from gonio.errors import ReductionError
     "pose through its kinematics (a calibrated rig, or the exact simulated one); the "
     "board checks the rig either way.",
 )
+@click.option(
+    "--threads",
+    type=click.IntRange(1, 64),
+    default=None,
+    help="Threads, this one included (default: 2 on a machine with 2 or more cores): the "
+    "others decode RAW files ahead while poses are measured.  The output is the same for "
+    "any number.",
+)
 @click.option("--no-plot", is_flag=True, help="Do not write SESSION/samples.png.")
 @click.option(
     "--force", is_flag=True, help="Replace an existing --out file that is not a samples file."
@@ -66,6 +74,7 @@ def reduce_cmd(
     roi_fraction: float | None,
     tolerance_deg: float | None,
     geometry: str,
+    threads: int | None,
     no_plot: bool,
     force: bool,
     quiet: bool,
@@ -73,11 +82,12 @@ def reduce_cmd(
     """Reduce a capture session's RAW brackets to calibrated BRDF samples.
 
     \b
-    For every pose: decode the RAW mosaics (no demosaicing), subtract the master dark,
-    find the holder's ChArUco board to measure the camera pose, merge the bracket with
-    inverse-variance weights, and average the sample's regions per colour channel.  The
-    reference-target poses give the irradiance, so BRDF = L_o / E_i in 1/sr, with a
-    standard deviation from the sensor's noise model.
+    For every pose: check each RAW file against the journal (byte count and digest),
+    decode the mosaics (no demosaicing), subtract the master dark, find the holder's
+    ChArUco board to measure the camera pose, merge the bracket with inverse-variance
+    weights, and average the sample's regions per colour channel.  The reference-target
+    poses give the irradiance, so BRDF = L_o / E_i in 1/sr, with a standard deviation
+    from the sensor's noise model.
 
     \b
     Writes SESSION/samples.h5 (see gonio.dataset), SESSION/reduction.json (samples kept
@@ -128,7 +138,14 @@ def reduce_cmd(
         def progress(done: int, total: int) -> None:
             bar.update(task, completed=done, total=total)
 
-        res = reduce_session(session_dir, out=out, setup=setup, plot=not no_plot, progress=progress)
+        res = reduce_session(
+            session_dir,
+            out=out,
+            setup=setup,
+            plot=not no_plot,
+            progress=progress,
+            threads=threads,
+        )
     table = Table(title="BRDF samples")
     table.add_column("samples", justify="right")
     table.add_column("count", justify="right")

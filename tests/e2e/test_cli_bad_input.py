@@ -422,6 +422,7 @@ CASES = [
     case("reduce-not-session", "capture reduce {bad}/adir", 1, "adir", "no manifest.json"),
     case("reduce-corrupt", "capture reduce {bad}/sess_corrupt", 1, "manifest.json", "cannot read"),
     case("reduce-grid", "capture reduce {bad}/adir --grid 0", 2, "--grid", "1<=x<=20"),
+    case("reduce-threads", "capture reduce {bad}/adir --threads 0", 2, "--threads", "1<=x<=64"),
     case(
         "reduce-noise-garbage",
         "capture reduce {bad}/sess_corrupt --noise {bad}/garbage.h5",
