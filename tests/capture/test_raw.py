@@ -248,3 +248,54 @@ def test_per_channel_black_levels(monkeypatch):
     np.testing.assert_array_equal(frame.linear, mosaic - expected_black)
     lin, ch, _ = frame.region((slice(3, 9), slice(5, 12)))  # odd offsets: CFA phase kept
     np.testing.assert_array_equal(lin, (mosaic - expected_black)[3:9, 5:12])
+
+
+def _tifffile_data_end(data):
+    """The same end of the image data, by tifffile: every page and its SubIFD pages."""
+    import io
+
+    import tifffile
+
+    end = 0
+    with tifffile.TiffFile(io.BytesIO(data)) as tf:
+        stack = list(tf.pages)
+        while stack:
+            p = stack.pop()
+            if p.dataoffsets and p.databytecounts:
+                ends = zip(p.dataoffsets, p.databytecounts, strict=True)
+                end = max(end, max(o + c for o, c in ends))
+            stack.extend(p.pages or [])
+    return end
+
+
+@pytest.mark.parametrize("fname", ["Blackmagic.dng", "RAW_KODAK_DC50.KDC"])
+def test_tiff_data_end_agrees_with_tifffile_on_camera_files(refdata, fname):
+    from gonio.capture.raw import tiff_data_end
+
+    data = (refdata / "raw" / fname).read_bytes()
+    assert tiff_data_end(data) == _tifffile_data_end(data) > len(data) // 2
+
+
+def test_tiff_data_end_walks_strips_tiles_and_subifds():
+    import io
+
+    import tifffile
+
+    from gonio.capture.raw import tiff_data_end
+
+    for byteorder in ("<", ">"):
+        buf = io.BytesIO()
+        with tifffile.TiffWriter(buf, byteorder=byteorder) as w:
+            w.write(np.ones((256, 256), np.uint16), tile=(64, 64))
+            w.write(np.zeros((64, 48), np.uint16), subifds=1)
+            w.write(np.ones((300, 200), np.uint16), rowsperstrip=16)  # the SubIFD, last
+        data = buf.getvalue()
+        with tifffile.TiffFile(io.BytesIO(data)) as tf:  # the main chain alone ends sooner
+            ends = [zip(p.dataoffsets, p.databytecounts, strict=True) for p in tf.pages]
+            main = max(o + c for e in ends for o, c in e)
+        assert tiff_data_end(data) == _tifffile_data_end(data) > main
+    assert tiff_data_end(b"not a tiff at all") is None
+    damaged = bytearray(data)
+    damaged[4:8] = (len(data) + 10).to_bytes(4, "big")  # the first IFD past the end
+    with pytest.raises(FileFormatError, match="x.dng.*damaged TIFF structure"):
+        read_raw(bytes(damaged), name="x.dng")
