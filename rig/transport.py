@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import Counter
 from collections.abc import Iterable, Mapping
 
@@ -161,6 +162,23 @@ class Transport:
             name = protocol.ERR_NAMES.get(code, f"error {code}")
             raise RigError(f"servo {dxl_id} refused {what}: {name} (status error 0x{error:02X})")
 
+    def _drain_late_reply(self) -> None:
+        """Wait out and drop a reply that arrives after its timeout.
+
+        Protocol 2.0 status packets do not say which instruction they answer, and the SDK
+        only checks the ID: a late reply to the failed attempt would be taken as the
+        retry's (a firmware READ parsed as a PING gave model 48429 for 1020 on a loaded
+        machine).  Waiting one more timeout before clearing the input keeps the retry's
+        reply its own; this costs time only after a failure.
+        """
+        port = self._port
+        wait_ms = port.fixed_timeout_ms
+        if wait_ms is None:
+            wait_ms = 2.0 * port.latency_timer_ms + 2.0
+        time.sleep(wait_ms / 1000.0)
+        if port.is_open:
+            port.clearPort()
+
     def _attempt(self, what: str, dxl_id: int | str, fn):
         """Run ``fn() -> (value, result, error)`` with retries; return (value, error)."""
         last = None
@@ -177,6 +195,7 @@ class Transport:
                 break
             if attempt < self.retries:
                 self.counters["retries"] += 1
+                self._drain_late_reply()
                 # an absent ID during a scan is expected: keep PING retries out of warnings
                 level = logging.INFO if what == "PING" else logging.WARNING
                 log.log(

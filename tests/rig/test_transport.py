@@ -78,3 +78,20 @@ def test_silent_servo_gives_a_clear_error(vbus):
         # the healthy servo still answers; the 5 ms timeout is tight on a loaded machine,
         # so it gets retries (a lost firmware read is retried, never reported as 0)
         assert bus.ping(2) is None and bus.ping(1, retries=10) == (1020, 45)
+
+
+def test_a_late_reply_is_never_taken_for_the_retrys(gil_handover):
+    """Protocol 2.0 status packets do not name the instruction they answer: a reply that
+    misses its timeout and arrives during the retry must be dropped, not parsed as the
+    retry's (a late firmware READ read as a PING gives a model number of garbage)."""
+    from gonio.simulator.virtual_bus import VirtualBus
+
+    with (
+        VirtualBus([1], delay_rate=0.3, delay_s=0.012, seed=5) as vb,
+        Transport(vb.port, retries=30, timeout_ms=6) as bus,
+    ):
+        vb.servos[1].set_position(1234)
+        for _ in range(40):
+            assert bus.ping(1) == (1020, 45)
+            assert bus.read(1, REG["present_position"]) == 1234
+        assert bus.counters["retries"] > 5  # replies did come late
