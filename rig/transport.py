@@ -217,16 +217,11 @@ class Transport:
         """(model number, firmware version) of ``dxl_id``, or None if it does not answer."""
 
         def fn():
-            model, result, error = self._ph.ping(self._port, dxl_id)
-            fw = 0
-            if result == COMM_SUCCESS:
-                data, r2, _ = self._ph.readTxRx(self._port, dxl_id, 6, 1)
-                if r2 != COMM_SUCCESS or not data:
-                    # A lost firmware read fails the attempt (and is retried): reporting
-                    # firmware 0 would be a value the servo never sent.
-                    return (model, fw), r2 if r2 != COMM_SUCCESS else COMM_RX_CORRUPT, error
-                fw = data[0]
-            return (model, fw), result, error
+            # the PING status carries model (2 bytes) and firmware (1): one transaction
+            data, result, error = self._txrx(protocol.build_packet(dxl_id, protocol.PING), 3)
+            if result != COMM_SUCCESS:
+                return (0, 0), result, error
+            return (protocol.from_le(data[:2]), data[2]), result, error
 
         with self.lock:
             saved = self.retries
@@ -257,7 +252,12 @@ class Transport:
             data, err = self._attempt(
                 f"READ {address}+{length}",
                 dxl_id,
-                lambda: self._ph.readTxRx(self._port, dxl_id, address, length),
+                lambda: self._txrx(
+                    protocol.build_packet(
+                        dxl_id, protocol.READ, protocol.le(address, 2) + protocol.le(length, 2)
+                    ),
+                    length,
+                ),
             )
             self._status(f"READ {address}", dxl_id, COMM_SUCCESS, err)
             if len(data) != length:
@@ -280,12 +280,8 @@ class Transport:
                 self.counters["stuffed"] += 1
 
             def fn():
-                if stuffed:  # the SDK would send FF FF FD unstuffed
-                    return self._raw_txrx(protocol.build_packet(dxl_id, protocol.WRITE, params))
-                return (
-                    None,
-                    *self._ph.writeTxRx(self._port, dxl_id, address, len(data), list(data)),
-                )
+                # built here, stuffed: the SDK would send FF FF FD in the data unstuffed
+                return self._txrx(protocol.build_packet(dxl_id, protocol.WRITE, params), 0)
 
             _, err = self._attempt(what, dxl_id, fn)
             self._status(what, dxl_id, COMM_SUCCESS, err)
@@ -301,21 +297,31 @@ class Transport:
             f"WRITE {reg.name}={value}",
         )
 
-    def _raw_txrx(self, packet: bytes):
-        """Send a packet built here (stuffed) and read the status with the SDK."""
+    def _txrx(self, packet: bytes, n_params: int) -> tuple[bytes, int, int]:
+        """Send a packet built here and read its status with the SDK: ``(params, result,
+        error)``.
+
+        Protocol 2.0 status packets do not name the instruction they answer, and the SDK
+        matches replies by ID alone: a reply that missed an earlier attempt's timeout
+        and arrives now would be taken for this one's (a late firmware READ parsed as a
+        PING gave model 48429 for 1020 on a loaded machine).  A status from this ID with
+        another parameter count than this instruction's reply is such a stale reply, and
+        is skipped.
+        """
         port = self._port
         if port.is_using:
-            return None, -1000, 0  # COMM_PORT_BUSY
+            return b"", -1000, 0  # COMM_PORT_BUSY
         port.is_using = True
         port.clearPort()
         port.writePort(packet)
-        port.setPacketTimeout(11)
+        port.setPacketTimeout(11 + n_params)
         while True:
             rx, result = self._ph.rxPacket(port, False)
-            if result != COMM_SUCCESS or rx[4] == packet[4]:
-                break
-        error = rx[8] if result == COMM_SUCCESS else 0
-        return None, result, error
+            if result != COMM_SUCCESS:
+                return b"", result, 0
+            if rx[4] == packet[4] and protocol.from_le(bytes(rx[5:7])) == n_params + 4:
+                return bytes(rx[9 : 9 + n_params]), result, rx[8]
+            port.is_using = True  # rxPacket released the port; keep it for the next read
 
     def sync_read(self, ids: Iterable[int], address: int, length: int) -> dict[int, bytes]:
         """SYNC_READ ``length`` bytes at ``address`` from every ID; all or nothing.

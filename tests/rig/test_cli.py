@@ -131,4 +131,4 @@ def test_sim_bus_command_serves_until_sigterm():
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 0
-    assert json.loads(err.strip().splitlines()[-1])["packets"] >= 2
+    assert json.loads(err.strip().splitlines()[-1])["packets"] >= 1  # the PING was served
