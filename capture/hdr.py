@@ -58,6 +58,25 @@ class MergedFrame:
     names: tuple[str, ...]
 
 
+def check_bracket(frames: Sequence[RawFrame]) -> None:
+    """Refuse an empty bracket, or one whose frames differ in size or CFA pattern.
+
+    Raises
+    ------
+    ReductionError
+        Naming the frame that differs.
+    """
+    if not frames:
+        raise ReductionError("cannot merge an empty bracket")
+    ref = frames[0]
+    for f in frames[1:]:
+        if f.shape != ref.shape or f.cfa_pattern != ref.cfa_pattern:
+            raise ReductionError(
+                f"{f.name}: {f.cfa_pattern} {f.shape} does not match {ref.name}: "
+                f"{ref.cfa_pattern} {ref.shape} in the same bracket"
+            )
+
+
 def merge_bracket(
     frames: Sequence[RawFrame],
     noise: NoiseModel,
@@ -89,15 +108,7 @@ def merge_bracket(
     ReductionError
         No frames, or frames of different sizes or CFA.
     """
-    if not frames:
-        raise ReductionError("cannot merge an empty bracket")
-    ref = frames[0]
-    for f in frames[1:]:
-        if f.shape != ref.shape or f.cfa_pattern != ref.cfa_pattern:
-            raise ReductionError(
-                f"{f.name}: {f.cfa_pattern} {f.shape} does not match {ref.name}: "
-                f"{ref.cfa_pattern} {ref.shape} in the same bracket"
-            )
+    check_bracket(frames)
     order = sorted(range(len(frames)), key=lambda k: frames[k].exposure_factor())
     frames = [frames[k] for k in order]
     sl = region if region is not None else (slice(None), slice(None))

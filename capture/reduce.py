@@ -58,7 +58,7 @@ from gonio.capture.fiducials import (
     map_regions,
     roi_geometry,
 )
-from gonio.capture.hdr import merge_bracket
+from gonio.capture.hdr import check_bracket, merge_bracket
 from gonio.capture.journal import xxh3_bytes
 from gonio.capture.noise import NoiseModel
 from gonio.capture.raw import (
@@ -788,13 +788,8 @@ def _pose_sums_fused(
     dark_variance: float | NDArray[np.float64],
 ) -> tuple[RegionMap, NDArray[np.float64], NDArray[np.float64]]:
     """:func:`_pose_sums_numpy` in one pass of :mod:`gonio.capture.pose_kernel`."""
+    check_bracket(frames)
     ref = frames[0]
-    for f in frames[1:]:  # what merge_bracket checks
-        if f.shape != ref.shape or f.cfa_pattern != ref.cfa_pattern:
-            raise ReductionError(
-                f"{f.name}: {f.cfa_pattern} {f.shape} does not match {ref.name}: "
-                f"{ref.cfa_pattern} {ref.shape} in the same bracket"
-            )
     roi = roi_geometry(
         cam,
         setup.K,
