@@ -18,6 +18,8 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+from gonio.atomic import fsync_dir
+from gonio.atomic import write_bytes_atomic as write_atomic
 from gonio.errors import FileFormatError
 
 __all__ = [
@@ -58,32 +60,6 @@ def sha256_file(path: str | os.PathLike) -> str:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
-
-
-def fsync_dir(path: str | os.PathLike) -> None:
-    """``fsync`` a directory so a rename or create inside it survives a power cut."""
-    fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def write_atomic(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that the file is either absent/old or complete.
-
-    The bytes go to a temporary file in the same directory, which is flushed, ``fsync``-ed
-    and renamed over ``path``; then the directory is ``fsync``-ed.  A crash at any point
-    leaves at worst a ``.tmp`` file, never a truncated ``path``.
-    """
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    fsync_dir(path.parent)
 
 
 def _parse_lines(path: Path, raw: bytes) -> tuple[list[dict[str, Any]], int, bool]:

@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gonio.atomic import write_text_atomic
 from gonio.capture.calibration import irradiance_geometry, reference_reflectance
 from gonio.capture.fiducials import (
     BoardSpec,
@@ -1392,9 +1393,7 @@ def _version() -> str:
 
 
 def _write_json(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=str) + "\n")
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(obj, indent=2, default=str) + "\n")
 
 
 def plot_samples(samples: Any, path: Path) -> Path:

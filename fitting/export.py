@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from gonio.atomic import write_text_atomic
 from gonio.errors import FitError
 from gonio.fitting.result import FitResult
 
@@ -85,10 +86,9 @@ def result_to_dict(r: FitResult, include_residuals: bool = False) -> dict[str, A
 def save_json(r: FitResult, path: str | os.PathLike, include_residuals: bool = False) -> Path:
     """Write :func:`result_to_dict` to ``path`` atomically (temp file + rename)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(result_to_dict(r, include_residuals), indent=2))
-    os.replace(tmp, path)
+    write_text_atomic(
+        path, json.dumps(result_to_dict(r, include_residuals), indent=2), parents=True
+    )
     return path
 
 

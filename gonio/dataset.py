@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import enum
 import os
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +41,7 @@ import h5py
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from gonio.atomic import atomic_path
 from gonio.errors import FileFormatError
 from gonio.radiometry.frames import direction_to_spherical
 
@@ -200,7 +200,8 @@ def save_samples(path: str | os.PathLike, samples: BRDFSamples) -> Path:
     """Write ``samples`` to an HDF5 file atomically.
 
     The file is written next to its destination under a temporary name, flushed and
-    renamed, so an existing file is replaced only by a complete one.
+    renamed (:func:`gonio.atomic.atomic_path`), so an existing file is replaced only by a
+    complete one.
 
     Returns
     -------
@@ -208,42 +209,32 @@ def save_samples(path: str | os.PathLike, samples: BRDFSamples) -> Path:
         The written file.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["schema"] = SCHEMA
-            f.attrs["schema_version"] = SCHEMA_VERSION
-            f.attrs["channels"] = np.array(samples.channels, dtype=h5py.string_dtype())
-            for k, v in samples.attrs.items():
-                f.attrs[k] = _attr_value(v)
-            data: dict[str, Any] = {
-                "wi": samples.wi,
-                "wo": samples.wo,
-                **samples.angles(),
-                "brdf": samples.brdf,
-                "brdf_std": samples.brdf_std,
-                "flags": samples.flags,
-                "radiance": samples.radiance,
-                "irradiance": samples.irradiance,
-            }
-            for name, v in data.items():
-                if v is None:
-                    continue
-                ds = f.create_dataset(name, data=v, compression="gzip", compression_opts=4)
-                ds.attrs["units"] = _UNITS[name]
-            if samples.frames is not None:
-                ds = f.create_dataset(
-                    "frames", data=samples.frames.astype(object), dtype=h5py.string_dtype()
-                )
-                ds.attrs["units"] = ""
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path, parents=True) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["schema"] = SCHEMA
+        f.attrs["schema_version"] = SCHEMA_VERSION
+        f.attrs["channels"] = np.array(samples.channels, dtype=h5py.string_dtype())
+        for k, v in samples.attrs.items():
+            f.attrs[k] = _attr_value(v)
+        data: dict[str, Any] = {
+            "wi": samples.wi,
+            "wo": samples.wo,
+            **samples.angles(),
+            "brdf": samples.brdf,
+            "brdf_std": samples.brdf_std,
+            "flags": samples.flags,
+            "radiance": samples.radiance,
+            "irradiance": samples.irradiance,
+        }
+        for name, v in data.items():
+            if v is None:
+                continue
+            ds = f.create_dataset(name, data=v, compression="gzip", compression_opts=4)
+            ds.attrs["units"] = _UNITS[name]
+        if samples.frames is not None:
+            ds = f.create_dataset(
+                "frames", data=samples.frames.astype(object), dtype=h5py.string_dtype()
+            )
+            ds.attrs["units"] = ""
     return path
 
 
@@ -284,7 +275,8 @@ def load_samples(path: str | os.PathLike) -> BRDFSamples:
             version = repr(raw_version)
         if version != SCHEMA_VERSION:
             raise FileFormatError(
-                path, f"schema version {version} is not supported (expected {SCHEMA_VERSION})",
+                path,
+                f"schema version {version} is not supported (expected {SCHEMA_VERSION})",
                 "schema_version",
             )
         out: dict[str, Any] = {}

@@ -10,15 +10,14 @@ stamps are written, so equal frames give equal bytes.
 from __future__ import annotations
 
 import io
-import os
 import struct
-import tempfile
 from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
 import tifffile
 
+from gonio.atomic import write_bytes_atomic
 from gonio.errors import FileFormatError
 from gonio.simulator.sensor import RawFrame
 
@@ -158,14 +157,5 @@ def write_dng(path: str | Path, frame: RawFrame | bytes, *, overwrite: bool = Fa
     if p.exists() and not overwrite:
         raise FileFormatError(p, "exists; refusing to overwrite (use overwrite/--force)")
     data = frame if isinstance(frame, bytes | bytearray) else dng_bytes(frame)
-    fd, tmp = tempfile.mkstemp(dir=p.parent if str(p.parent) else ".", suffix=".dng.tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_bytes_atomic(p, bytes(data))
     return p

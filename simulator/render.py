@@ -613,29 +613,21 @@ def save_truth(
         ``path`` exists and ``overwrite`` is false.
     """
     import json
-    import os
-    import tempfile
     from pathlib import Path
 
     import h5py
 
+    from gonio.atomic import atomic_path
     from gonio.errors import FileFormatError
 
     p = Path(path)
     if p.exists() and not overwrite:
         raise FileFormatError(p, "exists; refusing to overwrite (use --force)")
-    fd, tmp = tempfile.mkstemp(dir=p.parent, suffix=".h5.tmp")
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w") as f:
-            for name in ("radiance", "wi", "wo", "points", "region", "edge"):
-                f.create_dataset(name, data=getattr(result, name), compression="gzip")
-            f["region"].attrs["names"] = json.dumps(REGION_NAMES)
-            f.attrs["stats"] = json.dumps(result.stats.as_dict())
-            f.attrs["frame"] = "sample"
-            if scene is not None:
-                f.attrs["scene"] = scene.model_dump_json()
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(p) as tmp, h5py.File(tmp, "w") as f:
+        for name in ("radiance", "wi", "wo", "points", "region", "edge"):
+            f.create_dataset(name, data=getattr(result, name), compression="gzip")
+        f["region"].attrs["names"] = json.dumps(REGION_NAMES)
+        f.attrs["stats"] = json.dumps(result.stats.as_dict())
+        f.attrs["frame"] = "sample"
+        if scene is not None:
+            f.attrs["scene"] = scene.model_dump_json()

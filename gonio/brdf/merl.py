@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from gonio.atomic import write_bytes_atomic
 from gonio.errors import FileFormatError
 from gonio.radiometry.frames import (
     as_vectors,
@@ -279,12 +280,8 @@ def write_merl(path: str | Path, brdf: MERLBRDF) -> None:
     The file is written to a temporary name beside ``path`` and renamed, so an existing
     file is never left half-written.
     """
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("wb") as fh:
-        fh.write(_HEADER)
-        fh.write(np.ascontiguousarray(brdf.raw, dtype="<f8").tobytes())
-    tmp.replace(path)
+    data = np.ascontiguousarray(brdf.raw, dtype="<f8").tobytes()
+    write_bytes_atomic(path, _HEADER + data)
 
 
 def resample(

@@ -8,13 +8,13 @@ matplotlib with the Agg backend (no display needed).
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from gonio.atomic import atomic_path
 
 __all__ = ["plot_brdf"]
 
@@ -152,14 +152,9 @@ def plot_brdf(
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.93) if title else None)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.stem}-", suffix=out.suffix, dir=out.parent)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=110)
-        os.replace(tmp, out)
+        with atomic_path(out, parents=True) as tmp:
+            fig.savefig(tmp, dpi=110, format=out.suffix.lstrip("."))
     finally:
         plt.close(fig)
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return out
