@@ -35,8 +35,8 @@ from numpy.typing import ArrayLike, NDArray
 from gonio.atomic import write_bytes_atomic
 from gonio.errors import FileFormatError
 from gonio.radiometry.frames import (
-    as_vectors,
     directions_from_half_diff,
+    flat_pairs,
     half_diff_from_directions,
 )
 
@@ -164,12 +164,7 @@ class MERLBRDF:
             0 below the horizon and where every contributing node is missing; NaN for NaN
             input.
         """
-        wi = as_vectors(wi)
-        wo = as_vectors(wo)
-        wi, wo = np.broadcast_arrays(wi, wo)
-        shape = wi.shape[:-1]
-        wi = wi.reshape(-1, 3)
-        wo = wo.reshape(-1, 3)
+        wi, wo, shape = flat_pairs(wi, wo)
         with np.errstate(invalid="ignore"):
             th, _, td, pd = half_diff_from_directions(wi, wo)
         nan = np.isnan(wi).any(-1) | np.isnan(wo).any(-1)

@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gonio.errors import FileFormatError
-from gonio.radiometry.frames import as_vectors
+from gonio.radiometry.frames import flat_pairs
 
 __all__ = ["RGLBRDF", "read_rgl"]
 
@@ -234,12 +234,7 @@ class RGLBRDF:
 
     def eval_channels(self, wi: ArrayLike, wo: ArrayLike) -> Array:
         """``f_r`` for every stored channel (3 for RGB files, one per wavelength otherwise)."""
-        wi = as_vectors(wi)
-        wo = as_vectors(wo)
-        wi, wo = np.broadcast_arrays(wi, wo)
-        shape = wi.shape[:-1]
-        wi = wi.reshape(-1, 3)
-        wo = wo.reshape(-1, 3)
+        wi, wo, shape = flat_pairs(wi, wo)
         n_ch = self._n_ch
         out = np.zeros((wi.shape[0], n_ch))
         nan = np.isnan(wi).any(-1) | np.isnan(wo).any(-1)

@@ -31,6 +31,19 @@ def as_vectors(v: ArrayLike) -> Array:
     return a
 
 
+def flat_pairs(wi: ArrayLike, wo: ArrayLike) -> tuple[Array, Array, tuple[int, ...]]:
+    """Direction pairs broadcast together and flattened: ``(wi (N, 3), wo (N, 3), shape)``,
+    ``shape`` the broadcast batch shape to give results back.
+
+    Raises
+    ------
+    ValueError
+        If a last axis is not of length 3, or the shapes do not broadcast.
+    """
+    wi, wo = np.broadcast_arrays(as_vectors(wi), as_vectors(wo))
+    return wi.reshape(-1, 3), wo.reshape(-1, 3), wi.shape[:-1]
+
+
 def dot(a: ArrayLike, b: ArrayLike) -> Array:
     """Dot product over the last axis, broadcasting the leading ones."""
     return np.einsum("...i,...i->...", as_vectors(a), as_vectors(b))
