@@ -30,7 +30,6 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from importlib import resources
 from pathlib import Path
 
 PLAN = """
@@ -83,32 +82,28 @@ antialias = 2
 
 
 def make_session(root: Path, width: int, height: int) -> Path:
-    from gonio.cli import main
+    from gonio.cli import run
+    from gonio.rig.config import virtual_rig_document
 
-    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
-    (root / "rig.toml").write_text(rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"'))
+    (root / "rig.toml").write_text(virtual_rig_document())
     # exposures that keep the diffuse reference near half scale at this pixel size
     t = 0.0005 * (480.0 / width) ** 2 * 4
     (root / "plan.toml").write_text(PLAN.format(t1=t / 4, t2=t, t3=4 * t))
     (root / "scene.toml").write_text(SCENE.format(w=width, h=height))
-    try:
-        main(
-            [
-                "capture",
-                "run",
-                str(root / "plan.toml"),
-                "--rig",
-                str(root / "rig.toml"),
-                "--camera",
-                "simulated",
-                "--out",
-                str(root / "S"),
-                "--quiet",
-            ]
-        )
-    except SystemExit as exc:
-        if exc.code:
-            raise
+    code = run(
+        "capture",
+        "run",
+        str(root / "plan.toml"),
+        "--rig",
+        str(root / "rig.toml"),
+        "--camera",
+        "simulated",
+        "--out",
+        str(root / "S"),
+        "--quiet",
+    )
+    if code:
+        raise SystemExit(code)
     return root / "S"
 
 

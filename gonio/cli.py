@@ -82,6 +82,16 @@ def cli() -> None:
     """
 
 
+def run(*argv: str) -> int | str | None:
+    """Run ``gonio ARGV...`` in this process and return its exit code rather than exit
+    (0 for success; tests, notebooks and benchmarks drive the CLI this way)."""
+    try:
+        main(list(argv))
+    except SystemExit as exc:
+        return exc.code
+    return 0
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point: run the CLI and turn :class:`GonioError` into exit code 1."""
     try:

@@ -118,19 +118,6 @@ def parse_material(spec: str) -> Material:
 
 # --------------------------------------------------------------------------------------
 # Files the demo writes
-def rig_document() -> str:
-    """The default rig preset with its bus on the simulator's virtual port."""
-    from importlib import resources
-
-    text = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
-    lines = []
-    for line in text.splitlines():
-        if line.strip().startswith("port ="):
-            line = 'port = "virtual"   # the simulator\'s Dynamixel bus on a pseudo-terminal'
-        lines.append(line)
-    return "\n".join(lines) + "\n"
-
-
 def _grid_for(n_poses: int) -> dict[str, Any]:
     """A spherical grid whose isotropic, reciprocity-reduced pose count is near ``n_poses``."""
     from gonio.capture.plan import expand_plan, plan_from_dict
@@ -295,6 +282,7 @@ def run_demo(
     from gonio.capture.session_cli import run_cmd
     from gonio.dataset import load_samples
     from gonio.fitting import fit
+    from gonio.rig.config import virtual_rig_document
 
     out = Path(out)
     if out.exists() and any(out.iterdir()):
@@ -305,7 +293,7 @@ def run_demo(
     t = time.perf_counter()
     grid = _grid_for(n_poses)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "rig.toml").write_text(rig_document())
+    (out / "rig.toml").write_text(virtual_rig_document())
     (out / "plan.toml").write_text(
         "# Written by gonio demo: rerun with gonio capture run plan.toml --rig rig.toml "
         "--camera simulated --out S/\n" + _toml(_plan_dict(grid, seed, width, height)) + "\n"

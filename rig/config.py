@@ -292,7 +292,21 @@ def load_rig_config(path: str | Path) -> RigConfig:
     return rig_config_from_dict(read_toml(path, "rig configuration"), str(path))
 
 
+def default_rig_document() -> str:
+    """The default four-servo preset as TOML text (``gonio/rig/default_rig.toml``)."""
+    return resources.files("gonio.rig").joinpath("default_rig.toml").read_text(encoding="utf-8")
+
+
+def virtual_rig_document() -> str:
+    """The default preset with its bus on the simulator's virtual port, as TOML text."""
+    lines = []
+    for line in default_rig_document().splitlines():
+        if line.strip().startswith("port ="):
+            line = 'port = "virtual"   # the simulator\'s Dynamixel bus on a pseudo-terminal'
+        lines.append(line)
+    return "\n".join(lines) + "\n"
+
+
 def default_rig_config() -> RigConfig:
     """The default four-servo preset (``gonio/rig/default_rig.toml``)."""
-    text = resources.files("gonio.rig").joinpath("default_rig.toml").read_text(encoding="utf-8")
-    return rig_config_from_dict(tomllib.loads(text), "gonio.rig:default_rig.toml")
+    return rig_config_from_dict(tomllib.loads(default_rig_document()), "gonio.rig:default_rig.toml")

@@ -10,7 +10,7 @@ import pytest
 from gonio.brdf import load
 from gonio.brdf.measured import directional_albedo, sniff_format
 from gonio.brdf.merl import MERLBRDF
-from gonio.cli import main
+from gonio.cli import main, run
 
 
 def test_format_is_recognised_by_content_not_name(rgl_file, tmp_path):
@@ -72,11 +72,7 @@ def _run(argv, capsys):
 
 
 def test_info_prints_format_description_dimensions_albedo(rgl_file, capsys):
-    try:
-        main(["brdf", "info", str(rgl_file("paper_white")), "--theta-i-deg", "0,45"])
-        code = 0
-    except SystemExit as exc:
-        code = exc.code
+    code = run("brdf", "info", str(rgl_file("paper_white")), "--theta-i-deg", "0,45")
     out = capsys.readouterr().out
     assert code in (0, None)
     for words in ("RGL-EPFL tensor_file v1.0", "White A4 paper", "32 x 32", "directional albedo"):
@@ -103,11 +99,7 @@ def converted(refdata, tmp_path_factory):
     out.write_bytes(b"precious")
     runs = {}
     for key, extra in (("plain", []), ("force", ["--force"])):
-        try:
-            main(["brdf", "convert", *extra, str(src), str(out)])
-            runs[key] = (0, out.read_bytes()[:16])
-        except SystemExit as exc:
-            runs[key] = (exc.code, out.read_bytes()[:16])
+        runs[key] = (run("brdf", "convert", *extra, str(src), str(out)), out.read_bytes()[:16])
     return src, out, runs
 
 
@@ -147,10 +139,7 @@ def test_convert_rejects_other_output_formats(rgl_file, tmp_path, capsys):
 
 def test_info_on_a_merl_table(converted, capsys):
     _, out, _ = converted
-    try:
-        main(["brdf", "info", str(out), "--theta-i-deg", "20"])
-    except SystemExit as exc:
-        assert exc.code in (0, None)
+    assert run("brdf", "info", str(out), "--theta-i-deg", "20") in (0, None)
     text = capsys.readouterr().out
     assert "MERL binary" in text and "theta_h 90 x theta_d 90 x phi_d 180" in text
     assert "missing entries" in text and "directional albedo" in text

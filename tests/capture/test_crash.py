@@ -14,13 +14,13 @@ import os
 import signal
 import sys
 import time
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from gonio.capture.journal import read_journal
+from gonio.rig.config import virtual_rig_document
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
 
@@ -121,8 +121,7 @@ def warm():
 
 @pytest.mark.slow
 def test_sigkill_at_random_points_then_resume(tmp_path, warm):
-    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
-    (tmp_path / "rig.toml").write_text(rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"'))
+    (tmp_path / "rig.toml").write_text(virtual_rig_document())
     (tmp_path / "plan.toml").write_text(PLAN)
     run_args = [
         "capture",
@@ -198,8 +197,7 @@ def test_sigkill_at_random_points_then_resume(tmp_path, warm):
 
 
 def test_sigterm_stops_with_the_finalizer(tmp_path, warm):
-    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
-    (tmp_path / "rig.toml").write_text(rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"'))
+    (tmp_path / "rig.toml").write_text(virtual_rig_document())
     (tmp_path / "plan.toml").write_text(PLAN)
     session = tmp_path / "S"
     pid = _spawn(

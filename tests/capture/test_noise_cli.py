@@ -6,15 +6,7 @@ import json
 
 import numpy as np
 
-from gonio.cli import main
-
-
-def run_cli(*args):
-    try:
-        main(list(args))
-    except SystemExit as exc:
-        return exc.code
-    return 0
+from gonio.cli import run
 
 
 def test_calibrate_noise_recovers_the_simulated_sensor(tmp_path, capsys):
@@ -40,7 +32,7 @@ def test_calibrate_noise_recovers_the_simulated_sensor(tmp_path, capsys):
         darks += ["--dark", str(p)]
     out = tmp_path / "noise.json"
     assert (
-        run_cli(
+        run(
             "capture",
             "calibrate-noise",
             *flats,
@@ -59,9 +51,7 @@ def test_calibrate_noise_recovers_the_simulated_sensor(tmp_path, capsys):
     assert abs(model["read_noise"] / (s.read_noise * s.gain_at_base_iso) - 1) < 0.05
     assert (tmp_path / "ptc.png").stat().st_size > 1000
     # never overwrites, and an odd number of flats is refused with the reason
-    assert run_cli("capture", "calibrate-noise", *flats, "--out", str(out)) == 1
+    assert run("capture", "calibrate-noise", *flats, "--out", str(out)) == 1
     assert "refusing to overwrite" in capsys.readouterr().err
-    assert (
-        run_cli("capture", "calibrate-noise", *flats[:2], "--out", str(tmp_path / "n2.json")) == 1
-    )
+    assert run("capture", "calibrate-noise", *flats[:2], "--out", str(tmp_path / "n2.json")) == 1
     assert "pairs" in capsys.readouterr().err

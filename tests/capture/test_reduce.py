@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
-from importlib import resources
 
 import numpy as np
 import pytest
@@ -13,8 +12,9 @@ import rawpy
 import xxhash
 
 from gonio.capture.journal import read_journal
-from gonio.cli import main
+from gonio.cli import run
 from gonio.dataset import Flag, load_samples
+from gonio.rig.config import virtual_rig_document
 
 pytestmark = pytest.mark.slow  # captures a simulated session (virtual bus, renders)
 
@@ -69,23 +69,14 @@ quadrature_order = 1
 """
 
 
-def run_cli(*args):
-    try:
-        main(list(args))
-    except SystemExit as exc:
-        return exc.code
-    return 0
-
-
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
     """A simulated session: real dynamixel-sdk on the virtual bus, rendered DNGs."""
     d = tmp_path_factory.mktemp("reduce")
-    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
-    (d / "rig.toml").write_text(rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"'))
+    (d / "rig.toml").write_text(virtual_rig_document())
     (d / "plan.toml").write_text(PLAN)
     (d / "scene.toml").write_text(SCENE)
-    code = run_cli(
+    code = run(
         "capture",
         "run",
         str(d / "plan.toml"),
@@ -154,7 +145,7 @@ def sample_files(s, pose=None):
 def test_reduce_cli_gives_calibrated_lambertian_samples(session, tmp_path):
     s = copy_session(session, tmp_path / "S")
     before = raw_hashes(s)
-    assert run_cli("capture", "reduce", str(s), "--quiet") == 0
+    assert run("capture", "reduce", str(s), "--quiet") == 0
     assert raw_hashes(s) == before  # RAW files untouched
     samples = load_samples(s / "samples.h5")
     assert len(samples) == 4 * 9 and samples.valid.all()
@@ -177,9 +168,9 @@ def test_reduce_cli_gives_calibrated_lambertian_samples(session, tmp_path):
 
 def test_reduce_twice_gives_the_same_file(session, tmp_path):
     s = copy_session(session, tmp_path / "S")
-    assert run_cli("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
+    assert run("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
     first = (s / "samples.h5").read_bytes()
-    assert run_cli("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
+    assert run("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
     assert (s / "samples.h5").read_bytes() == first
 
 
@@ -238,7 +229,7 @@ def test_bad_frames_are_reported_and_their_samples_flagged(session, tmp_path, ca
     dark = next(r["file"] for r in read_journal(s / "journal.jsonl") if r.get("kind") == "dark")
     for f in files_d:
         replace_frame(s, f, (s / dark).read_bytes())
-    assert run_cli("capture", "reduce", str(s)) == 0
+    assert run("capture", "reduce", str(s)) == 0
     out = capsys.readouterr().err
     samples = load_samples(s / "samples.h5")
     summary = json.loads((s / "reduction.json").read_text())
@@ -270,11 +261,11 @@ def test_no_reference_and_not_a_session_are_clear_errors(session, tmp_path, caps
     ]
     (s / "journal.jsonl").write_text("\n".join(lines) + "\n")
     (s / "samples.h5").write_bytes(b"keep me")
-    assert run_cli("capture", "reduce", str(s), "--quiet") == 1
+    assert run("capture", "reduce", str(s), "--quiet") == 1
     assert "no reference-target frames" in capsys.readouterr().err
     assert (s / "samples.h5").read_bytes() == b"keep me"  # nothing overwritten
     (tmp_path / "empty").mkdir()
-    assert run_cli("capture", "reduce", str(tmp_path / "empty")) == 1
+    assert run("capture", "reduce", str(tmp_path / "empty")) == 1
     assert "not a session directory" in capsys.readouterr().err
 
 
@@ -309,12 +300,12 @@ radius = 0.01
 grid = 2
 """)
     (s / "noise.json").write_text('{"gain": 0.4, "read_noise": 1.2, "iso": 100}')
-    assert run_cli("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
+    assert run("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
     samples = load_samples(s / "samples.h5")
     assert len(samples) == 4 * 4 and samples.valid.all()
     assert np.median(np.abs(samples.brdf / (ALBEDO / np.pi) - 1)) <= 0.01
     (s / "reduction.toml").write_text("[camera]\nK = [[1, 0], [0, 1]]\n")
-    assert run_cli("capture", "reduce", str(s), "--quiet") == 1
+    assert run("capture", "reduce", str(s), "--quiet") == 1
 
 
 def test_reference_reflectance_of_the_plan_is_what_the_simulated_camera_renders(tmp_path):
@@ -331,8 +322,7 @@ def test_reference_reflectance_of_the_plan_is_what_the_simulated_camera_renders(
     from gonio.rig.config import load_rig_config
     from gonio.rig.kinematics import Kinematics
 
-    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
-    (tmp_path / "rig.toml").write_text(rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"'))
+    (tmp_path / "rig.toml").write_text(virtual_rig_document())
     plan_text = PLAN.replace("[darks]\ncount = 2", "[darks]\ncount = 0").replace(
         "[reference]\n", "[reference]\nreflectance = 0.5\n"
     )
@@ -371,17 +361,15 @@ def test_reduce_refuses_to_overwrite_a_file_that_is_not_samples(session, tmp_pat
     s = copy_session(session, tmp_path / "S")
     precious = tmp_path / "precious.h5"
     precious.write_bytes(b"someone's thesis data")
-    assert run_cli("capture", "reduce", str(s), "--out", str(precious), "--quiet") == 1
+    assert run("capture", "reduce", str(s), "--out", str(precious), "--quiet") == 1
     assert precious.read_bytes() == b"someone's thesis data"
     # an earlier samples file is replaced (re-running a reduction is safe), and --force
     # replaces anything
     out = tmp_path / "samples.h5"
-    assert run_cli("capture", "reduce", str(s), "--out", str(out), "--quiet", "--no-plot") == 0
-    assert run_cli("capture", "reduce", str(s), "--out", str(out), "--quiet", "--no-plot") == 0
+    assert run("capture", "reduce", str(s), "--out", str(out), "--quiet", "--no-plot") == 0
+    assert run("capture", "reduce", str(s), "--out", str(out), "--quiet", "--no-plot") == 0
     assert (
-        run_cli(
-            "capture", "reduce", str(s), "--out", str(precious), "--quiet", "--no-plot", "--force"
-        )
+        run("capture", "reduce", str(s), "--out", str(precious), "--quiet", "--no-plot", "--force")
         == 0
     )
     assert load_samples(precious).n_channels == 3

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -22,9 +21,9 @@ from gonio.capture.session import (
     run_steps,
 )
 from gonio.capture.sim_camera import SimulatedRigCamera
-from gonio.cli import main
+from gonio.cli import run
 from gonio.errors import SessionError
-from gonio.rig.config import load_rig_config
+from gonio.rig.config import load_rig_config, virtual_rig_document
 from gonio.rig.kinematics import Kinematics
 
 PLAN = """
@@ -48,20 +47,11 @@ height = 24
 
 @pytest.fixture
 def files(tmp_path):
-    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
-    rig = rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"')
+    rig = virtual_rig_document()
     assert 'port = "virtual"' in rig
     (tmp_path / "rig.toml").write_text(rig)
     (tmp_path / "plan.toml").write_text(PLAN)
     return tmp_path
-
-
-def _run_cli(*args):
-    try:
-        main(list(args))
-    except SystemExit as exc:
-        return exc.code
-    return 0
 
 
 def _check_journal_against_files(session: Path) -> list[dict]:
@@ -83,7 +73,7 @@ def test_simulated_session_end_to_end(files):
     from gonio.capture.raw import read_raw
 
     out = files / "S"
-    code = _run_cli(
+    code = run(
         "capture",
         "run",
         str(files / "plan.toml"),
@@ -196,7 +186,7 @@ def test_existing_session_dir_is_refused_and_untouched(files):
     out = files / "S"
     out.mkdir()
     (out / "notes.txt").write_text("precious")
-    code = _run_cli(
+    code = run(
         "capture",
         "run",
         str(files / "plan.toml"),
@@ -216,7 +206,7 @@ def test_existing_session_dir_is_refused_and_untouched(files):
 def test_resume_refuses_a_different_plan_unless_forced(files, capsys):
     out = files / "S"
     assert (
-        _run_cli(
+        run(
             "capture",
             "run",
             str(files / "plan.toml"),
@@ -235,7 +225,7 @@ def test_resume_refuses_a_different_plan_unless_forced(files, capsys):
     other = files / "other.toml"
     other.write_text(PLAN.replace("exposure_time_s = 0.01", "exposure_time_s = 0.02"))
     before = (out / "journal.jsonl").read_bytes()
-    assert _run_cli("capture", "resume", str(out), "--plan", str(other), "--quiet") == 1
+    assert run("capture", "resume", str(out), "--plan", str(other), "--quiet") == 1
     err = capsys.readouterr().err
     assert "bracket.exposure_time_s" in err and "--force" in err
     assert (out / "journal.jsonl").read_bytes() == before
@@ -244,12 +234,12 @@ def test_resume_refuses_a_different_plan_unless_forced(files, capsys):
     rig2.write_text(
         (files / "rig.toml").read_text().replace("light_radius_m = 0.50", "light_radius_m = 0.6")
     )
-    assert _run_cli("capture", "resume", str(out), "--rig", str(rig2), "--quiet") == 1
+    assert run("capture", "resume", str(out), "--rig", str(rig2), "--quiet") == 1
     assert "geometry.light_radius_m" in capsys.readouterr().err
     assert (out / "journal.jsonl").read_bytes() == before
     # a run into the same directory is refused too, pointing at resume
     assert (
-        _run_cli(
+        run(
             "capture",
             "run",
             str(files / "plan.toml"),
@@ -267,7 +257,7 @@ def test_resume_refuses_a_different_plan_unless_forced(files, capsys):
 
 
 def test_plan_dry_run_moves_nothing(files, capsys):
-    code = _run_cli(
+    code = run(
         "capture", "plan", str(files / "plan.toml"), "--rig", str(files / "rig.toml"), "--json"
     )
     assert code == 0
@@ -283,7 +273,7 @@ def test_plan_with_no_reachable_pose_is_a_clear_error(files, capsys):
         'name = "unreachable"\n[grid]\ntheta_i_deg = [20, 40]\ntheta_o_deg = [20, 40]\n'
         "[exclusions]\nmin_separation_deg = 25\n"
     )
-    code = _run_cli("capture", "plan", str(bad), "--rig", str(files / "rig.toml"))
+    code = run("capture", "plan", str(bad), "--rig", str(files / "rig.toml"))
     assert code == 1
     err = capsys.readouterr().err
     assert "no reachable pose" in err
@@ -292,7 +282,7 @@ def test_plan_with_no_reachable_pose_is_a_clear_error(files, capsys):
 def test_invalid_plan_cli_names_the_field(files, capsys):
     bad = files / "bad.toml"
     bad.write_text(PLAN.replace("exposure_time_s = 0.01", "exposure_time_s = -1"))
-    assert _run_cli("capture", "plan", str(bad)) == 1
+    assert run("capture", "plan", str(bad)) == 1
     err = capsys.readouterr().err
     assert "bad.toml" in err and "bracket.exposure_time_s" in err
 
@@ -301,8 +291,7 @@ def test_inspect_finds_tampered_and_missing_files(files, capsys):
     out = files / "S"
     args = ["capture", "run", str(files / "plan.toml"), "--rig", str(files / "rig.toml")]
     assert (
-        _run_cli(*args, "--camera", "simulated", "--out", str(out), "--sim-speed", "100", "--quiet")
-        == 0
+        run(*args, "--camera", "simulated", "--out", str(out), "--sim-speed", "100", "--quiet") == 0
     )
     capsys.readouterr()
     shots = [r for r in read_journal(out / "journal.jsonl") if r["type"] == "shot"]
@@ -310,10 +299,10 @@ def test_inspect_finds_tampered_and_missing_files(files, capsys):
     data = bytearray(victim.read_bytes())
     data[-1] ^= 0xFF
     victim.write_bytes(bytes(data))
-    assert _run_cli("capture", "inspect", str(out)) == 1
+    assert run("capture", "inspect", str(out)) == 1
     captured = capsys.readouterr()
     assert shots[1]["file"] in captured.out and "sha256 differs" in captured.out
     # resume refuses to continue a session whose journaled file has gone
     (out / shots[0]["file"]).unlink()
-    assert _run_cli("capture", "resume", str(out), "--quiet") == 1
+    assert run("capture", "resume", str(out), "--quiet") == 1
     assert "missing" in capsys.readouterr().err

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from importlib import resources
-
 import numpy as np
 import pytest
 import rawpy
@@ -12,6 +10,7 @@ from gonio.capture.bracket import FrameVerdict, next_exposure, predict_exposure,
 from gonio.capture.journal import read_journal
 from gonio.capture.plan import BracketPolicy
 from gonio.cli import main
+from gonio.rig.config import virtual_rig_document
 
 
 def _v(t, sat=False, under=False, frac=0.3):
@@ -83,8 +82,7 @@ height = 24
 
 
 def test_adaptive_brackets_in_a_simulated_session(tmp_path):
-    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
-    (tmp_path / "rig.toml").write_text(rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"'))
+    (tmp_path / "rig.toml").write_text(virtual_rig_document())
     (tmp_path / "plan.toml").write_text(PLAN)
     out = tmp_path / "S"
     try:

@@ -18,7 +18,6 @@ import hashlib
 import json
 import math
 import tomllib
-from importlib import resources
 
 import numpy as np
 import pytest
@@ -26,10 +25,10 @@ import pytest
 from gonio.capture.journal import read_journal
 from gonio.capture.plan import load_plan
 from gonio.capture.session import build_schedule, create_session, open_devices, run_steps
-from gonio.cli import main
+from gonio.cli import run
 from gonio.dataset import load_samples
 from gonio.errors import SessionError
-from gonio.rig.config import load_rig_config
+from gonio.rig.config import load_rig_config, virtual_rig_document
 from gonio.rig.kinematics import Kinematics
 
 # Steps: the reference (30, 30) first, the samples theta_i = 20, 30, 40 deg (light arm at
@@ -87,18 +86,9 @@ strategy = "point"
 LIMIT_DEG = -35.0
 
 
-def _run_cli(*args):
-    try:
-        main(list(args))
-    except SystemExit as exc:
-        return exc.code
-    return 0
-
-
 @pytest.fixture
 def files(tmp_path):
-    rig = resources.files("gonio.rig").joinpath("default_rig.toml").read_text()
-    rig = rig.replace('port = "/dev/ttyUSB0"', 'port = "virtual"')
+    rig = virtual_rig_document()
     assert 'port = "virtual"' in rig
     (tmp_path / "rig.toml").write_text(rig)
     # The narrowed light arm: limits [-35, 170] deg; home/park moved inside them.
@@ -159,10 +149,10 @@ def test_pose_refused_by_a_narrowed_rig_is_skipped_and_the_rest_completes(files,
     # the narrowed rig is refused without --force, nothing is written
     jbytes = (out / "journal.jsonl").read_bytes()
     args = ["capture", "resume", str(out), "--rig", str(files / "tight.toml"), "--quiet"]
-    assert _run_cli(*args) == 1
+    assert run(*args) == 1
     assert "light_azimuth" in capsys.readouterr().err
     assert (out / "journal.jsonl").read_bytes() == jbytes
-    assert _run_cli(*args, "--force", "--sim-speed", "100") == 0
+    assert run(*args, "--force", "--sim-speed", "100") == 0
     said = capsys.readouterr().out
     assert f"pose {victim} skipped" in said and "1 pose skipped" in said
 
@@ -200,28 +190,28 @@ def test_pose_refused_by_a_narrowed_rig_is_skipped_and_the_rest_completes(files,
 
     # inspect: status completed, the pose listed as skipped with its reason, exit 0
     # (a skip is a recorded outcome, not damage: only bad files make inspect fail)
-    assert _run_cli("capture", "inspect", str(out), "--json") == 0
+    assert run("capture", "inspect", str(out), "--json") == 0
     info = json.loads(capsys.readouterr().out)
     assert info["status"] == "completed"
     assert info["skipped"] == [{"pose": victim, "reason": reason}]
     assert info["poses_total"] == len(steps)
     assert info["bad_files"] == [] and info["orphans"] == []
     assert info["files_verified"] == len(shots)
-    assert _run_cli("capture", "inspect", str(out)) == 0
+    assert run("capture", "inspect", str(out)) == 0
     text = " ".join(capsys.readouterr().out.split())
     assert f"poses done {len(steps)}/{len(steps)} (1 of them skipped)" in text
     assert f"skipped pose {victim}: cannot reach" in text
 
     # a second resume does not retry or duplicate anything
     jbytes = (out / "journal.jsonl").read_bytes()
-    assert _run_cli("capture", "resume", str(out), "--quiet", "--sim-speed", "100") == 0
+    assert run("capture", "resume", str(out), "--quiet", "--sim-speed", "100") == 0
     capsys.readouterr()
     again = read_journal(out / "journal.jsonl")
     assert (out / "journal.jsonl").read_bytes().startswith(jbytes)
     assert [r["type"] for r in again[len(recs) :]] == ["start", "stop"]
 
     # reduce: no crash; the skipped pose is absent from samples.h5, the others present
-    assert _run_cli("capture", "reduce", str(out), "--quiet", "--no-plot") == 0
+    assert run("capture", "reduce", str(out), "--quiet", "--no-plot") == 0
     samples = load_samples(out / "samples.h5")
     sample_poses = {k for k, s in enumerate(steps) if s["kind"] == "sample" and k != victim}
     poses_in_file = {int(f.split("/p")[1][:4]) for f in samples.frames}
