@@ -54,6 +54,25 @@ def files(tmp_path):
     return tmp_path
 
 
+def run_simulated(files: Path, out: Path, *, fast: bool = True):
+    """``gonio capture run`` of the test plan on the virtual rig and simulated camera
+    (servo time 100x faster than real when ``fast``); the exit code."""
+    speed = ["--sim-speed", "100"] if fast else []
+    return run(
+        "capture",
+        "run",
+        str(files / "plan.toml"),
+        "--rig",
+        str(files / "rig.toml"),
+        "--camera",
+        "simulated",
+        "--out",
+        str(out),
+        *speed,
+        "--quiet",
+    )
+
+
 def _check_journal_against_files(session: Path) -> list[dict]:
     recs = read_journal(session / "journal.jsonl")
     shots = [r for r in recs if r["type"] == "shot"]
@@ -73,20 +92,7 @@ def test_simulated_session_end_to_end(files):
     from gonio.capture.raw import read_raw
 
     out = files / "S"
-    code = run(
-        "capture",
-        "run",
-        str(files / "plan.toml"),
-        "--rig",
-        str(files / "rig.toml"),
-        "--camera",
-        "simulated",
-        "--out",
-        str(out),
-        "--sim-speed",
-        "100",
-        "--quiet",
-    )
+    code = run_simulated(files, out)
     assert code == 0
     manifest = json.loads((out / "manifest.json").read_text())
     for key in (
@@ -186,18 +192,7 @@ def test_existing_session_dir_is_refused_and_untouched(files):
     out = files / "S"
     out.mkdir()
     (out / "notes.txt").write_text("precious")
-    code = run(
-        "capture",
-        "run",
-        str(files / "plan.toml"),
-        "--rig",
-        str(files / "rig.toml"),
-        "--camera",
-        "simulated",
-        "--out",
-        str(out),
-        "--quiet",
-    )
+    code = run_simulated(files, out, fast=False)
     assert code == 1
     assert [p.name for p in out.iterdir()] == ["notes.txt"]
     assert (out / "notes.txt").read_text() == "precious"
@@ -205,23 +200,7 @@ def test_existing_session_dir_is_refused_and_untouched(files):
 
 def test_resume_refuses_a_different_plan_unless_forced(files, capsys):
     out = files / "S"
-    assert (
-        run(
-            "capture",
-            "run",
-            str(files / "plan.toml"),
-            "--rig",
-            str(files / "rig.toml"),
-            "--camera",
-            "simulated",
-            "--out",
-            str(out),
-            "--sim-speed",
-            "100",
-            "--quiet",
-        )
-        == 0
-    )
+    assert run_simulated(files, out) == 0
     other = files / "other.toml"
     other.write_text(PLAN.replace("exposure_time_s = 0.01", "exposure_time_s = 0.02"))
     before = (out / "journal.jsonl").read_bytes()
@@ -238,21 +217,7 @@ def test_resume_refuses_a_different_plan_unless_forced(files, capsys):
     assert "geometry.light_radius_m" in capsys.readouterr().err
     assert (out / "journal.jsonl").read_bytes() == before
     # a run into the same directory is refused too, pointing at resume
-    assert (
-        run(
-            "capture",
-            "run",
-            str(files / "plan.toml"),
-            "--rig",
-            str(files / "rig.toml"),
-            "--camera",
-            "simulated",
-            "--out",
-            str(out),
-            "--quiet",
-        )
-        == 1
-    )
+    assert run_simulated(files, out, fast=False) == 1
     assert "gonio capture resume" in capsys.readouterr().err
 
 
