@@ -7,6 +7,8 @@ Messages name the file, field or value and say what was expected.
 
 from __future__ import annotations
 
+from enum import StrEnum
+
 
 class GonioError(Exception):
     """Base class of every deliberate gonio error."""
@@ -48,11 +50,90 @@ class FileFormatError(GonioError, ValueError):
 
 
 class RigError(GonioError):
-    """The servo rig cannot do what was asked (bad port, unreachable pose, ...)."""
+    """The servo rig cannot do what was asked (bad port, wrong configuration, ...).
+
+    The session engine tells its three kinds apart by class, never by message:
+    :class:`PoseRefused` (nothing moved; the pose can be skipped), :class:`BusError`
+    (a servo did not answer; state unknown: a fault) and :class:`RigFault` (a servo
+    reported a hardware error or a move timed out; torque is off: a fault).
+    """
+
+
+class RefusalReason(StrEnum):
+    """Why a pose was refused before anything moved (the machine-readable part)."""
+
+    #: wi or wo is not a finite, non-zero direction
+    INVALID_DIRECTION = "invalid_direction"
+    #: theta beyond the holder's rim (``geometry.max_theta_deg``)
+    BEYOND_RIM = "beyond_rim"
+    #: wi and wo parallel, or no stage orientation puts both at the arms' elevations
+    NO_SOLUTION = "no_solution"
+    #: the stage cannot tilt far enough
+    TILT_RANGE = "tilt_range"
+    #: a joint would leave its limits
+    JOINT_LIMIT = "joint_limit"
+    #: light and camera too close seen from the sample (one shadows the other)
+    SHADOWING = "shadowing"
+    #: the arms would collide (azimuth clearance)
+    ARM_CLEARANCE = "arm_clearance"
+    #: the move from the present pose would make the arms pass or touch
+    PATH = "path"
+    #: a goal pulse outside a servo's configured range
+    PULSE_RANGE = "pulse_range"
+
+
+class PoseRefused(RigError):
+    """A pose was checked and refused before anything moved.
+
+    Parameters
+    ----------
+    reason
+        Which rule refused it.
+    message
+        The sentence for the user (names the joint, angle or limit).
+    """
+
+    def __init__(self, reason: RefusalReason, message: str) -> None:
+        self.reason = RefusalReason(reason)
+        super().__init__(message)
+
+
+class BusError(RigError):
+    """A servo did not answer, or answered garbage, after every retry.
+
+    Parameters
+    ----------
+    message
+        What was being done and what happened.
+    servo
+        The Dynamixel ID concerned, if one.
+    cause
+        ``"timeout"``, ``"corrupt"``, ``"device_error"``, ``"port"``, ...
+    """
+
+    def __init__(self, message: str, servo: int | None = None, cause: str | None = None) -> None:
+        self.servo = servo
+        self.cause = cause
+        super().__init__(message)
 
 
 class RigFault(RigError):
-    """A servo reported a hardware fault or stopped answering; torque has been cut."""
+    """A servo reported a hardware fault, or a move timed out; torque has been cut.
+
+    Parameters
+    ----------
+    message
+        What happened and what to do.
+    servo
+        The Dynamixel ID that reported it (None for a timeout of several).
+    error_bits
+        The hardware error status bits (register 70), 0 when not a hardware error.
+    """
+
+    def __init__(self, message: str, servo: int | None = None, error_bits: int = 0) -> None:
+        self.servo = servo
+        self.error_bits = int(error_bits)
+        super().__init__(message)
 
 
 class CameraError(GonioError):
