@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gonio.devices import MoveResult, RigState
-from gonio.errors import PoseRefused, RefusalReason, RigError, RigFault
+from gonio.errors import BusError, PoseRefused, RefusalReason, RigError, RigFault
 from gonio.rig import control_table as ct
 from gonio.rig.bus import BusTransport
 from gonio.rig.config import JOINT_NAMES, RigConfig
@@ -144,9 +144,10 @@ class Rig:
         Raises
         ------
         BusError
-            Unknown port (``cause="port"``), a servo that stopped answering.
+            Unknown port (``cause="port"``), no answer at all (wrong baud rate?) or from
+            some IDs (``cause="timeout"``, ``servo`` when one).
         RigError
-            No answer at all (wrong baud rate?), missing IDs, model mismatch.
+            Model mismatch.
         """
         self.transport.open()
         try:
@@ -174,16 +175,19 @@ class Rig:
         missing = [i for i, v in found.items() if v is None]
         port, baud = self.transport.port_name, self.transport.baud_rate
         if len(missing) == len(self._ids):
-            raise RigError(
+            raise BusError(
                 f"no servo answered on {port} at {baud} baud (IDs {list(self._ids)}): check the "
                 "baud rate (bus.baud_rate must match the servos' Baud Rate register), power "
-                "and cabling"
+                "and cabling",
+                cause="timeout",
             )
         if missing:
             names = ", ".join(f"{i} ({self._by_id[i].joint})" for i in missing)
-            raise RigError(
+            raise BusError(
                 f"servo(s) {names} did not answer on {port}; "
-                f"found {sorted(set(found) - set(missing))}"
+                f"found {sorted(set(found) - set(missing))}",
+                servo=missing[0] if len(missing) == 1 else None,
+                cause="timeout",
             )
         for i, (number, fw) in found.items():
             s = self._by_id[i]

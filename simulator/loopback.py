@@ -73,7 +73,12 @@ class LoopbackTransport:
         baud_rate: int = 1_000_000,
         **bus_options: Any,
     ) -> None:
-        self.bus = bus if isinstance(bus, ServoBus) else ServoBus(bus, **bus_options)
+        if isinstance(bus, ServoBus):
+            if bus_options:
+                raise TypeError(f"bus options {sorted(bus_options)} given with a ready ServoBus")
+            self.bus = bus
+        else:
+            self.bus = ServoBus(bus, **bus_options)
         self.retries = retries
         self.port_name = port_name
         self.baud_rate = baud_rate
