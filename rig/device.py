@@ -470,8 +470,13 @@ class Rig:
             s = self.servos[j]
             try:
                 s.to_pulses(s.to_joint(best[k]))  # limit check of the rounded value
-            except PoseRefused as exc:
-                raise PoseRefused(RefusalReason.PULSE_RANGE, str(exc)) from None
+            except PoseRefused:
+                raise PoseRefused(
+                    RefusalReason.PULSE_RANGE,
+                    f"{j} (servo {s.id}): goal {int(best[k])} pulses, rounded from "
+                    f"{s.config.pulses(float(joints[j])):.3f}, lies past the servo's limits "
+                    f"[{s.config.min_deg}, {s.config.max_deg}] deg",
+                ) from None
             goals[s.id] = int(best[k])
         return goals
 

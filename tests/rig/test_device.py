@@ -307,3 +307,17 @@ def test_open_reboots_a_servo_left_in_fault_and_keeps_holding_ones(servo_bus, fa
         assert vbus.torque() == {1: 1, 2: 1, 3: 1, 4: 1}
         assert all(s.torque for s in rig.status().servos)
     assert vbus.torque() == {1: 0, 2: 0, 3: 0, 4: 0}
+
+
+def test_a_goal_rounded_past_a_limit_is_a_pulse_range_refusal(servo_bus, fast_config):
+    # The spin limit, 200 deg, is 2275.56 pulses: a joint angle just inside it can round
+    # up to 2276 (0.04 deg past the limit), and does when the directions asked for are
+    # exactly those of 2276 pulses.
+    lim = math.radians(200.0)
+    with Rig(fast_config, transport=LoopbackTransport(servo_bus)) as rig:
+        q = dict(fast_config.home_rad, stage_spin=lim - 1e-7)
+        over = dict(q, stage_spin=rig.servos["stage_spin"].to_joint(2276))
+        wi, wo = rig.kinematics.forward(over)  # exactly at the rounded-up pulse
+        with pytest.raises(PoseRefused, match=r"stage_spin \(servo 4\): goal 2276 pulses") as e:
+            rig.quantised_goals(wi, wo, q)
+        assert e.value.reason is RefusalReason.PULSE_RANGE
