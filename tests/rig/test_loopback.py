@@ -126,3 +126,19 @@ def test_closed_loopback_refuses(loopback):
     with pytest.raises(BusError, match="not open") as info:
         loopback.read(1, REG["model_number"])
     assert info.value.cause == "port"
+
+
+def test_the_loopback_needs_only_the_rigs_protocol_definitions():
+    """The simulator may import gonio.rig.protocol and control_table, never the rig's
+    transport, device or kinematics (nor dynamixel-sdk): checked in a fresh interpreter."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, gonio.simulator.loopback\n"
+        "bad = sorted(m for m in sys.modules if m in ('gonio.rig.transport', 'gonio.rig.device',"
+        " 'gonio.rig.kinematics', 'gonio.rig.servo', 'dynamixel_sdk'))\n"
+        "print(bad)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
