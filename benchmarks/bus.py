@@ -6,6 +6,8 @@ port from the same virtual bus (`gonio sim bus`, its own process) in the same ru
 alternating in rounds (order swapped every round) so that machine load affects both
 alike; medians over the rounds (and the best round of each).
 The controller's figure includes decoding into SI units (``Rig.read_states``).
+An extra figure, ``loopback_reads_per_s``: the same controller read over the in-process
+loopback transport (the same packets, no pty: the protocol and servo logic alone).
 Prints one JSON object.
 """
 
@@ -24,6 +26,8 @@ from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, PacketHandler, PortHandle
 from gonio.rig import control_table as ct
 from gonio.rig.config import default_rig_config
 from gonio.rig.device import Rig
+from gonio.simulator.loopback import LoopbackTransport
+from gonio.simulator.virtual_bus import ServoBus
 
 IDS = (1, 2, 3, 4)
 
@@ -47,6 +51,18 @@ def controller_loop(rig: Rig, n: int) -> float:
     for _ in range(n):
         rig.read_states()
     return n / (time.perf_counter() - t0)
+
+
+def loopback_figure(n: int, rounds: int) -> float:
+    """Median reads per second of ``Rig.read_states`` over the loopback transport."""
+    bus = ServoBus(IDS)
+    for i, p in zip(IDS, (1536, 2048, 2048, 0), strict=True):
+        bus.servos[i].set_position(p)
+    rig = Rig(default_rig_config(), transport=LoopbackTransport(bus)).open()
+    try:
+        return float(np.median([controller_loop(rig, n) for _ in range(rounds)]))
+    finally:
+        rig.close()
 
 
 def main(n: int = 200, rounds: int = 10) -> dict:
@@ -87,6 +103,7 @@ def main(n: int = 200, rounds: int = 10) -> dict:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=10)
     ours_med, bare_med = float(np.median(ours)), float(np.median(bare))
+    loop_med = loopback_figure(n, rounds)  # after the pty rounds: they are the comparison
     return {
         "benchmark": "full-state sync reads of 4 servos (64..146), per second",
         "controller_reads_per_s": round(ours_med, 1),
@@ -98,6 +115,7 @@ def main(n: int = 200, rounds: int = 10) -> dict:
         "best_baseline_reads_per_s": round(max(bare), 1),
         "best_overhead_percent": round(100 * (max(bare) / max(ours) - 1), 1),
         "target_overhead_percent": 20,
+        "loopback_reads_per_s": round(loop_med, 1),
         "rounds": rounds,
         "reads_per_round": n,
     }

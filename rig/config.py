@@ -16,6 +16,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Literal
 
+import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from gonio.config import read_toml, validate
@@ -298,13 +299,20 @@ def default_rig_document() -> str:
 
 
 def virtual_rig_document() -> str:
-    """The default preset with its bus on the simulator's virtual port, as TOML text."""
-    lines = []
-    for line in default_rig_document().splitlines():
-        if line.strip().startswith("port ="):
-            line = 'port = "virtual"   # the simulator\'s Dynamixel bus on a pseudo-terminal'
-        lines.append(line)
-    return "\n".join(lines) + "\n"
+    """The default preset with its bus on the simulator's virtual port, as TOML text.
+
+    Written with tomli-w from the parsed preset, so it holds the same values
+    (``bus.port = "virtual"`` aside) whatever the preset file's layout and comments.
+    """
+    doc = tomllib.loads(default_rig_document())
+    doc["bus"]["port"] = "virtual"
+    return _VIRTUAL_HEADER + tomli_w.dumps(doc)
+
+
+_VIRTUAL_HEADER = (
+    "# The default four-servo preset (gonio/rig/default_rig.toml) on the simulator:\n"
+    '# port = "virtual" runs the servos on the simulator\'s Dynamixel bus (a pseudo-terminal).\n'
+)
 
 
 def default_rig_config() -> RigConfig:

@@ -1,12 +1,21 @@
 """The rig device: move the light and camera to directions, verify, stop safely.
 
-:class:`Rig` owns one :class:`Transport` and one :class:`Servo` per joint.  A move is
+:class:`Rig` implements :class:`gonio.devices.RigDevice` (``read``, ``move_to``, ``stop``,
+``park``, ``torque_off``).  It is given a bus (any :class:`gonio.rig.bus.BusTransport`:
+the dynamixel-sdk :class:`~gonio.rig.transport.Transport` by default, the simulator's
+in-process loopback in tests) and has one :class:`Servo` per joint.  A move is
 one SYNC_WRITE of goal positions followed by cyclic SYNC_READs of each servo's state
 block until every servo is in position within tolerance or the timeout passes (the loop
 waits on an abort event between reads; the state, not the clock, ends it).  On a
 hardware error (register 70, read in the same block) every servo's torque is cut and a
 :class:`RigFault` names the servo and the error bits.  Torque goes off on every exit
-path: ``close()``, the context manager, any exception during a move, SIGINT and SIGTERM.
+path: ``close()``, the context manager, any exception during a move, :meth:`Rig.stop`,
+SIGINT and SIGTERM.
+
+Errors are typed (:mod:`gonio.errors`): :class:`PoseRefused` with a
+:class:`RefusalReason` before anything moved, :class:`BusError` from the bus when a servo
+does not answer, :class:`RigFault` (``servo``, ``error_bits``) for hardware errors, move
+timeouts and stops.
 """
 
 from __future__ import annotations
@@ -17,49 +26,29 @@ import math
 import signal
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from gonio.errors import RigError, RigFault
+from gonio.devices import MoveResult, RigState
+from gonio.errors import BusError, PoseRefused, RefusalReason, RigError, RigFault
 from gonio.rig import control_table as ct
+from gonio.rig.bus import BusTransport
 from gonio.rig.config import JOINT_NAMES, RigConfig
 from gonio.rig.kinematics import Kinematics, _angle_between
 from gonio.rig.servo import Servo, ServoState
 from gonio.rig.transport import Transport
 
+__all__ = ["MoveResult", "Rig", "RigStatus"]
+
 log = logging.getLogger("gonio.rig")
 
-
-@dataclass(frozen=True)
-class MoveResult:
-    """Outcome of :meth:`Rig.move_to`.
-
-    Attributes
-    ----------
-    wi, wo
-        Requested directions (sample frame, unit).
-    wi_achieved, wo_achieved
-        Directions computed from the read-back joint angles.
-    joints
-        Read-back joint angles (rad).
-    error_i, error_o
-        Angles (rad) between requested and achieved directions.
-    duration
-        Wall-clock time of the move (s).
-    """
-
-    wi: NDArray[np.float64]
-    wo: NDArray[np.float64]
-    wi_achieved: NDArray[np.float64]
-    wo_achieved: NDArray[np.float64]
-    joints: dict[str, float]
-    error_i: float
-    error_o: float
-    duration: float
+#: How far (rad) the directions of a ``joints=`` hint may lie from the request: far below
+#: one pulse (1.5e-3 rad), far above the rounding of joints written to JSON and read back.
+_HINT_TOLERANCE_RAD = 1e-6
 
 
 @dataclass
@@ -92,13 +81,6 @@ class RigStatus:
         }
 
 
-def _fault(message: str, servo: int | None = None, bits: int = 0) -> RigFault:
-    exc = RigFault(message)
-    exc.servo = servo  # type: ignore[attr-defined]
-    exc.error_bits = bits  # type: ignore[attr-defined]
-    return exc
-
-
 class Rig:
     """The gonioreflectometer: servos, kinematics and safe motion.
 
@@ -106,8 +88,12 @@ class Rig:
     ----------
     config
         Rig configuration (bus, servos, geometry, motion).
+    transport
+        The bus (a :class:`~gonio.rig.bus.BusTransport`, not yet opened); None builds the
+        dynamixel-sdk :class:`~gonio.rig.transport.Transport` from ``config.bus``.
     port, baud_rate
-        Override ``config.bus.port`` / ``config.bus.baud_rate``.
+        Override ``config.bus.port`` / ``config.bus.baud_rate`` of the transport built
+        here (not allowed together with ``transport``).
 
     Examples
     --------
@@ -116,17 +102,28 @@ class Rig:
     """
 
     def __init__(
-        self, config: RigConfig, *, port: str | None = None, baud_rate: int | None = None
+        self,
+        config: RigConfig,
+        *,
+        transport: BusTransport | None = None,
+        port: str | None = None,
+        baud_rate: int | None = None,
     ) -> None:
         self.config = config
-        bus = config.bus
-        self.transport = Transport(
-            port or bus.port,
-            baud_rate or bus.baud_rate,
-            retries=bus.retries,
-            timeout_ms=bus.timeout_ms,
-            latency_timer_ms=bus.latency_timer_ms,
-        )
+        if transport is None:
+            bus = config.bus
+            transport = Transport(
+                port or bus.port,
+                baud_rate or bus.baud_rate,
+                retries=bus.retries,
+                timeout_ms=bus.timeout_ms,
+                latency_timer_ms=bus.latency_timer_ms,
+            )
+        elif port is not None or baud_rate is not None:
+            raise RigError("Rig: give either a transport or port/baud_rate, not both")
+        self.transport: BusTransport = transport
+        # a virtual bus's servo clock times moves in servo time; a real one has none
+        self._clock: Callable[[], float] = getattr(transport, "clock", time.monotonic)
         self.kinematics = Kinematics(config)
         self.servos = {s.joint: Servo(self.transport, s) for s in config.servos}
         self._ids = tuple(s.id for s in config.servos)
@@ -146,8 +143,11 @@ class Rig:
 
         Raises
         ------
+        BusError
+            Unknown port (``cause="port"``), no answer at all (wrong baud rate?) or from
+            some IDs (``cause="timeout"``, ``servo`` when one).
         RigError
-            Unknown port, no answer (wrong baud rate?), missing IDs, model mismatch.
+            Model mismatch.
         """
         self.transport.open()
         try:
@@ -175,16 +175,19 @@ class Rig:
         missing = [i for i, v in found.items() if v is None]
         port, baud = self.transport.port_name, self.transport.baud_rate
         if len(missing) == len(self._ids):
-            raise RigError(
+            raise BusError(
                 f"no servo answered on {port} at {baud} baud (IDs {list(self._ids)}): check the "
                 "baud rate (bus.baud_rate must match the servos' Baud Rate register), power "
-                "and cabling"
+                "and cabling",
+                cause="timeout",
             )
         if missing:
             names = ", ".join(f"{i} ({self._by_id[i].joint})" for i in missing)
-            raise RigError(
+            raise BusError(
                 f"servo(s) {names} did not answer on {port}; "
-                f"found {sorted(set(found) - set(missing))}"
+                f"found {sorted(set(found) - set(missing))}",
+                servo=missing[0] if len(missing) == 1 else None,
+                cause="timeout",
             )
         for i, (number, fw) in found.items():
             s = self._by_id[i]
@@ -254,22 +257,47 @@ class Rig:
             self.transport.reset()
             reg = ct.MODELS[self.config.servos[0].model]["torque_enable"]
             self.transport.broadcast_write(reg, 0)
-            failed = []
+            failed: list[int] = []
             for s in self.servos.values():
                 try:
                     s.torque(False)
                 except RigError as exc:
-                    failed.append(f"{s.id}: {exc}")
-            if failed:
-                log.error("could not confirm torque off on servo(s) %s", "; ".join(failed))
-            else:
+                    failed.append(s.id)
+                    log.error("could not confirm torque off on servo %d: %s", s.id, exc)
+            if not failed:
                 log.info("torque off on servos %s", list(self._ids))
-            return [int(f.split(":", 1)[0]) for f in failed]
+            return failed
         finally:
             if main:
                 signal.signal(signal.SIGINT, old)
 
+    def stop(self) -> None:
+        """Stop the move in progress at once; safe from another thread or a signal handler.
+
+        Only sets an event (no bus traffic here): the moving thread sees it within one
+        poll, cuts torque on every servo and raises :class:`RigFault`.
+        """
+        self._abort.set()
+
     # ------------------------------------------------------------------ state
+    def read(self) -> RigState:
+        """Joints (rad), temperatures (degC), error bits and motion of every servo.
+
+        One SYNC_READ of the state block.
+
+        Raises
+        ------
+        BusError
+            A servo did not answer.
+        """
+        st = self.read_states()
+        return RigState(
+            joints={j: float(st[j].position) for j in JOINT_NAMES},
+            temperatures={j: float(st[j].temperature) for j in JOINT_NAMES},
+            errors={j: int(st[j].hardware_error) for j in JOINT_NAMES},
+            moving=any(s.moving for s in st.values()),
+        )
+
     def read_states(self) -> dict[str, ServoState]:
         """Every servo's state block in one SYNC_READ, by joint name."""
         blocks = self.transport.sync_read(self._ids, ct.STATE_BLOCK_START, ct.STATE_BLOCK_LEN)
@@ -296,12 +324,15 @@ class Rig:
         if missing:
             raise RigError(f"target pose lacks joint(s) {missing}")
         goals = {self.servos[j].id: self.servos[j].to_pulses(float(target[j])) for j in JOINT_NAMES}
-        reason = self.kinematics.check_joints(target) or self.kinematics._path_reason(
-            current, target
+        self._refuse_if(
+            self.kinematics.joints_refusal(target) or self.kinematics.path_refusal(current, target)
         )
-        if reason:
-            raise RigError(f"refusing to move: {reason}")
         return goals
+
+    @staticmethod
+    def _refuse_if(refusal: PoseRefused | None) -> None:
+        if refusal is not None:
+            raise PoseRefused(refusal.reason, f"refusing to move: {refusal}")
 
     def move_joints(
         self, target: Mapping[str, float], timeout: float | None = None
@@ -313,10 +344,13 @@ class Rig:
 
         Raises
         ------
-        RigError
+        PoseRefused
             Target not allowed (nothing moved).
+        BusError
+            A servo did not answer.
         RigFault
-            Hardware error or timeout during the move (torque is off on every servo).
+            Hardware error, timeout or :meth:`stop` during the move (torque is off on
+            every servo).
         """
         states = self.read_states()
         current = {j: st.position for j, st in states.items()}
@@ -361,34 +395,45 @@ class Rig:
                     for s in states.values()
                 ):
                     return {j: s.position for j, s in states.items()}
+                late = [s for s in states.values() if self._late(s, goals, tol)]
                 if time.monotonic() > deadline:
-                    late = [
-                        f"{s.dxl_id} ({s.joint}) at {s.position_pulses}, goal {goals[s.dxl_id]}"
-                        for s in states.values()
-                        if abs(s.position_pulses - goals[s.dxl_id]) > tol or s.moving
-                    ]
-                    raise _fault(
-                        f"move timed out after {timeout:.1f} s: servo(s) {'; '.join(late)}"
+                    raise RigFault(
+                        f"move timed out after {timeout:.1f} s: servo(s) "
+                        + "; ".join(
+                            f"{s.dxl_id} ({s.joint}) at {s.position_pulses}, goal {goals[s.dxl_id]}"
+                            for s in late
+                        ),
+                        servo=late[0].dxl_id if len(late) == 1 else None,
                     )
-                # Wait for the next state poll; an abort (signal) wakes it at once.
-                self._abort.wait(motion.poll_interval_s)
+                # Wait for the next state poll; stop() or a signal wakes it at once.
+                if self._abort.wait(motion.poll_interval_s):
+                    raise RigFault(
+                        "move stopped on request before servo(s) "
+                        f"{[s.dxl_id for s in late]} reached their goals; torque cut on all "
+                        "servos",
+                        servo=late[0].dxl_id if len(late) == 1 else None,
+                    )
         except BaseException:
             log.error("move aborted; cutting torque on every servo")
             self.torque_off()
             raise
+
+    @staticmethod
+    def _late(s: ServoState, goals: Mapping[int, int], tol: int) -> bool:
+        return abs(s.position_pulses - goals[s.dxl_id]) > tol or s.moving
 
     def _raise_on_fault(self, states: Mapping[str, ServoState]) -> None:
         for s in states.values():
             if s.hardware_error or s.dxl_id in self.transport.alerts:
                 bits = s.hardware_error or self._by_id[s.dxl_id].read("hardware_error_status")
                 names = ", ".join(s.error_names) or "alert bit without a register 70 code"
-                raise _fault(
+                raise RigFault(
                     f"servo {s.dxl_id} ({s.joint}) hardware error 0x{bits:02X} ({names}); "
                     "torque cut "
                     f"on all servos; power-cycle or `gonio rig home` after fixing the cause "
                     f"(a REBOOT clears the error)",
-                    s.dxl_id,
-                    bits,
+                    servo=s.dxl_id,
+                    error_bits=bits,
                 )
 
     def quantised_goals(
@@ -399,6 +444,12 @@ class Rig:
         Each joint can round down or up; of the 16 combinations the one with the smallest
         worst direction error wins (plain rounding can add the half-pulse errors of three
         joints along one direction).
+
+        Raises
+        ------
+        PoseRefused
+            ``RefusalReason.PULSE_RANGE`` when the rounded goal of a joint at its limit
+            falls outside the servo's configured range.
         """
         options = []
         for j in JOINT_NAMES:
@@ -417,30 +468,66 @@ class Rig:
         goals = {}
         for k, j in enumerate(JOINT_NAMES):
             s = self.servos[j]
-            s.to_pulses(s.to_joint(best[k]))  # limit check of the rounded value
+            try:
+                s.to_pulses(s.to_joint(best[k]))  # limit check of the rounded value
+            except PoseRefused:
+                raise PoseRefused(
+                    RefusalReason.PULSE_RANGE,
+                    f"{j} (servo {s.id}): goal {int(best[k])} pulses, rounded from "
+                    f"{s.config.pulses(float(joints[j])):.3f}, lies past the servo's limits "
+                    f"[{s.config.min_deg}, {s.config.max_deg}] deg",
+                ) from None
             goals[s.id] = int(best[k])
         return goals
 
-    def move_to(self, wi: ArrayLike, wo: ArrayLike, timeout: float | None = None) -> MoveResult:
+    def move_to(
+        self,
+        wi: ArrayLike,
+        wo: ArrayLike,
+        *,
+        joints: Mapping[str, float] | None = None,
+        timeout: float | None = None,
+    ) -> MoveResult:
         """Put the light along ``wi`` and the camera along ``wo`` (sample frame).
 
-        Solves the inverse kinematics from the present pose (least motion among the
-        reachable, collision-free solutions), sends one SYNC_WRITE, waits until every
-        servo is in position, reads back and returns the achieved directions.
+        Without ``joints``, solves the inverse kinematics from the present pose (least
+        motion among the reachable, collision-free solutions).  With ``joints`` (joint
+        name -> rad, the solution a dry run chose), moves there instead, after checking
+        that they do put the devices along (wi, wo) and checking them again (holder rim,
+        limits, shadowing, arm clearance, the path from the present pose).  The goal is
+        quantised to pulses, sent in one SYNC_WRITE; the rig waits until every servo is
+        in position, reads back and returns the achieved directions.
+
+        Parameters
+        ----------
+        wi, wo
+            Directions towards the light and the camera, shape (3,) (need not be unit).
+        joints
+            Optional joint angles (rad) for this pose, as a dry run chose them.
+        timeout
+            Seconds before the move counts as failed (default ``motion.move_timeout_s``).
 
         Raises
         ------
-        RigError
-            Unreachable request (nothing moved); the message says why.
+        PoseRefused
+            Unreachable request (nothing moved); ``reason`` says which rule.
+        BusError
+            A servo did not answer.
         RigFault
-            Hardware error or timeout during the move; torque is off on every servo.
+            Hardware error, timeout or :meth:`stop` during the move; torque is off on
+            every servo.
+        RigError
+            ``joints`` lacks a joint or does not put the devices along (wi, wo).
         """
-        t0 = time.monotonic()
+        t0 = self._clock()
         wi = np.asarray(wi, dtype=np.float64)
         wo = np.asarray(wo, dtype=np.float64)
         states = self.read_states()
         current = {j: st.position for j, st in states.items()}
-        q = self.kinematics.inverse(wi, wo, current=current)
+        if joints is None:
+            q = self.kinematics.inverse(wi, wo, current=current)
+        else:
+            q = self._hinted(wi, wo, joints, current)
         wi_u, wo_u = wi / np.linalg.norm(wi), wo / np.linalg.norm(wo)
         goals = self.quantised_goals(wi_u, wo_u, q)
         target = {j: self.servos[j].to_joint(goals[self.servos[j].id]) for j in JOINT_NAMES}
@@ -455,8 +542,40 @@ class Rig:
             joints=achieved,
             error_i=float(_angle_between(ai, wi_u)),
             error_o=float(_angle_between(ao, wo_u)),
-            duration=time.monotonic() - t0,
+            duration=self._clock() - t0,
         )
+
+    def _hinted(
+        self,
+        wi: NDArray[np.float64],
+        wo: NDArray[np.float64],
+        joints: Mapping[str, float],
+        current: Mapping[str, float],
+    ) -> dict[str, float]:
+        """The ``joints=`` hint of :meth:`move_to`, checked as a solution of (wi, wo)."""
+        refusal = self.kinematics.direction_refusal(wi, wo)
+        if refusal is not None:
+            raise PoseRefused(
+                refusal.reason,
+                f"cannot reach wi={np.round(wi, 6).tolist()}, wo={np.round(wo, 6).tolist()}: "
+                f"{refusal}",
+            )
+        q = {j: float(joints[j]) for j in JOINT_NAMES if j in joints}
+        self._refuse_if(
+            self.kinematics.joints_refusal(q) or self.kinematics.path_refusal(current, q)
+        )
+        hi, ho = self.kinematics.forward(q)
+        off = max(
+            float(_angle_between(hi, wi / np.linalg.norm(wi))),
+            float(_angle_between(ho, wo / np.linalg.norm(wo))),
+        )
+        if not off <= _HINT_TOLERANCE_RAD:
+            raise RigError(
+                f"joints {q} put the devices {math.degrees(off):.4f} deg from the requested "
+                f"wi={np.round(wi, 6).tolist()}, wo={np.round(wo, 6).tolist()}: not a "
+                "solution of this pose (plan made with another rig configuration?)"
+            )
+        return q
 
     def home(self, timeout: float | None = None) -> dict[str, float]:
         """Move to the configured home pose; returns the read-back joints (rad)."""

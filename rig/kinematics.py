@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from gonio.errors import ConfigError, RigError
+from gonio.errors import ConfigError, PoseRefused, RefusalReason, RigError
 from gonio.rig.config import JOINT_NAMES, RigConfig
 from gonio.rig.control_table import (
     MODELS,
@@ -168,12 +168,6 @@ class RigPoses:
     camera_position: Array
     camera_rotation: Array
     sample_to_world: Array
-
-
-@dataclass(frozen=True)
-class _Candidate:
-    joints: dict[str, float]
-    reason: str | None
 
 
 class Kinematics:
@@ -325,67 +319,101 @@ class Kinematics:
         return out
 
     # ------------------------------------------------------------------ checks
-    def _pose_reason(self, q: dict[str, float], wi: Array, wo: Array) -> str | None:
+    def _pose_reason(self, q: Joints, wi: Array, wo: Array) -> PoseRefused | None:
         for j, (lo, hi) in self.limits.items():
             if not lo - 1e-12 <= q[j] <= hi + 1e-12:
-                return (
+                return PoseRefused(
+                    RefusalReason.JOINT_LIMIT,
                     f"{j} would need {math.degrees(q[j]):.3f} deg, outside its limits "
-                    f"[{math.degrees(lo):.1f}, {math.degrees(hi):.1f}] deg"
+                    f"[{math.degrees(lo):.1f}, {math.degrees(hi):.1f}] deg",
                 )
         sep = float(_angle_between(wi, wo))
         if sep < self.min_separation:
-            return (
+            return PoseRefused(
+                RefusalReason.SHADOWING,
                 f"light and camera only {math.degrees(sep):.2f} deg apart seen from the sample "
                 f"(minimum {math.degrees(self.min_separation):.2f} deg): the camera would shadow "
-                "the light (or the light block the camera)"
+                "the light (or the light block the camera)",
             )
         gap = abs(float(_wrap(q["light_azimuth"] - q["camera_azimuth"])))
         if gap < self.arm_clearance:
-            return (
+            return PoseRefused(
+                RefusalReason.ARM_CLEARANCE,
                 f"light and camera arms {math.degrees(gap):.2f} deg apart in azimuth, below the "
-                f"arm clearance {math.degrees(self.arm_clearance):.2f} deg (arms would collide)"
+                f"arm clearance {math.degrees(self.arm_clearance):.2f} deg (arms would collide)",
             )
         return None
 
-    def _path_reason(self, q0: Joints, q1: Joints) -> str | None:
+    def path_refusal(self, q0: Joints, q1: Joints) -> PoseRefused | None:
+        """Why the move from joints ``q0`` to ``q1`` (rad) is not allowed, or None.
+
+        With arms that cannot cross, both arms follow their servos' trapezoid profiles
+        and must keep their order and the arm clearance all the way
+        (``RefusalReason.PATH``).
+        """
+        self._require(q0)
+        self._require(q1)
         if self.geometry.arms_can_cross:
             return None
         path = self.joint_trajectory(q0, q1)
         d = path["camera_azimuth"] - path["light_azimuth"]
         if np.any(np.sign(d) != np.sign(d[0])) or np.min(np.abs(d)) < self.arm_clearance - 1e-12:
-            return (
+            return PoseRefused(
+                RefusalReason.PATH,
                 "the move would make the light and camera arms pass or touch each other "
-                f"(azimuth gap down to {math.degrees(float(np.min(np.abs(d)))):.2f} deg)"
+                f"(azimuth gap down to {math.degrees(float(np.min(np.abs(d)))):.2f} deg)",
             )
         return None
 
-    def _direction_reason(self, wi: Array, wo: Array) -> str | None:
+    def _direction_reason(self, wi: Array, wo: Array) -> PoseRefused | None:
         for name, w in (("wi", wi), ("wo", wo)):
             if not np.all(np.isfinite(w)) or np.linalg.norm(w) < 1e-9:
-                return f"{name} = {w.tolist()} is not a finite non-zero direction"
+                return PoseRefused(
+                    RefusalReason.INVALID_DIRECTION,
+                    f"{name} = {w.tolist()} is not a finite non-zero direction",
+                )
         ti, to = float(np.arccos(np.clip(wi[2], -1, 1))), float(np.arccos(np.clip(wo[2], -1, 1)))
         for name, th in (("theta_i", ti), ("theta_o", to)):
             if th > self.max_theta:
-                return (
+                return PoseRefused(
+                    RefusalReason.BEYOND_RIM,
                     f"{name} = {math.degrees(th):.2f} deg beyond "
                     f"{math.degrees(self.max_theta):.1f} deg: "
-                    "the sample holder's rim blocks that direction"
+                    "the sample holder's rim blocks that direction",
                 )
         return None
 
-    def _candidates(self, wi: Array, wo: Array) -> tuple[list[dict[str, float]], str | None]:
+    def direction_refusal(self, wi: ArrayLike, wo: ArrayLike) -> PoseRefused | None:
+        """Why the directions themselves cannot be asked for (not finite, zero, beyond the
+        holder's rim), or None; whatever the joints."""
+        wi = np.asarray(wi, dtype=np.float64).reshape(3)
+        wo = np.asarray(wo, dtype=np.float64).reshape(3)
+        r = self._direction_reason(wi, wo)
+        if r is not None:
+            return r
+        return self._direction_reason(wi / np.linalg.norm(wi), wo / np.linalg.norm(wo))
+
+    def _candidates(
+        self, wi: Array, wo: Array
+    ) -> tuple[list[dict[str, float]], PoseRefused | None]:
         """All joint solutions within the limits' turn counts (not yet checked)."""
         sL, sC = math.sin(self._eL), math.sin(self._eC)
         c = float(wi @ wo)
         cross = np.cross(wi, wo)
         ncross = float(np.linalg.norm(cross))
         if ncross < 1e-9:
-            return [], "wi and wo are parallel: light and camera would have to be in the same place"
+            return [], PoseRefused(
+                RefusalReason.NO_SOLUTION,
+                "wi and wo are parallel: light and camera would have to be in the same place",
+            )
         det = 1.0 - c * c
         alpha, beta = (sL - c * sC) / det, (sC - c * sL) / det
         r2 = alpha * sL + beta * sC
         if r2 > 1.0 + 1e-12:
-            return [], "no stage orientation puts both directions at the arms' elevations"
+            return [], PoseRefused(
+                RefusalReason.NO_SOLUTION,
+                "no stage orientation puts both directions at the arms' elevations",
+            )
         gamma = math.sqrt(max(0.0, 1.0 - r2)) / ncross
         out = []
         reason = None
@@ -394,7 +422,9 @@ class Kinematics:
             u = u / np.linalg.norm(u)
             ratio = u[2] / self._tilt_amp
             if abs(ratio) > 1.0 + 1e-12:
-                reason = "the stage cannot tilt far enough for this pair"
+                reason = PoseRefused(
+                    RefusalReason.TILT_RANGE, "the stage cannot tilt far enough for this pair"
+                )
                 continue
             half = math.acos(max(-1.0, min(1.0, ratio)))
             for t in {self._tilt_phase + half, self._tilt_phase - half}:
@@ -421,7 +451,7 @@ class Kinematics:
 
     def _solve(
         self, wi: ArrayLike, wo: ArrayLike, current: Joints | None
-    ) -> tuple[dict | None, str | None]:
+    ) -> tuple[dict | None, PoseRefused | None]:
         wi = np.asarray(wi, dtype=np.float64).reshape(3)
         wo = np.asarray(wo, dtype=np.float64).reshape(3)
         reason = self._direction_reason(wi, wo)
@@ -435,12 +465,15 @@ class Kinematics:
         for q in cands:
             r = self._pose_reason(q, wi, wo)
             if r is None and current is not None:
-                r = self._path_reason(ref, q)
+                r = self.path_refusal(ref, q)
             elif r is None and not self.geometry.arms_can_cross:
                 # no current pose: keep the arms in the home pose's order
                 d0 = ref["camera_azimuth"] - ref["light_azimuth"]
                 if np.sign(q["camera_azimuth"] - q["light_azimuth"]) != np.sign(d0):
-                    r = "the arms would have to pass each other (order differs from home)"
+                    r = PoseRefused(
+                        RefusalReason.PATH,
+                        "the arms would have to pass each other (order differs from home)",
+                    )
             if r is not None:
                 reasons.append(r)
                 continue
@@ -448,9 +481,11 @@ class Kinematics:
             if cost < best_cost:
                 best, best_cost = q, cost
         if best is None:
-            # The most specific reason: prefer limit / shadow reasons over the order one.
-            reasons.sort(key=lambda r: "order" in r or "pass" in r)
-            return None, reasons[0] if reasons else "no solution"
+            # The most specific reason: prefer limit / shadow reasons over the path ones.
+            reasons.sort(key=lambda r: r.reason is RefusalReason.PATH)
+            if not reasons:
+                return None, PoseRefused(RefusalReason.NO_SOLUTION, "no solution")
+            return None, reasons[0]
         return best, None
 
     def inverse(
@@ -468,27 +503,53 @@ class Kinematics:
 
         Raises
         ------
-        RigError
-            If no solution is reachable; the message says why (limits, camera shadow, arm
-            collision, holder rim, parallel directions).
+        PoseRefused
+            If no solution is reachable; ``reason`` says which rule and the message why
+            (limits, camera shadow, arm collision, holder rim, parallel directions).
         """
-        q, reason = self._solve(wi, wo, current)
+        q, refusal = self._solve(wi, wo, current)
         if q is None:
-            raise RigError(
+            raise PoseRefused(
+                refusal.reason,
                 f"cannot reach wi={np.round(np.asarray(wi, float), 6).tolist()}, "
-                f"wo={np.round(np.asarray(wo, float), 6).tolist()}: {reason}"
+                f"wo={np.round(np.asarray(wo, float), 6).tolist()}: {refusal}",
             )
         return q
 
+    def refusal(
+        self, wi: ArrayLike, wo: ArrayLike, current: Joints | None = None
+    ) -> PoseRefused | None:
+        """Why ``(wi, wo)`` cannot be reached, or None when it can.
+
+        Parameters
+        ----------
+        wi, wo
+            Directions in the sample frame (shape (3,)).
+        current
+            Present joint angles (rad): the path from there is checked too.
+
+        Returns
+        -------
+        PoseRefused or None
+            The refusal (not raised): ``reason`` is the rule, ``str()`` the sentence.
+        """
+        return self._solve(wi, wo, current)[1]
+
     def check(self, wi: ArrayLike, wo: ArrayLike, current: Joints | None = None) -> str | None:
         """Why ``(wi, wo)`` cannot be reached (a sentence), or None when it can."""
-        return self._solve(wi, wo, current)[1]
+        r = self.refusal(wi, wo, current)
+        return None if r is None else str(r)
+
+    def joints_refusal(self, joints: Joints) -> PoseRefused | None:
+        """Why a joint pose (rad) is not allowed (rim, limits, shadow, clearance), or None."""
+        self._require(joints)
+        wi, wo = self.forward(joints)
+        return self._direction_reason(wi, wo) or self._pose_reason(joints, wi, wo)
 
     def check_joints(self, joints: Joints) -> str | None:
         """Why a joint pose is not allowed (limits, shadow, clearance), or None."""
-        self._require(joints)
-        wi, wo = self.forward(joints)
-        return self._direction_reason(wi, wo) or self._pose_reason(dict(joints), wi, wo)
+        r = self.joints_refusal(joints)
+        return None if r is None else str(r)
 
     @staticmethod
     def _require(joints: Joints) -> None:

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from gonio.errors import BusError
+
 HEADER = b"\xff\xff\xfd\x00"
 BROADCAST_ID = 0xFE
 MAX_PACKET_LEN = 1024  # the SDK's RXPACKET_MAX_LEN; longer LEN fields are garbage
@@ -50,6 +52,33 @@ ERR_NAMES = {
     ERR_DATA_LIMIT: "data limit error",
     ERR_ACCESS: "access error",
 }
+
+
+def check_status(what: str, dxl_id: int, error: int) -> None:
+    """Raise when a status packet's ERR byte carries an error code (the alert bit aside).
+
+    Parameters
+    ----------
+    what
+        The instruction, for the message (``"WRITE torque_enable=1"``).
+    dxl_id
+        The servo that answered.
+    error
+        The status packet's ERR byte.
+
+    Raises
+    ------
+    BusError
+        ``cause="device_error"``: the servo answered and refused the instruction.
+    """
+    code = error & 0x7F
+    if code:
+        name = ERR_NAMES.get(code, f"error {code}")
+        raise BusError(
+            f"servo {dxl_id} refused {what}: {name} (status error 0x{error:02X})",
+            servo=dxl_id,
+            cause="device_error",
+        )
 
 
 def _crc_table() -> list[int]:

@@ -1,7 +1,8 @@
 """A servo in SI units: joint angle (rad), speed (rad/s), temperature (degC), current (A).
 
 :class:`Servo` turns a :class:`ServoConfig` (gear ratio, direction, zero, limits) and the
-control table into register values for the :class:`Transport`, and decodes the state
+control table into register values for the bus (any :class:`~gonio.rig.bus.BusTransport`),
+and decodes the state
 block the rig sync-reads every cycle (:func:`decode_state`).
 """
 
@@ -11,10 +12,10 @@ import math
 import struct
 from typing import NamedTuple
 
-from gonio.errors import RigError
+from gonio.errors import PoseRefused, RefusalReason, RigError
 from gonio.rig import control_table as ct
+from gonio.rig.bus import BusTransport
 from gonio.rig.config import ServoConfig
-from gonio.rig.transport import Transport
 
 
 class ServoState(NamedTuple):
@@ -103,12 +104,12 @@ class Servo:
     Parameters
     ----------
     transport
-        The bus owner.
+        The bus (dynamixel-sdk :class:`~gonio.rig.transport.Transport`, or a loopback).
     config
         ID, model, joint, gear ratio, direction, zero and limits.
     """
 
-    def __init__(self, transport: Transport, config: ServoConfig) -> None:
+    def __init__(self, transport: BusTransport, config: ServoConfig) -> None:
         self.bus = transport
         self.config = config
         self.id = config.id
@@ -129,12 +130,20 @@ class Servo:
 
     # ---------------------------------------------------------- conversions
     def to_pulses(self, joint_rad: float) -> int:
-        """Goal Position (pulses) for a joint angle (rad); RigError outside the limits."""
+        """Goal Position (pulses) for a joint angle (rad).
+
+        Raises
+        ------
+        PoseRefused
+            ``RefusalReason.JOINT_LIMIT`` outside the servo's configured limits (or not
+            finite).
+        """
         lo, hi = self.config.limits_rad
         if not (lo - 1e-9 <= joint_rad <= hi + 1e-9) or not math.isfinite(joint_rad):
-            raise RigError(
+            raise PoseRefused(
+                RefusalReason.JOINT_LIMIT,
                 f"{self.joint} (servo {self.id}): {math.degrees(joint_rad):.3f} deg outside the "
-                f"limits [{self.config.min_deg}, {self.config.max_deg}] deg"
+                f"limits [{self.config.min_deg}, {self.config.max_deg}] deg",
             )
         return round(self.config.pulses(joint_rad))
 

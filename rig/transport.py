@@ -12,7 +12,11 @@ it sends.  :class:`Transport` wraps ``PortHandler`` / ``Protocol2PacketHandler``
   conversions,
 - is stuffed correctly (packets whose payload contains ``FF FF FD`` are built by
   :func:`gonio.rig.protocol.build_packet` and written directly),
-- uses the configured timeout instead of the SDK's global ``LATENCY_TIMER``.
+- uses the configured timeout instead of the SDK's global ``LATENCY_TIMER``,
+- fails with :class:`~gonio.errors.BusError` (``servo``, ``cause``) when a servo does not
+  answer after every retry or refuses an instruction.
+
+It implements :class:`gonio.rig.bus.BusTransport`, the interface the rig is given.
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from dynamixel_sdk import (
     PortHandler,
 )
 
-from gonio.errors import RigError
+from gonio.errors import BusError, RigError
 from gonio.rig import protocol
 from gonio.rig.control_table import Register
 
@@ -117,9 +121,10 @@ class Transport:
 
         Raises
         ------
+        BusError
+            If the port does not exist or cannot be opened (``cause="port"``).
         RigError
-            If the port does not exist or cannot be opened, or the baud rate is not one
-            dynamixel-sdk supports.
+            If the baud rate is not one dynamixel-sdk supports.
         """
         if self._port.getCFlagBaud(self.baud_rate) <= 0:
             raise RigError(f"baud rate {self.baud_rate} is not supported by dynamixel-sdk")
@@ -127,7 +132,9 @@ class Transport:
         try:
             self._port.openPort()
         except (serial.SerialException, OSError) as exc:
-            raise RigError(f"cannot open serial port {self.port_name!r}: {exc}") from None
+            raise BusError(
+                f"cannot open serial port {self.port_name!r}: {exc}", cause="port"
+            ) from None
         return self
 
     def close(self) -> None:
@@ -157,10 +164,7 @@ class Transport:
     def _status(self, what: str, dxl_id: int, result: int, error: int) -> None:
         if error & protocol.ERR_ALERT:
             self.alerts.add(dxl_id)
-        code = error & 0x7F
-        if code:
-            name = protocol.ERR_NAMES.get(code, f"error {code}")
-            raise RigError(f"servo {dxl_id} refused {what}: {name} (status error 0x{error:02X})")
+        protocol.check_status(what, dxl_id, error)
 
     def _drain_late_reply(self) -> None:
         """Wait out and drop a reply that arrives after its timeout.
@@ -181,7 +185,7 @@ class Transport:
 
     def _attempt(self, what: str, dxl_id: int | str, fn):
         """Run ``fn() -> (value, result, error)`` with retries; return (value, error)."""
-        last = None
+        last, cause = None, "port"
         for attempt in range(self.retries + 1):
             self.counters["transactions"] += 1
             value, result, error = fn()
@@ -192,7 +196,9 @@ class Transport:
             last = self._ph.getTxRxResult(result) if result != COMM_SUCCESS else "CRC error"
             self.counters["timeouts" if result == COMM_RX_TIMEOUT else "corrupt"] += 1
             if result not in _RETRYABLE and result != COMM_SUCCESS:
+                cause = "port"  # busy or failed to send: retrying would not help
                 break
+            cause = "timeout" if result == COMM_RX_TIMEOUT else "corrupt"
             if attempt < self.retries:
                 self.counters["retries"] += 1
                 self._drain_late_reply()
@@ -207,9 +213,11 @@ class Transport:
                     dxl_id,
                     last,
                 )
-        raise RigError(
+        raise BusError(
             f"servo {dxl_id} did not answer {what} after {self.retries + 1} attempts "
-            f"({last}); check the port, baud rate ({self.baud_rate}), ID and power"
+            f"({last}); check the port, baud rate ({self.baud_rate}), ID and power",
+            servo=dxl_id if isinstance(dxl_id, int) else None,
+            cause=cause,
         )
 
     # ------------------------------------------------------------- instructions
@@ -261,8 +269,10 @@ class Transport:
             )
             self._status(f"READ {address}", dxl_id, COMM_SUCCESS, err)
             if len(data) != length:
-                raise RigError(
-                    f"servo {dxl_id} returned {len(data)} bytes for a {length}-byte READ"
+                raise BusError(
+                    f"servo {dxl_id} returned {len(data)} bytes for a {length}-byte READ",
+                    servo=dxl_id,
+                    cause="corrupt",
                 )
             return bytes(data)
 
@@ -342,7 +352,13 @@ class Transport:
                 result = group.txRxPacket()
                 return None, result, 0
 
-            self._attempt(f"SYNC_READ {address}+{length}", ",".join(map(str, ids)), fn)
+            try:
+                self._attempt(f"SYNC_READ {address}+{length}", ",".join(map(str, ids)), fn)
+            except BusError as exc:
+                # the SDK reads the replies in ID order and stops at the first that fails,
+                # leaving its data empty: that servo is the one to name
+                silent = next((i for i in ids if len(group.data_dict[i]) != length), None)
+                raise BusError(str(exc), servo=silent, cause=exc.cause) from None
             return {i: bytes(group.data_dict[i]) for i in ids}
 
     def sync_write(self, reg: Register, values: Mapping[int, int]) -> None:
@@ -364,7 +380,10 @@ class Transport:
                 group.addParam(i, list(protocol.le(reg.to_raw(v), reg.size)))
             result = group.txPacket()
             if result != COMM_SUCCESS:
-                raise RigError(f"SYNC_WRITE {reg.name} failed: {self._ph.getTxRxResult(result)}")
+                raise BusError(
+                    f"SYNC_WRITE {reg.name} failed: {self._ph.getTxRxResult(result)}",
+                    cause="port",
+                )
 
     def broadcast_write(self, reg: Register, value: int) -> None:
         """WRITE to the broadcast ID (every servo, no reply): used for emergency torque off."""

@@ -1,10 +1,15 @@
-"""A Dynamixel Protocol 2.0 bus on a pseudo-terminal.
+"""A Dynamixel Protocol 2.0 bus of virtual servos: the packet logic, and a pty server.
 
-The real dynamixel-sdk (and any other Dynamixel tool) opens the pty's slave path as if
-it were a U2D2 adapter.  One thread serves the master side: it frames incoming bytes
-(:class:`gonio.rig.protocol.Framer`), lets the addressed :class:`VirtualServo` objects
-execute the instruction and writes their status packets back, with faults drawn from a
-seeded ``numpy.random.Generator``.
+:class:`ServoBus` is the bus itself: it executes instruction packets
+(:meth:`ServoBus.handle`) on the addressed :class:`VirtualServo` objects and returns their
+status packets, with faults (corrupted or dropped replies) drawn from a seeded
+``numpy.random.Generator`` (:meth:`ServoBus.deliver`).  Two front ends share it:
+
+* :class:`VirtualBus` serves it on a pseudo-terminal from a background thread, so the
+  real dynamixel-sdk (and any other Dynamixel tool) opens the pty's slave path as if it
+  were a U2D2 adapter;
+* :class:`gonio.simulator.loopback.LoopbackTransport` calls it in-process, without a pty
+  or a thread (fast rig unit tests).
 
 Example
 -------
@@ -14,8 +19,11 @@ Example
 
 from __future__ import annotations
 
+import fcntl
 import os
 import select
+import struct
+import sys
 import termios
 import threading
 import time
@@ -43,8 +51,43 @@ class BusStats:
     instructions: dict[int, int] = field(default_factory=dict)
 
 
-class VirtualBus:
-    """Virtual servos behind a pty, served by a background thread.
+# Linux keeps a tty's speed as a number in struct termios2 (c_ispeed, c_ospeed), whether
+# the client set it with a POSIX Bxxx constant or with BOTHER (a custom speed, as Rust's
+# serialport crate does); tcgetattr only shows BOTHER then.  Layout and ioctl numbers
+# from the UAPI headers (asm-generic termbits.h / ioctls.h; x86, arm and riscv use them).
+_TERMIOS2 = struct.Struct("=4IB19s2I")
+_TCGETS2 = (2 << 30) | (_TERMIOS2.size << 16) | (ord("T") << 8) | 0x2A
+_C_OSPEED = struct.Struct("=I")  # the last field of struct termios2
+_C_OSPEED_AT = _TERMIOS2.size - _C_OSPEED.size
+_LINUX = sys.platform.startswith("linux")
+_POSIX_SPEEDS = {
+    getattr(termios, n): int(n[1:]) for n in dir(termios) if n[:1] == "B" and n[1:].isdigit()
+}
+
+
+def tty_speed(fd: int) -> int | None:
+    """The output speed (bit/s) the kernel keeps for the tty of ``fd``.
+
+    On a pty master this is the slave's setting (the client's).  Read with the ``TCGETS2``
+    ioctl on Linux, so that a speed set through ``termios2``/``BOTHER`` is seen as the
+    number it is; elsewhere (or if the ioctl fails) from ``tcgetattr``'s speed constant.
+    None when the speed cannot be told.
+    """
+    if _LINUX:
+        try:
+            buf = bytearray(_TERMIOS2.size)  # filled in place: cheaper than a bytes copy
+            fcntl.ioctl(fd, _TCGETS2, buf, True)
+            return _C_OSPEED.unpack_from(buf, _C_OSPEED_AT)[0]
+        except OSError:
+            pass
+    try:
+        return _POSIX_SPEEDS.get(termios.tcgetattr(fd)[5])
+    except termios.error:
+        return None
+
+
+class ServoBus:
+    """Virtual servos on one bus: execute instruction packets, return status packets.
 
     Parameters
     ----------
@@ -52,15 +95,12 @@ class VirtualBus:
         IDs (each gets a ``model`` servo) or ready :class:`VirtualServo` objects.
     model, firmware
         Model name and firmware version of servos created from IDs.
-    baud_rate
-        The servos' baud rate; a client whose port is set to another rate is not heard
-        (as on a real bus, where it would only see garbage).
     fault_rate
         Probability that a status packet is corrupted (one bit flipped) or dropped, half
         each.
     delay_rate, delay_s
         Probability and length of a delayed reply (keep ``delay_s`` below the client's
-        timeout, see dynamixel.md).
+        timeout, see dynamixel.md); only a front end with a clock (the pty) waits.
     seed
         Seed of the fault generator.
     time_scale
@@ -73,7 +113,6 @@ class VirtualBus:
         *,
         model: str = "XM430-W350",
         firmware: int = 45,
-        baud_rate: int = 1_000_000,
         fault_rate: float = 0.0,
         delay_rate: float = 0.0,
         delay_s: float = 0.0,
@@ -93,88 +132,33 @@ class VirtualBus:
             if s.dxl_id in self.servos:
                 raise ValueError(f"duplicate virtual servo ID {s.dxl_id}")
             self.servos[s.dxl_id] = s
-        self.baud_rate = baud_rate
-        self._speed = getattr(termios, f"B{baud_rate}", None)
         self.fault_rate = fault_rate
         self.delay_rate = delay_rate
         self.delay_s = delay_s
         self.rng = np.random.default_rng(seed)
         self.stats = BusStats()
-        self._framer = p.Framer()
-        self._master = self._slave = -1
-        self._wake_r = self._wake_w = -1
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self.port = ""
 
     def clock(self) -> float:
         """Servo time (s): wall-clock time since creation times ``time_scale``."""
         return (time.monotonic() - self._t0) * self.time_scale
 
-    # ------------------------------------------------------------- lifecycle
-    def start(self) -> VirtualBus:
-        """Open the pty and start serving; ``self.port`` is the slave path."""
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)  # at once, before a client can open it
-        if self._speed is not None:
-            attrs = termios.tcgetattr(self._slave)
-            attrs[4] = attrs[5] = self._speed
-            termios.tcsetattr(self._slave, termios.TCSANOW, attrs)
-        self.port = os.ttyname(self._slave)
-        self._wake_r, self._wake_w = os.pipe()
-        self._stop.clear()
-        self._thread = threading.Thread(
-            target=self._serve, name="virtual-dynamixel-bus", daemon=True
-        )
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        """Stop serving and close the pty."""
-        if self._thread is None:
-            return
-        self._stop.set()
-        os.write(self._wake_w, b"x")
-        self._thread.join(timeout=5)
-        self._thread = None
-        for fd in (self._master, self._slave, self._wake_r, self._wake_w):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
-
-    def __enter__(self) -> VirtualBus:
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
-
     def torque(self) -> dict[int, int]:
         """Torque Enable of every servo, by ID."""
         return {i: s.get("torque_enable") for i, s in self.servos.items()}
 
-    # ------------------------------------------------------------- serving
-    def _serve(self) -> None:
-        poller = select.poll()
-        poller.register(self._master, select.POLLIN)
-        poller.register(self._wake_r, select.POLLIN)
-        while not self._stop.is_set():
-            for fd, _ in poller.poll(1000):
-                if fd == self._wake_r:
-                    return
-                try:
-                    data = os.read(self._master, 4096)
-                except OSError:
-                    continue
-                if self._speed is not None and termios.tcgetattr(self._master)[4] != self._speed:
-                    self.stats.wrong_baud += 1  # the servos hear only noise at this rate
-                    self._framer.clear()
-                    continue
-                for pkt in self._framer.feed(data):
-                    self._send(self.handle(pkt))
+    def deliver(self, replies: list[bytes]) -> tuple[list[bytes], float]:
+        """Apply the bus faults to status packets on their way back.
 
-    def _send(self, replies: list[bytes]) -> None:
-        out = bytearray()
+        Returns
+        -------
+        replies
+            What reaches the client (dropped ones left out, corrupted ones with a bit
+            flipped), in order.
+        delay
+            How long (s) the front end should stay silent before sending them.
+        """
+        out: list[bytes] = []
+        delay = 0.0
         for r in replies:
             self.stats.replies += 1
             if self.fault_rate and self.rng.random() < self.fault_rate:
@@ -187,14 +171,9 @@ class VirtualBus:
                 r = bytes(r)
             if self.delay_rate and self.rng.random() < self.delay_rate:
                 self.stats.delayed += 1
-                # simulating a slow servo: the bus really is silent meanwhile
-                self._stop.wait(self.delay_s)
-            out += r
-        if out:
-            try:
-                os.write(self._master, bytes(out))
-            except OSError:
-                pass
+                delay += self.delay_s
+            out.append(r)
+        return out, delay
 
     def _live(self, dxl_id: int) -> VirtualServo | None:
         s = self.servos.get(dxl_id)
@@ -307,3 +286,118 @@ class VirtualBus:
             crc = p.crc16(buf)
             buf += bytes([crc & 0xFF, crc >> 8])
         return bytes(buf)
+
+
+class VirtualBus(ServoBus):
+    """A :class:`ServoBus` behind a pty, served by a background thread.
+
+    Parameters
+    ----------
+    servos, model, firmware, fault_rate, delay_rate, delay_s, seed, time_scale
+        As for :class:`ServoBus`.
+    baud_rate
+        The servos' baud rate; a client whose port is set to another rate is not heard
+        (as on a real bus, where it would only see garbage).  The client's rate is read
+        as the kernel keeps it (:func:`tty_speed`), however the client set it.
+    """
+
+    def __init__(
+        self,
+        servos: Iterable[int | VirtualServo],
+        *,
+        model: str = "XM430-W350",
+        firmware: int = 45,
+        baud_rate: int = 1_000_000,
+        fault_rate: float = 0.0,
+        delay_rate: float = 0.0,
+        delay_s: float = 0.0,
+        seed: int | None = None,
+        time_scale: float = 1.0,
+    ) -> None:
+        super().__init__(
+            servos,
+            model=model,
+            firmware=firmware,
+            fault_rate=fault_rate,
+            delay_rate=delay_rate,
+            delay_s=delay_s,
+            seed=seed,
+            time_scale=time_scale,
+        )
+        self.baud_rate = baud_rate
+        self._speed = getattr(termios, f"B{baud_rate}", None)
+        self._framer = p.Framer()
+        self._master = self._slave = -1
+        self._wake_r = self._wake_w = -1
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self.port = ""
+
+    # ------------------------------------------------------------- lifecycle
+    def start(self) -> VirtualBus:
+        """Open the pty and start serving; ``self.port`` is the slave path."""
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)  # at once, before a client can open it
+        if self._speed is not None:
+            attrs = termios.tcgetattr(self._slave)
+            attrs[4] = attrs[5] = self._speed
+            termios.tcsetattr(self._slave, termios.TCSANOW, attrs)
+        self.port = os.ttyname(self._slave)
+        self._wake_r, self._wake_w = os.pipe()
+        self._stop.clear()
+        self._thread = threading.Thread(
+            target=self._serve, name="virtual-dynamixel-bus", daemon=True
+        )
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop serving and close the pty."""
+        if self._thread is None:
+            return
+        self._stop.set()
+        os.write(self._wake_w, b"x")
+        self._thread.join(timeout=5)
+        self._thread = None
+        for fd in (self._master, self._slave, self._wake_r, self._wake_w):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+    def __enter__(self) -> VirtualBus:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------- serving
+    def _serve(self) -> None:
+        poller = select.poll()
+        poller.register(self._master, select.POLLIN)
+        poller.register(self._wake_r, select.POLLIN)
+        while not self._stop.is_set():
+            for fd, _ in poller.poll(1000):
+                if fd == self._wake_r:
+                    return
+                try:
+                    data = os.read(self._master, 4096)
+                except OSError:
+                    continue
+                if self._speed is not None and tty_speed(self._master) != self.baud_rate:
+                    self.stats.wrong_baud += 1  # the servos hear only noise at this rate
+                    self._framer.clear()
+                    continue
+                for pkt in self._framer.feed(data):
+                    self._send(self.handle(pkt))
+
+    def _send(self, replies: list[bytes]) -> None:
+        out, delay = self.deliver(replies)
+        if delay:
+            # simulating a slow servo: the bus really is silent meanwhile
+            self._stop.wait(delay)
+        if out:
+            try:
+                os.write(self._master, b"".join(out))
+            except OSError:
+                pass

@@ -210,9 +210,9 @@ def test_resume_refuses_a_different_plan_unless_forced(files, capsys):
     assert (out / "journal.jsonl").read_bytes() == before
     # ... and a different rig
     rig2 = files / "rig2.toml"
-    rig2.write_text(
-        (files / "rig.toml").read_text().replace("light_radius_m = 0.50", "light_radius_m = 0.6")
-    )
+    rig_text = (files / "rig.toml").read_text()
+    assert "light_radius_m = 0.5\n" in rig_text  # as tomli-w writes it
+    rig2.write_text(rig_text.replace("light_radius_m = 0.5\n", "light_radius_m = 0.6\n"))
     assert run("capture", "resume", str(out), "--rig", str(rig2), "--quiet") == 1
     assert "geometry.light_radius_m" in capsys.readouterr().err
     assert (out / "journal.jsonl").read_bytes() == before

@@ -1,4 +1,5 @@
-"""Fixtures for the rig tests: a virtual bus in a thread and a fast rig configuration."""
+"""Fixtures for the rig tests: virtual servos in-process (loopback) or behind a pty served
+by a thread (for the dynamixel-sdk), and a fast rig configuration."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import sys
 import pytest
 
 from gonio.rig.config import default_rig_config, rig_config_from_dict
-from gonio.simulator.virtual_bus import VirtualBus
+from gonio.simulator.loopback import LoopbackTransport
+from gonio.simulator.virtual_bus import ServoBus, VirtualBus
 
 #: Present Position (pulses) of each servo of the default preset at its home pose.
 HOME_PULSES = {1: 1536, 2: 2048, 3: 2048, 4: 0}
@@ -60,3 +62,18 @@ def vbus(gil_handover):
         for i, p in HOME_PULSES.items():
             bus.servos[i].set_position(p)
         yield bus
+
+
+@pytest.fixture
+def servo_bus():
+    """Four XM430-W350 at the preset's home pose, in-process, servo time 200x real."""
+    bus = ServoBus([1, 2, 3, 4], time_scale=200.0, seed=0)
+    for i, p in HOME_PULSES.items():
+        bus.servos[i].set_position(p)
+    return bus
+
+
+@pytest.fixture
+def loopback(servo_bus):
+    """A transport straight into ``servo_bus`` (no pty, no thread)."""
+    return LoopbackTransport(servo_bus)

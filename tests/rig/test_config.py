@@ -80,3 +80,25 @@ def test_other_geometry_is_a_config_change(tmp_path):
     # the camera really is 20 deg above the horizontal plane in the world
     cam_world = kin.sample_to_world(q["stage_tilt"], q["stage_spin"]) @ ao
     assert math.degrees(math.asin(cam_world[2])) == pytest.approx(20.0, abs=1e-9)
+
+
+def test_virtual_rig_document_is_the_preset_on_the_virtual_port():
+    import tomllib
+
+    from gonio.rig.config import default_rig_document, rig_config_from_dict, virtual_rig_document
+
+    text = virtual_rig_document()
+    doc = tomllib.loads(text)
+    # the preset file as parsed, with only the port changed
+    expected = tomllib.loads(default_rig_document())
+    expected["bus"]["port"] = "virtual"
+    assert doc == expected
+    cfg = rig_config_from_dict(doc, "virtual rig")
+    preset = default_rig_config()
+    assert cfg.bus.port == "virtual"
+    assert (
+        cfg.model_dump()
+        == preset.model_copy(
+            update={"bus": preset.bus.model_copy(update={"port": "virtual"})}
+        ).model_dump()
+    )

@@ -1,4 +1,9 @@
-"""The rig device on the virtual bus: accuracy, faults, signals, bad input."""
+"""The rig device: accuracy, faults, signals, bad input.
+
+Most tests run the rig over the in-process loopback transport (the real packets, no pty,
+no thread); the SDK-specific ones (signals in a child process, port and baud errors, a
+thousand moves through a lossy pty) use the virtual bus on a pty.
+"""
 
 from __future__ import annotations
 
@@ -14,12 +19,13 @@ import threading
 import numpy as np
 import pytest
 
-from gonio.errors import ConfigError, RigError, RigFault
+from gonio.errors import BusError, ConfigError, PoseRefused, RefusalReason, RigError, RigFault
 from gonio.radiometry import spherical_to_direction
 from gonio.rig.config import default_rig_config, rig_config_from_dict
 from gonio.rig.device import Rig
+from gonio.simulator.loopback import LoopbackTransport
 from gonio.simulator.servo_model import VirtualServo
-from gonio.simulator.virtual_bus import VirtualBus
+from gonio.simulator.virtual_bus import ServoBus, VirtualBus
 
 RESOLUTION = math.radians(0.088)  # one pulse of an XM430
 
@@ -40,15 +46,17 @@ def angle(a, b):
     return float(np.arctan2(np.linalg.norm(np.cross(a, b)), np.dot(a, b)))
 
 
-def test_moves_reach_requested_directions_within_servo_resolution(vbus, fast_config):
+def test_moves_reach_requested_directions_within_servo_resolution(servo_bus, fast_config):
+    vbus = servo_bus
     rng = np.random.default_rng(5)
     worst, n = 0.0, 0
-    with Rig(fast_config, port=vbus.port) as rig:
+    with Rig(fast_config, transport=LoopbackTransport(vbus)) as rig:
         for wi, wo in random_pairs(rng, 60):
             try:
                 res = rig.move_to(wi, wo)
-            except RigError as exc:
+            except PoseRefused as exc:
                 assert "apart" in str(exc)  # camera-shadow refusals only
+                assert exc.reason is RefusalReason.SHADOWING
                 continue
             # independent of the controller's own bookkeeping: the emulator's positions
             pulses = {i: vbus.servos[i].get("present_position") for i in (1, 2, 3, 4)}
@@ -60,6 +68,29 @@ def test_moves_reach_requested_directions_within_servo_resolution(vbus, fast_con
     assert n > 50
     assert worst < RESOLUTION
     assert all(v == 0 for v in vbus.torque().values())  # context exit cut torque
+
+
+def test_moves_over_a_lossy_bus_are_retried_and_still_exact(fast_config, home_pulses):
+    bus = ServoBus([1, 2, 3, 4], time_scale=200.0, fault_rate=0.05, seed=2)
+    for i, p in home_pulses.items():
+        bus.servos[i].set_position(p)
+    rng = np.random.default_rng(3)
+    done = 0
+    with Rig(fast_config, transport=LoopbackTransport(bus, retries=6)) as rig:
+        while done < 60:
+            wi, wo = next(random_pairs(rng, 1))
+            if rig.kinematics.check(wi, wo, rig.joints()) is not None:
+                continue
+            rig.move_to(wi, wo)
+            # the encoders, not the rig's bookkeeping
+            pulses = {i: s.get("present_position") for i, s in bus.servos.items()}
+            ai, ao = rig.kinematics.forward(
+                {s.joint: s.joint_rad(pulses[s.id]) for s in fast_config.servos}
+            )
+            assert max(angle(ai, wi), angle(ao, wo)) < RESOLUTION
+            done += 1
+        retries = rig.transport.counters["retries"]
+    assert bus.stats.corrupted + bus.stats.dropped > 20 and retries > 20
 
 
 @pytest.mark.slow
@@ -90,11 +121,12 @@ def test_thousand_moves_with_one_percent_bad_replies(
     assert counters["retries"] >= faults * 0.5  # a fault costs at least one retry (or several)
 
 
-def test_overload_mid_move_raises_fault_and_cuts_all_torque(vbus, fast_config):
+def test_overload_mid_move_raises_fault_and_cuts_all_torque(servo_bus, fast_config):
+    vbus = servo_bus
     d = fast_config.model_dump()
     d["servos"][2]["velocity_deg_s"] = 30.0  # tilt moves slowly enough to be caught
     cfg = rig_config_from_dict(d)
-    with Rig(cfg, port=vbus.port) as rig:
+    with Rig(cfg, transport=LoopbackTransport(vbus)) as rig:
         rig.home()
         vbus.servos[3].inject_fault(0x20, during_next_move=0.5)
         target = dict(cfg.home_rad, stage_tilt=math.radians(40))
@@ -180,20 +212,25 @@ def test_wrong_baud_rate_before_anything_moves(vbus, fast_config):
     assert all(not s.torque_log for s in vbus.servos.values())
 
 
-def test_missing_servo_is_named(gil_handover, fast_config, home_pulses):
-    with VirtualBus([1, 2, 3]) as bus:
-        with pytest.raises(RigError, match=r"servo\(s\) 4 \(stage_spin\) did not answer"):
-            Rig(fast_config, port=bus.port).open()
-        assert all(not s.torque_log for s in bus.servos.values())
+def test_missing_servo_is_named(fast_config):
+    bus = ServoBus([1, 2, 3])
+    with pytest.raises(BusError, match=r"servo\(s\) 4 \(stage_spin\) did not answer") as info:
+        Rig(fast_config, transport=LoopbackTransport(bus)).open()
+    assert (info.value.servo, info.value.cause) == (4, "timeout")
+    assert all(not s.torque_log for s in bus.servos.values())
 
 
-def test_model_mismatch_is_named(gil_handover, fast_config):
+def test_model_mismatch_is_named(fast_config):
     servos = [VirtualServo(1), VirtualServo(2, "XM430-W210"), VirtualServo(3), VirtualServo(4)]
-    with VirtualBus(servos) as bus:
-        with pytest.raises(
-            RigError, match=r"servo 2 \(camera_azimuth\) is XM430-W210 .*1030.*XM430-W350"
-        ):
-            Rig(fast_config, port=bus.port).open()
+    with pytest.raises(
+        RigError, match=r"servo 2 \(camera_azimuth\) is XM430-W210 .*1030.*XM430-W350"
+    ):
+        Rig(fast_config, transport=LoopbackTransport(servos)).open()
+
+
+def test_transport_and_port_are_exclusive(fast_config, loopback):
+    with pytest.raises(RigError, match="either a transport or port"):
+        Rig(fast_config, transport=loopback, port="/dev/ttyUSB0")
 
 
 def test_duplicate_and_missing_ids_in_config():
@@ -207,22 +244,31 @@ def test_duplicate_and_missing_ids_in_config():
         rig_config_from_dict(d, "rig.toml")
 
 
-def test_angles_outside_limits_refused_before_anything_moves(vbus, fast_config):
-    with Rig(fast_config, port=vbus.port) as rig:
+def test_angles_outside_limits_refused_before_anything_moves(servo_bus, fast_config):
+    vbus = servo_bus
+    home = fast_config.home_rad
+    with Rig(fast_config, transport=LoopbackTransport(vbus)) as rig:
         before = {i: s.get("goal_position") for i, s in vbus.servos.items()}
-        with pytest.raises(RigError, match=r"stage_tilt .*outside the limits"):
-            rig.move_joints(dict(fast_config.home_rad, stage_tilt=math.radians(95)))
-        with pytest.raises(RigError, match="shadow"):
-            rig.move_joints(dict(fast_config.home_rad, light_azimuth=math.radians(-3)))
-        with pytest.raises(RigError, match="cannot reach"):
+        with pytest.raises(PoseRefused, match=r"stage_tilt .*outside the limits") as info:
+            rig.move_joints(dict(home, stage_tilt=math.radians(95)))
+        assert info.value.reason is RefusalReason.JOINT_LIMIT
+        with pytest.raises(PoseRefused, match="shadow") as info:
+            rig.move_joints(dict(home, light_azimuth=math.radians(-3)))
+        assert info.value.reason is RefusalReason.SHADOWING
+        with pytest.raises(PoseRefused, match="refusing to move: the move would make") as info:
+            rig.move_joints(dict(home, light_azimuth=math.radians(45)))  # passes the camera
+        assert info.value.reason is RefusalReason.PATH
+        with pytest.raises(PoseRefused, match="cannot reach") as info:
             rig.move_to(spherical_to_direction(0.3, 0.0), spherical_to_direction(0.3, 0.0))
+        assert info.value.reason is RefusalReason.NO_SOLUTION
         assert {i: s.get("goal_position") for i, s in vbus.servos.items()} == before
         assert all(not any(v for _, v in s.torque_log) for s in vbus.servos.values())
 
 
-def test_status_reports_si_units(vbus, fast_config):
+def test_status_reports_si_units(servo_bus, fast_config):
+    vbus = servo_bus
     vbus.servos[2].voltage_raw = 118
-    with Rig(fast_config, port=vbus.port) as rig:
+    with Rig(fast_config, transport=LoopbackTransport(vbus)) as rig:
         st = {s.dxl_id: s for s in rig.status().servos}
         assert st[2].voltage == pytest.approx(11.8)
         assert st[1].position == pytest.approx(math.radians(-45))
@@ -230,25 +276,48 @@ def test_status_reports_si_units(vbus, fast_config):
         assert st[4].hardware_error == 0 and not st[4].torque
 
 
-def test_torque_off_on_exception_inside_with_block(vbus, fast_config):
+def test_torque_off_on_exception_inside_with_block(servo_bus, fast_config):
+    vbus = servo_bus
     with pytest.raises(ZeroDivisionError):
-        with Rig(fast_config, port=vbus.port) as rig:
+        with Rig(fast_config, transport=LoopbackTransport(vbus)) as rig:
             rig.home()
             assert vbus.torque() == {1: 1, 2: 1, 3: 1, 4: 1}
+            1 / 0  # noqa: B018
+    assert vbus.torque() == {1: 0, 2: 0, 3: 0, 4: 0}
+
+
+def test_torque_off_on_exception_leaves_the_pty_in_place(vbus, fast_config):
+    with pytest.raises(ZeroDivisionError):
+        with Rig(fast_config, port=vbus.port):
             1 / 0  # noqa: B018
     assert vbus.torque() == {1: 0, 2: 0, 3: 0, 4: 0}
     assert os.path.exists(vbus.port)
 
 
-def test_open_reboots_a_servo_left_in_fault_and_keeps_holding_ones(vbus, fast_config):
+def test_open_reboots_a_servo_left_in_fault_and_keeps_holding_ones(servo_bus, fast_config):
+    vbus = servo_bus
     vbus.servos[2].inject_fault(0x04)  # overheating from an earlier session
     assert vbus.servos[2].get("hardware_error_status") == 0x04
-    with Rig(fast_config, port=vbus.port) as rig:
+    with Rig(fast_config, transport=LoopbackTransport(vbus)) as rig:
         assert vbus.servos[2].get("hardware_error_status") == 0
         rig.home()
         rig.hold_on_exit = True
     assert vbus.torque() == {1: 1, 2: 1, 3: 1, 4: 1}
-    with Rig(fast_config, port=vbus.port) as rig:  # reopening does not drop the arms
+    with Rig(fast_config, transport=LoopbackTransport(vbus)) as rig:  # does not drop the arms
         assert vbus.torque() == {1: 1, 2: 1, 3: 1, 4: 1}
         assert all(s.torque for s in rig.status().servos)
     assert vbus.torque() == {1: 0, 2: 0, 3: 0, 4: 0}
+
+
+def test_a_goal_rounded_past_a_limit_is_a_pulse_range_refusal(servo_bus, fast_config):
+    # The spin limit, 200 deg, is 2275.56 pulses: a joint angle just inside it can round
+    # up to 2276 (0.04 deg past the limit), and does when the directions asked for are
+    # exactly those of 2276 pulses.
+    lim = math.radians(200.0)
+    with Rig(fast_config, transport=LoopbackTransport(servo_bus)) as rig:
+        q = dict(fast_config.home_rad, stage_spin=lim - 1e-7)
+        over = dict(q, stage_spin=rig.servos["stage_spin"].to_joint(2276))
+        wi, wo = rig.kinematics.forward(over)  # exactly at the rounded-up pulse
+        with pytest.raises(PoseRefused, match=r"stage_spin \(servo 4\): goal 2276 pulses") as e:
+            rig.quantised_goals(wi, wo, q)
+        assert e.value.reason is RefusalReason.PULSE_RANGE

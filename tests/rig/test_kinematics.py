@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from gonio.errors import RigError
+from gonio.errors import PoseRefused, RefusalReason, RigError
 from gonio.radiometry import spherical_to_direction
 from gonio.rig.config import default_rig_config, rig_config_from_dict
 from gonio.rig.control_table import RPM2_PER_ACCELERATION_UNIT, RPM_PER_VELOCITY_UNIT
@@ -147,22 +147,65 @@ def test_least_motion_choice(kin):
 
 
 @pytest.mark.parametrize(
-    "wi,wo,needle",
+    "wi,wo,needle,code",
     [
-        (spherical_to_direction(0.5, 0.0), spherical_to_direction(0.5, 0.0), "parallel"),
+        (
+            spherical_to_direction(0.5, 0.0),
+            spherical_to_direction(0.5, 0.0),
+            "parallel",
+            RefusalReason.NO_SOLUTION,
+        ),
         (
             spherical_to_direction(0.5, 0.0),
             spherical_to_direction(0.5 + math.radians(5), 0.0),
             "shadow",
+            RefusalReason.SHADOWING,
         ),
-        (spherical_to_direction(math.radians(88), 0.0), spherical_to_direction(0.3, 2.0), "rim"),
-        (np.array([np.nan, 0, 1]), spherical_to_direction(0.3, 2.0), "finite"),
+        (
+            spherical_to_direction(math.radians(88), 0.0),
+            spherical_to_direction(0.3, 2.0),
+            "rim",
+            RefusalReason.BEYOND_RIM,
+        ),
+        (
+            np.array([np.nan, 0, 1]),
+            spherical_to_direction(0.3, 2.0),
+            "finite",
+            RefusalReason.INVALID_DIRECTION,
+        ),
     ],
 )
-def test_unreachable_requests_name_the_reason(kin, wi, wo, needle):
-    with pytest.raises(RigError, match=needle):
+def test_unreachable_requests_name_the_reason(kin, wi, wo, needle, code):
+    with pytest.raises(PoseRefused, match=needle) as info:
         kin.inverse(wi, wo)
+    assert info.value.reason is code
     assert needle in kin.check(wi, wo)
+    refusal = kin.refusal(wi, wo)
+    assert refusal.reason is code and str(refusal) == kin.check(wi, wo)
+
+
+def test_joint_and_path_refusals_carry_their_reason(kin):
+    home = kin.config.home_rad  # light -45 deg, camera 0 deg
+    assert kin.joints_refusal(home) is None and kin.path_refusal(home, home) is None
+    # spin only turns the directions about the normal: past its +-200 deg, only the limit
+    r = kin.joints_refusal(dict(home, stage_spin=math.radians(210)))
+    assert r.reason is RefusalReason.JOINT_LIMIT and "stage_spin" in str(r)
+    r = kin.joints_refusal(dict(home, light_azimuth=math.radians(-3)))
+    assert r.reason is RefusalReason.SHADOWING and r.reason == "shadowing"
+    # both arms at elevation 0: the directions are as far apart as the arms' azimuths, so
+    # the arm clearance (8 deg) shows only once the shadow rule (10 deg) is relaxed
+    d = default_rig_config().model_dump()
+    d["geometry"].update(min_separation_deg=0.0, camera_body_radius_m=0.0, light_body_radius_m=0.0)
+    loose = Kinematics(rig_config_from_dict(d))
+    assert loose.joints_refusal(dict(home, light_azimuth=math.radians(-9))) is None
+    r = loose.joints_refusal(dict(home, light_azimuth=math.radians(-5)))
+    assert r.reason is RefusalReason.ARM_CLEARANCE and "collide" in str(r)
+    # the light swinging from -45 to +45 deg passes the camera at 0 deg
+    r = kin.path_refusal(home, dict(home, light_azimuth=math.radians(45)))
+    assert r.reason is RefusalReason.PATH and "pass or touch" in str(r)
+    tilted = dict(home, stage_tilt=math.radians(95))  # tilts the light below the rim
+    assert kin.joints_refusal(tilted).reason is RefusalReason.BEYOND_RIM
+    assert kin.check_joints(tilted) == str(kin.joints_refusal(tilted))
 
 
 def test_tilt_limit_is_reported():
@@ -175,6 +218,7 @@ def test_tilt_limit_is_reported():
     wo = spherical_to_direction(math.radians(80), math.radians(90))
     reason = kin.check(wi, wo)
     assert reason is not None and "stage_tilt" in reason and "limits" in reason
+    assert kin.refusal(wi, wo).reason is RefusalReason.JOINT_LIMIT
     # the full-range preset reaches it, with |tilt| > 45 deg
     q = Kinematics(default_rig_config()).inverse(wi, wo)
     assert abs(q["stage_tilt"]) > math.radians(45)

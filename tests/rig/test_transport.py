@@ -7,7 +7,7 @@ import logging
 import pytest
 from dynamixel_sdk import COMM_SUCCESS, PacketHandler
 
-from gonio.errors import RigError
+from gonio.errors import BusError, RigError
 from gonio.rig.control_table import MODELS
 from gonio.rig.protocol import build_packet, crc16, stuff, unstuff
 from gonio.rig.transport import Transport
@@ -49,8 +49,11 @@ def test_signed_conversions(vbus):
 def test_device_errors_are_raised_not_retried(vbus):
     with Transport(vbus.port) as bus:
         bus.write(1, REG["torque_enable"], 1)
-        with pytest.raises(RigError, match="servo 1 refused WRITE operating_mode=4: access error"):
+        with pytest.raises(
+            BusError, match="servo 1 refused WRITE operating_mode=4: access error"
+        ) as info:
             bus.write(1, REG["operating_mode"], 4)
+        assert (info.value.servo, info.value.cause) == (1, "device_error")
         assert bus.counters["retries"] == 0
 
 
@@ -73,11 +76,18 @@ def test_retries_are_counted_and_logged(gil_handover, caplog):
 def test_silent_servo_gives_a_clear_error(vbus):
     vbus.servos[2].silent = True
     with Transport(vbus.port, retries=1, timeout_ms=5) as bus:
-        with pytest.raises(RigError, match="servo 2 did not answer READ .* after 2 attempts"):
+        with pytest.raises(BusError, match="servo 2 did not answer READ .* after 2 attempts") as e:
             bus.read(2, REG["present_position"])
+        assert (e.value.servo, e.value.cause) == (2, "timeout")
         # the healthy servo still answers; the 5 ms timeout is tight on a loaded machine,
         # so it gets retries (a lost firmware read is retried, never reported as 0)
         assert bus.ping(2) is None and bus.ping(1, retries=10) == (1020, 45)
+    # a group read names the servo that stayed silent, not the whole group (a timeout
+    # generous enough that the healthy servos' replies are never the late ones)
+    with Transport(vbus.port, retries=1, timeout_ms=100) as bus:
+        with pytest.raises(BusError, match="did not answer SYNC_READ") as e:
+            bus.sync_read([1, 2, 3], 132, 4)
+        assert (e.value.servo, e.value.cause) == (2, "timeout")
 
 
 def test_a_late_reply_is_never_taken_for_the_retrys(gil_handover):
