@@ -123,7 +123,7 @@ def _load_json(path: Path) -> Any:
     try:
         return json.loads(raw)
     except (ValueError, RecursionError) as exc:
-        raise FileFormatError(path, f"not valid JSON ({exc})") from None
+        raise FileFormatError(path, f"cannot read the manifest: not valid JSON ({exc})") from None
 
 
 def read_manifest(session_dir: str | os.PathLike) -> Manifest:

@@ -35,7 +35,7 @@ from typing import Any
 from gonio import __version__
 from gonio.capture.engine import Engine, SessionDevices, Subscriber, run_plan
 from gonio.capture.journal import Journal, read_journal, stale_temporaries
-from gonio.capture.manifest import MANIFEST, Manifest, check_journal_fits, read_manifest
+from gonio.capture.manifest import Manifest, check_journal_fits, read_manifest
 from gonio.capture.plan import Plan, plan_digest
 from gonio.capture.schedule import Refusal, Schedule, build_schedule
 from gonio.capture.session_dir import (
@@ -281,6 +281,9 @@ def run_session(
     )
     with contextlib.ExitStack() as locks:
         locks.enter_context(hold_lock(beside, f"session {out}"))
+        # Removed while still held, whatever happens (a refused run leaves nothing; once
+        # the session exists, its own lock guards it).
+        locks.callback(beside.unlink, missing_ok=True)
         check_new_session_dir(out)  # again: another process may have made it meanwhile
         for stale in out.parent.glob(f".{out.name}.creating-*"):  # our kind, cut by a kill
             shutil.rmtree(stale, ignore_errors=True)
@@ -304,7 +307,6 @@ def run_session(
                 attachments=attachments,
                 hold=locks,
             )
-            beside.unlink(missing_ok=True)  # the session exists now and guards itself
             manifest = read_manifest(out)
             return _run(out, manifest, plan, dev, session_state([]), False, {}, subscribers)
 
@@ -356,8 +358,7 @@ def resume_session(
         Another process holds the session.
     """
     d = Path(session_dir)
-    if not (d / MANIFEST).is_file():
-        raise SessionError(f"{d}: not a session directory (no {MANIFEST})")
+    read_manifest(d)  # not a session, or a damaged one: refused before any lock file
     with hold_lock(d / LOCK_NAME, f"session {d}"):
         manifest = read_manifest(d)
         jp = d / JOURNAL
