@@ -186,6 +186,7 @@ def test_settle_time_is_waited_after_every_move_on_the_servo_clock(tmp_path):
     kin = Kinematics(cfg)
     servos = [VirtualServo(s.id, position=cfg.park_pulses[s.id]) for s in cfg.servos]
     events: list[tuple[str, float]] = []
+    hints: list = []
     with VirtualBus(servos, time_scale=100.0) as bus:
         real = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})
 
@@ -197,6 +198,7 @@ def test_settle_time_is_waited_after_every_move_on_the_servo_clock(tmp_path):
                 return getattr(self.rig, name)
 
             def move_to(self, wi, wo, *, joints=None):
+                hints.append(joints)
                 result = self.rig.move_to(wi, wo, joints=joints)
                 events.append(("moved", bus.clock()))
                 return result
@@ -218,6 +220,9 @@ def test_settle_time_is_waited_after_every_move_on_the_servo_clock(tmp_path):
             run_session(tmp_path / "S", plan, cfg, dev)
     moves = [k for k, (what, _) in enumerate(events) if what == "moved"]
     assert len(moves) == 2
+    # the run asks the rig for the joints the dry run chose (recorded in the schedule)
+    steps = json.loads((tmp_path / "S" / "manifest.json").read_text())["schedule"]
+    assert hints == [s["joints"] for s in steps] and all(hints)
     for k in moves:
         assert events[k + 1][0] == "shot"
         assert events[k + 1][1] - events[k][1] >= settle
