@@ -92,7 +92,8 @@ def test_session_modules_import_neither_the_simulator_nor_the_app():
     }
     session_modules = [
         "bracket", "camera", "engine", "journal", "manifest", "messages", "ordering",
-        "refusals", "schedule", "session", "session_dir", "session_plan", "sessions",
+        "refusals", "schedule", "session", "session_dir", "session_plan", "session_report",
+        "sessions",
     ]  # fmt: skip
     files = {root / "capture" / f"{m}.py": rules["capture"] for m in session_modules}
     files[root / "simulator" / "rig_camera.py"] = rules["simulator/rig_camera.py"]
