@@ -13,7 +13,7 @@ import json
 import time
 
 from gonio.capture.plan import plan_from_dict
-from gonio.capture.session import build_schedule
+from gonio.capture.schedule import build_schedule
 from gonio.rig.config import default_rig_config
 from gonio.rig.kinematics import Kinematics
 

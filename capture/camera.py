@@ -1,8 +1,10 @@
-"""Cameras: one small interface, a registry of backends, and the gphoto2 backend.
+"""Cameras: the core's interface, a registry of real backends, and the gphoto2 backend.
 
-The session only ever calls :class:`Camera` (``describe``, ``capture``, ``close``), so a
-tethered DSLR (``gphoto2``) and the rendered rig (``simulated``, in
-:mod:`gonio.capture.sim_camera`) are interchangeable.  Backends are looked up by name in
+The session only ever calls :class:`Camera` (``describe``, ``capture``, ``close``; defined
+with :class:`Shot`, :class:`CameraInfo`, :class:`Light` and :class:`TargetChanger` in
+:mod:`gonio.devices` and re-exported here), so a tethered DSLR (``gphoto2``) and the
+rendered rig (the simulator's ``SimulatedRigCamera``, which the composition root
+``gonio.app`` builds) are interchangeable.  Real backends are looked up by name in
 :data:`CAMERA_BACKENDS` (``open_camera("gphoto2")``), colour-science style.
 
 The gphoto2 backend drives the camera through libgphoto2's configuration widgets
@@ -17,9 +19,9 @@ from __future__ import annotations
 import importlib
 import math
 import re
-from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
+from gonio.devices import Camera, CameraInfo, Light, Shot, TargetChanger
 from gonio.errors import CameraError, UnknownNameError
 
 __all__ = [
@@ -27,7 +29,7 @@ __all__ = [
     "Camera",
     "CameraInfo",
     "GPhoto2Camera",
-    "LightSwitch",
+    "Light",
     "Shot",
     "TargetChanger",
     "open_camera",
@@ -63,87 +65,10 @@ RAW_SUFFIXES = frozenset(
 )
 
 
-@dataclass(frozen=True)
-class Shot:
-    """One captured frame as the camera delivered it.
-
-    Attributes
-    ----------
-    data
-        The file's bytes (RAW, unmodified).
-    suffix
-        File suffix with the dot, lower case (``".dng"``, ``".nef"``).
-    exposure_time
-        Exposure time actually used, s.
-    iso
-        ISO speed actually used (NaN if the camera does not say).
-    f_number
-        f-number actually used (NaN if the camera does not say).
-    extra
-        Backend details worth journaling (e.g. the camera's own file name, temperatures).
-    """
-
-    data: bytes
-    suffix: str
-    exposure_time: float
-    iso: float
-    f_number: float
-    extra: dict[str, Any] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class CameraInfo:
-    """What a camera reports about itself (recorded in the session manifest)."""
-
-    backend: str
-    model: str
-    sensor_size_mm: tuple[float, float] | None = None
-    settings: dict[str, Any] = field(default_factory=dict)
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "backend": self.backend,
-            "model": self.model,
-            "sensor_size_mm": list(self.sensor_size_mm) if self.sensor_size_mm else None,
-            "settings": dict(self.settings),
-        }
-
-
-@runtime_checkable
-class Camera(Protocol):
-    """The camera interface the session uses.
-
-    ``capture`` raises :class:`~gonio.errors.CameraError` when the camera is gone, refuses
-    a setting or fails to deliver; ``seed`` is used only by simulated cameras (a real one
-    ignores it).
-    """
-
-    def describe(self) -> CameraInfo: ...
-
-    def capture(
-        self, exposure_time: float, iso: float | None, f_number: float | None, *, seed: int = 0
-    ) -> Shot: ...
-
-    def close(self) -> None: ...
-
-
-@runtime_checkable
-class LightSwitch(Protocol):
-    """Something that can switch the rig's light (needed for dark frames)."""
-
-    def set_light(self, on: bool) -> None: ...
-
-
-@runtime_checkable
-class TargetChanger(Protocol):
-    """Something that can put the reference target in place of the sample."""
-
-    def set_target(self, kind: str) -> None: ...
-
-
-#: Backend name -> ``"module:factory"``; factories take keyword arguments.
+#: Backend name -> ``"module:factory"``; factories take keyword arguments.  The
+#: ``simulated`` camera is not here: it belongs to the simulator, and only the
+#: composition root (``gonio.app.devices``) wires it into a session.
 CAMERA_BACKENDS: dict[str, str] = {
-    "simulated": "gonio.capture.sim_camera:SimulatedRigCamera",
     "gphoto2": "gonio.capture.camera:GPhoto2Camera",
 }
 
@@ -154,10 +79,9 @@ def open_camera(backend: str, **kwargs: Any) -> Camera:
     Parameters
     ----------
     backend
-        ``"simulated"`` or ``"gphoto2"`` (see :data:`CAMERA_BACKENDS`).
+        ``"gphoto2"`` (see :data:`CAMERA_BACKENDS`).
     **kwargs
-        Passed to the backend (e.g. ``rig=``, ``scene=`` for ``simulated``; ``port=`` for
-        ``gphoto2``).
+        Passed to the backend (e.g. ``port=`` for ``gphoto2``).
 
     Raises
     ------
@@ -364,9 +288,7 @@ class GPhoto2Camera:
             raise CameraError(self._explain(exc, "reading the settings")) from None
         return CameraInfo("gphoto2", self._model, None, settings)
 
-    def capture(
-        self, exposure_time: float, iso: float | None, f_number: float | None, *, seed: int = 0
-    ) -> Shot:
+    def capture(self, exposure_time: float, iso: float | None, f_number: float | None) -> Shot:
         """Set exposure time (s), ISO and f-number (None keeps the camera's), shoot, and
         download the file.
 

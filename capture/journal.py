@@ -14,7 +14,7 @@ import hashlib
 import json
 import os
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -25,11 +25,15 @@ from gonio.errors import FileFormatError
 __all__ = [
     "Journal",
     "fsync_dir",
+    "latest_shots",
     "read_journal",
+    "session_file",
     "sha256_bytes",
     "sha256_file",
+    "stale_temporaries",
     "write_atomic",
     "xxh3_bytes",
+    "xxh3_file",
 ]
 
 
@@ -62,6 +66,26 @@ def sha256_file(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
+def xxh3_file(path: str | os.PathLike) -> str:
+    """Hex XXH3-128 digest of the file at ``path`` (read in 1 MiB chunks)."""
+    import xxhash
+
+    h = xxhash.xxh3_128()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _loads(line: bytes) -> Any:
+    # A line of ten thousand '[' exhausts the parser's recursion, which json reports as
+    # RecursionError rather than ValueError: damage all the same.
+    try:
+        return json.loads(line)
+    except RecursionError:
+        raise ValueError("nested too deeply") from None
+
+
 def _parse_lines(path: Path, raw: bytes) -> tuple[list[dict[str, Any]], int, bool]:
     """Parse journal bytes.
 
@@ -74,7 +98,7 @@ def _parse_lines(path: Path, raw: bytes) -> tuple[list[dict[str, Any]], int, boo
         if not line.strip():
             continue
         try:
-            rec = json.loads(line)
+            rec = _loads(line)
         except ValueError as exc:
             # A crash can only tear the final, unterminated line; a bad terminated line
             # means the file was damaged by something else, which must not pass silently.
@@ -86,7 +110,7 @@ def _parse_lines(path: Path, raw: bytes) -> tuple[list[dict[str, Any]], int, boo
     tail_ok = False
     if tail.strip():
         try:
-            rec = json.loads(tail)
+            rec = _loads(tail)
             tail_ok = isinstance(rec, dict)
         except ValueError:
             tail_ok = False
@@ -119,8 +143,89 @@ def read_journal(path: str | os.PathLike) -> list[dict[str, Any]]:
         path = path / "journal.jsonl"
     if not path.exists():
         raise FileFormatError(path, "journal not found")
-    records, _, _ = _parse_lines(path, path.read_bytes())
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise FileFormatError(path, f"cannot read the journal: {exc.strerror or exc}") from None
+    records, _, _ = _parse_lines(path, raw)
     return records
+
+
+def session_file(session: str | os.PathLike, record: Mapping[str, Any]) -> Path:
+    """The file a journal record names, refused unless it lies inside the session.
+
+    A journal is an unsigned text file: a record saying ``"file": "../victim/v.txt"`` (or
+    an absolute path, or a symlink out of the session) must not make inspect, resume or
+    the reduction open, hash or replace anything outside the session directory.
+
+    Parameters
+    ----------
+    session
+        The session directory.
+    record
+        A journal record with a ``file`` field (a path relative to the session).
+
+    Raises
+    ------
+    FileFormatError
+        The field is missing, not a relative path, or resolves outside the session.
+    """
+    root = Path(session)
+    journal = root / "journal.jsonl"
+    name = record.get("file")
+    where = f"file (pose {record.get('pose')!r}, frame {record.get('frame')!r})"
+    if not isinstance(name, str) or not name or "\x00" in name:
+        raise FileFormatError(journal, f"expected a relative path, got {name!r}", where)
+    rel = Path(name)
+    if rel.is_absolute():
+        raise FileFormatError(
+            journal,
+            f"{name!r} is an absolute path; journal files must be inside the session",
+            where,
+        )
+    base = root.resolve()
+    target = (root / rel).resolve()
+    if not target.is_relative_to(base):
+        raise FileFormatError(
+            journal, f"{name!r} resolves outside the session directory {root}; refused", where
+        )
+    return root / rel
+
+
+def latest_shots(records: Iterable[Mapping[str, Any]]) -> dict[tuple[int, int], Mapping[str, Any]]:
+    """The newest ``shot`` record of every (pose, frame).
+
+    A frame shot again (``gonio capture resume --retake``, or a redo after a crash) is
+    journaled as a new record for the same (pose, frame), after the old one; the newest
+    is the one that counts.  The reduction and ``inspect`` read frames through this.
+    """
+    out: dict[tuple[int, int], Mapping[str, Any]] = {}
+    for r in records:
+        if r.get("type") == "shot":
+            out[(int(r["pose"]), int(r["frame"]))] = r
+    return out
+
+
+def stale_temporaries(session: str | os.PathLike) -> list[str]:
+    """Temporary files and directories a killed writer left in or beside a session.
+
+    ``.NAME.XXXX.tmp`` files (from :mod:`gonio.atomic`) anywhere in the session, and
+    ``.NAME.creating-PID`` directories (a session being created) inside it or beside it,
+    relative to the session (``../`` for those beside it).
+    """
+    root = Path(session)
+    found = [
+        str(p.relative_to(root))
+        for p in sorted(root.rglob(".*"))
+        if (p.is_file() and p.name.endswith(".tmp")) or (p.is_dir() and ".creating-" in p.name)
+    ]
+    if root.parent.is_dir():
+        found += [
+            f"../{p.name}"
+            for p in sorted(root.parent.glob(f".{root.name}.creating-*"))
+            if p.is_dir()
+        ]
+    return found
 
 
 class Journal:

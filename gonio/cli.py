@@ -22,9 +22,9 @@ _SUBCOMMANDS: dict[str, str] = {
     "brdf": "gonio.brdf.cli:brdf",
     "sim": "gonio.simulator.cli:sim",
     "rig": "gonio.rig.cli:rig",
-    "capture": "gonio.capture.cli:capture",
+    "capture": "gonio.app.capture_cli:capture",
     "fit": "gonio.fitting.cli:fit",
-    "demo": "gonio.demo:demo",
+    "demo": "gonio.app.demo:demo",
 }
 
 

@@ -59,7 +59,10 @@ def test_parse_f_number_and_iso():
 def test_unknown_backend():
     with pytest.raises(UnknownNameError, match="gphoto2"):
         open_camera("hasselblad")
-    assert set(CAMERA_BACKENDS) == {"simulated", "gphoto2"}
+    # the simulated camera belongs to the simulator; only gonio.app wires it in
+    assert set(CAMERA_BACKENDS) == {"gphoto2"}
+    with pytest.raises(UnknownNameError):
+        open_camera("simulated")
 
 
 @pytest.fixture
@@ -129,9 +132,11 @@ def test_camera_that_disappears_mid_session(vcam, tmp_path):
     import tomllib
     from importlib import resources
 
+    from gonio.app.devices import open_rig
+    from gonio.capture.engine import SessionDevices
     from gonio.capture.journal import read_journal
     from gonio.capture.plan import plan_from_dict
-    from gonio.capture.session import build_schedule, create_session, open_rig, run_steps
+    from gonio.capture.sessions import resume_session, run_session
     from gonio.errors import SessionError
     from gonio.rig.config import rig_config_from_dict
     from gonio.rig.kinematics import Kinematics
@@ -154,7 +159,6 @@ def test_camera_that_disappears_mid_session(vcam, tmp_path):
         }
     )
     kin = Kinematics(cfg)
-    sched = build_schedule(plan, kin, cfg.park_rad)
     servos = [
         VirtualServo(s.id, position=round(s.pulses(cfg.park_rad[s.joint]))) for s in cfg.servos
     ]
@@ -169,9 +173,10 @@ def test_camera_that_disappears_mid_session(vcam, tmp_path):
 
         with open_rig(real) as rig:
             cam = open_camera("gphoto2", require_raw=False)
-            create_session(out, plan, cfg, sched, cam.describe())
             with pytest.raises(SessionError, match="camera fault"):
-                run_steps(out, rig, cam, kin, on_event=unplug)
+                run_session(
+                    out, plan, cfg, SessionDevices(rig, cam, kinematics=kin), subscribers=[unplug]
+                )
             cam.close()
             assert all(v == 0 for v in bus.torque().values())
         recs = read_journal(out / "journal.jsonl")
@@ -187,7 +192,8 @@ def test_camera_that_disappears_mid_session(vcam, tmp_path):
         (d / "frame.jpg").write_bytes(payload)
         with open_rig(real) as rig:
             cam = open_camera("gphoto2", require_raw=False)
-            assert run_steps(out, rig, cam, kin, resumed=True) == "completed"
+            result = resume_session(out, SessionDevices(rig, cam, kinematics=kin))
+            assert result.status == "completed"
             cam.close()
     shots = [r for r in read_journal(out / "journal.jsonl") if r["type"] == "shot"]
     assert sorted((r["pose"], r["frame"]) for r in shots) == [(0, 0), (0, 1), (1, 0), (1, 1)]

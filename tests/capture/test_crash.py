@@ -103,20 +103,20 @@ def _check_consistent(session: Path) -> list[dict]:
 @pytest.fixture(scope="module")
 def warm():
     """Import and exercise the renderer once so that forked children start warm."""
-    import gonio.capture.session_cli  # noqa: F401
+    import gonio.app.capture_cli  # noqa: F401
+    import gonio.app.devices  # noqa: F401
     import gonio.rig.device  # noqa: F401
     import gonio.simulator.virtual_bus  # noqa: F401
-    from gonio.capture.sim_camera import SimulatedRigCamera
     from gonio.rig.config import default_rig_config
     from gonio.rig.kinematics import Kinematics
+    from gonio.simulator.rig_camera import SimulatedRigCamera
 
     cfg = default_rig_config()
-    cam = SimulatedRigCamera(
-        read_joints=lambda: cfg.park_rad, kinematics=Kinematics(cfg), width=16, height=12
-    )
-    cam.capture(0.01, 100, 8, seed=0)
+    kin = Kinematics(cfg)
+    cam = SimulatedRigCamera(None, lambda: kin.poses(cfg.park_rad), 0, width=16, height=12)
+    cam.capture(0.01, 100, 8)
     cam.set_light(False)
-    cam.capture(0.01, 100, 8, seed=0)
+    cam.capture(0.01, 100, 8)
 
 
 @pytest.mark.slow

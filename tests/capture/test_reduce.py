@@ -312,15 +312,15 @@ def test_reference_reflectance_of_the_plan_is_what_the_simulated_camera_renders(
     """A plan whose reference target has reflectance 0.5: the simulated camera must render
     the target at 0.5 (not its 0.99 default), else the reduction, which calibrates with
     the manifest's 0.5, reports the sample's BRDF about half the truth.  The session is
-    captured the way ``gonio capture run`` does it (open_devices, create_session,
-    run_steps), with the plan's reflectance handed to open_devices."""
+    captured the way ``gonio capture run`` does it (the session API with the composition
+    root's device opener), which hands the plan's reflectance to the camera."""
     import tomllib
 
+    from gonio.app.devices import device_opener
     from gonio.capture.plan import load_plan
     from gonio.capture.reduce import reduce_session
-    from gonio.capture.session import build_schedule, create_session, open_devices, run_steps
+    from gonio.capture.sessions import run_session
     from gonio.rig.config import load_rig_config
-    from gonio.rig.kinematics import Kinematics
 
     (tmp_path / "rig.toml").write_text(virtual_rig_document())
     plan_text = PLAN.replace("[darks]\ncount = 2", "[darks]\ncount = 0").replace(
@@ -330,22 +330,10 @@ def test_reference_reflectance_of_the_plan_is_what_the_simulated_camera_renders(
     plan = load_plan(tmp_path / "plan.toml")
     assert plan.reference.reflectance == 0.5
     cfg = load_rig_config(tmp_path / "rig.toml")
-    kin = Kinematics(cfg)
-    sched = build_schedule(plan, kin, cfg.park_rad)
     simulation = {"scene": tomllib.loads(SCENE), "width": None, "height": None, "time_scale": 100}
     out = tmp_path / "S"
-    with open_devices(
-        cfg,
-        "simulated",
-        simulation=simulation,
-        seed=plan.seed,
-        reference_reflectance=plan.reference.reflectance,
-    ) as dev:
-        create_session(out, plan, cfg, sched, dev.camera.describe(), simulation=simulation)
-        manifest = json.loads((out / "manifest.json").read_text())
-        run_steps(
-            out, dev.rig, dev.camera, dev.kinematics, read_noise_dn=dev.read_noise_dn(manifest)
-        )
+    run_session(out, plan, cfg, device_opener(), camera_backend="simulated", simulation=simulation)
+    manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["reference"]["reflectance"] == 0.5
     res = reduce_session(out, plot=False)
     samples = load_samples(res.path)

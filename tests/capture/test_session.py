@@ -3,6 +3,7 @@ journal against files, faults on the bus, resume, and refusals that protect a se
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 from pathlib import Path
@@ -13,14 +14,7 @@ import xxhash
 
 from gonio.capture.journal import read_journal
 from gonio.capture.plan import load_plan
-from gonio.capture.session import (
-    build_schedule,
-    create_session,
-    inspect_session,
-    open_rig,
-    run_steps,
-)
-from gonio.capture.sim_camera import SimulatedRigCamera
+from gonio.capture.sessions import inspect_session, resume_session, run_session
 from gonio.cli import run
 from gonio.errors import SessionError
 from gonio.rig.config import load_rig_config, virtual_rig_document
@@ -134,13 +128,27 @@ def test_simulated_session_end_to_end(files):
         {r["exposure_time"] for r in samples}
     )
     info = inspect_session(out)
-    assert info["status"] == "completed" and info["files_verified"] == len(shots)
-    assert info["poses_done"] == info["poses_total"] == 5
+    assert info.status == "completed" and info.files_verified == len(shots)
+    assert info.poses_done == info.poses_total == 5
 
 
-def _open_sim(cfg, bus_port, scene_w=32, scene_h=24):
-    cfg = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus_port})})
-    return cfg
+@contextlib.contextmanager
+def devices_on(bus, cfg, seed: int, width: int = 32, height: int = 24):
+    """The session devices the composition root builds, on a virtual bus the test holds
+    (to inject faults into its servos)."""
+    from gonio.app.devices import open_rig, servo_clock_sleep
+    from gonio.capture.engine import SessionDevices
+    from gonio.simulator.rig_camera import SimulatedRigCamera
+
+    real = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})
+    kin = Kinematics(cfg)
+    with open_rig(real) as rig:
+        cam = SimulatedRigCamera(
+            None, lambda: kin.poses(rig.read().joints), seed, width=width, height=height
+        )
+        yield SessionDevices(
+            rig, cam, cam, cam, kin, servo_clock_sleep(bus.clock, bus.time_scale), None
+        )
 
 
 def test_fault_on_the_bus_stops_with_torque_off_and_resume_completes(files):
@@ -149,13 +157,10 @@ def test_fault_on_the_bus_stops_with_torque_off_and_resume_completes(files):
 
     plan = load_plan(files / "plan.toml")
     cfg = load_rig_config(files / "rig.toml")
-    kin = Kinematics(cfg)
-    sched = build_schedule(plan, kin, cfg.park_rad)
     park = cfg.park_pulses
     servos = [VirtualServo(s.id, position=park[s.id]) for s in cfg.servos]
     out = files / "S"
     with VirtualBus(servos, time_scale=100.0, seed=0) as bus:
-        real = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})
         state = {"armed": True}
 
         def inject(rec):
@@ -164,27 +169,27 @@ def test_fault_on_the_bus_stops_with_torque_off_and_resume_completes(files):
                 bus.servos[2].inject_fault(0x04, during_next_move=0.5)
                 state["armed"] = False
 
-        with open_rig(real) as rig:
-            cam = SimulatedRigCamera(rig, kin, width=32, height=24)
-            create_session(out, plan, cfg, sched, cam.describe())
+        with devices_on(bus, cfg, plan.seed) as dev:
             with pytest.raises(SessionError, match="fault") as info:
-                run_steps(out, rig, cam, kin, on_event=inject)
+                run_session(out, plan, cfg, dev, subscribers=[inject])
             assert "resume" in str(info.value)
             assert all(v == 0 for v in bus.torque().values()), "torque must be off after a fault"
         recs = read_journal(out / "journal.jsonl")
         faults = [r for r in recs if r["type"] == "fault"]
-        assert len(faults) == 1 and faults[0]["source"] == "rig" and faults[0].get("servo") == 2
+        # the servo and its error bits come from the RigFault's fields: 0x04 overheating
+        assert len(faults) == 1 and faults[0]["source"] == "rig"
+        assert faults[0]["servo"] == 2 and faults[0]["error_bits"] == 0x04
         assert recs[-1]["type"] == "stop" and recs[-1]["status"] == "fault"
         assert recs[-1]["torque_off"] is True
         done_before = {r["pose"] for r in recs if r["type"] == "pose_done"}
         assert done_before == {0, 1}
         # the fault clears: opening the rig reboots the servo that reports it
-        with open_rig(real) as rig:
-            cam = SimulatedRigCamera(rig, kin, width=32, height=24)
-            assert run_steps(out, rig, cam, kin, resumed=True) == "completed"
+        with devices_on(bus, cfg, plan.seed) as dev:
+            assert resume_session(out, dev).status == "completed"
         assert all(v == 0 for v in bus.torque().values())
     recs = _check_journal_against_files(out)
-    assert {r["pose"] for r in recs if r["type"] == "pose_done"} == set(range(len(sched.steps)))
+    n_steps = len(json.loads((out / "manifest.json").read_text())["schedule"])
+    assert {r["pose"] for r in recs if r["type"] == "pose_done"} == set(range(n_steps))
     assert recs[-1]["status"] == "completed"
 
 

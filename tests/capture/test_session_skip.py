@@ -7,9 +7,9 @@ at -40 deg); the narrowed rig refuses it before moving, so the session journals 
 ``pose_skipped`` and shoots every other pose once.  Real dynamixel-sdk on the virtual
 bus's pty, rendered DNGs, the CLI for resume, inspect and reduce.
 
-Also: a servo that stops answering raises a transport ``RigError`` (not ``RigFault``)
-inside ``move_to``; that is a fault, not a refusal, and must stop the session instead of
-skipping every remaining pose.
+Also: a servo that stops answering raises a bus error (not ``PoseRefused``) inside
+``move_to``; that is a fault, not a refusal, and must stop the session instead of
+skipping every remaining pose.  The session tells them apart by exception type only.
 """
 
 from __future__ import annotations
@@ -22,9 +22,10 @@ import tomllib
 import numpy as np
 import pytest
 
+from gonio.app.devices import device_opener
 from gonio.capture.journal import read_journal
 from gonio.capture.plan import load_plan
-from gonio.capture.session import build_schedule, create_session, open_devices, run_steps
+from gonio.capture.sessions import plan_session, resume_session, run_session
 from gonio.cli import run
 from gonio.dataset import load_samples
 from gonio.errors import SessionError
@@ -114,7 +115,7 @@ def _start_and_interrupt(files, after_pose: int):
     """Create the session as ``capture run`` does; Ctrl-C once ``after_pose`` is done."""
     plan = load_plan(files / "plan.toml")
     cfg = load_rig_config(files / "rig.toml")
-    sched = build_schedule(plan, Kinematics(cfg), cfg.park_rad)
+    dry = plan_session(plan, cfg)
     out = files / "S"
     sim = _simulation(plan)
 
@@ -122,11 +123,18 @@ def _start_and_interrupt(files, after_pose: int):
         if rec["type"] == "pose_done" and rec["pose"] == after_pose:
             raise KeyboardInterrupt
 
-    with open_devices(cfg, "simulated", simulation=sim, seed=plan.seed) as dev:
-        create_session(out, plan, cfg, sched, dev.camera.describe(), simulation=sim)
-        with pytest.raises(SessionError, match="interrupted"):
-            run_steps(out, dev.rig, dev.camera, dev.kinematics, on_event=interrupt)
-    return out, sched
+    with pytest.raises(SessionError, match="interrupted"):
+        run_session(
+            out,
+            plan,
+            cfg,
+            device_opener(),
+            camera_backend="simulated",
+            dry_run=dry,
+            simulation=sim,
+            subscribers=[interrupt],
+        )
+    return out, dry.schedule
 
 
 def _sample_theta_i(step) -> float:
@@ -161,9 +169,10 @@ def test_pose_refused_by_a_narrowed_rig_is_skipped_and_the_rest_completes(files,
     assert len(skipped) == 1
     assert skipped[0]["pose"] == victim
     reason = skipped[0]["reason"]
-    # the reason names the joint, the angle it would need and the limit it breaks
+    # the reason names the joint, the angle it would need and the limit it breaks, and
+    # its code says which rule refused it
     assert "light_azimuth" in reason and "-40.0" in reason and f"{LIMIT_DEG:.1f}" in reason
-    assert "cannot reach" in reason
+    assert "cannot reach" in reason and skipped[0]["code"] == "joint_limit"
     # nothing was shot for it; every other step was shot and closed exactly once
     shots = [r for r in recs if r["type"] == "shot"]
     assert victim not in {r["pose"] for r in shots}
@@ -227,19 +236,20 @@ def test_pose_refused_by_a_narrowed_rig_is_skipped_and_the_rest_completes(files,
 
 @pytest.mark.parametrize("when", ["between poses", "as the move starts"])
 def test_a_servo_that_stops_answering_is_a_fault_not_a_skipped_pose(files, when):
-    """A servo going silent makes the transport raise ``RigError`` ("did not answer"),
-    not ``RigFault``.  Before the fix the session journaled that as ``pose_skipped`` for
-    every remaining pose and ended "completed": the rest of the plan lost for good, as
-    resume never retries a skipped pose.  It must stop on a fault, ready to resume."""
-    from gonio.capture.session import SessionRig, open_rig
-    from gonio.capture.sim_camera import SimulatedRigCamera
+    """A servo going silent makes the bus raise an error that is not ``PoseRefused``.
+    Before typed refusals the session journaled that as ``pose_skipped`` for every
+    remaining pose and ended "completed": the rest of the plan lost for good, as resume
+    never retries a skipped pose.  It must stop on a fault, ready to resume."""
+    from gonio.app.devices import open_rig
+    from gonio.capture.engine import SessionDevices
+    from gonio.simulator.rig_camera import SimulatedRigCamera
     from gonio.simulator.servo_model import VirtualServo
     from gonio.simulator.virtual_bus import VirtualBus
 
     plan = load_plan(files / "plan.toml")
     cfg = load_rig_config(files / "rig.toml")
     kin = Kinematics(cfg)
-    sched = build_schedule(plan, kin, cfg.park_rad)
+    dry = plan_session(plan, cfg)
     park = cfg.park_pulses
     servos = [VirtualServo(s.id, position=park[s.id]) for s in cfg.servos]
     out = files / "S"
@@ -250,23 +260,34 @@ def test_a_servo_that_stops_answering_is_a_fault_not_a_skipped_pose(files, when)
             if rec["type"] == "pose_done" and rec["pose"] == 1 and when == "between poses":
                 bus.servos[3].silent = True  # the stage tilt servo's cable comes loose
 
-        class UnplugAtMove(SessionRig):
+        class UnplugAtMove:
             """The real rig; the cable comes loose just as the move to pose 2 starts."""
 
             moves = 0
 
-            def move_to(self, wi, wo):
+            def __init__(self, rig):
+                self.rig = rig
+
+            def __getattr__(self, name):
+                return getattr(self.rig, name)
+
+            def move_to(self, wi, wo, *, joints=None):
                 UnplugAtMove.moves += 1
                 if UnplugAtMove.moves == 3 and when == "as the move starts":
                     bus.servos[3].silent = True
-                return super().move_to(wi, wo)
+                return self.rig.move_to(wi, wo, joints=joints)
+
+        def devices(rig):
+            cam = SimulatedRigCamera(
+                None, lambda: kin.poses(rig.read().joints), plan.seed, width=32, height=24
+            )
+            return SessionDevices(rig, cam, cam, cam, kin)
 
         with open_rig(real) as rig:
-            rig = UnplugAtMove(rig.rig)
-            cam = SimulatedRigCamera(rig, kin, width=32, height=24)
-            create_session(out, plan, cfg, sched, cam.describe())
             with pytest.raises(SessionError, match="fault") as info:
-                run_steps(out, rig, cam, kin, on_event=unplug)
+                run_session(
+                    out, plan, cfg, devices(UnplugAtMove(rig)), dry_run=dry, subscribers=[unplug]
+                )
             assert "resume" in str(info.value) and "did not answer" in str(info.value)
         recs = read_journal(out / "journal.jsonl")
         assert [r for r in recs if r["type"] == "pose_skipped"] == []
@@ -281,23 +302,23 @@ def test_a_servo_that_stops_answering_is_a_fault_not_a_skipped_pose(files, when)
         # the cable is plugged back in: resume shoots every remaining pose
         bus.servos[3].silent = False
         with open_rig(real) as rig:
-            cam = SimulatedRigCamera(rig, kin, width=32, height=24)
-            assert run_steps(out, rig, cam, kin, resumed=True) == "completed"
+            assert resume_session(out, devices(rig)).status == "completed"
         assert all(v == 0 for v in bus.torque().values())
     recs = read_journal(out / "journal.jsonl")
     assert [r for r in recs if r["type"] == "pose_skipped"] == []
     done = sorted(r["pose"] for r in recs if r["type"] == "pose_done")
-    assert done == list(range(len(sched.steps)))
+    assert done == list(range(len(dry.steps)))
     keys = [(r["pose"], r["frame"]) for r in recs if r["type"] == "shot"]
     assert len(keys) == len(set(keys))
 
 
 def test_progress_bar_counts_a_skipped_pose_as_finished():
     """The progress bar reached only N-1 of N when a pose was skipped."""
-    from gonio.capture.session_cli import _Progress
+    from gonio.app.progress import SessionProgress
 
-    with _Progress(total=3, done=0, quiet=True) as prog:
+    with SessionProgress(quiet=True) as prog:
         for rec in (
+            {"type": "start", "poses": 3, "done": 0},
             {"type": "pose_done", "pose": 0},
             {"type": "pose_skipped", "pose": 1, "reason": "refused"},
             {"type": "pose_done", "pose": 2},

@@ -1,20 +1,20 @@
 """``gonio demo``: a whole simulated measurement session, from servos to fitted BRDF.
 
-The demo is a composition root like the CLI: it wires every subsystem together (a virtual
-servo bus on a pty driven through dynamixel-sdk, the simulated camera writing DNG files,
-reduction with rawpy and radiometric calibration, fitting with nlopt), so it is the one
-core module that imports them, and only inside the command.  It writes the rig, plan and
-scene files it used next to the session, so a user can rerun any stage by hand.
+The demo lives in the composition root (``gonio.app``) with the CLI: it wires every
+subsystem together (a virtual servo bus on a pty driven through dynamixel-sdk, the
+simulated camera writing DNG files, reduction with rawpy and radiometric calibration,
+fitting with nlopt) through their library APIs -- the capture through
+:func:`gonio.capture.sessions.run_session`, which prints nothing.  It writes the rig,
+plan and scene files it used next to the session (TOML, with tomli-w), so a user can
+rerun any stage by hand.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import math
 import os
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -174,42 +174,16 @@ def _plan_dict(grid: dict[str, Any], seed: int, width: int, height: int) -> dict
     }
 
 
-def _toml(d: dict[str, Any], prefix: str = "") -> str:
-    """A small TOML writer for the demo's own documents (tomllib only reads)."""
+def _toml(d: dict[str, Any]) -> str:
+    """A TOML document (tomllib only reads)."""
+    import tomli_w
 
-    def val(v: Any) -> str:
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, str):
-            return json.dumps(v)
-        if isinstance(v, dict):
-            return "{ " + ", ".join(f"{k} = {val(x)}" for k, x in v.items()) + " }"
-        if isinstance(v, list | tuple):
-            return "[" + ", ".join(val(x) for x in v) + "]"
-        return repr(v)
-
-    scalars = [(k, v) for k, v in d.items() if not isinstance(v, dict) and not _is_table_list(v)]
-    tables = [(k, v) for k, v in d.items() if isinstance(v, dict)]
-    arrays = [(k, v) for k, v in d.items() if _is_table_list(v)]
-    out = [f"{k} = {val(v)}" for k, v in scalars]
-    for k, v in tables:
-        name = f"{prefix}{k}"
-        out.append(f"\n[{name}]")
-        out.append(_toml(v, name + "."))
-    for k, v in arrays:
-        for item in v:
-            out.append(f"\n[[{prefix}{k}]]")
-            out.append(_toml(item, f"{prefix}{k}."))
-    return "\n".join(x for x in out if x)
-
-
-def _is_table_list(v: Any) -> bool:
-    return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
+    return tomli_w.dumps(d)
 
 
 def scene_document(material: Material, width: int, height: int) -> dict[str, Any]:
     """The simulated camera's scene with ``material`` as the sample's BRDF."""
-    from gonio.capture.sim_camera import minimal_scene
+    from gonio.simulator.rig_camera import minimal_scene
 
     scene = minimal_scene(width, height)
     scene["sample"]["brdf"] = material.scene_brdf()
@@ -276,13 +250,19 @@ def run_demo(
     quiet: bool = False,
     say: Callable[[str], None] = print,
 ) -> DemoResult:
-    """Run capture, reduction and fit of a simulated session into ``out``."""
+    """Run capture, reduction and fit of a simulated session into ``out``.
+
+    ``quiet`` hides the capture's progress bar; ``say`` receives one line per stage.
+    """
+    from gonio.app.devices import device_opener
+    from gonio.app.simulation import relocatable, scene_source
+    from gonio.capture.manifest import load_manifest
+    from gonio.capture.plan import load_plan
     from gonio.capture.reduce import reduce_session, resolve_setup
-    from gonio.capture.session import load_manifest
-    from gonio.capture.session_cli import run_cmd
+    from gonio.capture.sessions import plan_session, run_session
     from gonio.dataset import load_samples
     from gonio.fitting import fit
-    from gonio.rig.config import virtual_rig_document
+    from gonio.rig.config import load_rig_config, virtual_rig_document
 
     out = Path(out)
     if out.exists() and any(out.iterdir()):
@@ -308,18 +288,32 @@ def run_demo(
     session = out / "session"
     say(f"capturing into {session} (virtual servo bus on a pty, simulated camera)")
     t = time.perf_counter()
-    # The session command reports on stdout; with --json, stdout carries only the JSON.
-    with contextlib.redirect_stdout(sys.stderr) if quiet else contextlib.nullcontext():
-        run_cmd.callback(
-            plan_file=out / "plan.toml",
-            rig_file=str(out / "rig.toml"),
-            out=session,
-            scene_file=None,
+    # What 'gonio capture run plan.toml --rig rig.toml --camera simulated' does, through
+    # the library: the API prints nothing, the demo says what it does through ``say``.
+    plan = load_plan(out / "plan.toml")
+    cfg = load_rig_config(out / "rig.toml")
+    source = scene_source(plan, out / "plan.toml", None)
+    document, attachments = relocatable(source)
+    from gonio.app.progress import SessionProgress
+
+    with SessionProgress(quiet) as progress:
+        run_session(
+            session,
+            plan,
+            cfg,
+            device_opener(scene=source.document, scene_base=source.base_dir),
             camera_backend="simulated",
-            camera_port=None,
-            sim_speed=None,
-            quiet=quiet,
+            dry_run=plan_session(plan, cfg),
+            simulation={
+                "scene": document,
+                "width": plan.simulation.width,
+                "height": plan.simulation.height,
+                "time_scale": 20.0,
+            },
+            attachments=attachments,
+            subscribers=[progress],
         )
+    say(f"session {session} completed")
     seconds["capture"] = time.perf_counter() - t
 
     say("reducing RAW brackets to BRDF samples")
@@ -368,7 +362,7 @@ def run_demo(
     brdf_err = float(np.nanmedian(rel)) if rel.size else math.nan
 
     frames = _count_frames(session)
-    from gonio.demo_report import write_report
+    from gonio.app.demo_report import write_report
 
     report = write_report(
         out,

@@ -1,18 +1,32 @@
-"""``gonio capture plan | run | resume | inspect``: measurement sessions from the shell."""
+"""``gonio capture``: plan, run, resume, inspect and reduce measurement sessions.
+
+The ``plan``/``run``/``resume``/``inspect`` commands are thin callers of the session API
+(:mod:`gonio.capture.sessions`) with the devices of :mod:`gonio.app.devices`; ``reduce``
+and ``calibrate-noise`` live with the reduction (:mod:`gonio.capture.reduce_cli`).
+"""
 
 from __future__ import annotations
 
 import json
 import math
-import tomllib
 from pathlib import Path
-from typing import Any
 
 import click
 
-from gonio.errors import ConfigError, SessionError
+from gonio.cli import LazyGroup
 
-__all__ = ["inspect_cmd", "plan_cmd", "resume_cmd", "run_cmd"]
+__all__ = ["capture", "inspect_cmd", "plan_cmd", "resume_cmd", "run_cmd"]
+
+
+@click.group(
+    cls=LazyGroup,
+    lazy_commands={
+        "reduce": "gonio.capture.reduce_cli:reduce_cmd",
+        "calibrate-noise": "gonio.capture.reduce_cli:calibrate_noise_cmd",
+    },
+)
+def capture() -> None:
+    """Measurement sessions: dry-run a plan, capture, resume, reduce to BRDF samples."""
 
 
 def _fmt_duration(s: float) -> str:
@@ -30,29 +44,8 @@ def _load_rig(rig_path: str | None):
     return load_rig_config(rig_path) if rig_path else default_rig_config()
 
 
-def _scene_for(plan, plan_path: Path | None, scene_path: str | None) -> dict[str, Any] | None:
-    """The simulation scene as a document (stored in the manifest, so resume needs no file)."""
-    path = scene_path or plan.simulation.scene
-    if path is None:
-        return None
-    p = Path(path)
-    if not p.is_absolute() and scene_path is None and plan_path is not None:
-        p = plan_path.parent / p
-    try:
-        doc = tomllib.loads(p.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read the simulation scene: {exc.strerror}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: scene is not valid TOML: {exc}") from None
-    from gonio.simulator.scene import parse_scene
-
-    # Validated here, so an error names this file and comes before the session starts.
-    parse_scene(doc, str(p), p.resolve().parent)
-    return doc | {"_base_dir": str(p.resolve().parent)}
-
-
 # --------------------------------------------------------------------------------------
-@click.command("plan")
+@capture.command("plan")
 @click.argument("plan_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option(
     "--rig",
@@ -83,7 +76,9 @@ def plan_cmd(
     \b
     Prints how many poses the grid gives, how many the symmetry reductions remove, every
     excluded pose with its reason (grazing limit, camera shadowing the light, unreachable
-    or colliding on this rig), the total servo travel time of the optimised visiting
+    or colliding on this rig), the poses the rig would refuse in the visiting order (the
+    path from the previous pose included: the dry run executes the session's own plan
+    against the kinematics), the total servo travel time of the optimised visiting
     order against raster order, and the estimated duration.
 
     \b
@@ -94,40 +89,22 @@ def plan_cmd(
     from rich.table import Table
 
     from gonio.capture.plan import load_plan
-    from gonio.capture.session import build_schedule
-    from gonio.rig.kinematics import Kinematics
+    from gonio.capture.sessions import plan_session
 
     if plot is not None:
         _check_image_path(plot, force, "--plot")
     plan = load_plan(plan_file)
     cfg = _load_rig(rig_file)
-    kin = Kinematics(cfg)
-    sched = build_schedule(plan, kin, cfg.park_rad)
+    dry = plan_session(plan, cfg)
+    sched = dry.schedule
     ex = sched.expanded
-    n_sample = sum(1 for s in sched.steps if s["kind"] == "sample")
-    n_ref = sum(1 for s in sched.steps if s["kind"] == "reference")
-    summary = {
-        "plan": plan.name,
-        "grid_poses": ex.n_grid,
-        "reduced_by_symmetry": ex.n_reduced,
-        "excluded": len(ex.excluded),
-        "sample_poses": n_sample,
-        "reference_poses": n_ref,
-        "dark_steps": sum(1 for s in sched.steps if s["kind"] == "dark"),
-        "travel_time_s": round(sched.travel_time_s, 3),
-        "raster_travel_time_s": round(sched.raster_travel_time_s, 3),
-        "estimated_duration_s": round(sched.estimated_duration_s, 1),
-        "excluded_poses": [{**e.pose.angles_deg(), "reason": e.reason} for e in ex.excluded],
-    }
-    if show_poses or as_json:
-        summary["poses"] = [
-            {k: s[k] for k in s if k.endswith("_deg") or k == "kind"} for s in sched.steps
-        ]
+    summary = dry.summary(with_poses=show_poses or as_json)
     if plot is not None:
         _plot_poses(plot, sched)
     if as_json:
         click.echo(json.dumps(summary, indent=1))
         return
+    n_sample, n_ref = summary["sample_poses"], summary["reference_poses"]
     con = Console()
     con.print(f"[bold]{plan.name}[/]  ({plan_file})  rig: {cfg.name}")
     con.print(
@@ -143,6 +120,11 @@ def plan_cmd(
                 *(f"{a[k]:.1f}" for k in ("theta_i_deg", "phi_i_deg", "theta_o_deg", "phi_o_deg")),
                 e.reason,
             )
+        con.print(t)
+    if sched.refused:
+        t = Table("step", "code", "reason", title="refused in the visiting order (dry run)")
+        for r in sched.refused:
+            t.add_row(str(r.step), r.code, r.message)
         con.print(t)
     if show_poses:
         t = Table("#", "kind", "theta_i", "phi_i", "theta_o", "phi_o", title="visiting order")
@@ -232,85 +214,19 @@ def _plot_poses(path: Path, sched) -> None:
 
 
 # --------------------------------------------------------------------------------------
-class _Progress:
-    """Rich progress bar over the session's poses, fed by journal events."""
-
-    def __init__(self, total: int, done: int, quiet: bool) -> None:
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
-
-        self.quiet = quiet
-        self.progress = Progress(
-            TextColumn("[bold]poses"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("shots {task.fields[shots]}"),
-            TimeElapsedColumn(),
-            TextColumn("ETA"),
-            TimeRemainingColumn(),
-            disable=quiet,
-        )
-        self.task = self.progress.add_task("poses", total=total, completed=done, shots=0)
-        self.shots = 0
-        self.skipped = 0
-
-    def __call__(self, rec: dict[str, Any]) -> None:
-        t = rec.get("type")
-        if t == "shot":
-            self.shots += 1
-            self.progress.update(self.task, shots=self.shots)
-        elif t in ("pose_done", "pose_skipped"):
-            # a skipped pose is finished too: without this the bar stopped short of 100 %
-            self.progress.advance(self.task)
-            if t == "pose_skipped":
-                self.skipped += 1
-                self.progress.console.print(
-                    f"[yellow]pose {rec.get('pose')} skipped: {rec.get('reason')}"
-                )
-        elif t == "fault":
-            self.progress.console.print(f"[red]fault ({rec.get('source')}): {rec.get('error')}")
-
-    def __enter__(self):
-        self.progress.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        self.progress.__exit__(*exc)
-
-
-def _run_with_progress(session_dir: Path, devices, resumed: bool, quiet: bool) -> None:
-    from gonio.capture.journal import read_journal
-    from gonio.capture.session import JOURNAL, load_manifest, run_steps, session_state
-
-    manifest = load_manifest(session_dir)
-    jp = session_dir / JOURNAL
-    done = len(session_state(read_journal(jp)).done) if jp.exists() else 0
-    with _Progress(len(manifest["schedule"]), done, quiet) as prog:
-        run_steps(
-            session_dir,
-            devices.rig,
-            devices.camera,
-            devices.kinematics,
-            on_event=prog,
-            resumed=resumed,
-            read_noise_dn=devices.read_noise_dn(manifest),
-        )
-    if prog.skipped:
+def _report(result) -> None:
+    n = len(result.skipped)
+    if n:
         # a session that skipped poses must not read as complete at a glance
-        n = prog.skipped
         click.echo(
-            f"session {session_dir} completed; {n} pose{'s' if n > 1 else ''} skipped "
+            f"session {result.session} completed; {n} pose{'s' if n > 1 else ''} skipped "
             f"(the rig refused {'them' if n > 1 else 'it'}): see 'gonio capture inspect "
-            f"{session_dir}'"
+            f"{result.session}'"
         )
     else:
-        click.echo(f"session {session_dir} completed")
+        click.echo(f"session {result.session} completed")
+    if result.retaken:
+        click.echo(f"{len(result.retaken)} frame(s) shot again: {', '.join(result.retaken)}")
 
 
 _COMMON_RUN = [
@@ -345,7 +261,7 @@ def _common(f):
     return f
 
 
-@click.command("run")
+@capture.command("run")
 @click.argument("plan_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option(
     "--rig",
@@ -388,60 +304,52 @@ def run_cmd(
     achieved pose, the joint angles read back and the servo temperatures) in
     SESSION/journal.jsonl before the rig moves again. Whatever stops the run (a rig fault,
     the camera going away, Ctrl-C) the arms are parked and torque is turned off; then
-    continue with 'gonio capture resume SESSION/'.
+    continue with 'gonio capture resume SESSION/'. One process at a time: a second run
+    into the same --out is refused.
 
     \b
     Simulated end to end (virtual servo bus on a pty, rendered DNGs):
       gonio capture run examples/plan.toml --rig virtual_rig.toml --camera simulated --out S/
     where virtual_rig.toml has [bus] port = "virtual".
     """
+    from gonio.app.devices import device_opener
+    from gonio.app.progress import SessionProgress
+    from gonio.app.simulation import relocatable, scene_source
     from gonio.capture.plan import load_plan
-    from gonio.capture.session import (
-        build_schedule,
-        check_new_session_dir,
-        create_session,
-        open_devices,
-    )
-    from gonio.rig.kinematics import Kinematics
+    from gonio.capture.session_dir import check_new_session_dir
+    from gonio.capture.sessions import plan_session, run_session
 
     check_new_session_dir(out)  # before anything slow or physical
     plan = load_plan(plan_file)
     cfg = _load_rig(rig_file)
-    kin = Kinematics(cfg)
-    sched = build_schedule(plan, kin, cfg.park_rad)
-    simulation = None
+    dry = plan_session(plan, cfg)
+    simulation, attachments, opener = None, None, device_opener(camera_port=camera_port)
     if camera_backend == "simulated":
+        source = scene_source(plan, plan_file, scene_file)
+        document, attachments = relocatable(source)
         simulation = {
-            "scene": _scene_for(plan, plan_file, scene_file),
+            "scene": document,
             "width": plan.simulation.width,
             "height": plan.simulation.height,
             "time_scale": sim_speed or 20.0,
         }
-        if simulation["scene"] is None:  # keep the manifest self-contained
-            from gonio.capture.sim_camera import minimal_scene
-
-            simulation["scene"] = minimal_scene()
-    with open_devices(
-        cfg,
-        camera_backend,
-        simulation=simulation,
-        camera_port=camera_port,
-        seed=plan.seed,
-        reference_reflectance=plan.reference.reflectance,
-    ) as dev:
-        from gonio.capture.camera import LightSwitch
-
-        if plan.darks.count and not isinstance(dev.camera, LightSwitch):
-            raise SessionError(
-                f"{plan_file}: darks.count = {plan.darks.count} but the {camera_backend} camera "
-                "cannot switch the rig's light off; set darks.count = 0 and shoot darks with "
-                "the lens capped (nothing was written)"
-            )
-        create_session(out, plan, cfg, sched, dev.camera.describe(), simulation=simulation)
-        _run_with_progress(out, dev, resumed=False, quiet=quiet)
+        opener = device_opener(scene=source.document, scene_base=source.base_dir)
+    with SessionProgress(quiet) as progress:
+        result = run_session(
+            out,
+            plan,
+            cfg,
+            opener,
+            camera_backend=camera_backend,
+            dry_run=dry,
+            simulation=simulation,
+            attachments=attachments,
+            subscribers=[progress],
+        )
+    _report(result)
 
 
-@click.command("resume")
+@capture.command("resume")
 @click.argument("session_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.option(
     "--plan",
@@ -462,12 +370,19 @@ def run_cmd(
     is_flag=True,
     help="Resume even though --plan/--rig differ from the session's (recorded).",
 )
+@click.option(
+    "--retake",
+    is_flag=True,
+    help="Shoot again the journaled frames that are missing or changed (journaled as "
+    "replacements) instead of refusing to resume.",
+)
 @_common
 def resume_cmd(
     session_dir: Path,
     plan_file: Path | None,
     rig_file: str | None,
     force: bool,
+    retake: bool,
     camera_backend: str,
     camera_port: str | None,
     sim_speed: float | None,
@@ -476,78 +391,38 @@ def resume_cmd(
     """Continue a session after a fault, a crash or Ctrl-C.
 
     \b
-    Poses already done are skipped; a pose cut short keeps its journaled frames and the
-    bracket continues where it stopped; a RAW file written but not journaled is shot again.
+    Every frame the session relies on is checked first (byte count and XXH3-128); a
+    missing or changed one is refused, naming the files, unless --retake. Poses already
+    done are skipped; a pose cut short keeps its journaled frames and the bracket
+    continues where it stopped; a RAW file written but not journaled is shot again.
     The session's own plan and rig configuration (from its manifest) are used; with --plan
     or --rig the files are compared with them and a difference is refused unless --force.
-    The camera backend is the session's (the --camera option is ignored).
+    The camera backend is the session's (the --camera option is ignored). One process at
+    a time: a second resume of the same session is refused.
     """
-    from gonio.capture.plan import load_plan, plan_digest
-    from gonio.capture.session import JOURNAL, load_manifest, open_devices
-    from gonio.rig.config import rig_config_from_dict
+    from gonio.app.devices import device_opener
+    from gonio.app.progress import SessionProgress
+    from gonio.capture.plan import load_plan
+    from gonio.capture.sessions import resume_session
 
-    manifest = load_manifest(session_dir)
-    diffs = []
-    if plan_file is not None:
-        plan = load_plan(plan_file)
-        if plan_digest(plan) != manifest["plan_digest"]:
-            diffs.append(
-                f"plan {plan_file} differs from the session's plan "
-                f"({_diff_keys(plan.model_dump(mode='json'), manifest['plan'])})"
-            )
-    cfg = rig_config_from_dict(manifest["rig"], f"{session_dir}/manifest.json: rig")
-    if rig_file is not None:
-        new_cfg = _load_rig(rig_file)
-        if plan_digest(new_cfg) != manifest["rig_digest"]:
-            diffs.append(
-                f"rig {rig_file} differs from the session's rig "
-                f"({_diff_keys(new_cfg.model_dump(mode='json'), manifest['rig'])})"
-            )
-            if force:
-                cfg = new_cfg
-    if diffs and not force:
-        raise SessionError("; ".join(diffs) + ". Refusing to resume; use --force to override")
-    if diffs:
-        from gonio.capture.journal import Journal
-
-        j, _ = Journal.open(session_dir / JOURNAL)
-        with j:
-            j.append({"type": "note", "forced": True, "differences": diffs})
-    from gonio.rig.kinematics import Kinematics
-
-    Kinematics(cfg)  # validate before opening anything
-    sim = manifest.get("simulation")
-    if sim is not None:
-        sim = {
-            **sim,
-            "time_scale": sim_speed or sim.get("time_scale") or 20.0,
-        }
-    backend = manifest["camera"]["backend"]
-    with open_devices(
-        cfg,
-        backend,
-        simulation=sim,
-        camera_port=camera_port,
-        seed=int(manifest.get("seed", 0)),
-        reference_reflectance=(manifest.get("reference") or {}).get("reflectance"),
-    ) as dev:
-        _run_with_progress(session_dir, dev, resumed=True, quiet=quiet)
+    plan = load_plan(plan_file) if plan_file is not None else None
+    cfg = _load_rig(rig_file) if rig_file is not None else None
+    with SessionProgress(quiet) as progress:
+        result = resume_session(
+            session_dir,
+            device_opener(camera_port=camera_port, time_scale=sim_speed),
+            plan=plan,
+            rig_config=cfg,
+            force=force,
+            retake=retake,
+            subscribers=[progress],
+            plan_source=str(plan_file),
+            rig_source=str(rig_file),
+        )
+    _report(result)
 
 
-def _diff_keys(a: dict, b: dict, prefix: str = "") -> str:
-    out = []
-    for k in sorted(set(a) | set(b)):
-        va, vb = a.get(k), b.get(k)
-        if isinstance(va, dict) and isinstance(vb, dict):
-            sub = _diff_keys(va, vb, f"{prefix}{k}.")
-            if sub:
-                out.append(sub)
-        elif va != vb:
-            out.append(f"{prefix}{k}")
-    return ", ".join(out)
-
-
-@click.command("inspect")
+@capture.command("inspect")
 @click.argument("session_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.option(
     "--verify/--no-verify",
@@ -559,11 +434,12 @@ def _diff_keys(a: dict, b: dict, prefix: str = "") -> str:
 def inspect_cmd(session_dir: Path, verify: bool, as_json: bool) -> None:
     """Show what a session has done, what failed and what is left.
 
-    Exits with status 1 when a RAW file is missing or does not match its journal hash.
+    Exits with status 1 when a RAW file is missing or does not match its journal hash;
+    also lists frames shot again and temporary files an interrupted write left.
     """
-    from gonio.capture.session import inspect_session
+    from gonio.capture.sessions import inspect_session
 
-    info = inspect_session(session_dir, verify=verify)
+    info = inspect_session(session_dir, verify=verify).to_json()
     if as_json:
         click.echo(json.dumps(info, indent=1))
     else:
@@ -588,10 +464,19 @@ def inspect_cmd(session_dir: Path, verify: bool, as_json: bool) -> None:
             con.print(f"[red]bad file[/]: {p}")
         if info["orphans"]:
             con.print(f"orphan files (not journaled, redone on resume): {info['orphans']}")
+        if info["retaken"]:
+            con.print(f"shot again (--retake): {info['retaken']}")
+        if info["stale_temporaries"]:
+            con.print(
+                "temporary files of an interrupted write (removed by the next run or "
+                f"resume): {info['stale_temporaries']}"
+            )
         left = info["poses_total"] - info["poses_done"]
         if left:
             con.print(f"left: {left} poses; continue with 'gonio capture resume {session_dir}'")
     if info["bad_files"]:
+        from gonio.errors import SessionError
+
         raise SessionError(
             f"{session_dir}: {len(info['bad_files'])} RAW file(s) missing or "
             "not matching their journal hash"

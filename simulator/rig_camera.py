@@ -1,26 +1,41 @@
-"""The ``simulated`` camera backend: what the rig's camera would see at the reached pose.
+"""The simulated rig camera: what the rig's camera would see at the pose the rig reached.
 
-Each capture reads the joint angles the (virtual) servos actually reached through the
-rig's status read-back, turns them into light and camera poses with
-``Kinematics.poses(joints)``, renders the scene with
-:class:`gonio.simulator.camera.SimulatedCamera` and returns its DNG.  The session treats it
-exactly like the gphoto2 backend (:class:`gonio.capture.camera.Camera`); it adds the two
-abilities a real rig gets from extra hardware: switching the light off for dark frames
-(:class:`~gonio.capture.camera.LightSwitch`) and putting the reference target in place of
-the sample (:class:`~gonio.capture.camera.TargetChanger`).
+It implements the core's device interfaces (:mod:`gonio.devices`): :class:`Camera`
+(each capture asks ``pose_provider()`` where the light and camera are now, renders the
+scene there with :class:`gonio.simulator.camera.SimulatedCamera` and returns its DNG),
+and the abilities a real rig gets from extra hardware, :class:`Light` (dark frames are
+exposures with the light off) and :class:`TargetChanger` (the reference target in the
+sample's place), plus :class:`SeededShots`: the session seed is given at construction and
+the engine names each shot's (step, frame) with :meth:`next_shot` before capturing it, so
+its noise is drawn from :func:`shot_seed` -- a session is reproducible bit for bit, and a
+shot redone after a crash renders the same bytes.
+
+The camera knows nothing of the rig's kinematics: the composition root wires
+``pose_provider = lambda: Kinematics(cfg).poses(rig.read().joints)``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+import math
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from gonio.capture.camera import CameraInfo, Shot
+from gonio.devices import CameraInfo, Shot
 from gonio.errors import CameraError, ConfigError
+from gonio.simulator.camera import SimulatedCamera
+from gonio.simulator.scene import Scene, parse_scene
 
-__all__ = ["SimulatedRigCamera", "minimal_scene"]
+__all__ = ["SimulatedRigCamera", "minimal_scene", "shot_seed"]
+
+
+def shot_seed(seed: int, step: int, frame: int) -> int:
+    """Seed of the sensor noise of frame ``frame`` of step ``step`` in a session of
+    ``seed``: a session is reproducible from its seed, and a redone shot renders the same
+    noise."""
+    return int(np.random.SeedSequence([int(seed), int(step), int(frame)]).generate_state(1)[0])
 
 
 def minimal_scene(width: int = 64, height: int = 48) -> dict[str, Any]:
@@ -57,51 +72,45 @@ def minimal_scene(width: int = 64, height: int = 48) -> dict[str, Any]:
 
 
 class SimulatedRigCamera:
-    """Camera backend that renders the rig's current pose.
+    """Renders the rig's current pose; a camera, a light and a target changer.
 
     Parameters
     ----------
-    rig
-        The rig device; ``read_joints()`` gives the reached joint angles (rad).
-    kinematics
-        ``gonio.rig.kinematics.Kinematics`` of the same rig configuration.
     scene
         A :class:`gonio.simulator.scene.Scene`, a scene document (dict), or None for
         :func:`minimal_scene`.
+    pose_provider
+        Returns the present poses (``gonio.rig.kinematics.RigPoses`` or a mapping with
+        ``camera_position``, ``camera_rotation``, ``light_position``, ``light_normal``).
+    seed
+        The session seed; each shot's noise comes from ``shot_seed(seed, step, frame)``.
     width, height
         Override the scene's resolution (quick runs), pixels.
     reference_albedo
         Reflectance of the rendered reference target.
-    read_joints
-        Alternative to ``rig``: a callable returning joint angles (rad).
+    base_dir
+        Folder a scene document's relative paths start from.
     """
 
     def __init__(
         self,
-        rig: Any = None,
-        kinematics: Any = None,
-        scene: Any = None,
+        scene: Scene | dict[str, Any] | None,
+        pose_provider: Callable[[], Any],
+        seed: int = 0,
         *,
         width: int | None = None,
         height: int | None = None,
         reference_albedo: float | tuple[float, float, float] = 0.99,
-        read_joints: Callable[[], Mapping[str, float]] | None = None,
+        base_dir: str | Path | None = None,
     ) -> None:
-        from gonio.simulator.camera import SimulatedCamera
-        from gonio.simulator.scene import Scene, parse_scene
-
-        if read_joints is None:
-            if rig is None:
-                raise CameraError("the simulated camera needs the rig (to read the reached pose)")
-            read_joints = rig.read_joints
-        if kinematics is None:
-            raise CameraError("the simulated camera needs the rig's kinematics")
-        self._read_joints = read_joints
-        self._kin = kinematics
+        if pose_provider is None:
+            raise CameraError("the simulated camera needs a pose provider (the rig's pose)")
         if scene is None:
             scene = minimal_scene()
         if isinstance(scene, dict):
-            scene = parse_scene(scene, "<simulated camera scene>")
+            scene = parse_scene(
+                scene, "<simulated camera scene>", Path(base_dir) if base_dir else None
+            )
         if not isinstance(scene, Scene):
             raise ConfigError(f"scene must be a gonio.simulator Scene or dict, got {type(scene)}")
         if width or height:
@@ -111,19 +120,34 @@ class SimulatedRigCamera:
             )
             scene = scene.model_copy(update={"camera": cam})
         self.scene = scene
+        self.seed = int(seed)
         self._cam = SimulatedCamera(
-            scene, pose_provider=self._poses, reference_albedo=reference_albedo
+            scene, pose_provider=pose_provider, reference_albedo=reference_albedo
         )
         self._light_on = True
         self._target = "sample"
         self._closed = False
+        self._next: tuple[int, int] | None = None
+        self._unnamed = 0
 
-    def _poses(self):
-        joints = {k: float(v) for k, v in self._read_joints().items()}
-        return self._kin.poses(joints)
+    # -- SeededShots --------------------------------------------------------------------
+    def next_shot(self, step: int, frame: int) -> None:
+        """The next capture is frame ``frame`` of step ``step`` (its noise stream)."""
+        self._next = (int(step), int(frame))
 
-    # -- Camera interface ---------------------------------------------------------------
+    def _shot_seed(self) -> int:
+        if self._next is None:
+            # Not named by an engine (a bare capture): a stream of its own, still
+            # reproducible from the seed, that no (step, frame) of a session can reach.
+            self._unnamed += 1
+            return shot_seed(self.seed, 2**32 - 1, self._unnamed)
+        step, frame = self._next
+        self._next = None
+        return shot_seed(self.seed, step, frame)
+
+    # -- Camera -------------------------------------------------------------------------
     def describe(self) -> CameraInfo:
+        """The simulated sensor (resolution, focal length, noise, levels)."""
         cam = self.scene.camera
         w, h = cam.resolution
         pitch_mm = cam.pitch * 1e3
@@ -141,19 +165,26 @@ class SimulatedRigCamera:
         )
 
     def read_noise_dn(self, iso: float) -> float:
-        """Read noise in DN at ``iso`` (for the bracket's noise floor)."""
+        """Read noise in DN rms at ``iso`` (for the bracket's noise floor)."""
         s = self.scene.camera.sensor
         return float(s.read_noise * s.gain_at_base_iso * iso / s.base_iso)
 
-    def capture(
-        self, exposure_time: float, iso: float | None, f_number: float | None, *, seed: int = 0
-    ) -> Shot:
-        """Render the reached pose and expose it; DNG bytes in a :class:`Shot`."""
+    def capture(self, exposure_time: float, iso: float | None, f_number: float | None) -> Shot:
+        """Render the reached pose and expose it for ``exposure_time`` s; a DNG
+        :class:`~gonio.devices.Shot`."""
         if self._closed:
             raise CameraError("simulated camera is closed")
+        if not (isinstance(exposure_time, int | float) and math.isfinite(exposure_time)):
+            raise CameraError(f"exposure_time = {exposure_time!r}: expected a finite number of s")
+        if exposure_time <= 0:
+            raise CameraError(f"exposure_time = {exposure_time!r}: expected a positive time, s")
         cam = self.scene.camera
         iso_v = float(cam.iso if iso is None else iso)
         f_v = float(cam.f_number if f_number is None else f_number)
+        for name, v in (("iso", iso_v), ("f_number", f_v)):
+            if not (math.isfinite(v) and v > 0):
+                raise CameraError(f"simulated camera does not support {name} = {v!r}")
+        seed = self._shot_seed()
         if self._light_on:
             data = self._cam.capture(exposure_time, iso_v, f_v, seed, target=self._target)
         else:
@@ -182,6 +213,11 @@ class SimulatedRigCamera:
         )
         return dng_bytes(frame)
 
+    def close(self) -> None:
+        """Release the camera (idempotent)."""
+        self._closed = True
+
+    # -- Light, TargetChanger -----------------------------------------------------------
     def set_light(self, on: bool) -> None:
         """Switch the simulated light (dark frames are exposures with it off)."""
         self._light_on = bool(on)
@@ -191,6 +227,3 @@ class SimulatedRigCamera:
         if kind not in ("sample", "reference"):
             raise CameraError(f"target must be 'sample' or 'reference', got {kind!r}")
         self._target = kind
-
-    def close(self) -> None:
-        self._closed = True

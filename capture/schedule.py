@@ -1,0 +1,244 @@
+"""The schedule of a session: expansion, visiting order, and the dry run.
+
+:func:`build_schedule` expands a plan against the rig's kinematics, orders the poses for
+the least servo travel (:mod:`gonio.capture.ordering`), then *executes the session plan*
+(:func:`gonio.capture.session_plan.session_plan`, the very generator a run executes)
+against a :class:`DryRunRig`: a rig made of the kinematics alone, which answers each move
+with ``Kinematics.inverse(wi, wo, current=<the previous pose's joints>)``, path check from
+the previous pose included.  So every refusal a run would meet on a nominal rig shows in
+``gonio capture plan``, and each step records the joints the dry run chose, which the run
+passes to ``rig.move_to(wi, wo, joints=...)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from gonio.capture.engine import Engine, SessionDevices
+from gonio.capture.messages import Move, Shoot
+from gonio.capture.ordering import move_time_matrix, order_poses, tour_time
+from gonio.capture.plan import ExpandedPlan, Plan, Pose, expand_plan
+from gonio.capture.refusals import as_refusal
+from gonio.capture.session_plan import PlanState, session_plan
+from gonio.devices import MoveResult, RigState
+from gonio.errors import RigError, SessionError
+
+__all__ = ["DryRunRig", "Refusal", "Schedule", "build_schedule", "dry_run"]
+
+
+@dataclass
+class Refusal:
+    """A step the dry run's kinematics refused: ``code`` (a ``RefusalReason`` value)
+    and the sentence."""
+
+    step: int
+    code: str
+    message: str
+
+
+@dataclass
+class Schedule:
+    """The ordered steps of a session and its estimated duration.
+
+    ``steps[k]`` is journaled as pose ``k``: a dict with ``kind`` (``"sample"``,
+    ``"reference"`` or ``"dark"``), ``wi``/``wo`` (None for darks), angles in degrees,
+    the ``joints`` the dry run chose (rad; absent when refused) and ``refused``
+    (``{"code", "message"}``) when the dry run refused the step.
+    """
+
+    steps: list[dict[str, Any]]
+    expanded: ExpandedPlan
+    travel_time_s: float
+    raster_travel_time_s: float
+    estimated_duration_s: float
+    refused: list[Refusal] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+class DryRunRig:
+    """A rig of kinematics alone: moves are solved, checked and remembered, not made.
+
+    Implements :class:`gonio.devices.RigDevice`.  ``move_to`` solves from the joints of
+    the last move it accepted (the park pose at first), so the path check sees the same
+    previous pose as the run; a refused move leaves the joints where they were.
+    """
+
+    def __init__(self, kinematics: Any, start_joints: Mapping[str, float]) -> None:
+        self.kinematics = kinematics
+        self.joints = {k: float(v) for k, v in start_joints.items()}
+
+    def move_to(
+        self, wi: ArrayLike, wo: ArrayLike, *, joints: Mapping[str, float] | None = None
+    ) -> MoveResult:
+        wi = np.asarray(wi, dtype=np.float64)
+        wo = np.asarray(wo, dtype=np.float64)
+        try:
+            q = self.kinematics.inverse(wi, wo, current=self.joints)
+        except RigError as exc:
+            raise as_refusal(exc) from None
+        duration = self.kinematics.move_time(self.joints, q)
+        self.joints = {k: float(v) for k, v in q.items()}
+        ai, ao = self.kinematics.forward(self.joints)
+        wi_u, wo_u = wi / np.linalg.norm(wi), wo / np.linalg.norm(wo)
+        return MoveResult(
+            wi=wi_u,
+            wo=wo_u,
+            wi_achieved=ai,
+            wo_achieved=ao,
+            joints=dict(self.joints),
+            error_i=float(np.arccos(np.clip(ai @ wi_u, -1, 1))),
+            error_o=float(np.arccos(np.clip(ao @ wo_u, -1, 1))),
+            duration=float(duration),
+        )
+
+    def read(self) -> RigState:
+        return RigState(joints=dict(self.joints))
+
+    def stop(self) -> None:
+        pass
+
+    def park(self) -> dict[str, float]:
+        return dict(self.joints)
+
+    def torque_off(self) -> list[int]:
+        return []
+
+
+class _Dark:
+    """The dry run's light and target: nothing to switch."""
+
+    def set_light(self, on: bool) -> None:
+        pass
+
+    def set_target(self, kind: str) -> None:
+        pass
+
+
+def dry_run(
+    steps: list[dict[str, Any]], plan: Plan, kinematics: Any, start_joints: Mapping[str, float]
+) -> tuple[dict[int, dict[str, float]], list[Refusal]]:
+    """Execute the session plan against a :class:`DryRunRig`.
+
+    Returns
+    -------
+    joints, refused
+        Step -> joints the dry run moved to (rad), and the refused steps.
+    """
+    rig = DryRunRig(kinematics, start_joints)
+    nothing = _Dark()
+    devices = SessionDevices(
+        rig,
+        camera=None,  # type: ignore[arg-type] - Shoot is answered below, never by a camera
+        light=nothing,
+        target=nothing,
+        kinematics=kinematics,
+        sleep=lambda s: None,
+    )
+    joints: dict[int, dict[str, float]] = {}
+    refused: list[Refusal] = []
+
+    def move(msg: Move) -> MoveResult:
+        res = rig.move_to(msg.wi, msg.wo, joints=msg.joints)
+        joints[msg.step] = dict(res.joints)
+        return res
+
+    def watch(doc: dict[str, Any]) -> None:
+        if doc.get("type") == "pose_skipped":
+            refused.append(Refusal(int(doc["pose"]), str(doc["code"]), str(doc["reason"])))
+
+    engine = Engine(devices, None, [watch], handlers={Move: move, Shoot: lambda msg: None})
+    engine.execute(session_plan(steps, plan, PlanState(), kinematics.forward, 2.0))
+    return joints, refused
+
+
+def _expected_frames(plan: Plan) -> float:
+    b = plan.bracket
+    return float(len(b.exposures_s)) if b.policy == "fixed" else min(2.0, b.max_frames)
+
+
+def build_schedule(plan: Plan, kinematics: Any, start_joints: dict[str, float]) -> Schedule:
+    """Expand, check against the rig, order, and dry-run a plan.
+
+    Parameters
+    ----------
+    plan
+        The validated plan.
+    kinematics
+        ``gonio.rig.kinematics.Kinematics`` of the rig (``check``, ``inverse``,
+        ``move_time``, ``forward``).
+    start_joints
+        Where the rig starts (its park pose), joint name -> rad.
+
+    Raises
+    ------
+    SessionError
+        When no pose of the plan is reachable (the message lists the commonest reasons).
+    """
+    expanded = expand_plan(plan, rig_check=lambda wi, wo: kinematics.check(wi, wo))
+    if not any(p.kind == "sample" for p in expanded.poses):
+        reasons: dict[str, int] = {}
+        for e in expanded.excluded:
+            key = e.reason.split(":")[0]
+            reasons[key] = reasons.get(key, 0) + 1
+        top = ", ".join(f"{n} x {r}" for r, n in sorted(reasons.items(), key=lambda x: -x[1])[:4])
+        raise SessionError(
+            f"plan {plan.name!r}: no reachable pose: all {expanded.n_grid} grid poses are "
+            f"excluded or reduced ({top or 'empty grid'}); check the grid and exclusions"
+        )
+    # The visiting order needs a move time between every pair of poses before the path
+    # is known, so it uses each pose's solution from home; the dry run below then solves
+    # each pose from the one before it, as the run will.
+    home_joints = [kinematics.inverse(np.array(p.wi), np.array(p.wo)) for p in expanded.poses]
+    servos = getattr(getattr(kinematics, "config", None), "servos", None)
+    D = move_time_matrix(home_joints, kinematics.move_time, start=start_joints, servos=servos)
+    # Reference poses are shot as a group at the start or end; order each group apart so
+    # the reference target is swapped in only once.
+    idx_sample = [k for k, p in enumerate(expanded.poses) if p.kind == "sample"]
+    idx_ref = [k for k, p in enumerate(expanded.poses) if p.kind == "reference"]
+
+    def ordered(idx: list[int], start_node: int) -> list[int]:
+        if not idx:
+            return []
+        nodes = [start_node] + [k + 1 for k in idx]
+        sub = D[np.ix_(nodes, nodes)]
+        tour = order_poses(sub, start=0)
+        return [nodes[t] - 1 for t in tour[1:]]
+
+    order_s = ordered(idx_sample, 0)
+    if plan.reference.when == "start":
+        order_r = ordered(idx_ref, 0)
+        order = order_r + ordered(idx_sample, (order_r[-1] + 1) if order_r else 0)
+    else:
+        order = order_s + ordered(idx_ref, (order_s[-1] + 1) if order_s else 0)
+    travel = tour_time(D, [0] + [k + 1 for k in order])
+    raster = tour_time(D, [0] + [k + 1 for k in range(len(expanded.poses))])
+    steps: list[dict[str, Any]] = []
+    for k in order:
+        p: Pose = expanded.poses[k]
+        steps.append(p.to_json())
+    if plan.darks.count:
+        dark = {"kind": "dark", "wi": None, "wo": None}
+        steps.insert(0, dark) if plan.darks.when == "start" else steps.append(dark)
+
+    joints, refused = dry_run(steps, plan, kinematics, start_joints)
+    for k, step in enumerate(steps):
+        if k in joints:
+            step["joints"] = joints[k]
+    for r in refused:
+        steps[r.step]["refused"] = {"code": r.code, "message": r.message}
+
+    b = plan.bracket
+    per_frame = (
+        b.exposures_s and float(np.mean(b.exposures_s)) or b.exposure_time_s
+    ) + b.shot_overhead_s
+    n_pose = len(expanded.poses)
+    est = travel + n_pose * (plan.settle_s + _expected_frames(plan) * per_frame)
+    if plan.darks.count:
+        n_t = len(plan.darks.exposure_times_s) or (len(b.exposures_s) or 3)
+        est += plan.darks.count * n_t * per_frame
+    return Schedule(steps, expanded, travel, raster, est, refused)

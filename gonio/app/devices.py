@@ -1,0 +1,185 @@
+"""Building a session's devices, real or simulated: the one place that wires them.
+
+:func:`device_opener` gives the session API (:mod:`gonio.capture.sessions`) what it asks
+for: a rig (a virtual Dynamixel bus on a pty for ``bus.port = "virtual"``, driven through
+the real dynamixel-sdk like the lab rig), its kinematics, and a camera -- gphoto2, or the
+simulator's :class:`~gonio.simulator.rig_camera.SimulatedRigCamera`, which is also the
+session's light and target changer and sees the pose the virtual servos reached.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from gonio.capture.engine import SessionDevices
+from gonio.capture.sessions import DeviceOpener, DeviceRequest
+from gonio.devices import RigDevice
+
+__all__ = [
+    "VIRTUAL_PORTS",
+    "as_rig_device",
+    "device_opener",
+    "is_virtual_port",
+    "open_rig",
+    "open_session_devices",
+    "servo_clock_sleep",
+]
+
+VIRTUAL_PORTS = ("virtual", "sim", "simulated")
+
+
+def is_virtual_port(port: str) -> bool:
+    """A rig port that asks for the simulator's virtual bus (``"virtual"``)."""
+    return port.strip().lower() in VIRTUAL_PORTS
+
+
+def as_rig_device(rig: Any) -> RigDevice:
+    """``rig`` itself when it implements :class:`RigDevice` (the rig engineer's ``Rig``),
+    else the interim adapter of the old ``Rig`` (REMOVE the fallback with the rig merge)."""
+    if isinstance(rig, RigDevice):
+        return rig
+    from gonio.app.legacy_rig import LegacyRigAdapter
+
+    return LegacyRigAdapter(rig)
+
+
+@contextlib.contextmanager
+def open_rig(config: Any) -> Iterator[RigDevice]:
+    """Open the rig of ``config`` (pings, checks models, reboots servos left in a fault)."""
+    from gonio.rig.device import Rig
+
+    with Rig(config) as rig:
+        yield as_rig_device(rig)
+
+
+def servo_clock_sleep(clock: Callable[[], float], time_scale: float) -> Callable[[float], None]:
+    """A sleep of ``seconds`` of servo time on a virtual bus running ``time_scale`` times
+    faster than the wall clock (it waits until ``clock()`` has advanced that much)."""
+
+    def sleep(seconds: float) -> None:
+        end = clock() + seconds
+        while (left := end - clock()) > 0:
+            time.sleep(left / time_scale)
+
+    return sleep
+
+
+@contextlib.contextmanager
+def open_session_devices(
+    request: DeviceRequest,
+    *,
+    camera_port: str | None = None,
+    time_scale: float | None = None,
+    scene: Mapping[str, Any] | None = None,
+    scene_base: Path | None = None,
+) -> Iterator[SessionDevices]:
+    """Open the rig, its kinematics and the camera a session asks for.
+
+    Parameters
+    ----------
+    request
+        What the session needs (rig configuration, camera backend, seed, simulation).
+    camera_port
+        gphoto2 port.
+    time_scale
+        Servo-time speed-up of a virtual bus (default: the simulation record's, else 20).
+    scene, scene_base
+        The scene to render and the folder its paths start from (a new run: the user's
+        files); by default the simulation record's scene, relative to the session.
+
+    Everything opened is closed on exit (torque off is the session finalizer's job and
+    is repeated by the rig's own exit as a last resort).
+    """
+    from gonio.rig.kinematics import Kinematics
+
+    cfg = request.rig_config
+    sim = dict(request.simulation or {})
+    kin = Kinematics(cfg)
+    scale = float(time_scale or sim.get("time_scale") or 20.0)
+    with contextlib.ExitStack() as stack:
+        sleep: Callable[[float], None] = time.sleep
+        if is_virtual_port(cfg.bus.port):
+            from gonio.simulator.servo_model import VirtualServo
+            from gonio.simulator.virtual_bus import VirtualBus
+
+            # The virtual rig starts where a real one is left: parked.
+            park = cfg.park_pulses
+            servos = [VirtualServo(s.id, model=s.model, position=park[s.id]) for s in cfg.servos]
+            bus = VirtualBus(
+                servos, baud_rate=cfg.bus.baud_rate, seed=request.seed, time_scale=scale
+            )
+            stack.enter_context(bus)
+            cfg = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})
+            sleep = servo_clock_sleep(bus.clock, scale)
+        rig = stack.enter_context(open_rig(cfg))
+        if request.camera_backend == "simulated":
+            from gonio.simulator.rig_camera import SimulatedRigCamera
+
+            if scene is None:
+                scene = sim.get("scene")
+                legacy = (scene or {}).get("_base_dir") if isinstance(scene, dict) else None
+                if legacy:  # sessions from before relocatable manifests
+                    scene = {k: v for k, v in scene.items() if k != "_base_dir"}
+                scene_base = Path(legacy) if legacy else request.session_dir
+            refl = request.reference_reflectance
+            if refl is None:
+                refl = sim.get("reference_reflectance")
+            if isinstance(refl, list | tuple):
+                refl = tuple(float(x) for x in refl)
+
+            def poses() -> Any:
+                return kin.poses({k: float(v) for k, v in rig.read().joints.items()})
+
+            camera = SimulatedRigCamera(
+                dict(scene) if scene is not None else None,
+                poses,
+                request.seed,
+                width=sim.get("width"),
+                height=sim.get("height"),
+                base_dir=scene_base,
+                **({"reference_albedo": refl} if refl is not None else {}),
+            )
+            stack.callback(camera.close)
+            yield SessionDevices(
+                rig,
+                camera,
+                light=camera,
+                target=camera,
+                kinematics=kin,
+                sleep=sleep,
+                read_noise_dn=camera.read_noise_dn,
+            )
+            return
+        from gonio.capture.camera import open_camera
+
+        camera = open_camera(
+            request.camera_backend, **({"port": camera_port} if camera_port else {})
+        )
+        stack.callback(camera.close)
+        yield SessionDevices(rig, camera, kinematics=kin, sleep=sleep)
+
+
+def device_opener(
+    *,
+    camera_port: str | None = None,
+    time_scale: float | None = None,
+    scene: Mapping[str, Any] | None = None,
+    scene_base: Path | None = None,
+) -> DeviceOpener:
+    """A device opener for :func:`gonio.capture.sessions.run_session` /
+    :func:`~gonio.capture.sessions.resume_session` (see :func:`open_session_devices`)."""
+
+    def opener(request: DeviceRequest) -> contextlib.AbstractContextManager[SessionDevices]:
+        return open_session_devices(
+            request,
+            camera_port=camera_port,
+            time_scale=time_scale,
+            scene=scene,
+            scene_base=scene_base,
+        )
+
+    return opener

@@ -1,0 +1,65 @@
+"""A rich progress bar over a session's poses: a subscriber of the engine's documents."""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["SessionProgress"]
+
+
+class SessionProgress:
+    """Counts poses and shots from the documents; prints skips and faults.
+
+    Use as a context manager and pass it to the session API as a subscriber; the
+    ``start`` document sets the total and the poses already done.
+    """
+
+    def __init__(self, quiet: bool, total: int | None = None, done: int = 0) -> None:
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+
+        self.quiet = quiet
+        self.progress = Progress(
+            TextColumn("[bold]poses"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("shots {task.fields[shots]}"),
+            TimeElapsedColumn(),
+            TextColumn("ETA"),
+            TimeRemainingColumn(),
+            disable=quiet,
+        )
+        self.task = self.progress.add_task("poses", total=total, completed=done, shots=0)
+        self.shots = 0
+        self.skipped = 0
+
+    def __call__(self, rec: dict[str, Any]) -> None:
+        t = rec.get("type")
+        if t == "start":
+            self.progress.update(self.task, total=rec.get("poses"), completed=rec.get("done", 0))
+        elif t == "shot":
+            self.shots += 1
+            self.progress.update(self.task, shots=self.shots)
+        elif t in ("pose_done", "pose_skipped"):
+            # a skipped pose is finished too: without this the bar stopped short of 100 %
+            self.progress.advance(self.task)
+            if t == "pose_skipped":
+                self.skipped += 1
+                self.progress.console.print(
+                    f"[yellow]pose {rec.get('pose')} skipped: {rec.get('reason')}"
+                )
+        elif t == "fault":
+            self.progress.console.print(f"[red]fault ({rec.get('source')}): {rec.get('error')}")
+
+    def __enter__(self) -> SessionProgress:
+        self.progress.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.progress.__exit__(*exc)

@@ -1,0 +1,115 @@
+"""Simulated sessions: the scene a session renders, made self-contained.
+
+A plan's ``[simulation] scene`` (or ``--scene``) is read here, validated with the
+simulator's own model, and recorded in the manifest as a document whose file references
+(a measured BRDF, an albedo map, a spectrum, a rig file) point at copies inside the
+session (``sim/NAME``), relative to the session directory: the manifest holds no absolute
+path, so the session can be moved or shared and still resumes.
+"""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gonio.errors import ConfigError
+
+__all__ = ["SIM_DIR", "SceneSource", "relocatable", "scene_source"]
+
+#: Folder inside a session for the files a simulated scene refers to.
+SIM_DIR = "sim"
+
+
+@dataclass(frozen=True)
+class SceneSource:
+    """A scene document and the folder its relative paths start from."""
+
+    document: dict[str, Any]
+    base_dir: Path | None = None
+
+
+def scene_source(plan: Any, plan_path: Path | None, scene_path: str | Path | None) -> SceneSource:
+    """The simulated camera's scene for a run: ``scene_path``, else the plan's
+    ``simulation.scene`` (relative to the plan file), else the minimal scene.
+
+    Raises
+    ------
+    ConfigError
+        The file cannot be read, is not TOML, or is not a valid scene (file and field
+        named) -- before anything is opened.
+    """
+    from gonio.simulator.rig_camera import minimal_scene
+    from gonio.simulator.scene import parse_scene
+
+    path = scene_path or plan.simulation.scene
+    if path is None:
+        return SceneSource(minimal_scene())
+    p = Path(path)
+    if not p.is_absolute() and scene_path is None and plan_path is not None:
+        p = plan_path.parent / p
+    try:
+        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read the simulation scene: {exc.strerror}") from None
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"{p}: scene is not valid TOML: {exc}") from None
+    base = p.resolve().parent
+    parse_scene(doc, str(p), base)  # an error names this file, before the session starts
+    return SceneSource(doc, base)
+
+
+#: Keys whose string values in a scene document are file paths.
+_PATH_KEYS = ("file", "albedo_map", "csv", "config")
+
+
+@dataclass
+class _Copies:
+    base: Path | None
+    files: dict[str, Path] = field(default_factory=dict)
+
+    def take(self, value: str) -> str:
+        src = Path(value)
+        if not src.is_absolute():
+            if self.base is None:
+                return value
+            src = self.base / src
+        if not src.is_file():
+            raise ConfigError(f"simulation scene: {value!r} ({src}) is not a file")
+        for known, path in self.files.items():
+            if path == src.resolve():
+                return known
+        name, n = src.name, 1
+        while f"{SIM_DIR}/{name}" in self.files:
+            n += 1
+            name = f"{src.stem}-{n}{src.suffix}"
+        rel = f"{SIM_DIR}/{name}"
+        self.files[rel] = src.resolve()
+        return rel
+
+
+def relocatable(source: SceneSource) -> tuple[dict[str, Any], dict[str, Path]]:
+    """The scene document as the manifest stores it, and the files to copy in.
+
+    Returns
+    -------
+    document, attachments
+        The document with every file reference replaced by ``sim/NAME`` (relative to
+        the session directory), and ``{"sim/NAME": source file}``.
+    """
+    copies = _Copies(source.base_dir)
+
+    def walk(node: Any) -> Any:
+        if isinstance(node, dict):
+            return {
+                k: (copies.take(v) if k in _PATH_KEYS and isinstance(v, str) else walk(v))
+                for k, v in node.items()
+            }
+        if isinstance(node, list):
+            return [walk(v) for v in node]
+        return node
+
+    doc = walk(copy.deepcopy(source.document))
+    return doc, dict(copies.files)

@@ -1,0 +1,109 @@
+"""The dry run executes the session's own plan against the kinematics alone, each move
+solved from the previous pose's joints with its path check -- not from home, as the old
+schedule did (so path refusals appeared only at run time)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from gonio.capture.plan import plan_from_dict
+from gonio.capture.schedule import DryRunRig, build_schedule
+from gonio.errors import PoseRefused, RefusalReason, RigError
+
+
+class PathLimitedKinematics:
+    """Kinematics of a toy rig whose only joint is theta_i (rad): a move of more than
+    30 deg from the present pose makes the arms pass each other; from home (no present
+    pose) every pose is reachable."""
+
+    config = None
+
+    def check(self, wi, wo, current=None):
+        return None
+
+    def inverse(self, wi, wo, current=None):
+        q = {"theta_i": math.acos(float(np.clip(wi[2] / np.linalg.norm(wi), -1, 1)))}
+        if current is not None and abs(q["theta_i"] - current["theta_i"]) > math.radians(30):
+            raise RigError("the move would make the light and camera arms pass or touch each other")
+        return q
+
+    def move_time(self, a, b):
+        return abs(float(a["theta_i"]) - float(b["theta_i"]))
+
+    def forward(self, joints):
+        t = float(joints["theta_i"])
+        return np.array([math.sin(t), 0.0, math.cos(t)]), np.array([-0.5, 0.0, math.sqrt(0.75)])
+
+
+PLAN = {
+    "grid": {"theta_i_deg": [10, 50], "phi_i_deg": [0], "theta_o_deg": [30], "phi_o_deg": [180]},
+    "bracket": {"policy": "fixed", "exposures_s": [0.01]},
+    "exclusions": {"min_separation_deg": 0, "check_rig": False},
+}
+
+
+def test_path_from_the_previous_pose_is_checked_and_refusals_recorded():
+    kin = PathLimitedKinematics()
+    sched = build_schedule(plan_from_dict(PLAN), kin, {"theta_i": 0.0})
+    thetas = [round(math.degrees(math.acos(s["wi"][2]))) for s in sched.steps]
+    assert sorted(thetas) == [10, 50]
+    # from home (0 deg) or from 10 deg, 50 deg is more than 30 deg away: refused by the
+    # path rule, with its code; the other pose is solved and its joints recorded
+    assert len(sched.refused) == 1
+    r = sched.refused[0]
+    assert thetas[r.step] == 50 and r.code == RefusalReason.PATH.value
+    assert sched.steps[r.step]["refused"]["code"] == "path"
+    assert "joints" not in sched.steps[r.step]
+    ok = 1 - r.step
+    assert math.isclose(sched.steps[ok]["joints"]["theta_i"], math.radians(10))
+
+
+def test_dry_run_rig_solves_from_its_last_accepted_pose():
+    kin = PathLimitedKinematics()
+    rig = DryRunRig(kin, {"theta_i": 0.0})
+    d = lambda deg: np.array([math.sin(math.radians(deg)), 0.0, math.cos(math.radians(deg))])  # noqa: E731
+    wo = np.array([-0.5, 0.0, math.sqrt(0.75)])
+    rig.move_to(d(25), wo)
+    try:
+        rig.move_to(d(70), wo)  # 45 deg from 25
+    except PoseRefused as exc:
+        assert exc.reason is RefusalReason.PATH
+    else:
+        raise AssertionError("a 45 deg move must be refused")
+    assert math.isclose(rig.read().joints["theta_i"], math.radians(25))  # nothing moved
+    res = rig.move_to(d(50), wo)  # 25 deg from 25: fine
+    assert math.isclose(res.joints["theta_i"], math.radians(50))
+    assert math.isclose(res.duration, math.radians(25))
+
+
+def test_session_modules_import_neither_the_simulator_nor_the_app():
+    """capture must not import the simulator or the composition root, not even lazily
+    (function-level imports count); the simulated camera must not import capture or the
+    rig's kinematics."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    rules = {
+        "capture": ("gonio.simulator", "gonio.app"),
+        "simulator/rig_camera.py": ("gonio.capture", "gonio.rig.kinematics", "gonio.app"),
+    }
+    session_modules = [
+        "bracket", "camera", "engine", "journal", "manifest", "messages", "ordering",
+        "refusals", "schedule", "session", "session_dir", "session_plan", "session_report",
+        "sessions",
+    ]  # fmt: skip
+    files = {root / "capture" / f"{m}.py": rules["capture"] for m in session_modules}
+    files[root / "simulator" / "rig_camera.py"] = rules["simulator/rig_camera.py"]
+    bad = []
+    for path, forbidden in files.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            bad += [f"{path.name}: {n}" for n in names if n.startswith(forbidden)]
+    assert bad == []
