@@ -23,10 +23,9 @@ from gonio.capture.engine import Engine, SessionDevices
 from gonio.capture.messages import Move, Shoot
 from gonio.capture.ordering import move_time_matrix, order_poses, tour_time
 from gonio.capture.plan import ExpandedPlan, Plan, Pose, expand_plan
-from gonio.capture.refusals import as_refusal
 from gonio.capture.session_plan import PlanState, session_plan
 from gonio.devices import MoveResult, RigState
-from gonio.errors import RigError, SessionError
+from gonio.errors import SessionError
 
 __all__ = ["DryRunRig", "Refusal", "Schedule", "build_schedule", "dry_run"]
 
@@ -77,10 +76,7 @@ class DryRunRig:
     ) -> MoveResult:
         wi = np.asarray(wi, dtype=np.float64)
         wo = np.asarray(wo, dtype=np.float64)
-        try:
-            q = self.kinematics.inverse(wi, wo, current=self.joints)
-        except RigError as exc:
-            raise as_refusal(exc) from None
+        q = self.kinematics.inverse(wi, wo, current=self.joints)  # PoseRefused: nothing moved
         duration = self.kinematics.move_time(self.joints, q)
         self.joints = {k: float(v) for k, v in q.items()}
         ai, ao = self.kinematics.forward(self.joints)

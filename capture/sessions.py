@@ -407,7 +407,12 @@ def resume_session(
         )
         with contextlib.ExitStack() as opened:
             dev = _enter(devices, request, opened)
-            return _run(d, manifest, manifest.plan, dev, state, True, retakes, subscribers, bad)
+            # The schedule's joints were planned for the session's rig; a forced other rig
+            # solves each pose anew (its own limits and path rules decide).
+            planned = cfg is manifest.rig
+            return _run(
+                d, manifest, manifest.plan, dev, state, True, retakes, subscribers, bad, planned
+            )
 
 
 def _run(
@@ -420,8 +425,12 @@ def _run(
     retake: Mapping[int, set[int]],
     subscribers: Sequence[Subscriber],
     bad: Sequence[BadFrame] = (),
+    planned_joints: bool = True,
 ) -> RunResult:
     steps = [s.model_dump() for s in manifest.schedule]
+    if not planned_joints:
+        for s in steps:
+            s["joints"] = None
     jpath = d / JOURNAL
     if jpath.exists():
         journal, _ = Journal.open(jpath)

@@ -21,7 +21,6 @@ from gonio.devices import RigDevice
 
 __all__ = [
     "VIRTUAL_PORTS",
-    "as_rig_device",
     "device_opener",
     "is_virtual_port",
     "open_rig",
@@ -37,14 +36,6 @@ def is_virtual_port(port: str) -> bool:
     return port.strip().lower() in VIRTUAL_PORTS
 
 
-def as_rig_device(rig: Any) -> RigDevice:
-    """``rig`` itself when it implements :class:`RigDevice` (the rig engineer's ``Rig``),
-    else the interim adapter of the old ``Rig`` (REMOVE the fallback with the rig merge)."""
-    if isinstance(rig, RigDevice):
-        return rig
-    from gonio.app.legacy_rig import LegacyRigAdapter
-
-    return LegacyRigAdapter(rig)
 
 
 @contextlib.contextmanager
@@ -53,7 +44,7 @@ def open_rig(config: Any) -> Iterator[RigDevice]:
     from gonio.rig.device import Rig
 
     with Rig(config) as rig:
-        yield as_rig_device(rig)
+        yield rig
 
 
 def servo_clock_sleep(clock: Callable[[], float], time_scale: float) -> Callable[[float], None]:

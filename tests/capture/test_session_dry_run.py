@@ -10,7 +10,7 @@ import numpy as np
 
 from gonio.capture.plan import plan_from_dict
 from gonio.capture.schedule import DryRunRig, build_schedule
-from gonio.errors import PoseRefused, RefusalReason, RigError
+from gonio.errors import PoseRefused, RefusalReason
 
 
 class PathLimitedKinematics:
@@ -26,7 +26,10 @@ class PathLimitedKinematics:
     def inverse(self, wi, wo, current=None):
         q = {"theta_i": math.acos(float(np.clip(wi[2] / np.linalg.norm(wi), -1, 1)))}
         if current is not None and abs(q["theta_i"] - current["theta_i"]) > math.radians(30):
-            raise RigError("the move would make the light and camera arms pass or touch each other")
+            raise PoseRefused(
+                RefusalReason.PATH,
+                "the move would make the light and camera arms pass or touch each other",
+            )
         return q
 
     def move_time(self, a, b):
@@ -92,7 +95,7 @@ def test_session_modules_import_neither_the_simulator_nor_the_app():
     }
     session_modules = [
         "bracket", "camera", "engine", "journal", "manifest", "messages", "ordering",
-        "refusals", "schedule", "session", "session_dir", "session_plan", "session_report",
+        "schedule", "session", "session_dir", "session_plan", "session_report",
         "sessions",
     ]  # fmt: skip
     files = {root / "capture" / f"{m}.py": rules["capture"] for m in session_modules}
