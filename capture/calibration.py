@@ -16,8 +16,8 @@ carried over with the light's geometry (:func:`irradiance_geometry`: the exact i
 of a Lambertian disk of unit radiance, or the point-source law), which cancels the light's
 unknown absolute radiance.
 
-Photometric values (luminance in cd/m^2, illuminance in lux) are derived from camera RGB
-with colour-science when the camera's colour matrix is known; they never enter the BRDF.
+Photometric values are not computed here: :mod:`gonio.radiometry.photometry` derives them,
+and they never enter the BRDF.
 """
 
 from __future__ import annotations
@@ -208,23 +208,3 @@ def irradiance_geometry(
         cos_l = -(v[0] * ln[0] + v[1] * ln[1] + v[2] * ln[2])
         g = g * np.maximum(cos_l, 0.0) / np.sqrt(d2) / np.linalg.norm(ln)
     return g
-
-
-def luminance(radiance_rgb: ArrayLike, colour_matrix: ArrayLike) -> NDArray[np.float64]:
-    """Luminance (cd/m^2) from camera-RGB radiance and the DNG ColorMatrix1.
-
-    ``colour_matrix`` maps XYZ to camera RGB (DNG convention); its inverse gives XYZ, and
-    Y times the maximum luminous efficacy (683 lm/W, ``colour.constants.CONSTANT_K_M``)
-    is the luminance, valid when the radiance is in absolute units.
-    """
-    import colour
-
-    xyz_to_cam = np.asarray(colour_matrix, float)
-    cam_to_xyz = np.linalg.inv(xyz_to_cam)
-    xyz = colour.algebra.vecmul(cam_to_xyz, np.asarray(radiance_rgb, float))
-    return colour.constants.CONSTANT_K_M * xyz[..., 1]
-
-
-def illuminance(irradiance_rgb: ArrayLike, colour_matrix: ArrayLike) -> NDArray[np.float64]:
-    """Illuminance (lux) from camera-RGB irradiance, as :func:`luminance`."""
-    return luminance(irradiance_rgb, colour_matrix)

@@ -29,6 +29,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from gonio.capture.raw import RawFrame
 from gonio.errors import ReductionError
+from gonio.radiometry.frames import angle_between as angle_between  # gonio.capture.reduce
+from gonio.radiometry.frames import rotation_angle
 
 
 @lru_cache(maxsize=8)
@@ -111,8 +113,7 @@ class CameraPose:
 
     def angle_to(self, rotation: ArrayLike) -> float:
         """Angle (rad) of the rotation between this pose and another world-to-camera one."""
-        dR = self.rotation @ np.asarray(rotation, float).T
-        return float(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)))
+        return float(rotation_angle(self.rotation @ np.asarray(rotation, float).T))
 
 
 def _cell_scales(frame: RawFrame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -631,10 +632,3 @@ def directions_to(points: NDArray[np.float64], position: ArrayLike) -> NDArray[n
     """Unit directions from sample points (..., 3) towards a position (3,), e.g. the light."""
     v = np.asarray(position, float) - points
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def angle_between(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
-    """Angle (rad) between unit vectors, robust near 0."""
-    a = np.asarray(a, float)
-    b = np.asarray(b, float)
-    return 2 * np.arctan2(np.linalg.norm(a - b, axis=-1), np.linalg.norm(a + b, axis=-1))

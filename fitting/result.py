@@ -7,9 +7,12 @@ callers (the CLI, exports, plots, model selection) never need to know which path
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from gonio.brdf.base import BoundModel
 
 __all__ = ["FitResult"]
 
@@ -100,17 +103,17 @@ class FitResult:
         i = self.channels.index(c) if isinstance(c, str) else int(c)
         return {k: float(v[i]) for k, v in self.params.items()}
 
-    def bind(self) -> Any:
+    def bind(self) -> BoundModel:
         """The fitted model bound to its per-channel parameters.
 
-        Returns an object with ``eval(wi, wo) -> (..., C)`` (1/sr) and
-        ``albedo(theta_i) -> (..., C)``, for any number of channels C (the same interface
-        as a bound model or a measured file).
+        Returns a :class:`gonio.brdf.base.BoundModel` with ``eval(wi, wo) -> (..., C)``
+        (1/sr) and ``albedo(theta_i) -> (..., C)`` for the fit's C channels (the same
+        interface as a bound model or a measured file).
         """
         from gonio.brdf import get_model
 
         m = get_model(self.model, **self.model_options)
-        return _Bound(m, self.params)
+        return m.bind(self.params, channels=len(self.channels))
 
     def summary(self) -> str:
         """A short multi-line text summary (parameters +- std per channel, cost, status)."""
@@ -134,20 +137,3 @@ class FitResult:
         from gonio.fitting.export import result_to_dict
 
         return result_to_dict(self)
-
-
-class _Bound:
-    """Model + per-channel params: ``eval(wi, wo) -> (..., C)``, ``albedo(theta_i)``."""
-
-    def __init__(self, model: Any, params: dict[str, np.ndarray]) -> None:
-        self.model = model
-        self.params = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
-
-    def eval(self, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
-        wi = np.asarray(wi, dtype=np.float64)
-        wo = np.asarray(wo, dtype=np.float64)
-        return self.model.eval(wi[..., None, :], wo[..., None, :], self.params)
-
-    def albedo(self, theta_i: np.ndarray) -> np.ndarray:
-        t = np.asarray(theta_i, dtype=np.float64)
-        return self.model.albedo(t[..., None], self.params)

@@ -35,10 +35,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from gonio.devices import MoveResult, RigState
 from gonio.errors import BusError, PoseRefused, RefusalReason, RigError, RigFault
+from gonio.radiometry.frames import angle_between
 from gonio.rig import control_table as ct
 from gonio.rig.bus import BusTransport
 from gonio.rig.config import JOINT_NAMES, RigConfig
-from gonio.rig.kinematics import Kinematics, _angle_between
+from gonio.rig.kinematics import Kinematics
 from gonio.rig.servo import Servo, ServoState
 from gonio.rig.transport import Transport
 
@@ -463,7 +464,7 @@ class Rig:
             for k, j in enumerate(JOINT_NAMES)
         }
         ai, ao = self.kinematics.forward(q)
-        err = np.maximum(_angle_between(ai, np.asarray(wi)), _angle_between(ao, np.asarray(wo)))
+        err = np.maximum(angle_between(ai, np.asarray(wi)), angle_between(ao, np.asarray(wo)))
         best = combos[int(np.argmin(err))]
         goals = {}
         for k, j in enumerate(JOINT_NAMES):
@@ -540,8 +541,8 @@ class Rig:
             wi_achieved=ai,
             wo_achieved=ao,
             joints=achieved,
-            error_i=float(_angle_between(ai, wi_u)),
-            error_o=float(_angle_between(ao, wo_u)),
+            error_i=float(angle_between(ai, wi_u)),
+            error_o=float(angle_between(ao, wo_u)),
             duration=self._clock() - t0,
         )
 
@@ -566,8 +567,8 @@ class Rig:
         )
         hi, ho = self.kinematics.forward(q)
         off = max(
-            float(_angle_between(hi, wi / np.linalg.norm(wi))),
-            float(_angle_between(ho, wo / np.linalg.norm(wo))),
+            float(angle_between(hi, wi / np.linalg.norm(wi))),
+            float(angle_between(ho, wo / np.linalg.norm(wo))),
         )
         if not off <= _HINT_TOLERANCE_RAD:
             raise RigError(

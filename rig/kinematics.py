@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gonio.errors import ConfigError, PoseRefused, RefusalReason, RigError
+from gonio.radiometry.frames import angle_between, look_along_rotation, normalize, rotation_about
 from gonio.rig.config import JOINT_NAMES, RigConfig
 from gonio.rig.control_table import (
     MODELS,
@@ -57,29 +58,9 @@ _Z = np.array([0.0, 0.0, 1.0])
 _EPS = 1e-12
 
 
-def _unit(v: ArrayLike) -> Array:
-    v = np.asarray(v, dtype=np.float64)
-    return v / np.linalg.norm(v)
-
-
-def _rotation(axis: Array, angle: ArrayLike) -> Array:
-    """Rodrigues rotation matrices about unit ``axis`` by ``angle`` (rad), shape (..., 3, 3)."""
-    angle = np.asarray(angle, dtype=np.float64)
-    kx, ky, kz = axis
-    K = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
-    s = np.sin(angle)[..., None, None]
-    c = np.cos(angle)[..., None, None]
-    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
-
-
 def _wrap(a: ArrayLike) -> Array:
     """Angle wrapped to (-pi, pi]."""
     return -np.remainder(-np.asarray(a, dtype=np.float64) + np.pi, 2 * np.pi) + np.pi
-
-
-def _angle_between(a: Array, b: Array) -> Array:
-    """Angle (rad) between vectors, accurate near 0 and pi (atan2 of cross and dot)."""
-    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("...i,...i", a, b))
 
 
 def trapezoid_time(distance: ArrayLike, speed: ArrayLike, accel: ArrayLike) -> Array:
@@ -185,10 +166,10 @@ class Kinematics:
             raise ConfigError(f"geometry.kind {g.kind!r} is not supported")
         self.config = config
         self.geometry = g
-        x_s = _unit(g.rest_reference)
-        z_s = _unit(g.rest_normal)
+        x_s = normalize(g.rest_reference)
+        z_s = normalize(g.rest_normal)
         self._B = np.stack([x_s, np.cross(z_s, x_s), z_s], axis=1)  # columns: sample axes
-        self._k = _unit(g.tilt_axis)
+        self._k = normalize(g.tilt_axis)
         # Up seen from the rest stage: v(t) = p cos t - q sin t with p = B^T z, q = B^T (k x z).
         self._p = self._B.T @ _Z
         self._q = self._B.T @ np.cross(self._k, _Z)
@@ -224,7 +205,7 @@ class Kinematics:
     # ------------------------------------------------------------------ forward
     def sample_to_world(self, tilt: ArrayLike, spin: ArrayLike) -> Array:
         """Stage rotation ``A(tilt) @ B @ Rz(spin)`` (sample -> world), shape (..., 3, 3)."""
-        return _rotation(self._k, tilt) @ self._B @ _rotation(_Z, spin)
+        return rotation_about(self._k, tilt) @ self._B @ rotation_about(_Z, spin)
 
     @staticmethod
     def _device(azimuth: ArrayLike, elevation: float) -> Array:
@@ -264,24 +245,15 @@ class Kinematics:
         M = self.sample_to_world(float(joints["stage_tilt"]), float(joints["stage_spin"]))
         wi, wo = self.forward({k: float(v) for k, v in joints.items()})
         g = self.geometry
-        z_cam = -wo
-        down = -(M.T @ _Z)  # world down, in the sample frame
-        y_cam = down - (down @ z_cam) * z_cam
-        ny = np.linalg.norm(y_cam)
-        if ny < 1e-9:  # camera looking straight up or down (elevation 90): roll is arbitrary
-            y_cam = np.cross(z_cam, [1.0, 0.0, 0.0])
-            if np.linalg.norm(y_cam) < 1e-9:
-                y_cam = np.cross(z_cam, [0.0, 1.0, 0.0])
-            ny = np.linalg.norm(y_cam)
-        y_cam = y_cam / ny
-        x_cam = np.cross(y_cam, z_cam)
+        # Looking at the sample centre with world up (in the sample frame) as image up.
+        camera_rotation = look_along_rotation(-wo, up=M.T @ _Z).T
         return RigPoses(
             wi=wi,
             wo=wo,
             light_position=g.light_radius_m * wi,
             light_normal=-wi,
             camera_position=g.camera_radius_m * wo,
-            camera_rotation=np.stack([x_cam, y_cam, z_cam], axis=1),
+            camera_rotation=camera_rotation,
             sample_to_world=M,
         )
 
@@ -327,7 +299,7 @@ class Kinematics:
                     f"{j} would need {math.degrees(q[j]):.3f} deg, outside its limits "
                     f"[{math.degrees(lo):.1f}, {math.degrees(hi):.1f}] deg",
                 )
-        sep = float(_angle_between(wi, wo))
+        sep = float(angle_between(wi, wo))
         if sep < self.min_separation:
             return PoseRefused(
                 RefusalReason.SHADOWING,

@@ -11,7 +11,7 @@ from gonio.cli import LazyGroup
     cls=LazyGroup,
     lazy_commands={
         "render": "gonio.simulator.render_cli:render_cmd",
-        "bus": "gonio.simulator.bus_cli:bus_cmd",
+        "bus": "gonio.app.sim_bus:bus_cmd",
     },
 )
 def sim() -> None:

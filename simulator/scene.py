@@ -94,6 +94,7 @@ from pydantic import (
 
 from gonio.config import read_toml, validate
 from gonio.errors import ConfigError
+from gonio.radiometry import frames
 
 __all__ = [
     "BRDFSpec",
@@ -132,37 +133,23 @@ def _rgb(value: RGBOrScalar) -> np.ndarray:
 
 
 def _unit(v: Any, what: str) -> np.ndarray:
-    a = np.asarray(v, dtype=np.float64)
-    n = float(np.linalg.norm(a))
-    if not np.isfinite(n) or n == 0.0:
+    u = frames.normalize(v)
+    if not np.all(np.isfinite(u)):
         raise ValueError(f"{what} must be a non-zero finite vector, got {v}")
-    return a / n
+    return u
 
 
 def look_at_rotation(position: Any, target: Any, up: Any = (0.0, 0.0, 1.0)) -> np.ndarray:
-    """World-to-camera rotation (OpenCV axes: x right, y down, z forward).
+    """:func:`gonio.radiometry.frames.look_at_rotation` for one camera, validated.
 
-    Parameters
-    ----------
-    position, target
-        Camera centre and the point it looks at, metres, shape (3,).
-    up
-        Approximate up direction in the image; when parallel to the viewing direction,
-        the sample frame's +y (then +x) is used instead.
-
-    Returns
-    -------
-    ndarray (3, 3)
-        Rows are the camera's x, y, z axes expressed in the world (sample) frame.
+    Raises
+    ------
+    ValueError
+        When ``target == position`` or ``up`` is zero (the scene names the field).
     """
-    forward = _unit(np.asarray(target, float) - np.asarray(position, float), "look direction")
-    for cand in (up, (0.0, 1.0, 0.0), (1.0, 0.0, 0.0)):
-        right = np.cross(forward, _unit(cand, "up"))
-        if np.linalg.norm(right) > 1e-9:
-            break
-    right = right / np.linalg.norm(right)
-    down = np.cross(forward, right)
-    return np.stack([right, down, forward])
+    _unit(np.asarray(target, float) - np.asarray(position, float), "look direction")
+    _unit(up, "up")
+    return frames.look_at_rotation(position, target, up)
 
 
 class Spectrum(_Model):

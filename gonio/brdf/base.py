@@ -391,13 +391,13 @@ class Model:
         assert total is not None
         return total
 
-    def bind(self, params: Params | None = None) -> BoundModel:
-        """Fix the parameters: the result evaluates RGB f_r with ``eval(wi, wo)``.
+    def bind(self, params: Params | None = None, channels: int | None = None) -> BoundModel:
+        """Fix the parameters: the result evaluates f_r per channel with ``eval(wi, wo)``.
 
-        Scalar parameters are broadcast to 3 colour channels; array parameters must have a
-        last axis of 3 (or 1).
+        See :class:`BoundModel`: scalar parameters are broadcast to ``channels`` colour
+        channels (by default the length of the array parameters' last axis, or 3).
         """
-        return BoundModel(self, params)
+        return BoundModel(self, params, channels)
 
 
 def _masked(f: Array, below: Array, shape: tuple[int, ...], inplace: bool = False) -> Array:
@@ -411,27 +411,54 @@ def _masked(f: Array, below: Array, shape: tuple[int, ...], inplace: bool = Fals
 
 
 class BoundModel:
-    """A model with fixed parameters, evaluated per colour channel.
+    """A model with fixed parameters, evaluated per colour channel, for any channel count.
 
-    ``eval(wi, wo)`` returns RGB f_r of shape ``(..., 3)`` (1/sr); ``albedo(theta_i)``
-    returns ``(..., 3)``.  Same interface as a measured BRDF from ``gonio.brdf.load``.
+    ``eval(wi, wo)`` returns f_r of shape ``(..., C)`` (1/sr); ``albedo(theta_i)`` returns
+    ``(..., C)``.  Same interface as a measured BRDF from ``gonio.brdf.load`` (C = 3) and
+    what :meth:`gonio.fitting.FitResult.bind` returns (C = the fit's channels).
+
+    Parameters
+    ----------
+    model
+        The analytic model.
+    params
+        Name -> float or array; missing names take the model's defaults.  An array's last
+        axis is the channel axis, of length C or 1 (broadcast); a scalar is broadcast to C.
+    channels
+        The channel count C.  By default the length of the array parameters' last axis
+        (where it is not 1), or 3 (RGB) when every parameter is a scalar.
+
+    Raises
+    ------
+    ParameterError
+        A parameter is unknown or out of its bounds, or its last axis is neither 1 nor C.
     """
 
     format = "analytic"
 
-    def __init__(self, model: Model, params: Params | None = None) -> None:
+    def __init__(self, model: Model, params: Params | None = None, channels: int | None = None):
         checked = model.check_params(params)
+        if channels is None:
+            lengths = {v.shape[-1] for v in checked.values() if v.ndim and v.shape[-1] != 1}
+            if len(lengths) > 1:
+                shapes = ", ".join(f"'{k}' {v.shape}" for k, v in checked.items() if v.ndim)
+                raise ParameterError(
+                    f"parameters of model '{model.name}' disagree on the number of colour "
+                    f"channels (their last axis): {shapes}"
+                )
+            channels = lengths.pop() if lengths else 3
+        if int(channels) != channels or channels < 1:
+            raise ParameterError(f"channels must be a positive integer, got {channels!r}")
+        self.channels = int(channels)
         self.model = model
         self.params: dict[str, Array] = {}
         for k, v in checked.items():
-            if v.ndim == 0:
-                v = np.full(3, float(v))
-            elif v.shape[-1] not in (1, 3):
+            if v.ndim and v.shape[-1] not in (1, self.channels):
                 raise ParameterError(
-                    f"parameter '{k}' must be a scalar or have 3 colour channels in its last "
-                    f"axis, got shape {v.shape}"
+                    f"parameter '{k}' must be a scalar or have {self.channels} colour channels "
+                    f"(or 1) in its last axis, got shape {v.shape}"
                 )
-            self.params[k] = np.broadcast_to(v, v.shape[:-1] + (3,))
+            self.params[k] = np.broadcast_to(v, v.shape[:-1] + (self.channels,))
         values = ", ".join(f"{k}={_fmt(v)}" for k, v in self.params.items())
         self.description = f"{model.name}({values})"
         self.metadata: dict[str, Any] = {
@@ -441,13 +468,19 @@ class BoundModel:
         }
 
     def eval(self, wi: ArrayLike, wo: ArrayLike) -> Array:
-        """RGB f_r (1/sr), shape ``broadcast(wi.shape[:-1], wo.shape[:-1]) + (3,)``."""
+        """f_r per channel (1/sr), shape ``broadcast(wi.shape[:-1], wo.shape[:-1]) + (C,)``.
+
+        ``wi`` and ``wo`` are unit vectors, shape (..., 3), in the sample frame.
+        """
         wi = np.asarray(wi, dtype=np.float64)[..., None, :]
         wo = np.asarray(wo, dtype=np.float64)[..., None, :]
         return self.model.eval(wi, wo, self.params)
 
     def albedo(self, theta_i: ArrayLike, phi_i: ArrayLike = 0.0) -> Array:
-        """RGB directional albedo at incidence ``theta_i`` (rad), shape ``(..., 3)``."""
+        """Directional albedo per channel at incidence ``theta_i``, ``phi_i`` (rad).
+
+        Dimensionless, shape ``broadcast(theta_i, phi_i) + (C,)``.
+        """
         t = np.asarray(theta_i, dtype=np.float64)[..., None]
         ph = np.asarray(phi_i, dtype=np.float64)[..., None]
         return self.model.albedo(t, self.params, ph)

@@ -36,7 +36,8 @@ def info_cmd(file: Path, theta_i_deg: str) -> None:
     FILE is an RGL-EPFL material (*.bsdf, tensor_file v1.0) or a MERL table (*.binary);
     the format is recognised from the content, not the name.  The directional albedo
     a(theta_i) = integral of f_r cos(theta_o) over the hemisphere is printed per RGB
-    channel; a physically plausible material has a <= 1.
+    channel, with its luminance-weighted value Y = 0.2126 R + 0.7152 G + 0.0722 B (the
+    files' RGB is linear sRGB); a physically plausible material has a <= 1.
 
     \b
     Example:
@@ -46,6 +47,7 @@ def info_cmd(file: Path, theta_i_deg: str) -> None:
     from rich.table import Table
 
     from gonio.brdf.measured import load
+    from gonio.radiometry.photometry import luminous_reflectance
 
     angles = _parse_angles(theta_i_deg)
     b = load(file)
@@ -84,10 +86,11 @@ def info_cmd(file: Path, theta_i_deg: str) -> None:
     alb = b.albedo(np.radians(angles))
     t = Table(title="directional albedo")
     t.add_column("theta_i (deg)", justify="right")
-    for c in ("R", "G", "B"):
+    for c in ("R", "G", "B", "Y (sRGB)"):
         t.add_column(c, justify="right")
-    for a, row in zip(angles, alb, strict=True):
-        t.add_row(f"{a:g}", *(f"{v:.4f}" for v in row))
+    lum = luminous_reflectance(alb)
+    for a, row, y in zip(angles, alb, lum, strict=True):
+        t.add_row(f"{a:g}", *(f"{v:.4f}" for v in (*row, y)))
     console.print(t)
 
 

@@ -240,7 +240,8 @@ def albedo_cmd(
     The directional albedo a(theta_i) is the integral of f_r cos(theta_o) over the
     outgoing hemisphere: the fraction of light from theta_i that is reflected.  A
     physically plausible BRDF has a <= 1 everywhere; a warning is printed otherwise.
-    Default angles: 0, 10, ..., 80, 85, 89 degrees.
+    Default angles: 0, 10, ..., 80, 85, 89 degrees.  A coloured albedo also gets its
+    luminance-weighted value, Y = 0.2126 R + 0.7152 G + 0.0722 B (linear sRGB).
 
     \b
     Example:
@@ -248,6 +249,8 @@ def albedo_cmd(
     """
     from rich.console import Console
     from rich.table import Table
+
+    from gonio.radiometry.photometry import luminous_reflectance
 
     thetas = _parse_thetas(theta_i, _DEFAULT_THETAS)
     brdf, label = _resolve(model_or_file, _parse_params(params), fresnel, g1)
@@ -260,9 +263,14 @@ def albedo_cmd(
     names = ("albedo",) if grey else ("R", "G", "B")
     for n in names:
         table.add_column(n, justify="right")
-    for t, row in zip(thetas, a, strict=True):
+    if not grey:
+        table.add_column("Y (sRGB)", justify="right")
+        lum = luminous_reflectance(a)
+    for i, (t, row) in enumerate(zip(thetas, a, strict=True)):
         vals = row[:1] if grey else row
         cells = [f"[bold red]{v:.6f}[/]" if v > 1.0 else f"{v:.6f}" for v in vals]
+        if not grey:
+            cells.append(f"{lum[i]:.6f}")
         table.add_row(f"{t:g}", *cells)
     Console().print(table)
     if np.any(a > 1.0):

@@ -140,6 +140,144 @@ def to_world(v: ArrayLike, frame: ArrayLike) -> Array:
     return np.einsum("...ji,...j->...i", np.asarray(frame, dtype=np.float64), as_vectors(v))
 
 
+def angle_between(a: ArrayLike, b: ArrayLike) -> Array:
+    """Angle between vectors (rad, in [0, pi]), accurate near 0 and near pi.
+
+    ``atan2(|a x b|, a . b)``, so neither vector needs to be normalised.
+
+    Parameters
+    ----------
+    a, b
+        Vectors, shape ``(..., 3)``, broadcast together (any length, same unit).
+
+    Returns
+    -------
+    ndarray, shape ``broadcast(a, b).shape[:-1]``
+        NaN where a component is NaN; 0 when a vector is zero.
+    """
+    a = as_vectors(a)
+    b = as_vectors(b)
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("...i,...i", a, b))
+
+
+def rotation_about(axis: ArrayLike, angle: ArrayLike) -> Array:
+    """Rotation matrices about unit ``axis`` by ``angle`` (Rodrigues' formula).
+
+    ``R = I + sin(angle) K + (1 - cos(angle)) K^2`` with ``K`` the cross-product matrix
+    of ``axis``: ``R @ v`` turns ``v`` counter-clockwise about ``axis`` seen from its tip.
+
+    Parameters
+    ----------
+    axis
+        Unit rotation axes, shape ``(..., 3)`` (not normalised here).
+    angle
+        Rotation angles (rad), shape ``(...)``; broadcast against ``axis[..., 0]``.
+
+    Returns
+    -------
+    ndarray, shape ``broadcast(axis[..., 0], angle).shape + (3, 3)``
+        NaN in -> NaN out.
+    """
+    kx, ky, kz = np.moveaxis(as_vectors(axis), -1, 0)
+    zero = np.zeros_like(kx)
+    K = np.stack(
+        [
+            np.stack([zero, -kz, ky], axis=-1),
+            np.stack([kz, zero, -kx], axis=-1),
+            np.stack([-ky, kx, zero], axis=-1),
+        ],
+        axis=-2,
+    )
+    angle = np.asarray(angle, dtype=np.float64)
+    s = np.sin(angle)[..., None, None]
+    c = np.cos(angle)[..., None, None]
+    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+
+
+def rotation_angle(rotation: ArrayLike) -> Array:
+    """Angle (rad, in [0, pi]) of rotation matrices: ``arccos((trace R - 1) / 2)``.
+
+    The angle between two orientations ``R1``, ``R2`` is ``rotation_angle(R1 @ R2.T)``.
+
+    Parameters
+    ----------
+    rotation
+        Rotation matrices, shape ``(..., 3, 3)``.
+
+    Returns
+    -------
+    ndarray, shape ``(...)``
+        NaN in -> NaN out.
+    """
+    R = np.asarray(rotation, dtype=np.float64)
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"expected rotation matrices of shape (..., 3, 3), got shape {R.shape}")
+    return np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0))
+
+
+def look_along_rotation(forward: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) -> Array:
+    """World-to-camera rotation of a camera looking along the unit vector ``forward``.
+
+    OpenCV camera axes: x right, y down (image rows), z forward.  The image's up is
+    ``up`` made perpendicular to ``forward``; where ``up`` is (nearly) parallel to it,
+    the world's +y, then +x, is used instead.
+
+    Parameters
+    ----------
+    forward
+        Unit viewing directions, shape ``(..., 3)`` (not normalised here).
+    up
+        Approximate up directions of the image, shape ``(..., 3)``; any length.
+
+    Returns
+    -------
+    ndarray, shape ``broadcast(forward, up).shape[:-1] + (3, 3)``
+        Rows are the camera's x, y, z axes in world coordinates (the camera-to-world
+        rotation is the transpose).  NaN in -> NaN out.
+    """
+    f = as_vectors(forward)
+    up = as_vectors(up)
+    shape = np.broadcast_shapes(f.shape, up.shape)
+    f = np.broadcast_to(f, shape)
+    right = np.full(shape, np.nan)
+    found = np.zeros(shape[:-1], dtype=bool)
+    # Cross products rather than projecting up onto the image plane: no cancellation when
+    # up is nearly parallel to the view.
+    for cand in (up, (0.0, 1.0, 0.0), (1.0, 0.0, 0.0)):
+        r = np.cross(f, normalize(cand))
+        nr = np.linalg.norm(r, axis=-1, keepdims=True)
+        ok = ~found & (nr[..., 0] > 1e-9)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            right = np.where(ok[..., None], r / nr, right)
+        found |= ok
+    R = np.stack([right, np.cross(f, right), f], axis=-2)
+    nan = np.isnan(f).any(axis=-1) | np.isnan(up).any(axis=-1)
+    return np.where(nan[..., None, None], np.nan, R)
+
+
+def look_at_rotation(
+    position: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)
+) -> Array:
+    """World-to-camera rotation of a camera at ``position`` looking at ``target``.
+
+    :func:`look_along_rotation` with ``forward = normalize(target - position)``.
+
+    Parameters
+    ----------
+    position, target
+        Camera centre and the point it looks at (metres), shape ``(..., 3)``.
+    up
+        Approximate up direction of the image, shape ``(..., 3)``; any length.
+
+    Returns
+    -------
+    ndarray, shape ``(..., 3, 3)``
+        Rows are the camera's x (right), y (down), z (forward) axes in world
+        coordinates.  NaN where ``position == target`` or an input is NaN.
+    """
+    return look_along_rotation(normalize(as_vectors(target) - as_vectors(position)), up)
+
+
 def _rotate_z(v: Array, angle: Array) -> Array:
     c, s = np.cos(angle), np.sin(angle)
     x, y, z = v[..., 0], v[..., 1], v[..., 2]

@@ -143,3 +143,27 @@ def test_info_on_a_merl_table(converted, capsys):
     text = capsys.readouterr().out
     assert "MERL binary" in text and "theta_h 90 x theta_d 90 x phi_d 180" in text
     assert "missing entries" in text and "directional albedo" in text
+
+
+# ITU-R BT.709-6 item 3.2 luminance weights (also sRGB's): the reference for the Y column.
+BT709 = np.array([0.2126, 0.7152, 0.0722])
+
+
+def test_info_prints_the_luminance_weighted_albedo(tmp_path, capsys):
+    # a constant, coloured MERL table: Y must be the BT.709 weighting of the RGB albedo
+    from gonio.brdf.merl import DIMS, SCALES
+
+    rho = np.array([0.2, 0.5, 0.8])
+    raw = np.broadcast_to((rho / np.pi / SCALES)[:, None, None, None], (3, *DIMS)).copy()
+    path = tmp_path / "coloured.binary"
+    MERLBRDF(raw).write(path)
+    assert run("brdf", "info", str(path), "--theta-i-deg", "0,40") in (0, None)
+    out = capsys.readouterr().out
+    assert "Y (sRGB)" in out
+    rows = [line.split("│")[1:-1] for line in out.splitlines() if line.count("│") == 6]
+    values = np.array([[float(c) for c in r] for r in rows])
+    assert values.shape == (2, 5) and list(values[:, 0]) == [0.0, 40.0]
+    rgb, y = values[:, 1:4], values[:, 4]
+    np.testing.assert_allclose(rgb, np.broadcast_to(rho, (2, 3)), atol=2e-3)
+    # both columns are printed to 4 decimals: rounding alone moves them by 1e-4
+    np.testing.assert_allclose(y, rgb @ BT709, atol=1e-4)

@@ -122,6 +122,7 @@ def test_cli_albedo_table_and_energy_warning(capsys):
         capsys, "brdf", "albedo", "lambert", "-p", "albedo=0.6", "--theta-i", "0,45"
     )
     assert code == 0 and "0.600000" in out and "warning" not in err
+    assert "Y (sRGB)" not in out  # a grey albedo is its own luminance-weighted value
     # 0.9 diffuse + 0.9 specular reflect more than they receive
     args = ["brdf", "albedo", "lambert+ggx", "-p", "albedo=0.9", "-p", "ks=0.9", "--theta-i", "30"]
     code, out, err = run(capsys, *args)
@@ -136,6 +137,10 @@ def test_cli_albedo_per_channel(capsys):
     )
     assert code == 0
     assert "0.100000" in out and "0.200000" in out and "0.300000" in out
+    # the luminance-weighted albedo beside them: a Lambertian's albedo is its parameter,
+    # weighted by ITU-R BT.709-6's 0.2126 R + 0.7152 G + 0.0722 B
+    assert "Y (sRGB)" in out
+    assert f"{0.2126 * 0.1 + 0.7152 * 0.2 + 0.0722 * 0.3:.6f}" in out  # 0.186420
 
 
 def test_cli_plot_model_writes_png(capsys, tmp_path):

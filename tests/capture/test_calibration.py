@@ -1,4 +1,4 @@
-"""Radiometric calibration: reference reflectance, BRDF = L / E with uncertainty, photometry."""
+"""Radiometric calibration: reference reflectance, BRDF = L / E with uncertainty."""
 
 from __future__ import annotations
 
@@ -8,10 +8,8 @@ import pytest
 
 from gonio.capture.calibration import (
     brdf_from_radiance,
-    illuminance,
     irradiance_from_reference,
     irradiance_geometry,
-    luminance,
     reference_reflectance,
 )
 from gonio.errors import ConfigError, FileFormatError
@@ -89,15 +87,6 @@ def test_irradiance_geometry_limits():
     # a disk seen face-on from its axis: E = pi L r^2 / (r^2 + d^2), exact
     axis = irradiance_geometry([[0, 0, 0]], [0, 0, 0.5], [0, 0, -1], 0.05)[0]
     assert axis == pytest.approx(np.pi * 0.05**2 / (0.05**2 + 0.25), rel=1e-10)
-
-
-def test_photometry_through_colour_science():
-    # camera RGB = M XYZ for a DNG colour matrix M: luminance must give back 683 Y
-    M = np.array([[1.2, -0.3, -0.1], [-0.4, 1.3, 0.1], [0.0, -0.2, 0.9]])
-    xyz = np.array([[0.3, 0.4, 0.2], [1.0, 1.0, 1.0]])
-    rgb = xyz @ M.T
-    np.testing.assert_allclose(luminance(rgb, M), colour.constants.CONSTANT_K_M * xyz[:, 1])
-    np.testing.assert_allclose(illuminance(rgb, M), 683.0 * xyz[:, 1])
 
 
 def test_disk_correction_used_by_the_reduction_matches_the_rim_integral():

@@ -1,4 +1,8 @@
-"""``gonio sim bus``: serve a virtual Dynamixel bus on a pseudo-terminal."""
+"""``gonio sim bus``: serve a virtual Dynamixel bus on a pseudo-terminal.
+
+Part of the composition root because it wires a simulated device (the virtual bus) from
+the rig's configuration (its park pose); the simulator itself knows only the protocol.
+"""
 
 from __future__ import annotations
 
