@@ -321,6 +321,10 @@ def run_demo(
             quiet=quiet,
         )
     seconds["capture"] = time.perf_counter() - t
+    # the reduction reads the session's reduction.toml, never the scene
+    from gonio.app.sim_reduction import write_reduction_toml
+
+    write_reduction_toml(session)
 
     say("reducing RAW brackets to BRDF samples")
     t = time.perf_counter()

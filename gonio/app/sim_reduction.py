@@ -26,10 +26,21 @@ import numpy as np
 import tomli_w
 
 from gonio.atomic import write_text_atomic
-from gonio.capture.reduction_config import CONFIG_FILE
+from gonio.capture.reduction_config import (
+    CONFIG_FILE,
+    ReductionConfig,
+    ReductionSetup,
+    setup_from_config,
+)
+from gonio.config import validate
 from gonio.errors import GonioError, ReductionError, SessionError
 
-__all__ = ["reduction_document", "scene_of_manifest", "write_reduction_toml"]
+__all__ = [
+    "reduction_document",
+    "scene_of_manifest",
+    "setup_from_scene",
+    "write_reduction_toml",
+]
 
 _HEADER = (
     "# Reduction setup of a simulated session, written by gonio.app.sim_reduction from the\n"
@@ -112,6 +123,22 @@ def reduction_document(
     if ref:
         doc["reference"] = ref
     return doc
+
+
+def setup_from_scene(
+    scene: Any, reference_reflectance: float | Sequence[float] = 0.99, **options: Any
+) -> ReductionSetup:
+    """The :class:`~gonio.capture.reduction_config.ReductionSetup` of a simulated scene.
+
+    The same validation as a ``reduction.toml`` file (:func:`reduction_document` through
+    :class:`~gonio.capture.reduction_config.ReductionConfig`), without the file; for
+    tests and tools that render frames themselves.  ``options`` replace setup fields
+    (``grid=6``, ``geometry="rig"``).
+    """
+    doc = reduction_document(scene, reference_reflectance)
+    config = validate(ReductionConfig, doc, "simulated scene (reduction setup)")
+    setup = setup_from_config(config, "<simulated scene>")
+    return setup.replace(**options) if options else setup
 
 
 def _plain(v: Any) -> Any:
@@ -209,8 +236,7 @@ def write_reduction_toml(
                 same = False
             if not same:
                 raise SessionError(
-                    f"{path} exists with another setup; not replaced (it may be a lab "
-                    "calibration)"
+                    f"{path} exists with another setup; not replaced (it may be a lab calibration)"
                 )
     write_text_atomic(path, text)
     return path

@@ -211,6 +211,9 @@ def test_pose_refused_by_a_narrowed_rig_is_skipped_and_the_rest_completes(files,
     assert [r["type"] for r in again[len(recs) :]] == ["start", "stop"]
 
     # reduce: no crash; the skipped pose is absent from samples.h5, the others present
+    from gonio.app.sim_reduction import write_reduction_toml  # until capture writes it
+
+    write_reduction_toml(out)
     assert run("capture", "reduce", str(out), "--quiet", "--no-plot") == 0
     samples = load_samples(out / "samples.h5")
     sample_poses = {k for k, s in enumerate(steps) if s["kind"] == "sample" and k != victim}
