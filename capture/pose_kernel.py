@@ -91,7 +91,7 @@ class View(NamedTuple):
 
 
 @njit(**_JIT)
-def pose_sums(bracket: Bracket, stencils: Stencils, view: View):  # noqa: C901
+def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     """Region labels of the crop, per-(region, channel) sums and per-region directions.
 
     Returns ``(label (h, w) int64, sums (n, n_channels, 7), dirs (n, 7))``; see

@@ -141,7 +141,45 @@ def measure_pose(
     ReductionError
         When neither the board nor a reported camera pose gives the geometry.
     """
+    cam, pose_flags, pose_reasons = _camera_pose(frames, setup, reported_wo, reported_camera)
+    lp = np.asarray(light_position, float)
+    ln = None if light_normal is None else np.asarray(light_normal, float)
+    fused = _fused_kernel() if all(f.raw is not None for f in frames) else None
+    if fused is not None:
+        regions, sums, dirs = _pose_sums_fused(fused, frames, setup, cam, lp, ln, dark_variance)
+        kernel: Literal["numba", "numpy"] = "numba"
+    else:
+        regions, sums, dirs = _pose_sums_numpy(frames, setup, cam, lp, ln, dark_variance)
+        kernel = "numpy"
+    k, s_L, s_Lv, s_G, s_Q, s_Qv, s_sat = np.moveaxis(sums, -1, 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        L = s_L / k
+        Lv = s_Lv / k**2
+        G = s_G / k
+        Q = s_Q / k
+        Qv = s_Qv / k**2
+    any_sat = s_sat > 0
+    for arr in (L, Lv, G, Q, Qv):
+        arr[any_sat | (k == 0)] = np.nan
+    npx, wi, wo = dirs[:, 0], dirs[:, 1:4].copy(), dirs[:, 4:7].copy()
+    flags, reasons = _region_flags(npx, any_sat, L, Lv, setup.min_snr, pose_flags, pose_reasons)
+    with np.errstate(invalid="ignore", divide="ignore"):  # empty regions: NaN, flagged
+        wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+        wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
     names = tuple(f.name for f in frames)
+    return PoseMeasurement(
+        pose, kind, wi, wo, L, Lv, G, Q, Qv, flags, reasons, names, cam, regions, kernel
+    )
+
+
+def _camera_pose(
+    frames: list[RawFrame],
+    setup: ReductionSetup,
+    reported_wo: NDArray[np.float64] | None,
+    reported_camera: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+) -> tuple[CameraPose, int, list[str]]:
+    """The pose's camera from the board, checked against the rig's report: ``(camera,
+    flags, reasons)``, the flags and reasons shared by every region of the pose."""
     pose_flags = 0
     pose_reasons: list[str] = []
     det = _detection_frame(frames)
@@ -179,27 +217,21 @@ def measure_pose(
                 )
     if setup.geometry == "rig" and reported_camera is not None and not pose_flags:
         cam = _reported_pose(reported_camera, cam.reprojection_rms, cam.n_corners)
-    lp = np.asarray(light_position, float)
-    ln = None if light_normal is None else np.asarray(light_normal, float)
-    fused = _fused_kernel() if all(f.raw is not None for f in frames) else None
-    if fused is not None:
-        regions, sums, dirs = _pose_sums_fused(fused, frames, setup, cam, lp, ln, dark_variance)
-        kernel: Literal["numba", "numpy"] = "numba"
-    else:
-        regions, sums, dirs = _pose_sums_numpy(frames, setup, cam, lp, ln, dark_variance)
-        kernel = "numpy"
-    n, nc = regions.n_regions, len(CHANNELS)
-    k, s_L, s_Lv, s_G, s_Q, s_Qv, s_sat = np.moveaxis(sums, -1, 0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        L = s_L / k
-        Lv = s_Lv / k**2
-        G = s_G / k
-        Q = s_Q / k
-        Qv = s_Qv / k**2
-    any_sat = s_sat > 0
-    for arr in (L, Lv, G, Q, Qv):
-        arr[any_sat | (k == 0)] = np.nan
-    npx, wi, wo = dirs[:, 0], dirs[:, 1:4].copy(), dirs[:, 4:7].copy()
+    return cam, pose_flags, pose_reasons
+
+
+def _region_flags(
+    npx: NDArray[np.float64],
+    any_sat: NDArray[np.bool_],
+    L: NDArray[np.float64],
+    Lv: NDArray[np.float64],
+    min_snr: float,
+    pose_flags: int,
+    pose_reasons: list[str],
+) -> tuple[NDArray[np.uint32], list[list[str]]]:
+    """Each region's flags and reasons: the pose's, plus no pixels, saturation in every
+    frame, and a signal-to-noise ratio below ``min_snr``."""
+    n, nc = len(npx), len(CHANNELS)
     flags = np.full(n, pose_flags, dtype=np.uint32)
     reasons = [list(pose_reasons) for _ in range(n)]
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -212,17 +244,12 @@ def measure_pose(
         for c in np.flatnonzero(any_sat[j]):
             flags[j] |= _flag("SATURATED")
             reasons[j].append(f"{CHANNELS[c]} saturated in every frame of the bracket")
-        low = [c for c in range(nc) if snr[j, c] < setup.min_snr]
+        low = [c for c in range(nc) if snr[j, c] < min_snr]
         if low:
             flags[j] |= _flag("UNDEREXPOSED")
             txt = ", ".join(f"{CHANNELS[c]} {snr[j, c]:.1f}" for c in low)
-            reasons[j].append(f"signal-to-noise below {setup.min_snr:g} ({txt})")
-    with np.errstate(invalid="ignore", divide="ignore"):  # empty regions: NaN, flagged
-        wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
-        wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
-    return PoseMeasurement(
-        pose, kind, wi, wo, L, Lv, G, Q, Qv, flags, reasons, names, cam, regions, kernel
-    )
+            reasons[j].append(f"signal-to-noise below {min_snr:g} ({txt})")
+    return flags, reasons
 
 
 def _pose_sums_numpy(
