@@ -6,9 +6,11 @@ Usage::
 
 Without ``--session`` a simulated session is captured first (virtual servo bus, rendered
 DNGs: 8 sample poses, 2 reference poses, 3-frame brackets: 30 frames) in a temporary
-directory.  Ten poses, not a handful, because a session's first frames are decoded before
-anything can overlap them and its last pose is measured with nothing left to decode: a lab
-session has hundreds of frames, where the per-frame figure is the steady state's.
+directory, with the ``reduction.toml`` a simulated capture writes
+(:func:`gonio.app.sim_reduction.write_reduction_toml`).  Ten poses, not a handful, because
+a session's first frames are decoded before anything can overlap them and its last pose is
+measured with nothing left to decode: a lab session has hundreds of frames, where the
+per-frame figure is the steady state's.
 All timings are medians over ``--repeat`` interleaved runs in this process, after one
 warm-up run of each (imports, numba's cached kernel); the reduction includes everything
 ``gonio capture reduce`` does (journal digest check, decoding, darks, board detection,
@@ -82,6 +84,7 @@ antialias = 2
 
 
 def make_session(root: Path, width: int, height: int) -> Path:
+    from gonio.app.sim_reduction import write_reduction_toml
     from gonio.cli import run
     from gonio.rig.config import virtual_rig_document
 
@@ -104,6 +107,8 @@ def make_session(root: Path, width: int, height: int) -> Path:
     )
     if code:
         raise SystemExit(code)
+    # the simulated session's reduction setup, as a capture writes it (not timed)
+    write_reduction_toml(root / "S")
     return root / "S"
 
 

@@ -81,6 +81,11 @@ class SessionDevices:
     read_noise_dn
         ``iso -> DN rms`` of the camera, the adaptive bracket's noise floor (2 DN when
         None).
+    files
+        Files the devices contribute to the session, path inside it -> bytes: what the
+        devices know and the reduction needs (a simulated camera's ``reduction.toml``:
+        its camera matrix, board, noise and light).  Written when the session is
+        created, and on resume when missing (never over a file that is there).
     """
 
     rig: RigDevice
@@ -90,6 +95,7 @@ class SessionDevices:
     kinematics: Any = None
     sleep: Callable[[float], None] = time.sleep
     read_noise_dn: Callable[[float], float] | None = None
+    files: Mapping[str, bytes] = field(default_factory=dict)
 
     def noise_floor_dn(self, iso: float | None) -> float:
         """Read noise (DN rms) at ``iso`` (ISO 100 when the camera keeps its own)."""

@@ -26,8 +26,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from gonio.atomic import write_text_atomic
 from gonio.capture.raw import CHANNELS, RawFrame
-from gonio.errors import FileFormatError, ReductionError
+from gonio.errors import ReductionError
 
 
 @dataclass(frozen=True)
@@ -74,36 +75,27 @@ class NoiseModel:
         return m.gain * s + m.read_noise**2 + (1.0 / 12.0 if self.quantisation else 0.0)
 
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the model as JSON."""
+        """Write the model as JSON (``noise.json``), atomically."""
         p = Path(path)
-        p.write_text(json.dumps({"type": "gonio.noise_model", **asdict(self)}, indent=2) + "\n")
+        doc = {"type": "gonio.noise_model", **asdict(self)}
+        write_text_atomic(p, json.dumps(doc, indent=2) + "\n")
         return p
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> NoiseModel:
-        """Read a model written by :meth:`save` (FileFormatError naming the field)."""
-        p = Path(path)
-        try:
-            d = json.loads(p.read_text())
-        except (OSError, ValueError) as exc:
-            raise FileFormatError(p, f"not a readable JSON noise model ({exc})") from None
-        return cls.from_mapping(d, source=p)
+        """Read a model written by :meth:`save`.
 
-    @classmethod
-    def from_mapping(cls, d: dict, source: object = "noise model") -> NoiseModel:
-        """Build from a mapping with ``gain``, ``read_noise`` and optional ``iso``."""
-        for k in ("gain", "read_noise"):
-            if k not in d:
-                raise FileFormatError(source, "missing (expected DN per e- and DN)", k)
-        try:
-            return cls(
-                float(d["gain"]),
-                float(d["read_noise"]),
-                float(d.get("iso", 100.0)),
-                bool(d.get("quantisation", True)),
-            )
-        except (TypeError, ValueError) as exc:
-            raise FileFormatError(source, str(exc)) from None
+        Raises
+        ------
+        FileFormatError
+            When the file cannot be read or is not JSON.
+        ConfigError
+            When a field is missing or out of range (names the file and the field).
+        """
+        # the document's model lives with the reduction's other configuration
+        from gonio.capture.reduction_config import load_noise
+
+        return load_noise(path)
 
 
 @dataclass(frozen=True)

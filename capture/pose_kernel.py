@@ -2,8 +2,8 @@
 region sums, irradiance geometry and mean directions.
 
 Why hand-written: after the board is found, the numpy path of
-:func:`gonio.capture.reduce.measure_pose` (:func:`gonio.capture.fiducials.map_regions`,
-:func:`gonio.capture.hdr.merge_bracket`, :func:`gonio.capture.reduce.bayer_region_entries`
+:func:`gonio.capture.pose_measure.measure_pose` (:func:`gonio.capture.fiducials.map_regions`,
+:func:`gonio.capture.hdr.merge_bracket`, :func:`gonio.capture.bayer.bayer_region_entries`
 and the weighted sums) streams ~60 full-size temporaries per pose through memory, ~12 ms
 per pose at 1600x1200, which ``benchmarks/reduce.py`` measured as the largest part of the
 reduction besides LibRaw's decoding.  This kernel computes the same quantities pixel by
@@ -17,14 +17,19 @@ a camera mosaic).  ``GONIO_NUMBA=0`` keeps the reduction on numpy.
 It runs serially on the calling thread (``nogil``): the reduction decodes the next frames
 on the other core meanwhile, and a serial sum is the same for any thread count.  Compiled
 code is cached next to this module (``cache=True``, ~3 s cold, once per installation).
+
+Its inputs come as three namedtuples (:class:`Bracket`, :class:`Stencils`, :class:`View`),
+which numba passes as typed structs: named fields instead of 28 positional arguments.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+from numpy.typing import NDArray
 
 _JIT = {"cache": True, "fastmath": False, "error_model": "numpy", "nogil": True}
 
@@ -41,42 +46,68 @@ def _max0(x: float) -> float:
     return 0.0 if x < 0.0 else x
 
 
+class Bracket(NamedTuple):
+    """The pose's frames, cropped to the ROI's box, and the noise model per frame."""
+
+    raws: NDArray[np.uint16]  # (F, h, w) mosaic crops, shortest exposure first
+    black: NDArray[np.float64]  # (F, 2, 2) black level per CFA position of the crop
+    sat_level: NDArray[np.float64]  # (F, 2, 2) raw value from which a pixel is saturated
+    offset: NDArray[np.float64]  # (F, h, w) dark offset, or (F, 0, 0) for none
+    gain: NDArray[np.float64]  # (F, h, w) flat-field gain, or (F, 0, 0) for none
+    expo: NDArray[np.float64]  # (F,) exposure factors
+    noise_gain: NDArray[np.float64]  # (F,) photon-transfer gain at each ISO, DN per electron
+    noise_read2: NDArray[np.float64]  # (F,) read noise squared at each ISO, DN^2
+    noise_quant: float  # quantisation variance added (0 or 1/12), DN^2
+    dark_var: NDArray[np.float64]  # (h, w) variance of the subtracted master dark, or (0, 0)
+    dark_var0: float  # its value when constant, DN^2
+
+
+class Stencils(NamedTuple):
+    """The CFA layout of the crop and, per CFA position (``2 y + x``), the pixels that
+    use a site (:func:`gonio.capture.bayer.site_stencils`)."""
+
+    cell_channel: NDArray[np.int64]  # (2, 2) channel of each CFA position of the crop
+    size: NDArray[np.int64]  # (4,) stencil entries per CFA position
+    dy: NDArray[np.int64]  # (4, 9) offsets (pixels) ...
+    dx: NDArray[np.int64]
+    weight: NDArray[np.float64]  # (4, 9) ... and weights
+
+
+class View(NamedTuple):
+    """Where the crop is, what the camera sees through it, and the light."""
+
+    cam: NDArray[np.float64]  # (4,) fx, fy, cx, cy (pixels, OpenCV convention)
+    rot: NDArray[np.float64]  # (3, 3) world-to-camera rotation
+    cpos: NDArray[np.float64]  # (3,) camera centre, sample frame, metres
+    r0: int  # crop origin in the image, pixels
+    c0: int
+    roi: NDArray[np.float64]  # (5,) half width, half height, cell width, cell height, margin (m)
+    grid: int  # regions per side
+    light: NDArray[np.float64]  # (3,) light position, metres
+    light_normal: NDArray[np.float64]  # (3,) emitting normal (ignored unless has_normal)
+    has_normal: bool
+    light_radius: float  # disk radius, metres (0: a point source)
+    n_channels: int
+
+
 @njit(**_JIT)
-def pose_sums(
-    raws,  # (F, h, w) uint16: the frames' mosaic crops, shortest exposure first
-    black,  # (F, 2, 2) black level per CFA position of the crop
-    sat_level,  # (F, 2, 2) raw value from which a pixel is saturated
-    offset,  # (F, h, w) float64 dark offset, or (F, 0, 0) for none
-    gain,  # (F, h, w) float64 flat-field gain, or (F, 0, 0) for none
-    expo,  # (F,) exposure factors
-    noise_gain,  # (F,) photon-transfer gain at each frame's ISO, DN per electron
-    noise_read2,  # (F,) read noise squared at each frame's ISO
-    noise_quant,  # quantisation variance added (0 or 1/12)
-    dark_var,  # (h, w) variance of the subtracted master dark, or (0, 0)
-    dark_var0,  # its value when constant
-    cell_channel,  # (2, 2) channel of each CFA position of the crop
-    st_n,  # (4,) stencil sizes per CFA position (2 y + x)
-    st_dy,  # (4, 9) stencil offsets and weights (see reduce._site_weights)
-    st_dx,
-    st_w,
-    cam,  # (4,) fx, fy, cx, cy (pixels, OpenCV convention)
-    rot,  # (3, 3) world-to-camera rotation
-    cpos,  # (3,) camera centre, sample frame
-    r0,  # crop origin in the image
-    c0,
-    roi,  # (5,) half width, half height, cell width, cell height, margin (metres)
-    grid,
-    light,  # (3,) light position
-    light_normal,  # (3,) its emitting normal (ignored when has_normal is False)
-    has_normal,
-    light_radius,  # disk radius (0: a point source)
-    n_channels,
-):
+def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     """Region labels of the crop, per-(region, channel) sums and per-region directions.
 
     Returns ``(label (h, w) int64, sums (n, n_channels, 7), dirs (n, 7))``; see
     :data:`SUM_K` and :data:`DIR_N` for the columns.
     """
+    # field by field: numba passes a namedtuple as one struct, unpacked here for free
+    raws, black, sat_level = bracket.raws, bracket.black, bracket.sat_level
+    offset, gain, expo = bracket.offset, bracket.gain, bracket.expo
+    noise_gain, noise_read2 = bracket.noise_gain, bracket.noise_read2
+    noise_quant = bracket.noise_quant
+    dark_var, dark_var0 = bracket.dark_var, bracket.dark_var0
+    cell_channel, st_n = stencils.cell_channel, stencils.size
+    st_dy, st_dx, st_w = stencils.dy, stencils.dx, stencils.weight
+    cam, rot, cpos, r0, c0 = view.cam, view.rot, view.cpos, view.r0, view.c0
+    roi, grid, light, light_normal = view.roi, view.grid, view.light, view.light_normal
+    has_normal, light_radius, n_channels = view.has_normal, view.light_radius, view.n_channels
     F, h, w = raws.shape
     n = grid * grid
     label = np.full((h, w), -1, np.int64)

@@ -18,12 +18,20 @@ from gonio.errors import ReductionError
     help="Output file (default: SESSION/samples.h5).",
 )
 @click.option(
+    "--config",
+    "config_file",
+    type=click.Path(dir_okay=False, exists=True, path_type=Path),
+    default=None,
+    help="Reduction setup (camera matrix, board, sample, light, noise; see "
+    "examples/reduction.toml) to use instead of SESSION/reduction.toml.",
+)
+@click.option(
     "--noise",
     "noise_file",
     type=click.Path(dir_okay=False, exists=True, path_type=Path),
     default=None,
     help="Noise model JSON from 'gonio capture calibrate-noise' "
-    "(default: SESSION/noise.json, else the simulated sensor's).",
+    "(default: SESSION/noise.json, else the reduction.toml's [noise]).",
 )
 @click.option(
     "--grid",
@@ -47,11 +55,10 @@ from gonio.errors import ReductionError
 @click.option(
     "--geometry",
     type=click.Choice(["board", "rig"]),
-    default="board",
-    show_default=True,
+    default=None,
     help="Camera pose from the ChArUco board in each pose, or from the rig's read-back "
     "pose through its kinematics (a calibrated rig, or the exact simulated one); the "
-    "board checks the rig either way.",
+    "board checks the rig either way.  [default: reduction.toml's, else board]",
 )
 @click.option(
     "--threads",
@@ -69,11 +76,12 @@ from gonio.errors import ReductionError
 def reduce_cmd(
     session_dir: Path,
     out: Path | None,
+    config_file: Path | None,
     noise_file: Path | None,
     grid: int | None,
     roi_fraction: float | None,
     tolerance_deg: float | None,
-    geometry: str,
+    geometry: str | None,
     threads: int | None,
     no_plot: bool,
     force: bool,
@@ -90,9 +98,14 @@ def reduce_cmd(
     from the sensor's noise model.
 
     \b
+    The camera matrix, board, sample size, light and noise model come from
+    SESSION/reduction.toml (or --config; see examples/reduction.toml).
+
+    \b
     Writes SESSION/samples.h5 (see gonio.dataset), SESSION/reduction.json (samples kept
     and rejected, with reasons) and SESSION/samples.png (samples over the angle domain).
-    Re-running gives the same file; the RAW files are never modified.
+    Re-running gives the same file; the RAW files are never modified.  One reduction at
+    a time writes an output: a second one into the same file refuses.
 
     \b
     Example:
@@ -103,12 +116,12 @@ def reduce_cmd(
     from rich.table import Table
 
     from gonio.capture.noise import NoiseModel
-    from gonio.capture.reduce import _replace, reduce_session, resolve_setup
+    from gonio.capture.reduce import reduce_session, resolve_setup
     from gonio.capture.session import load_manifest
 
     console = Console(stderr=True, quiet=quiet)
     noise = NoiseModel.load(noise_file) if noise_file else None
-    setup = resolve_setup(session_dir, load_manifest(session_dir), noise)
+    setup = resolve_setup(session_dir, load_manifest(session_dir), noise, config=config_file)
     upd = {
         k: v
         for k, v in dict(
@@ -120,7 +133,7 @@ def reduce_cmd(
         if v is not None
     }
     if upd:
-        setup = _replace(setup, **upd)
+        setup = setup.replace(**upd)
     if out is not None and out.exists() and not force and not _is_samples_file(out):
         raise ReductionError(
             f"{out} exists and is not a gonio samples file; pass --force to replace it"

@@ -80,6 +80,7 @@ def create_session(
     simulation: Mapping[str, Any] | None = None,
     attachments: Mapping[str, str | os.PathLike] | None = None,
     hold: contextlib.ExitStack | None = None,
+    files: Mapping[str, bytes] | None = None,
 ) -> Path:
     """Create a session directory: ``raw/``, attached files and the manifest.
 
@@ -94,6 +95,9 @@ def create_session(
     attachments
         Path inside the session -> source file, copied in before the manifest is written
         (what a simulated scene refers to, so the session is self-contained).
+    files
+        Path inside the session -> content, written before the manifest (what the
+        devices contribute: :attr:`gonio.capture.engine.SessionDevices.files`).
     hold
         When given, the session's lock is taken (into this stack) before the directory
         appears under its name, so no other process can resume it in between.
@@ -119,6 +123,10 @@ def create_session(
             dest = tmp / rel
             dest.parent.mkdir(parents=True, exist_ok=True)
             write_atomic(dest, Path(src).read_bytes())
+        for rel, data in (files or {}).items():
+            dest = tmp / rel
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            write_atomic(dest, data)
         manifest = {
             "schema_version": SCHEMA_VERSION,
             "software_version": __version__,

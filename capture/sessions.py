@@ -34,7 +34,7 @@ from typing import Any
 
 from gonio import __version__
 from gonio.capture.engine import Engine, SessionDevices, Subscriber, run_plan
-from gonio.capture.journal import Journal, read_journal
+from gonio.capture.journal import Journal, read_journal, session_file, write_atomic
 from gonio.capture.manifest import Manifest, check_journal_fits, read_manifest
 from gonio.capture.plan import Plan, plan_digest
 from gonio.capture.schedule import Refusal, Schedule, build_schedule
@@ -307,6 +307,7 @@ def run_session(
                 simulation=simulation,
                 attachments=attachments,
                 hold=locks,
+                files=dev.files,
             )
             manifest = read_manifest(out)
             return _run(out, manifest, plan, dev, session_state([]), False, {}, subscribers)
@@ -407,6 +408,10 @@ def resume_session(
         )
         with contextlib.ExitStack() as opened:
             dev = _enter(devices, request, opened)
+            for rel, data in dev.files.items():  # sessions made before the devices gave it
+                dest = session_file(d, {"file": rel})
+                if not dest.exists():
+                    write_atomic(dest, data)
             # The schedule's joints were planned for the session's rig; a forced other rig
             # solves each pose anew (its own limits and path rules decide).
             planned = cfg is manifest.rig

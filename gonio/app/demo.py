@@ -315,7 +315,6 @@ def run_demo(
         )
     say(f"session {session} completed")
     seconds["capture"] = time.perf_counter() - t
-
     say("reducing RAW brackets to BRDF samples")
     t = time.perf_counter()
     # The simulated rig's geometry is exact, so the camera pose comes from the rig's

@@ -36,8 +36,6 @@ def is_virtual_port(port: str) -> bool:
     return port.strip().lower() in VIRTUAL_PORTS
 
 
-
-
 @contextlib.contextmanager
 def open_rig(config: Any) -> Iterator[RigDevice]:
     """Open the rig of ``config`` (pings, checks models, reboots servos left in a fault)."""
@@ -135,6 +133,11 @@ def open_session_devices(
                 **({"reference_albedo": refl} if refl is not None else {}),
             )
             stack.callback(camera.close)
+            from gonio.app.sim_reduction import CONFIG_FILE, reduction_document, reduction_toml_text
+
+            # The reduction learns the simulated camera as a lab's reduction learns its
+            # camera: from the session's reduction.toml, never from the scene.
+            setup = reduction_toml_text(reduction_document(camera.scene, refl))
             yield SessionDevices(
                 rig,
                 camera,
@@ -143,6 +146,7 @@ def open_session_devices(
                 kinematics=kin,
                 sleep=sleep,
                 read_noise_dn=camera.read_noise_dn,
+                files={CONFIG_FILE: setup.encode()},
             )
             return
         from gonio.capture.camera import open_camera

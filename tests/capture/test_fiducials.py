@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gonio.app.sim_reduction import setup_from_scene
 from gonio.capture.fiducials import (
     BoardSpec,
     CameraPose,
@@ -18,7 +19,6 @@ from gonio.capture.fiducials import (
     to_uint8,
 )
 from gonio.capture.raw import read_raw
-from gonio.capture.reduce import setup_from_scene
 from gonio.errors import ReductionError
 from gonio.radiometry import spherical_to_direction
 
@@ -146,7 +146,7 @@ def test_board_placement_matches_the_simulators_convention():
 
 @pytest.mark.slow
 def test_geometry_mismatch_with_the_rig_is_flagged(rig_views):
-    from gonio.capture.reduce import measure_pose
+    from gonio.capture.pose_measure import measure_pose
     from gonio.dataset import Flag
 
     setup, views = rig_views

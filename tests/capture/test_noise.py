@@ -7,7 +7,7 @@ import pytest
 
 from gonio.capture.noise import NoiseModel, estimate_noise
 from gonio.capture.raw import RawFrame
-from gonio.errors import FileFormatError, ReductionError
+from gonio.errors import ConfigError, FileFormatError, ReductionError
 
 GAIN = 0.4  # DN per electron
 READ_E = 3.0  # electrons
@@ -70,7 +70,16 @@ def test_model_variance_and_iso_scaling(tmp_path):
     m.save(tmp_path / "n.json")
     assert NoiseModel.load(tmp_path / "n.json") == m
     (tmp_path / "bad.json").write_text('{"gain": 0.4}')
-    with pytest.raises(FileFormatError, match="read_noise"):
+    with pytest.raises(ConfigError, match=r"bad\.json.*field 'read_noise': Field required"):
+        NoiseModel.load(tmp_path / "bad.json")
+    (tmp_path / "bad.json").write_text('{"gain": -0.4, "read_noise": 1.2}')
+    with pytest.raises(ConfigError, match=r"bad\.json.*field 'gain'.*greater than 0"):
+        NoiseModel.load(tmp_path / "bad.json")
+    (tmp_path / "bad.json").write_text('{"gain": 0.4, "read_noise": 1.2, "iso": "high"}')
+    with pytest.raises(ConfigError, match=r"bad\.json.*field 'iso'"):
+        NoiseModel.load(tmp_path / "bad.json")
+    (tmp_path / "bad.json").write_text("[1, 2")
+    with pytest.raises(FileFormatError, match=r"bad\.json.*not a readable JSON noise model"):
         NoiseModel.load(tmp_path / "bad.json")
     with pytest.raises(ReductionError, match="gain"):
         NoiseModel(gain=0.0, read_noise=1.0)

@@ -1,12 +1,14 @@
 """The fused pose kernel (:mod:`gonio.capture.pose_kernel`) against the numpy path.
 
-The numpy path of :func:`gonio.capture.reduce.measure_pose` is the reference (itself
+The numpy path of :func:`gonio.capture.pose_measure.measure_pose` is the reference (itself
 checked against closed forms in ``test_reduce_bayer.py`` and against the simulator's truth
 in ``test_reduce_accuracy.py``).  Both run on the same decoded DNG brackets, rendered by
 the simulator at the rig's poses, with and without the parts the kernel handles apart:
 saturated pixels, a subtracted master dark with a per-pixel variance, a flat field, a
 point light and a light without a normal.  Labels and directions must agree bit for bit
-(same operations in the same order), the region sums to rounding.
+(same operations in the same order), the region sums to rounding.  Each comparison also
+checks which path ran (``PoseMeasurement.kernel``): without numba both sides would be the
+numpy path, and the comparison would prove nothing.
 """
 
 from __future__ import annotations
@@ -14,9 +16,22 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gonio.app.sim_reduction import setup_from_scene
+from gonio.capture.pose_measure import measure_pose
 from gonio.capture.raw import apply_flat, read_raw, subtract_dark
-from gonio.capture.reduce import measure_pose, setup_from_scene
 from gonio.radiometry import spherical_to_direction
+
+
+@pytest.fixture(scope="module", autouse=True)
+def numba_kernel():
+    """The fused kernel, compiled: numba is a dependency (pyproject.toml), so its absence
+    is a broken install that this file must report, not skip."""
+    try:
+        from gonio.capture.pose_kernel import pose_sums
+    except ImportError as exc:
+        pytest.fail(f"numba cannot load ({exc}): the fused kernel cannot be compared")
+    return pose_sums
+
 
 LIGHT = {
     "type": "disk",
@@ -82,6 +97,9 @@ def both_paths(monkeypatch, frames, setup, rp, **kw):
     ref = measure_pose(*args, **kw)
     monkeypatch.setenv("GONIO_NUMBA", "1")
     got = measure_pose(*args, **kw)
+    # the comparison means something only if each side took its own path
+    assert ref.kernel == "numpy"
+    assert got.kernel == "numba"
     return ref, got
 
 
@@ -126,9 +144,29 @@ def test_fused_kernel_with_dark_flat_and_saturated_regions(brackets, monkeypatch
 
 
 def test_fused_kernel_with_a_point_light_without_normal(brackets, monkeypatch):
-    from dataclasses import replace
-
     setup, poses = brackets
     frames, rp = poses[1]
-    point = replace(setup, light_radius=None)
+    point = setup.replace(light_radius=None)
     assert_same(*both_paths(monkeypatch, frames, point, rp, light_normal=None))
+
+
+def test_the_kernel_is_compiled_for_the_structured_arguments(brackets, monkeypatch, numba_kernel):
+    """The dispatcher holds one compiled signature of three namedtuples (the reduction's
+    measurement compiled it): named fields, not 28 positional arguments."""
+    from gonio.capture import pose_kernel as pk
+
+    setup, poses = brackets
+    frames, rp = poses[0]
+    monkeypatch.setenv("GONIO_NUMBA", "1")
+    m = measure_pose(
+        frames,
+        setup,
+        rp.light_position,
+        rp.light_normal,
+        reported_camera=(rp.camera_position, rp.camera_rotation.T),
+    )
+    assert m.kernel == "numba"
+    sigs = numba_kernel.signatures
+    assert sigs, "the fused kernel was never compiled"
+    assert all(len(sig) == 3 for sig in sigs)
+    assert [t.instance_class for t in sigs[0]] == [pk.Bracket, pk.Stencils, pk.View]

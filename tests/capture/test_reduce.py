@@ -4,13 +4,17 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import rawpy
 import xxhash
 
+from gonio.app.sim_reduction import write_reduction_toml
 from gonio.capture.journal import read_journal
 from gonio.cli import run
 from gonio.dataset import Flag, load_samples
@@ -89,6 +93,9 @@ def session(tmp_path_factory):
         "--quiet",
     )
     assert code == 0
+    # written at capture time from the camera; the manifest's scene must give the same
+    # setup (write_reduction_toml refuses a different file)
+    write_reduction_toml(d / "S")
     return d / "S"
 
 
@@ -164,6 +171,18 @@ def test_reduce_cli_gives_calibrated_lambertian_samples(session, tmp_path):
     summary = json.loads((s / "reduction.json").read_text())
     assert summary["kept"] == 36 and summary["reference_poses"] == 2
     assert (s / "samples.png").stat().st_size > 1000
+    assert (s / "samples.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # radiance and irradiance are camera units, and say so; their ratio is the BRDF
+    import h5py
+
+    from gonio.capture.reduce import IRRADIANCE_UNITS, RADIANCE_UNITS
+
+    with h5py.File(s / "samples.h5") as f:
+        assert f["radiance"].attrs["units"] == RADIANCE_UNITS
+        assert f["irradiance"].attrs["units"] == IRRADIANCE_UNITS
+        assert "W/" not in RADIANCE_UNITS + IRRADIANCE_UNITS
+        assert f["brdf"].attrs["units"] == "1/sr"
+    np.testing.assert_allclose(samples.radiance / samples.irradiance, samples.brdf, rtol=1e-12)
 
 
 def test_reduce_twice_gives_the_same_file(session, tmp_path):
@@ -335,6 +354,7 @@ def test_reference_reflectance_of_the_plan_is_what_the_simulated_camera_renders(
     run_session(out, plan, cfg, device_opener(), camera_backend="simulated", simulation=simulation)
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["reference"]["reflectance"] == 0.5
+    write_reduction_toml(out)
     res = reduce_session(out, plot=False)
     samples = load_samples(res.path)
     assert samples.attrs["reference_reflectance"] == pytest.approx([0.5, 0.5, 0.5])
@@ -361,3 +381,96 @@ def test_reduce_refuses_to_overwrite_a_file_that_is_not_samples(session, tmp_pat
         == 0
     )
     assert load_samples(precious).n_channels == 3
+
+
+def test_a_session_without_reduction_toml_is_a_clear_error(session, tmp_path, capsys):
+    s = copy_session(session, tmp_path / "S")
+    setup = (s / "reduction.toml").read_bytes()
+    (s / "reduction.toml").unlink()
+    assert run("capture", "reduce", str(s), "--quiet") == 1
+    err = capsys.readouterr().err
+    assert "no reduction.toml" in err and "python -m gonio.app.sim_reduction" in err
+    assert not (s / "samples.h5").exists()
+    # --config reads a setup kept elsewhere, with the same result as the session's own
+    (tmp_path / "lab.toml").write_bytes(setup)
+    out = tmp_path / "with_config.h5"
+    cmd = ("capture", "reduce", str(s), "--quiet", "--no-plot")
+    assert run(*cmd, "--config", str(tmp_path / "lab.toml"), "--out", str(out)) == 0
+    (s / "reduction.toml").write_bytes(setup)
+    assert run(*cmd, "--out", str(tmp_path / "own.h5")) == 0
+    a, b = load_samples(out), load_samples(tmp_path / "own.h5")
+    assert np.array_equal(a.brdf, b.brdf, equal_nan=True) and np.array_equal(a.wo, b.wo)
+
+
+def test_write_reduction_toml_is_idempotent_and_keeps_a_lab_file(session, tmp_path):
+    from gonio.errors import SessionError
+
+    s = copy_session(session, tmp_path / "S")
+    before = (s / "reduction.toml").read_bytes()
+    stat = (s / "reduction.toml").stat()
+    assert write_reduction_toml(s) == s / "reduction.toml"
+    assert (s / "reduction.toml").read_bytes() == before
+    assert (s / "reduction.toml").stat().st_ino == stat.st_ino  # not even rewritten
+    # a lab's own calibration: another light radius
+    assert "radius = 0.01\n" in before.decode()
+    (s / "reduction.toml").write_text(before.decode().replace("radius = 0.01\n", "radius = 0.02\n"))
+    lab = (s / "reduction.toml").read_bytes()
+    with pytest.raises(SessionError, match="exists with another setup"):
+        write_reduction_toml(s)
+    assert (s / "reduction.toml").read_bytes() == lab
+    write_reduction_toml(s, overwrite=True)
+    assert (s / "reduction.toml").read_bytes() == before
+
+
+HOLD_REDUCTION = """
+import sys
+from gonio.capture.reduce import reduce_session
+
+def progress(done, total):
+    if done == 1:  # the output's lock is held and nothing is written yet: wait here
+        print("measuring", flush=True)
+        sys.stdin.readline()
+
+res = reduce_session(sys.argv[1], progress=progress, plot=False)
+print("wrote", res.path, flush=True)
+"""
+
+
+def test_a_second_reduction_into_the_same_output_refuses(session, tmp_path):
+    """Two processes: the first reduction is held mid-way (its progress callback waits on
+    stdin); the second, into the same samples.h5, must refuse at once naming the first's
+    PID, exit 1 with no traceback, and write nothing."""
+    s = copy_session(session, tmp_path / "S")
+    env = dict(os.environ, GONIO_NUMBA=os.environ.get("GONIO_NUMBA", "1"))
+    first = subprocess.Popen(
+        [sys.executable, "-c", HOLD_REDUCTION, str(s)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        assert first.stdout.readline().strip() == "measuring"
+        second = subprocess.run(
+            [sys.executable, "-m", "gonio", "capture", "reduce", str(s), "--quiet"],
+            capture_output=True,
+            text=True,
+            env=env,
+        )
+        assert second.returncode == 1, second.stderr
+        assert f"in use by process {first.pid}" in second.stderr
+        assert second.stderr.startswith("error: ") and "Traceback" not in second.stderr
+        assert not any(s.glob("samples.*")) and not (s / "reduction.json").exists()
+        first.stdin.write("go\n")
+        first.stdin.flush()
+        out, err = first.communicate(timeout=600)
+        assert first.returncode == 0, err
+        assert f"wrote {s / 'samples.h5'}" in out
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    # the lock died with its holder: the next reduction runs
+    assert run("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
+    assert load_samples(s / "samples.h5").valid.all()

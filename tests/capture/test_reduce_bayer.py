@@ -12,10 +12,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gonio.capture.bayer import bayer_region_weights
 from gonio.capture.fiducials import BoardSpec
 from gonio.capture.noise import NoiseModel
+from gonio.capture.pose_measure import measure_pose
 from gonio.capture.raw import RawFrame
-from gonio.capture.reduce import ReductionSetup, bayer_region_weights, measure_pose
+from gonio.capture.reduction_config import ReductionSetup
 
 CELLS = {"RGGB": [[0, 1], [1, 2]], "GRBG": [[1, 0], [2, 1]], "BGGR": [[2, 1], [1, 0]]}
 

@@ -220,6 +220,7 @@ def test_pose_refused_by_a_narrowed_rig_is_skipped_and_the_rest_completes(files,
     assert [r["type"] for r in again[len(recs) :]] == ["start", "stop"]
 
     # reduce: no crash; the skipped pose is absent from samples.h5, the others present
+    assert (out / "reduction.toml").is_file()  # written when the session was created
     assert run("capture", "reduce", str(out), "--quiet", "--no-plot") == 0
     samples = load_samples(out / "samples.h5")
     sample_poses = {k for k, s in enumerate(steps) if s["kind"] == "sample" and k != victim}

@@ -1,0 +1,124 @@
+"""Reading a session's frames: each file read once, checked against its journal record
+and decoded from the same bytes, in worker threads that run ahead of the measurement.
+
+:class:`FrameLoader` hands the frames out in journal order whoever decoded them, so the
+reduction's output does not depend on the number of threads.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections.abc import Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gonio.capture.journal import xxh3_bytes
+from gonio.capture.raw import CameraSignature, RawFrame, read_file, read_raw
+from gonio.errors import FileFormatError, GonioError
+
+__all__ = ["PREFETCH_POSES", "FrameLoader", "default_threads", "load_frame"]
+
+#: Completed poses whose frames are decoded ahead of the one being measured.
+PREFETCH_POSES = 2
+
+
+def default_threads() -> int:
+    """Threads :func:`reduce_session` uses, the calling one included: 2 if the machine has
+    2 or more cores (one measures poses and decodes, the other decodes ahead; more give
+    little, since the measurement is serial and LibRaw's decoding is bound by memory)."""
+    return 2 if (os.cpu_count() or 1) >= 2 else 1
+
+
+def load_frame(
+    session: Path, signature: CameraSignature | None, rec: Mapping[str, Any]
+) -> tuple[RawFrame | None, str | None]:
+    """Read one journal frame once, check it against the journal and decode it from the
+    same bytes.
+
+    The check is the journal's byte count and XXH3-128 digest (sessions from before it
+    was recorded: sha256); see :func:`gonio.capture.journal.xxh3_bytes` for why.
+    Returns ``(frame, None)``, or ``(None, problem)`` for a missing, changed, corrupt or
+    foreign file.  Runs in worker threads: it touches no shared state.
+    """
+    rel = rec.get("file", "")
+    path = session / rel
+    try:
+        if not path.is_file():
+            raise FileFormatError(path, "missing (the journal lists it)")
+        data = read_file(path)
+        changed = "the file was changed, truncated or corrupted after capture"
+        if rec.get("bytes") is not None and len(data) != int(rec["bytes"]):
+            raise FileFormatError(
+                path, f"{len(data)} bytes, the journal recorded {int(rec['bytes'])}: {changed}"
+            )
+        if rec.get("xxh3_128"):
+            if xxh3_bytes(data) != rec["xxh3_128"]:
+                raise FileFormatError(path, f"XXH3-128 digest differs from the journal: {changed}")
+        elif rec.get("sha256") and hashlib.sha256(data).hexdigest() != rec["sha256"]:
+            raise FileFormatError(path, f"sha256 differs from the journal: {changed}")
+        fr = read_raw(data, name=rel, expect=signature)
+    except GonioError as exc:
+        return None, str(exc)
+    return (
+        fr.with_exposure(
+            exposure_time=rec.get("exposure_time") if not np.isfinite(fr.exposure_time) else None,
+            iso=rec.get("iso") if not np.isfinite(fr.iso) else None,
+            f_number=rec.get("f_number") if not np.isfinite(fr.f_number) else None,
+        ),
+        None,
+    )
+
+
+class FrameLoader:
+    """Reads, hashes and decodes frames in worker threads, handing them out in order.
+
+    File reads, hashing, LibRaw's unpack, OpenCV's board detection and the fused pose
+    kernel release the GIL, so with two threads the worker decodes the next poses' frames
+    while this thread measures the current pose.  When this thread needs frames the
+    worker has not started, it decodes them itself rather than wait (decoding takes
+    longer than measuring, so the two threads share it).  Every frame is decoded
+    independently and the results are collected in journal order, so the output does not
+    depend on the thread count.  With one thread frames are decoded on demand.
+    """
+
+    def __init__(self, session: Path, signature: CameraSignature | None, threads: int) -> None:
+        self._args = (session, signature)
+        # ``threads`` counts this thread: the pool has the others
+        self._pool = ThreadPoolExecutor(threads - 1, "gonio-reduce") if threads > 1 else None
+        self._pending: dict[int, Future] = {}
+
+    def __enter__(self) -> FrameLoader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for fut in self._pending.values():
+            fut.cancel()
+        self._pending.clear()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def prefetch(self, recs: list[dict[str, Any]]) -> None:
+        """Queue these frames for decoding (no-op with one thread or when already queued)."""
+        if self._pool is None:
+            return
+        for rec in recs:
+            if id(rec) not in self._pending:
+                self._pending[id(rec)] = self._pool.submit(load_frame, *self._args, rec)
+
+    def results(self, recs: list[dict[str, Any]]) -> list[tuple[RawFrame | None, str | None]]:
+        """``(frame, problem)`` of each record, in the order given."""
+        futs = [self._pending.pop(id(rec), None) for rec in recs]
+        # frames no worker has started are decoded here (cancel() fails once started)
+        local = [fut is None or fut.cancel() for fut in futs]
+        out: list[Any] = [
+            load_frame(*self._args, rec) if here else None
+            for rec, here in zip(recs, local, strict=True)
+        ]
+        for k, (fut, here) in enumerate(zip(futs, local, strict=True)):
+            if not here:
+                out[k] = fut.result()
+        return out

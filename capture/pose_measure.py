@@ -1,0 +1,473 @@
+"""One pose's measurement: camera pose, regions, merged radiance per region, flags.
+
+:func:`measure_pose` finds the holder's ChArUco board in the best-exposed frame (or takes
+the rig's reported camera pose, flagging the pose), maps the sample's central area onto
+``grid x grid`` regions, merges the bracket with inverse-variance weights, and sums each
+region per CFA channel with Bayer-centred weights (:mod:`gonio.capture.bayer`).  The sums
+come from the fused numba kernel (:mod:`gonio.capture.pose_kernel`) when it can run, else
+from :func:`_pose_sums_numpy`, its reference; :attr:`PoseMeasurement.kernel` says which.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gonio.capture.bayer import bayer_region_entries, site_stencils
+from gonio.capture.calibration import irradiance_geometry
+from gonio.capture.fiducials import (
+    CameraPose,
+    RegionMap,
+    angle_between,
+    detect_pose_in_frame,
+    map_regions,
+    roi_geometry,
+)
+from gonio.capture.hdr import check_bracket, merge_bracket
+from gonio.capture.raw import CHANNELS, RawFrame
+from gonio.capture.reduction_config import ReductionSetup
+from gonio.errors import ReductionError
+
+__all__ = ["PoseMeasurement", "invalid_pose", "measure_pose"]
+
+
+@dataclass
+class PoseMeasurement:
+    """Per-region measurements of one pose.
+
+    Attributes
+    ----------
+    pose, kind
+        Journal pose index and kind (``"sample"`` or ``"reference"``).
+    wi, wo
+        (n, 3) measured directions per region (sample frame).
+    radiance, radiance_var
+        (n, 3) mean relative radiance per region and channel, and its variance.
+    geometry
+        (n, 3) mean of ``G(x)`` (irradiance from a unit-radiance light) over the same pixels.
+    ratio, ratio_var
+        (n, 3) mean of ``L(x) / G(x)`` and its variance (for reference poses).
+    flags
+        (n,) :class:`gonio.dataset.Flag` bits.
+    reasons
+        Per region, the reasons for its flags.
+    frames
+        Files of the bracket.
+    camera
+        Camera pose from the board (None when not found).
+    regions
+        The :class:`RegionMap` (pixel sets), for inspection and tests.
+    kernel
+        Which path computed the region sums: ``"numba"`` (the fused kernel,
+        :mod:`gonio.capture.pose_kernel`), ``"numpy"`` (its reference,
+        :func:`_pose_sums_numpy`), or ``"none"`` (no measurement: :func:`invalid_pose`).
+    """
+
+    pose: int
+    kind: str
+    wi: NDArray[np.float64]
+    wo: NDArray[np.float64]
+    radiance: NDArray[np.float64]
+    radiance_var: NDArray[np.float64]
+    geometry: NDArray[np.float64]
+    ratio: NDArray[np.float64]
+    ratio_var: NDArray[np.float64]
+    flags: NDArray[np.uint32]
+    reasons: list[list[str]]
+    frames: tuple[str, ...]
+    camera: CameraPose | None = None
+    regions: RegionMap | None = None
+    kernel: Literal["numba", "numpy", "none"] = "none"
+
+
+def _flag(name: str) -> int:
+    from gonio.dataset import Flag  # h5py only when measuring
+
+    return int(Flag[name])
+
+
+def _detection_frame(frames: list[RawFrame]) -> RawFrame:
+    """The longest exposure with (almost) nothing saturated: the best-exposed board."""
+    by_exp = sorted(frames, key=lambda f: f.exposure_factor())
+    # longest first, stopping at the first good one (the estimate costs a pass per frame)
+    return next((f for f in reversed(by_exp) if f.saturated_fraction() < 0.02), by_exp[0])
+
+
+def _reported_pose(reported_camera: Any, rms: float, n_corners: int) -> CameraPose:
+    """The rig's reported camera ``(position, world-to-camera rotation)`` as a CameraPose."""
+    C, R = (np.asarray(x, float) for x in reported_camera)
+    return CameraPose(R, -R @ C, C, rms, n_corners)
+
+
+def measure_pose(
+    frames: list[RawFrame],
+    setup: ReductionSetup,
+    light_position: NDArray[np.float64],
+    light_normal: NDArray[np.float64] | None,
+    *,
+    pose: int = 0,
+    kind: str = "sample",
+    reported_wo: NDArray[np.float64] | None = None,
+    reported_camera: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+    dark_variance: float | NDArray[np.float64] = 0.0,
+) -> PoseMeasurement:
+    """Measure one pose's bracket: camera pose, regions, merged radiance per region.
+
+    Parameters
+    ----------
+    frames
+        The pose's decoded (dark-subtracted) frames.
+    setup
+        Camera, board, sample and noise facts.
+    light_position, light_normal
+        The light's centre and emitting normal in the sample frame (from the rig), metres.
+    pose, kind
+        Journal pose index and kind, carried into the result.
+    reported_wo
+        The rig's reported direction to the camera (sample frame), for the geometry check.
+    reported_camera
+        The rig's reported camera ``(position, world-to-camera rotation)``: used when the
+        board cannot be seen (the samples are then flagged GEOMETRY_MISMATCH).
+    dark_variance
+        Variance (DN^2) added by the subtracted master dark.
+
+    Raises
+    ------
+    ReductionError
+        When neither the board nor a reported camera pose gives the geometry.
+    """
+    cam, pose_flags, pose_reasons = _camera_pose(frames, setup, reported_wo, reported_camera)
+    lp = np.asarray(light_position, float)
+    ln = None if light_normal is None else np.asarray(light_normal, float)
+    fused = _fused_kernel() if all(f.raw is not None for f in frames) else None
+    if fused is not None:
+        regions, sums, dirs = _pose_sums_fused(fused, frames, setup, cam, lp, ln, dark_variance)
+        kernel: Literal["numba", "numpy"] = "numba"
+    else:
+        regions, sums, dirs = _pose_sums_numpy(frames, setup, cam, lp, ln, dark_variance)
+        kernel = "numpy"
+    k, s_L, s_Lv, s_G, s_Q, s_Qv, s_sat = np.moveaxis(sums, -1, 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        L = s_L / k
+        Lv = s_Lv / k**2
+        G = s_G / k
+        Q = s_Q / k
+        Qv = s_Qv / k**2
+    any_sat = s_sat > 0
+    for arr in (L, Lv, G, Q, Qv):
+        arr[any_sat | (k == 0)] = np.nan
+    npx, wi, wo = dirs[:, 0], dirs[:, 1:4].copy(), dirs[:, 4:7].copy()
+    flags, reasons = _region_flags(npx, any_sat, L, Lv, setup.min_snr, pose_flags, pose_reasons)
+    with np.errstate(invalid="ignore", divide="ignore"):  # empty regions: NaN, flagged
+        wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+        wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+    names = tuple(f.name for f in frames)
+    return PoseMeasurement(
+        pose, kind, wi, wo, L, Lv, G, Q, Qv, flags, reasons, names, cam, regions, kernel
+    )
+
+
+def _camera_pose(
+    frames: list[RawFrame],
+    setup: ReductionSetup,
+    reported_wo: NDArray[np.float64] | None,
+    reported_camera: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+) -> tuple[CameraPose, int, list[str]]:
+    """The pose's camera from the board, checked against the rig's report: ``(camera,
+    flags, reasons)``, the flags and reasons shared by every region of the pose."""
+    pose_flags = 0
+    pose_reasons: list[str] = []
+    det = _detection_frame(frames)
+    expected = None if reported_camera is None else _reported_pose(reported_camera, math.nan, 0)
+    try:
+        cam = detect_pose_in_frame(det, setup.board, setup.K, setup.dist, expected=expected)
+    except ReductionError as exc:
+        if reported_camera is None:
+            raise
+        cam = _reported_pose(reported_camera, math.nan, 0)
+        pose_flags |= _flag("GEOMETRY_MISMATCH")
+        pose_reasons.append(f"board not found ({exc}); the rig's camera pose was used")
+    else:
+        if reported_wo is not None:
+            ang = math.degrees(
+                float(
+                    angle_between(
+                        cam.position / np.linalg.norm(cam.position), np.asarray(reported_wo, float)
+                    )
+                )
+            )
+            if ang > setup.geometry_tolerance_deg:
+                pose_flags |= _flag("GEOMETRY_MISMATCH")
+                pose_reasons.append(
+                    f"camera direction from the board is {ang:.2f} deg from the rig's report "
+                    f"(tolerance {setup.geometry_tolerance_deg} deg)"
+                )
+        if reported_camera is not None:
+            dpos = float(np.linalg.norm(cam.position - np.asarray(reported_camera[0], float)))
+            if dpos > setup.position_tolerance_m:
+                pose_flags |= _flag("GEOMETRY_MISMATCH")
+                pose_reasons.append(
+                    f"camera position from the board is {dpos * 1e3:.1f} mm from the rig's "
+                    f"report (tolerance {setup.position_tolerance_m * 1e3:g} mm)"
+                )
+    if setup.geometry == "rig" and reported_camera is not None and not pose_flags:
+        cam = _reported_pose(reported_camera, cam.reprojection_rms, cam.n_corners)
+    return cam, pose_flags, pose_reasons
+
+
+def _region_flags(
+    npx: NDArray[np.float64],
+    any_sat: NDArray[np.bool_],
+    L: NDArray[np.float64],
+    Lv: NDArray[np.float64],
+    min_snr: float,
+    pose_flags: int,
+    pose_reasons: list[str],
+) -> tuple[NDArray[np.uint32], list[list[str]]]:
+    """Each region's flags and reasons: the pose's, plus no pixels, saturation in every
+    frame, and a signal-to-noise ratio below ``min_snr``."""
+    n, nc = len(npx), len(CHANNELS)
+    flags = np.full(n, pose_flags, dtype=np.uint32)
+    reasons = [list(pose_reasons) for _ in range(n)]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        snr = L / np.sqrt(Lv)
+    for j in range(n):
+        if npx[j] == 0:
+            flags[j] |= _flag("INVALID")
+            reasons[j].append("region has no pixels in the image")
+            continue
+        for c in np.flatnonzero(any_sat[j]):
+            flags[j] |= _flag("SATURATED")
+            reasons[j].append(f"{CHANNELS[c]} saturated in every frame of the bracket")
+        low = [c for c in range(nc) if snr[j, c] < min_snr]
+        if low:
+            flags[j] |= _flag("UNDEREXPOSED")
+            txt = ", ".join(f"{CHANNELS[c]} {snr[j, c]:.1f}" for c in low)
+            reasons[j].append(f"signal-to-noise below {min_snr:g} ({txt})")
+    return flags, reasons
+
+
+def _pose_sums_numpy(
+    frames: list[RawFrame],
+    setup: ReductionSetup,
+    cam: CameraPose,
+    lp: NDArray[np.float64],
+    light_normal: NDArray[np.float64] | None,
+    dark_variance: float | NDArray[np.float64],
+) -> tuple[RegionMap, NDArray[np.float64], NDArray[np.float64]]:
+    """The regions of a pose, their weighted sums per channel and their direction sums.
+
+    Returns ``(regions, sums, dirs)``: ``sums`` (n, 3, 7) holds per region and channel the
+    sums of w, w L, w^2 var(L), w G, w L / G, w^2 var(L) / G^2 and w over saturated sites
+    (w the Bayer weights, :func:`bayer_region_weights`); ``dirs`` (n, 7) the pixel count
+    and the sums of the per-pixel unit vectors to the light and to the camera.  The
+    reference implementation of :mod:`gonio.capture.pose_kernel`.
+    """
+    regions = map_regions(
+        cam,
+        setup.K,
+        frames[0].shape,
+        setup.sample_size,
+        roi_fraction=setup.roi_fraction,
+        grid=setup.grid,
+    )
+    merged = merge_bracket(frames, setup.noise, dark_variance, region=regions.box)
+    n, nc = regions.n_regions, len(CHANNELS)
+    # flat indices of the ROI's pixels, found once (each boolean-mask index searches again)
+    inside = np.flatnonzero(regions.label >= 0)
+
+    def at(a: NDArray) -> NDArray:
+        return a.reshape(-1)[inside]
+
+    lab = at(regions.label)
+    # Each region and channel is a weighted mean over that channel's CFA sites whose
+    # weighted centroid is the region's own pixel centroid (see bayer_region_weights):
+    # the directions below are that centroid's, so R and B (whose sites sit half a pixel
+    # off it) would otherwise be measured at other directions than reported.
+    site, row, wt = bayer_region_entries(regions.label, merged.channel, n)
+
+    def on(a: NDArray) -> NDArray:
+        return a.reshape(-1)[site]
+
+    def region_sum(x: NDArray) -> NDArray:
+        return np.bincount(row, x, minlength=n * nc).reshape(n, nc)
+
+    vign = on(regions.vignetting)
+    val = on(merged.value) / vign
+    var = on(merged.variance) / vign**2
+    sat = on(merged.saturated) | ~np.isfinite(val)
+    pts = np.stack([on(a) for a in regions.xyz], axis=-1)
+    # G(x): a Lambertian disk of radius r whose axis passes through x gives exactly
+    # E = pi L sin^2(a) cos(theta), sin^2(a) = r^2 / (r^2 + d^2): the small-source law
+    # (pi r^2 L cos(theta) cos(theta') / d^2) times d^2 / (d^2 + r^2).  The rig aims the
+    # light at the sample centre; off that axis the correction changes by < 1e-4 over a
+    # 5 cm sample at 0.5 m (checked against the exact rim integral in the tests).
+    g = irradiance_geometry(pts, lp, light_normal)
+    to_light_u = [lp[a] - pts[:, a] for a in range(3)]
+    d2u = to_light_u[0] ** 2 + to_light_u[1] ** 2 + to_light_u[2] ** 2
+    if setup.light_radius:
+        g = g * (np.pi * setup.light_radius**2) * d2u / (d2u + setup.light_radius**2)
+    val = np.where(sat, 0.0, val)
+    var = np.where(sat, 0.0, var)
+    wt2 = wt * wt
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cols = (wt, wt * val, wt2 * var, wt * g, wt * val / g, wt2 * var / g**2, wt * sat)
+    sums = np.stack([region_sum(x) for x in cols], axis=-1, dtype=float)
+    # directions: mean over the region's pixels of the per-pixel unit vectors to the light
+    # and to the camera, one component at a time (sums over a trailing axis of 3 are slow)
+    xyz = [at(a) for a in regions.xyz]
+
+    def direction_sum(to: NDArray) -> list[NDArray]:
+        v = [to[a] - xyz[a] for a in range(3)]
+        inv = 1.0 / np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        return [np.bincount(lab, v[a] * inv, minlength=n) for a in range(3)]
+
+    dirs = np.stack(
+        [
+            np.bincount(lab, minlength=n),
+            *direction_sum(lp),
+            *direction_sum(regions.camera_position),
+        ],
+        axis=1,
+        dtype=float,  # bincount of no pixels at all gives integers
+    )
+    return regions, sums, dirs
+
+
+_numba_broken = False
+
+
+def _fused_kernel() -> Any | None:
+    """:func:`gonio.capture.pose_kernel.pose_sums`, or None (the numpy path) when
+    ``GONIO_NUMBA=0`` or numba cannot load here."""
+    global _numba_broken
+    if _numba_broken or os.environ.get("GONIO_NUMBA") == "0":
+        return None
+    try:
+        from gonio.capture.pose_kernel import pose_sums
+    except ImportError as exc:  # a broken numba/llvmlite install: slower, not wrong
+        import warnings
+
+        warnings.warn(f"numba unavailable ({exc}); reducing with the numpy path", stacklevel=2)
+        _numba_broken = True
+        return None
+    return pose_sums
+
+
+def _pose_sums_fused(
+    kernel: Any,
+    frames: list[RawFrame],
+    setup: ReductionSetup,
+    cam: CameraPose,
+    lp: NDArray[np.float64],
+    light_normal: NDArray[np.float64] | None,
+    dark_variance: float | NDArray[np.float64],
+) -> tuple[RegionMap, NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`_pose_sums_numpy` in one pass of :mod:`gonio.capture.pose_kernel`."""
+    from gonio.capture import pose_kernel as pk
+
+    check_bracket(frames)
+    ref = frames[0]
+    roi = roi_geometry(
+        cam,
+        setup.K,
+        ref.shape,
+        setup.sample_size,
+        roi_fraction=setup.roi_fraction,
+        grid=setup.grid,
+    )
+    box = roi.box
+    r0, c0 = box[0].start, box[1].start
+    frames = sorted(frames, key=lambda f: f.exposure_factor())  # merge_bracket's order
+
+    def crop_cell(cell: NDArray) -> NDArray:  # a (2, 2) cell as seen from the crop origin
+        return np.roll(np.asarray(cell, float), (-(r0 % 2), -(c0 % 2)), axis=(0, 1))
+
+    def stack(key: str) -> NDArray:
+        if all(f.extra.get(key) is None for f in frames):
+            return np.zeros((len(frames), 0, 0))
+        return np.stack(
+            [
+                np.zeros(ref.shape)[box] if f.extra.get(key) is None else f.extra[key][box]
+                for f in frames
+            ]
+        )
+
+    gains = stack("_gain")
+    if gains.size and any(f.extra.get("_gain") is None for f in frames):
+        gains[[f.extra.get("_gain") is None for f in frames]] = 1.0
+    models = [setup.noise.at_iso(f.iso) for f in frames]
+    dv = np.asarray(dark_variance, dtype=np.float64)
+    st_n = np.zeros(4, np.int64)
+    st = np.zeros((3, 4, 9))
+    cell = crop_cell(ref.cell_channel).astype(np.int64)
+    for (y0, x0), entries in site_stencils(cell, len(CHANNELS)).items():
+        st_n[2 * y0 + x0] = len(entries)
+        for t, e in enumerate(entries):
+            st[:, 2 * y0 + x0, t] = e
+    K = np.asarray(setup.K, float)
+    hw, hh = roi.half_size
+    bracket = pk.Bracket(
+        raws=np.stack([f.raw[box] for f in frames]),
+        black=np.stack([crop_cell(f.cell_black) for f in frames]),
+        sat_level=np.stack([crop_cell(f.cell_saturation) for f in frames]),
+        offset=stack("_offset"),
+        gain=gains,
+        expo=np.array([f.exposure_factor() for f in frames]),
+        noise_gain=np.array([m.gain for m in models]),
+        noise_read2=np.array([m.read_noise**2 for m in models]),
+        noise_quant=1.0 / 12.0 if setup.noise.quantisation else 0.0,
+        dark_var=dv[box] if dv.ndim == 2 else np.zeros((0, 0)),
+        dark_var0=float(dv) if dv.ndim != 2 else 0.0,
+    )
+    stencils = pk.Stencils(
+        cell_channel=cell,
+        size=st_n,
+        dy=st[0].astype(np.int64),
+        dx=st[1].astype(np.int64),
+        weight=st[2],
+    )
+    view = pk.View(
+        cam=np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]),
+        rot=np.asarray(cam.rotation, float),
+        cpos=np.asarray(cam.position, float),
+        r0=int(r0),
+        c0=int(c0),
+        roi=np.array([hw, hh, *roi.cell, roi.margin]),
+        grid=int(roi.grid),
+        light=lp,
+        light_normal=np.zeros(3) if light_normal is None else light_normal,
+        has_normal=light_normal is not None,
+        light_radius=float(setup.light_radius or 0.0),
+        n_channels=len(CHANNELS),
+    )
+    label, sums, dirs = kernel(bracket, stencils, view)
+    regions = RegionMap(box, label, roi.grid**2, roi.centers, cam, K)
+    return regions, sums, dirs
+
+
+def invalid_pose(
+    p: int, wi: NDArray, wo: NDArray, why: str, frames: tuple[str, ...]
+) -> PoseMeasurement:
+    """A sample pose that gave no measurement: one INVALID sample at the rig's directions,
+    ``why`` its reason."""
+    nan3 = np.full((1, 3), np.nan)
+    return PoseMeasurement(
+        p,
+        "sample",
+        wi[None, :],
+        wo[None, :],
+        nan3,
+        nan3,
+        nan3,
+        nan3,
+        nan3,
+        np.array([_flag("INVALID")], np.uint32),
+        [[why]],
+        frames,
+    )

@@ -1,0 +1,411 @@
+"""What the reduction knows besides the frames: ``reduction.toml`` and ``noise.json``.
+
+A session is reduced with the facts of the camera, holder, light and reference target
+that it was shot with: the camera matrix and distortion, the ChArUco board, the sample's
+size, the light's radius, the sensor's noise model and the target's reflectance.  A lab
+measures them with gonio's calibrations and writes them into ``SESSION/reduction.toml``
+(``examples/reduction.toml`` explains every field); a simulated session gets its own,
+written from its scene by the composition root (:mod:`gonio.app.sim_reduction`), so the
+reduction never reads a scene.  ``gonio capture calibrate-noise`` writes ``noise.json``.
+
+Both documents are pydantic models read through :func:`gonio.config.read_toml` and
+:func:`gonio.config.validate`, so a wrong value is a :class:`~gonio.errors.ConfigError`
+naming the file and the field, as for plans, rigs and scenes.
+:class:`ReductionSetup` is the validated result the rest of the reduction reads.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from gonio.capture.calibration import reference_reflectance
+from gonio.capture.fiducials import BoardSpec
+from gonio.capture.noise import NoiseModel
+from gonio.capture.raw import CameraSignature
+from gonio.config import read_toml, validate
+from gonio.errors import FileFormatError, ReductionError, SessionError
+
+__all__ = [
+    "CONFIG_FILE",
+    "NOISE_FILE",
+    "NoiseDocument",
+    "ReductionConfig",
+    "ReductionSetup",
+    "load_noise",
+    "load_reduction_config",
+    "resolve_setup",
+    "setup_from_config",
+]
+
+CONFIG_FILE = "reduction.toml"
+NOISE_FILE = "noise.json"
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Fraction = Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)]
+Row3 = tuple[Finite, Finite, Finite]
+
+
+class _Strict(BaseModel):
+    # unknown keys are refused: a misspelt field (``gird = 6``) must not be ignored
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CameraSection(_Strict):
+    """``[camera]``: intrinsics (OpenCV convention: pixel centres at integers) and the
+    CFA layout and size every frame of the session must have."""
+
+    K: tuple[Row3, Row3, Row3]
+    dist: tuple[Finite, ...] | None = None
+    cfa_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] | None = None
+    width: Annotated[int, Field(ge=1)] | None = None
+    height: Annotated[int, Field(ge=1)] | None = None
+
+    @field_validator("cfa_pattern", mode="before")
+    @classmethod
+    def _upper(cls, v: Any) -> Any:
+        return v.upper() if isinstance(v, str) else v
+
+    @field_validator("K")
+    @classmethod
+    def _camera_matrix(cls, v: tuple[Row3, Row3, Row3]) -> tuple[Row3, Row3, Row3]:
+        if not (v[0][0] > 0 and v[1][1] > 0):
+            raise ValueError(f"focal lengths K[0][0] and K[1][1] must be > 0 pixels, got {v}")
+        if tuple(v[2]) != (0.0, 0.0, 1.0):
+            raise ValueError(f"the last row of K must be [0, 0, 1], got {list(v[2])}")
+        return v
+
+    @field_validator("dist")
+    @classmethod
+    def _opencv_length(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if v is not None and len(v) not in (4, 5, 8, 12, 14):
+            raise ValueError(f"OpenCV takes 4, 5, 8, 12 or 14 coefficients, got {len(v)}")
+        return v
+
+    @model_validator(mode="after")
+    def _size_together(self) -> CameraSection:
+        if (self.width is None) != (self.height is None):
+            raise ValueError("give both width and height (pixels), or neither")
+        return self
+
+
+class NoiseSection(_Strict):
+    """``[noise]``: the photon-transfer model (DN per electron and DN at ``iso``), or
+    ``file`` naming a ``noise.json`` relative to the ``reduction.toml``."""
+
+    file: str | None = None
+    gain: Positive | None = None
+    read_noise: NonNegative | None = None
+    iso: Positive = 100.0
+    quantisation: bool = True
+
+    @model_validator(mode="after")
+    def _file_or_numbers(self) -> NoiseSection:
+        numbers = self.gain is not None or self.read_noise is not None
+        if self.file is not None and numbers:
+            raise ValueError("give file = 'noise.json' or gain and read_noise, not both")
+        if self.file is None and (self.gain is None or self.read_noise is None):
+            raise ValueError("give gain (DN/e-) and read_noise (DN), or file = 'noise.json'")
+        return self
+
+
+class BoardSection(_Strict):
+    """``[board]``: the holder's ChArUco board (defaults: the simulator's board)."""
+
+    squares_x: Annotated[int, Field(ge=2)] = 7
+    squares_y: Annotated[int, Field(ge=2)] = 7
+    square_length: Positive = 0.02
+    marker_length: Positive = 0.015
+    dictionary: str = "DICT_4X4_50"
+
+    @field_validator("dictionary")
+    @classmethod
+    def _known_dictionary(cls, v: str) -> str:
+        import cv2
+
+        if not v.startswith("DICT_") or not hasattr(cv2.aruco, v):
+            raise ValueError(f"unknown cv2.aruco dictionary {v!r} (e.g. 'DICT_4X4_50')")
+        return v
+
+    @model_validator(mode="after")
+    def _marker_fits(self) -> BoardSection:
+        if self.marker_length >= self.square_length:
+            raise ValueError("marker_length must be smaller than square_length")
+        return self
+
+
+class SampleSection(_Strict):
+    """``[sample]``: width (x) and height (y) of the sample, metres, centred on the origin."""
+
+    width: Positive
+    height: Positive
+
+
+class LightSection(_Strict):
+    """``[light]``: radius of the disk light, metres (left out: a point source)."""
+
+    radius: Positive | None = None
+
+
+class ReferenceSection(_Strict):
+    """``[reference]``: the reference target's reflectance (one value, three for R, G, B,
+    or a CSV spectrum relative to the ``reduction.toml``; left out: the session's plan
+    value) and its standard uncertainty."""
+
+    reflectance: Fraction | tuple[Fraction, Fraction, Fraction] | str | None = None
+    reflectance_std: NonNegative | tuple[NonNegative, NonNegative, NonNegative] = 0.0
+
+
+class ReductionSection(_Strict):
+    """``[reduction]``: defaults of the ``gonio capture reduce`` options."""
+
+    roi_fraction: Annotated[float, Field(ge=0.05, le=1.0)] = 0.6
+    grid: Annotated[int, Field(ge=1, le=20)] = 3
+    geometry_tolerance_deg: Positive = 0.5
+    position_tolerance_m: Positive = 0.01
+    min_snr: NonNegative = 5.0
+    geometry: Literal["board", "rig"] = "board"
+
+
+class ReductionConfig(_Strict):
+    """A whole ``reduction.toml`` (see ``examples/reduction.toml``)."""
+
+    camera: CameraSection
+    noise: NoiseSection | None = None
+    board: BoardSection = BoardSection()
+    sample: SampleSection
+    light: LightSection = LightSection()
+    reference: ReferenceSection = ReferenceSection()
+    reduction: ReductionSection = ReductionSection()
+
+
+class NoiseDocument(_Strict):
+    """A ``noise.json`` (:meth:`gonio.capture.noise.NoiseModel.save`)."""
+
+    type: Literal["gonio.noise_model"] | None = None
+    gain: Positive
+    read_noise: NonNegative
+    iso: Positive = 100.0
+    quantisation: bool = True
+
+    def model(self) -> NoiseModel:
+        """The :class:`~gonio.capture.noise.NoiseModel` it describes."""
+        return NoiseModel(self.gain, self.read_noise, self.iso, self.quantisation)
+
+
+@dataclass(frozen=True)
+class ReductionSetup:
+    """Camera, holder, light and noise facts the reduction needs.
+
+    Attributes
+    ----------
+    K
+        3x3 camera matrix, pixels, OpenCV convention (pixel centres at integers).
+    board
+        The holder's ChArUco board.
+    sample_size
+        Sample width (x) and height (y), metres, centred on the origin.
+    noise
+        Photon-transfer noise model of the camera.
+    reflectance
+        Reference target reflectance per channel (R, G, B).
+    reflectance_std
+        Its standard uncertainty per channel.
+    light_radius
+        Radius of the (disk) light, metres; None treats it as a point source.
+    dist
+        Lens distortion coefficients (OpenCV), None for none.
+    signature
+        The session camera's CFA pattern and mosaic size (frames that differ are refused);
+        None takes it from the first frame.
+    roi_fraction, grid
+        Central fraction of the sample used, and regions per side.
+    geometry_tolerance_deg, position_tolerance_m
+        Largest disagreement between the camera pose from the board and the rig's report.
+    geometry
+        Where the camera pose comes from: ``"board"`` (measured from the fiducials in each
+        pose, the default) or ``"rig"`` (the rig's read-back pose through its calibrated
+        kinematics; the board still checks it and flags disagreements).  Use ``"rig"``
+        when the rig's geometry is known better than one board view measures it (a
+        calibrated rig, or the simulator, whose rig is exact): on a sharp lobe's flank a
+        0.04 deg pose error is a percent of BRDF, shared by every region of the pose.
+    min_snr
+        Regions whose signal-to-noise ratio is lower are flagged UNDEREXPOSED.
+    """
+
+    K: NDArray[np.float64]
+    board: BoardSpec
+    sample_size: tuple[float, float]
+    noise: NoiseModel
+    reflectance: NDArray[np.float64]
+    reflectance_std: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    light_radius: float | None = None
+    dist: NDArray[np.float64] | None = None
+    signature: CameraSignature | None = None
+    roi_fraction: float = 0.6
+    grid: int = 3
+    geometry_tolerance_deg: float = 0.5
+    position_tolerance_m: float = 0.01
+    min_snr: float = 5.0
+    geometry: str = "board"
+
+    def replace(self, **changes: Any) -> ReductionSetup:
+        """A copy with some fields changed (``dataclasses.replace``)."""
+        return replace(self, **changes)
+
+
+def load_noise(path: str | os.PathLike) -> NoiseModel:
+    """Read a ``noise.json``.
+
+    Raises
+    ------
+    FileFormatError
+        When the file cannot be read or is not JSON (names the file).
+    ConfigError
+        When a field is missing or wrong (names the file and the field).
+    """
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise FileFormatError(p, f"not a readable JSON noise model ({exc})") from None
+    return validate(NoiseDocument, doc, f"{p} (noise model)").model()
+
+
+def load_reduction_config(path: str | os.PathLike) -> ReductionConfig:
+    """Read and validate a ``reduction.toml``.
+
+    Raises
+    ------
+    ConfigError
+        Unreadable, not TOML, or a field missing or wrong (names the file and the field).
+    """
+    p = Path(path)
+    return validate(ReductionConfig, read_toml(p, "reduction setup"), str(p))
+
+
+def setup_from_config(
+    config: ReductionConfig,
+    source: str | os.PathLike,
+    *,
+    base: str | os.PathLike | None = None,
+    reflectance: Any = 0.99,
+    noise: NoiseModel | None = None,
+) -> ReductionSetup:
+    """The :class:`ReductionSetup` a validated ``reduction.toml`` describes.
+
+    Parameters
+    ----------
+    config
+        The document.
+    source
+        Its file, for messages.
+    base
+        Directory that relative file names (``noise.file``, a reflectance CSV) refer to;
+        the file's own directory by default.
+    reflectance
+        The reference reflectance when the document gives none (the session plan's).
+    noise
+        A noise model that replaces the document's (``noise.json``, ``--noise``).
+
+    Raises
+    ------
+    ReductionError
+        When no noise model is given anywhere.
+    """
+    src = Path(source)
+    root = Path(base) if base is not None else src.parent
+    if noise is None:
+        if config.noise is None:
+            raise ReductionError(
+                f"{src}: field 'noise': missing, and no {NOISE_FILE} beside it: give gain "
+                "(DN/e-) and read_noise (DN), or file = 'noise.json'"
+            )
+        if config.noise.file is not None:
+            noise = load_noise(root / config.noise.file)
+        else:
+            assert config.noise.gain is not None and config.noise.read_noise is not None
+            noise = NoiseModel(
+                config.noise.gain,
+                config.noise.read_noise,
+                config.noise.iso,
+                config.noise.quantisation,
+            )
+    cam = config.camera
+    ref = config.reference
+    refl = reflectance if ref.reflectance is None else ref.reflectance
+    if isinstance(refl, str):
+        refl = root / refl
+    b = config.board
+    signature = None
+    if cam.cfa_pattern is not None and cam.width is not None and cam.height is not None:
+        signature = CameraSignature(cam.cfa_pattern, (cam.height, cam.width))
+    red = config.reduction
+    return ReductionSetup(
+        K=np.asarray(cam.K, dtype=np.float64),
+        board=BoardSpec(b.squares_x, b.squares_y, b.square_length, b.marker_length, b.dictionary),
+        sample_size=(config.sample.width, config.sample.height),
+        noise=noise,
+        reflectance=reference_reflectance(refl),
+        reflectance_std=np.broadcast_to(np.asarray(ref.reflectance_std, float), (3,)).copy(),
+        light_radius=config.light.radius,
+        dist=None if cam.dist is None else np.asarray(cam.dist, dtype=np.float64),
+        signature=signature,
+        roi_fraction=red.roi_fraction,
+        grid=red.grid,
+        geometry_tolerance_deg=red.geometry_tolerance_deg,
+        position_tolerance_m=red.position_tolerance_m,
+        min_snr=red.min_snr,
+        geometry=red.geometry,
+    )
+
+
+def resolve_setup(
+    session: str | os.PathLike,
+    manifest: dict[str, Any],
+    noise: NoiseModel | None = None,
+    *,
+    config: str | os.PathLike | None = None,
+) -> ReductionSetup:
+    """Find the reduction facts of a session.
+
+    The setup is ``config`` when given, else ``SESSION/reduction.toml``.  The noise model
+    is ``noise`` when given, else ``SESSION/noise.json`` (``gonio capture
+    calibrate-noise``) when present, else the document's ``[noise]``.  The reference
+    reflectance defaults to the session plan's (the manifest's ``reference``).
+
+    Raises
+    ------
+    SessionError
+        When there is no ``reduction.toml`` to read.
+    ConfigError
+        When it is not valid (names the file and the field).
+    """
+    session = Path(session)
+    path = Path(config) if config is not None else session / CONFIG_FILE
+    if config is None and not path.is_file():
+        raise SessionError(
+            f"{session}: no {CONFIG_FILE} (camera matrix, board, sample size, noise model): "
+            "the reduction does not know the camera; write one (see examples/reduction.toml) "
+            "or pass --config.  A simulated session captured before sessions wrote their own: "
+            f"python -m gonio.app.sim_reduction {session}"
+        )
+    ref = manifest.get("reference") or {}
+    nfile = session / NOISE_FILE
+    if noise is None and nfile.is_file():
+        noise = load_noise(nfile)
+    return setup_from_config(
+        load_reduction_config(path),
+        path,
+        reflectance=ref.get("reflectance", 0.99),
+        noise=noise,
+    )
