@@ -31,6 +31,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    PrivateAttr,
     field_validator,
     model_serializer,
     model_validator,
@@ -304,6 +305,8 @@ class Plan(_Strict):
     seed: int = Field(default=0, ge=0)
     settle_s: float = Field(default=0.0, ge=0, le=MAX_SETTLE_S)
     limits: Limits = Limits()
+    # Where the plan came from (its file), for messages; not part of the plan's content.
+    _source: str = PrivateAttr(default="plan")
     grid: Grid
     reductions: Reductions = Reductions()
     exclusions: Exclusions = Exclusions()
@@ -337,7 +340,9 @@ def plan_from_dict(data: dict, source: str = "<plan>") -> Plan:
     ConfigError
         Naming ``source`` and each offending field, e.g. ``field 'bracket.iso'``.
     """
-    return validate(Plan, data, source)
+    plan = validate(Plan, data, source)
+    plan._source = source
+    return plan
 
 
 def load_plan(path: str | Path) -> Plan:
@@ -590,7 +595,7 @@ def estimate_plan(plan: Plan) -> PlanEstimate:
     return PlanEstimate(n_grid, n_poses, n_frames, frame, float(n_frames) * frame, memory)
 
 
-def check_limits(plan: Plan, source: str = "plan") -> PlanEstimate:
+def check_limits(plan: Plan, source: str | None = None) -> PlanEstimate:
     """Refuse a plan that needs more than ``plan.limits`` allows, before expanding it.
 
     Raises
@@ -601,6 +606,7 @@ def check_limits(plan: Plan, source: str = "plan") -> PlanEstimate:
     """
     from gonio.errors import ConfigError
 
+    source = source or plan._source
     est = estimate_plan(plan)
     lim = plan.limits
     over = []
@@ -631,7 +637,7 @@ def expand_plan(
     plan: Plan,
     rig_check: RigCheck | None = None,
     progress: Progress | None = None,
-    source: str = "plan",
+    source: str | None = None,
 ) -> ExpandedPlan:
     """Expand a plan into the poses to measure, in grid (raster) order.
 
@@ -646,7 +652,7 @@ def expand_plan(
         ``progress(done, total)`` in grid poses, called about a hundred times over the
         expansion and once at its end (a dry run shows it as a progress bar).
     source
-        Name of the plan (its file) in messages.
+        Name of the plan in messages (default: the file :func:`load_plan` read).
 
     Returns
     -------
@@ -659,7 +665,7 @@ def expand_plan(
         The plan needs more than ``plan.limits`` allows (:func:`check_limits`): refused
         before anything is allocated.
     """
-    check_limits(plan, source)
+    check_limits(plan, source or plan._source)
     wi_all, wo_all = _grid_directions(plan.grid)
     n_total = len(wi_all)
     every = max(1, n_total // 100)
