@@ -27,6 +27,7 @@ import os
 import re
 import secrets
 import shutil
+import stat
 import struct
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -227,6 +228,26 @@ def _exchange(a: Path, b: Path) -> bool:
     raise OSError(err, os.strerror(err), str(b))
 
 
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst, follow_symlinks=False)
+    except OSError:
+        shutil.copy2(src, dst, follow_symlinks=False)
+
+
+def _link_into(src: Path, dst: Path) -> None:
+    """Give ``dst`` the content of ``src`` without touching ``src``: hard links (the
+    same inodes, so a lock held on a kept file stays held), copies where links fail."""
+    if dst.exists() or not (src.exists() or src.is_symlink()):
+        return
+    if src.is_symlink():
+        os.symlink(os.readlink(src), dst)
+    elif src.is_dir():
+        shutil.copytree(src, dst, symlinks=True, copy_function=_link_or_copy)
+    else:
+        _link_or_copy(str(src), str(dst))
+
+
 @contextmanager
 def atomic_directory(path: str | os.PathLike, *, keep: tuple[str, ...] = ()) -> Iterator[Path]:
     """A temporary folder to write ``path``'s new set of files to; it replaces ``path``
@@ -242,9 +263,10 @@ def atomic_directory(path: str | os.PathLike, *, keep: tuple[str, ...] = ()) -> 
     path
         The folder to replace (created when absent; its parent must exist).
     keep
-        Names in the old folder that are not part of the set: hard-linked (or copied)
-        into the new folder first so that they survive the swap.  Everything else of
-        the old folder is dropped with it.
+        Names in the old folder that are not part of the set: hard-linked (or copied;
+        folders as trees of links) into the new folder just before the swap, so they
+        survive it; the old folder's entries are never moved, so a crash loses none.
+        Everything else of the old folder is dropped with it.
     """
     path = Path(path)
     parent = path.parent
@@ -263,12 +285,12 @@ def atomic_directory(path: str | os.PathLike, *, keep: tuple[str, ...] = ()) -> 
             yield stage
             if path.is_dir():
                 for name in keep:
-                    src = path / name
-                    if src.is_file() and not (stage / name).exists():
-                        try:
-                            os.link(src, stage / name)
-                        except OSError:
-                            shutil.copy2(src, stage / name)
+                    _link_into(path / name, stage / name)
+                # The folder keeps its mode and group (a lab's setgid group folder).
+                st = path.stat()
+                os.chmod(stage, stat.S_IMODE(st.st_mode))
+                with contextlib.suppress(OSError):
+                    os.chown(stage, -1, st.st_gid)
             for p in stage.iterdir():
                 if p.is_file():
                     with open(p, "rb") as fh:
