@@ -350,6 +350,7 @@ def _read(path: Path, f: h5py.File) -> tuple[dict[str, Any], tuple, dict, dict]:
             raise FileFormatError(path, f"expected {want}, found {ds.dtype}", name)
         if ds.ndim == 0 or ds.shape[0] == 0:
             raise FileFormatError(path, f"no samples (shape {ds.shape})", name)
+        _check_size(path, ds, name)
         out[name] = ds[()]
         if name in DEFAULT_UNITS and "units" in ds.attrs:
             u = ds.attrs["units"]
@@ -364,6 +365,7 @@ def _read(path: Path, f: h5py.File) -> tuple[dict[str, Any], tuple, dict, dict]:
         ds = _dataset(path, f, "frames")
         if ds.dtype.kind not in "SOU":
             raise FileFormatError(path, f"expected strings, found {ds.dtype}", "frames")
+        _check_size(path, ds, "frames")
         out["frames"] = ds.asstr()[()]
     raw_channels = f.attrs.get("channels", ())
     if isinstance(raw_channels, str | bytes) or np.ndim(raw_channels) != 1:
@@ -379,6 +381,23 @@ def _read(path: Path, f: h5py.File) -> tuple[dict[str, Any], tuple, dict, dict]:
         if k not in ("schema", "schema_version", "channels")
     }
     return out, channels, attrs, units
+
+
+# deflate, the strongest compression HDF5 applies here, packs at most ~1032:1.
+_MAX_COMPRESSION = 1100
+
+
+def _check_size(path: Path, ds: h5py.Dataset, name: str) -> None:
+    """Refuse a dataset whose header claims more data than the file can hold: a damaged
+    header would otherwise have numpy allocate whatever it says."""
+    limit = _MAX_COMPRESSION * path.stat().st_size + 2**20
+    if ds.size * ds.dtype.itemsize > limit:
+        raise FileFormatError(
+            path,
+            f"the dataset claims shape {ds.shape} ({ds.size * ds.dtype.itemsize:,} bytes), "
+            f"more than a file of {path.stat().st_size:,} bytes can hold: damaged",
+            name,
+        )
 
 
 def _check_values(path: Path, s: BRDFSamples) -> None:
