@@ -20,13 +20,22 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from gonio.config import read_toml, validate
 from gonio.radiometry import (
@@ -44,8 +53,14 @@ __all__ = [
     "Pose",
     "ExcludedPose",
     "ExpandedPlan",
+    "Limits",
+    "MAX_EXPOSURE_S",
+    "MAX_SETTLE_S",
+    "PlanEstimate",
+    "estimate_plan",
     "ReferenceShots",
     "Reductions",
+    "check_limits",
     "expand_plan",
     "load_plan",
     "plan_from_dict",
@@ -54,9 +69,24 @@ __all__ = [
 
 SCHEMA_VERSION = 1
 
+#: Longest exposure accepted anywhere in a plan, s.  Cameras offer at most 30 s timed
+#: (longer only in bulb mode); an hour is far beyond any BRDF frame (the sensor's dark
+#: current fills a pixel's well long before) and keeps every derived figure (duration
+#: estimates, the simulated sensor's Poisson mean) in range.  Beyond it a value is a
+#: typo or a unit mistake.
+MAX_EXPOSURE_S = 3600.0
+
+#: Longest wait after a move before shooting, s.  A servo arm's vibration dies out within
+#: a second or two; a minute covers a heavy arm on a soft mount with a wide margin.  More
+#: would multiply a session's duration (10 000 poses x 60 s = a week) for nothing.
+MAX_SETTLE_S = 60.0
+
+Seconds = Annotated[float, Field(gt=0, le=MAX_EXPOSURE_S)]
+
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # No inf/nan anywhere in a plan: an infinite time, angle or limit is always a mistake.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Range(_Strict):
@@ -173,18 +203,18 @@ class BracketPolicy(_Strict):
         return None if self.f_number == "camera" else float(self.f_number)
 
     policy: Literal["adaptive", "fixed"] = "adaptive"
-    exposure_time_s: float = Field(default=0.01, gt=0)
-    exposures_s: tuple[float, ...] = ()
+    exposure_time_s: float = Field(default=0.01, gt=0, le=MAX_EXPOSURE_S)
+    exposures_s: tuple[Seconds, ...] = ()
     iso: Annotated[float, Field(gt=0)] | Literal["camera"] = 100.0
     f_number: Annotated[float, Field(gt=0)] | Literal["camera"] = 8.0
     step_ev: float = Field(default=2.0, gt=0, le=6)
     max_frames: int = Field(default=5, ge=1, le=20)
-    min_exposure_s: float = Field(default=1e-5, gt=0)
-    max_exposure_s: float = Field(default=30.0, gt=0)
+    min_exposure_s: float = Field(default=1e-5, gt=0, le=MAX_EXPOSURE_S)
+    max_exposure_s: float = Field(default=30.0, gt=0, le=MAX_EXPOSURE_S)
     saturated_fraction: float = Field(default=1e-3, ge=0, lt=1)
     noise_floor_snr: float = Field(default=10.0, gt=0)
     roi: tuple[float, float, float, float] | None = None
-    shot_overhead_s: float = Field(default=0.5, ge=0)
+    shot_overhead_s: float = Field(default=0.5, ge=0, le=MAX_EXPOSURE_S)
 
     @model_validator(mode="after")
     def _consistent(self) -> BracketPolicy:
@@ -209,7 +239,7 @@ class DarkFrames(_Strict):
 
     count: int = Field(default=0, ge=0, le=100)
     when: Literal["start", "end"] = "end"
-    exposure_times_s: tuple[float, ...] = ()
+    exposure_times_s: tuple[Seconds, ...] = ()
 
 
 class ReferencePose(_Strict):
@@ -237,13 +267,46 @@ class SimulationSettings(_Strict):
     options: dict[str, Any] = {}
 
 
+def _physical_memory() -> float:
+    try:
+        return float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - not POSIX
+        return 16e9
+
+
+class Limits(_Strict):
+    """What a plan may ask for; checked from the grid's sizes before it is expanded.
+
+    Defaults are sized for a lab: ``max_poses`` 50 000 (at a few seconds per pose for
+    move, settle and bracket, two to four days of unattended capture), ``max_frames``
+    500 000, ``max_bytes`` 2 TB of RAW files, ``max_memory_bytes`` half of this
+    machine's physical memory (expansion and pose ordering).  ``frame_bytes`` is the
+    size of one RAW file: by default ``simulation.width x height x 2`` bytes plus a
+    64 KiB header when both are set, else 30 MB (a 24 MP RAW).  Raise a limit in the
+    plan's ``[limits]`` table when a bigger plan is meant.
+    """
+
+    max_poses: int = Field(default=50_000, ge=1)
+    max_frames: int = Field(default=500_000, ge=1)
+    max_bytes: float = Field(default=2e12, gt=0)
+    max_memory_bytes: float | None = Field(default=None, gt=0)
+    frame_bytes: int | None = Field(default=None, ge=1)
+
+    def memory_limit(self) -> float:
+        """``max_memory_bytes``, or half of the physical memory (bytes)."""
+        return self.max_memory_bytes or 0.5 * _physical_memory()
+
+
 class Plan(_Strict):
     """A whole measurement plan (the TOML file)."""
 
     name: str = "plan"
     description: str = ""
     seed: int = Field(default=0, ge=0)
-    settle_s: float = Field(default=0.0, ge=0)
+    settle_s: float = Field(default=0.0, ge=0, le=MAX_SETTLE_S)
+    limits: Limits = Limits()
+    # Where the plan came from (its file), for messages; not part of the plan's content.
+    _source: str = PrivateAttr(default="plan")
     grid: Grid
     reductions: Reductions = Reductions()
     exclusions: Exclusions = Exclusions()
@@ -259,6 +322,15 @@ class Plan(_Strict):
             raise ValueError("name must not be empty")
         return v
 
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> dict[str, Any]:
+        # Default limits are left out of the dump, so a plan's digest and its manifest
+        # copy stay what they were before [limits] existed (sessions resume unchanged).
+        data = handler(self)
+        if self.limits == Limits() and isinstance(data, dict):
+            data.pop("limits", None)
+        return data
+
 
 def plan_from_dict(data: dict, source: str = "<plan>") -> Plan:
     """Validate a parsed plan document.
@@ -268,7 +340,9 @@ def plan_from_dict(data: dict, source: str = "<plan>") -> Plan:
     ConfigError
         Naming ``source`` and each offending field, e.g. ``field 'bracket.iso'``.
     """
-    return validate(Plan, data, source)
+    plan = validate(Plan, data, source)
+    plan._source = source
+    return plan
 
 
 def load_plan(path: str | Path) -> Plan:
@@ -406,8 +480,165 @@ def _exclusion_reason(wi: np.ndarray, wo: np.ndarray, ex: Exclusions) -> str | N
 
 RigCheck = Callable[[np.ndarray, np.ndarray], "str | None"]
 
+#: Progress of a long expansion: ``progress(done, total)`` in grid poses.
+Progress = Callable[[int, int], None]
 
-def expand_plan(plan: Plan, rig_check: RigCheck | None = None) -> ExpandedPlan:
+# Measured peak of the expansion loop (tracemalloc, 108 000 poses, nothing reduced):
+# ~720 bytes per grid pose (Pose objects, symmetry keys, direction arrays), rounded up.
+_EXPANSION_BYTES_PER_POSE = 1024
+# Pose ordering (gonio.capture.ordering) holds about five (n+1) x (n+1) arrays of 8-byte
+# values at its peak (move times, pulse distances, np.unique's sort and inverse).
+_ORDERING_BYTES_PER_PAIR = 40
+_DEFAULT_FRAME_BYTES = 30_000_000  # a 24 MP RAW file
+_DNG_HEADER_BYTES = 65_536
+
+
+@dataclass(frozen=True)
+class PlanEstimate:
+    """What a plan needs, from the grid's sizes alone (before it is expanded).
+
+    Attributes
+    ----------
+    n_grid
+        Grid poses (product of the axes' lengths).
+    n_poses
+        Poses to measure at most: the grid after the symmetry reductions that can be
+        counted on the axes (isotropy), plus reference poses; exclusions and the rig
+        only remove more.
+    n_frames
+        Frames at most: ``n_poses`` x frames per pose (``len(exposures_s)`` or
+        ``max_frames``) plus dark frames.
+    frame_bytes, bytes
+        One RAW file and all of them, bytes.
+    memory_bytes
+        Peak memory of expanding and ordering the poses, bytes.
+    """
+
+    n_grid: int
+    n_poses: int
+    n_frames: int
+    frame_bytes: int
+    bytes: float
+    memory_bytes: float
+
+    def summary(self) -> str:
+        """One line with the figures, for messages and the dry run."""
+        return (
+            f"{self.n_grid:,} grid poses, up to {self.n_poses:,} poses and "
+            f"{self.n_frames:,} frames, {_fmt_bytes(self.bytes)} of RAW files "
+            f"({_fmt_bytes(self.frame_bytes)} each), {_fmt_bytes(self.memory_bytes)} of memory "
+            "to expand and order the poses"
+        )
+
+
+def _fmt_bytes(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
+        if abs(n) < 1000 or unit == "PB":
+            return f"{n:.3g} {unit}"
+        n /= 1000.0
+    return f"{n:.3g} PB"  # pragma: no cover
+
+
+def _distinct_relative_azimuths(phi_i: list[float], phi_o: list[float]) -> int:
+    d = {
+        round(abs(math.remainder(math.radians(b - a), 2 * math.pi)), 6)
+        for a in phi_i
+        for b in phi_o
+    }
+    return len(d)
+
+
+def estimate_plan(plan: Plan) -> PlanEstimate:
+    """Count a plan's poses, frames, bytes and memory from the grid's sizes.
+
+    Arithmetic on the axes only (microseconds whatever the grid's size): this is what
+    :func:`expand_plan` checks against ``plan.limits`` before it allocates anything.
+
+    Returns
+    -------
+    PlanEstimate
+        Upper bounds (see its attributes).
+    """
+    a, b, c, d = plan.grid.axes()
+    n_grid = len(a) * len(b) * len(c) * len(d)
+    if not plan.reductions.isotropic:
+        n_sample = n_grid
+    elif plan.grid.kind == "spherical":
+        # Isotropy keeps (theta_i, theta_o, |phi_o - phi_i|).
+        n_sample = len(a) * len(c) * _distinct_relative_azimuths(b, d)
+    else:
+        n_sample = len(a) * len(c) * len(d)  # phi_h is a rotation about the normal
+    n_poses = min(n_grid, n_sample) + len(plan.reference.poses)
+    br = plan.bracket
+    per_pose = len(br.exposures_s) if br.policy == "fixed" else br.max_frames
+    n_frames = n_poses * per_pose
+    if plan.darks.count:
+        if plan.darks.exposure_times_s:
+            n_times = len(set(plan.darks.exposure_times_s))
+        elif br.policy == "fixed":
+            n_times = len(set(br.exposures_s))
+        else:  # one per rung of the exposure ladder between the limits
+            n_times = int(math.log2(br.max_exposure_s / br.min_exposure_s) / br.step_ev) + 2
+        n_frames += plan.darks.count * n_times
+    lim = plan.limits
+    sim = plan.simulation
+    if lim.frame_bytes is not None:
+        frame = lim.frame_bytes
+    elif sim.width and sim.height:
+        frame = sim.width * sim.height * 2 + _DNG_HEADER_BYTES
+    else:
+        frame = _DEFAULT_FRAME_BYTES
+    memory = (
+        float(n_grid) * _EXPANSION_BYTES_PER_POSE
+        + _ORDERING_BYTES_PER_PAIR * float(n_poses + 1) ** 2
+    )
+    return PlanEstimate(n_grid, n_poses, n_frames, frame, float(n_frames) * frame, memory)
+
+
+def check_limits(plan: Plan, source: str | None = None) -> PlanEstimate:
+    """Refuse a plan that needs more than ``plan.limits`` allows, before expanding it.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``source``, each limit exceeded with what the plan would need, and the
+        ``[limits]`` field to raise.
+    """
+    from gonio.errors import ConfigError
+
+    source = source or plan._source
+    est = estimate_plan(plan)
+    lim = plan.limits
+    over = []
+    if est.n_poses > lim.max_poses:
+        over.append(f"{est.n_poses:,} poses > limits.max_poses = {lim.max_poses:,}")
+    if est.n_frames > lim.max_frames:
+        over.append(f"{est.n_frames:,} frames > limits.max_frames = {lim.max_frames:,}")
+    if est.bytes > lim.max_bytes:
+        over.append(
+            f"{_fmt_bytes(est.bytes)} of RAW files > limits.max_bytes = {_fmt_bytes(lim.max_bytes)}"
+        )
+    if est.memory_bytes > lim.memory_limit():
+        over.append(
+            f"{_fmt_bytes(est.memory_bytes)} of memory > limits.max_memory_bytes = "
+            f"{_fmt_bytes(lim.memory_limit())}"
+            + ("" if lim.max_memory_bytes else " (half of this machine's memory)")
+        )
+    if over:
+        raise ConfigError(
+            f"{source}: plan {plan.name!r} is too large: {'; '.join(over)}. It would need "
+            f"{est.summary()}. Use a coarser grid or symmetry reductions, or raise the "
+            "limit in the plan's [limits] table"
+        )
+    return est
+
+
+def expand_plan(
+    plan: Plan,
+    rig_check: RigCheck | None = None,
+    progress: Progress | None = None,
+    source: str | None = None,
+) -> ExpandedPlan:
     """Expand a plan into the poses to measure, in grid (raster) order.
 
     Parameters
@@ -417,20 +648,36 @@ def expand_plan(plan: Plan, rig_check: RigCheck | None = None) -> ExpandedPlan:
     rig_check
         ``check(wi, wo) -> reason | None`` of the rig's kinematics (unreachable, collision,
         arm shadowing); ``None`` skips the rig (a pure geometric dry run).
+    progress
+        ``progress(done, total)`` in grid poses, called about a hundred times over the
+        expansion and once at its end (a dry run shows it as a progress bar).
+    source
+        Name of the plan in messages (default: the file :func:`load_plan` read).
 
     Returns
     -------
     ExpandedPlan
         Sample poses first (raster order), then reference poses.
+
+    Raises
+    ------
+    ConfigError
+        The plan needs more than ``plan.limits`` allows (:func:`check_limits`): refused
+        before anything is allocated.
     """
+    check_limits(plan, source or plan._source)
     wi_all, wo_all = _grid_directions(plan.grid)
+    n_total = len(wi_all)
+    every = max(1, n_total // 100)
     seen: set[tuple] = set()
     poses: list[Pose] = []
     excluded: list[ExcludedPose] = []
     n_reduced = 0
     red = plan.reductions
     use_rig = rig_check is not None and plan.exclusions.check_rig
-    for wi, wo in zip(wi_all, wo_all, strict=True):
+    for k, (wi, wo) in enumerate(zip(wi_all, wo_all, strict=True)):
+        if progress is not None and k % every == 0:
+            progress(k, n_total)
         if red.isotropic and wi[2] > 0 and wo[2] > 0:
             wi, wo = _canonical_isotropic(wi, wo)
         key = _symmetry_key(wi, wo, red) if (wi[2] > 0 and wo[2] > 0) else None
@@ -448,6 +695,8 @@ def expand_plan(plan: Plan, rig_check: RigCheck | None = None) -> ExpandedPlan:
         else:
             poses.append(pose)
     n_grid = len(wi_all)
+    if progress is not None:
+        progress(n_grid, n_total)
     notes: list[str] = []
     for rp in plan.reference.poses:
         wi = spherical_to_direction(math.radians(rp.theta_i_deg), math.radians(rp.phi_i_deg))

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
+import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import click
@@ -150,15 +153,9 @@ def fit(
     per channel.  The summary shows each parameter with its one-sigma uncertainty.
     """
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
-    from rich.table import Table
-
-    from gonio.fitting import fit as run_fit
-    from gonio.fitting.export import mitsuba_xml, save_json
-    from gonio.fitting.select import format_model_spec
 
     console = Console(stderr=False)
-    existing = [out / n for n in _OUTPUTS if (out / n).exists()]
+    existing = _existing_outputs(out)
     if existing and not force:
         raise FitError(
             f"{out} already holds {', '.join(p.name for p in existing)}; "
@@ -172,6 +169,79 @@ def fit(
         )
     samples, kind = _load_input(source)
     cands = _split_candidates(candidates) if candidates else None
+    with _output_folder(out, force):
+        r, written = _fit_and_write(
+            console, samples, source, out, model, model_options, cands, loss, robust,
+            f_scale, algorithm, no_energy, plots,
+        )  # fmt: skip
+    _report(console, r, source, kind, written)
+
+
+def _existing_outputs(out: Path) -> list[Path]:
+    return [out / n for n in _OUTPUTS if (out / n).exists()]
+
+
+@contextlib.contextmanager
+def _output_folder(out: Path, force: bool) -> Iterator[None]:
+    """Hold the output folder for one writer (its ``.gonio.lock``) while fitting.
+
+    A second ``gonio fit --out`` on the same folder is refused naming the holder's PID.
+    A folder this call created is removed again when the fit fails before writing.
+    """
+    from gonio.locks import LOCK_NAME, hold_lock
+
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        with hold_lock(out / LOCK_NAME, f"output {out}/"):
+            # Checked again under the lock: another fit may have finished meanwhile.
+            existing = _existing_outputs(out)
+            if existing and not force:
+                raise FitError(
+                    f"{out} already holds {', '.join(p.name for p in existing)}; "
+                    "use --force to replace them or choose another --out"
+                )
+            yield
+    except BaseException:
+        if created and {p.name for p in out.iterdir()} <= {LOCK_NAME}:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
+def _write_outputs(console, r, samples, out: Path, plots: bool) -> list[Path]:
+    """Write fit.json, material.xml and the plots as one set (gonio.atomic.atomic_directory):
+    a reader, or a kill at any moment, sees the previous set or this one, never a mix."""
+    from gonio.atomic import atomic_directory
+    from gonio.fitting.export import save_json, save_mitsuba_xml
+
+    keep = tuple(p.name for p in out.iterdir() if p.name not in _OUTPUTS)
+    names = []
+    with atomic_directory(out, keep=keep) as stage:
+        save_json(r, stage / "fit.json")
+        names.append("fit.json")
+        try:
+            save_mitsuba_xml(r, stage / "material.xml")
+            names.append("material.xml")
+        except FitError as exc:
+            # (--force) the set replaces the old one whole: no old material.xml survives
+            console.print(f"[yellow]no Mitsuba export: {exc}[/yellow]")
+        if plots:
+            from gonio.fitting.plots import plot_residual_map, plot_slices
+
+            plot_slices(r, samples, stage / "slices.png")
+            plot_residual_map(r, samples, stage / "residuals.png")
+            names += ["slices.png", "residuals.png"]
+    return [out / n for n in names]
+
+
+def _fit_and_write(
+    console, samples, source, out, model, model_options, cands, loss, robust, f_scale,
+    algorithm, no_energy, plots,
+):  # fmt: skip
+    from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    from gonio.fitting import fit as run_fit
+
     n_steps = (len(cands) if cands else 4) + 3 if model == "auto" else 4
     with Progress(
         SpinnerColumn(),
@@ -199,24 +269,15 @@ def fit(
             progress=step,
         )
         prog.update(task, description="writing outputs")
-        out.mkdir(parents=True, exist_ok=True)
-        written = [save_json(r, out / "fit.json")]
-        try:
-            xml = mitsuba_xml(r)
-        except FitError as exc:
-            xml = None
-            console.print(f"[yellow]no Mitsuba export: {exc}[/yellow]")
-            # (--force) a material.xml of an earlier fit must not pass for this one
-            (out / "material.xml").unlink(missing_ok=True)
-        if xml is not None:
-            (out / "material.xml").write_text(xml)
-            written.append(out / "material.xml")
-        if plots:
-            from gonio.fitting.plots import plot_residual_map, plot_slices
-
-            written.append(plot_slices(r, samples, out / "slices.png"))
-            written.append(plot_residual_map(r, samples, out / "residuals.png"))
+        written = _write_outputs(console, r, samples, out, plots)
         prog.update(task, completed=n_steps)
+    return r, written
+
+
+def _report(console, r, source: Path, kind: str, written: list[Path]) -> None:
+    from rich.table import Table
+
+    from gonio.fitting.select import format_model_spec
 
     spec = format_model_spec(r.model, r.model_options)
     table = Table(title=f"{spec} fitted to {source.name} ({kind}, {r.n_samples} samples)")

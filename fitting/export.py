@@ -24,7 +24,7 @@ from gonio.atomic import write_text_atomic
 from gonio.errors import FitError
 from gonio.fitting.result import FitResult
 
-__all__ = ["mitsuba_dict", "mitsuba_xml", "result_to_dict", "save_json"]
+__all__ = ["mitsuba_dict", "mitsuba_xml", "result_to_dict", "save_json", "save_mitsuba_xml"]
 
 
 def _clean(v: Any) -> Any:
@@ -169,6 +169,19 @@ def _xml(d: dict[str, Any], indent: str = "", name: str | None = None) -> list[s
             out.append(f'{indent}    <float name="{k}" value="{float(v):.9g}"/>')
     out.append(f"{indent}</bsdf>")
     return out
+
+
+def save_mitsuba_xml(r: FitResult, path: str | os.PathLike, bsdf_id: str = "fitted") -> Path:
+    """Write :func:`mitsuba_xml` to ``path`` atomically (temp file + rename).
+
+    Raises
+    ------
+    FitError
+        The model has no Mitsuba equivalent (nothing is written).
+    """
+    path = Path(path)
+    write_text_atomic(path, mitsuba_xml(r, bsdf_id), parents=True)
+    return path
 
 
 def mitsuba_xml(r: FitResult, bsdf_id: str = "fitted") -> str:

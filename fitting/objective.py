@@ -236,6 +236,8 @@ def prepare_problem(
             "(N, C) with the same N"
         )
     n_in, n_c = y.shape
+    if n_in == 0:  # reshape(0, -1) below cannot infer a width from nothing
+        raise FitError("samples: no samples to fit (the sample set is empty)")
     std = getattr(samples, "brdf_std", None)
     sigma = None if std is None else np.asarray(std, dtype=np.float64).reshape(n_in, -1)
     if sigma is not None and sigma.shape != y.shape:

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from gonio.atomic import atomic_path
 from gonio.fitting.result import FitResult
 
 __all__ = [
@@ -399,9 +400,18 @@ def plot_slices(r: FitResult, samples: Any, path: str | os.PathLike, n_bins: int
     than a factor of 30.  Flagged samples and samples the fit did not use are not drawn.
     """
     fig = slices_figure(r, samples, n_bins=n_bins)
+    return _save(fig, path, dpi=110)
+
+
+def _save(fig: Any, path: str | os.PathLike, dpi: int) -> Path:
+    """Write a figure atomically (a killed process leaves no half PNG) and close it."""
     path = Path(path)
-    fig.savefig(path, dpi=110)
-    _plt().close(fig)
+    fmt = path.suffix.lstrip(".").lower() or "png"
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=dpi, format=fmt)  # the temporary name ends in .tmp
+    finally:
+        _plt().close(fig)
     return path
 
 
@@ -515,7 +525,4 @@ def plot_residual_map(r: FitResult, samples: Any, path: str | os.PathLike) -> Pa
     See :func:`scaled_residuals` for the values.
     """
     fig = residual_map_figure(r, samples)
-    path = Path(path)
-    fig.savefig(path, dpi=90)
-    _plt().close(fig)
-    return path
+    return _save(fig, path, dpi=90)

@@ -17,15 +17,21 @@ name            shape       units      meaning
 ``brdf``        (N, C)      1/sr       f_r per channel
 ``brdf_std``    (N, C)      1/sr       one standard deviation of ``brdf``
 ``flags``       (N,)        bit mask   :class:`Flag`; 0 means usable
-``radiance``    (N, C)      W/(sr m2)  optional: reflected radiance (relative until
-                                       calibrated)
-``irradiance``  (N, C)      W/m2       optional: irradiance at the sample
+``radiance``    (N, C)      see below  optional: reflected radiance
+``irradiance``  (N, C)      see below  optional: irradiance at the sample
 ``frames``      (N,)        str        optional: the RAW files a sample came from
 ==============  ==========  =========  ==================================================
 
 Root attributes: ``schema`` (``"gonio.samples"``), ``schema_version``, ``channels``, and
 free-form provenance (software version, session, creation time...).  Each dataset carries
-a ``units`` attribute.
+a ``units`` attribute.  Those of ``radiance`` and ``irradiance`` say what is stored
+(:attr:`BRDFSamples.units`): W/(sr m^2) and W/m^2 for calibrated values, or camera units
+(the reduction stores camera DN) until a session is radiometrically calibrated.
+
+What :func:`load_samples` refuses, naming the file and dataset: no samples (length 0),
+finite ``wi``/``wo`` rows whose length differs from 1 by more than
+:data:`UNIT_TOLERANCE`, ``flags`` that are not integers in [0, 2^32), non-numeric data,
+shapes that do not match.
 """
 
 from __future__ import annotations
@@ -47,6 +53,15 @@ from gonio.radiometry.frames import direction_to_spherical
 
 SCHEMA = "gonio.samples"
 SCHEMA_VERSION = 1
+
+#: Largest accepted deviation of a finite ``wi``/``wo`` row's length from 1.  The writers
+#: normalise in float64 (error ~1e-16) and HDF5 stores float64 exactly; 1e-6 still
+#: accepts directions that went through float32 (~6e-8) while refusing scaled vectors,
+#: degrees or points mistaken for directions.
+UNIT_TOLERANCE = 1e-6
+
+#: Units of ``radiance`` and ``irradiance`` when the writer does not say (calibrated).
+DEFAULT_UNITS = {"radiance": "W/(sr m^2)", "irradiance": "W/m^2"}
 
 
 class Flag(enum.IntFlag):
@@ -98,6 +113,10 @@ class BRDFSamples:
         Optional RAW file names each sample came from, shape (N,).
     attrs
         Provenance attributes stored on the file root.
+    units
+        Units of what ``radiance`` and ``irradiance`` hold (keys ``"radiance"``,
+        ``"irradiance"``; missing keys take :data:`DEFAULT_UNITS`), e.g.
+        ``{"radiance": "camera DN/s", ...}`` for an uncalibrated reduction.
     """
 
     wi: NDArray[np.float64]
@@ -110,8 +129,13 @@ class BRDFSamples:
     irradiance: NDArray[np.float64] | None = None
     frames: NDArray[np.str_] | None = None
     attrs: dict[str, Any] = field(default_factory=dict)
+    units: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        unknown = set(self.units) - set(DEFAULT_UNITS)
+        if unknown:
+            raise ValueError(f"units apply to {sorted(DEFAULT_UNITS)}, not {sorted(unknown)}")
+        self.units = {**DEFAULT_UNITS, **{k: str(v) for k, v in self.units.items()}}
         self.wi = _vec3(self.wi, "wi")
         self.wo = _vec3(self.wo, "wo")
         n = self.wi.shape[0]
@@ -176,6 +200,7 @@ class BRDFSamples:
             irradiance=pick(self.irradiance),
             frames=pick(self.frames),
             attrs=dict(self.attrs),
+            units=dict(self.units),
         )
 
 
@@ -229,7 +254,7 @@ def save_samples(path: str | os.PathLike, samples: BRDFSamples) -> Path:
             if v is None:
                 continue
             ds = f.create_dataset(name, data=v, compression="gzip", compression_opts=4)
-            ds.attrs["units"] = _UNITS[name]
+            ds.attrs["units"] = samples.units.get(name, _UNITS[name])
         if samples.frames is not None:
             ds = f.create_dataset(
                 "frames", data=samples.frames.astype(object), dtype=h5py.string_dtype()
@@ -251,52 +276,143 @@ def _attr_value(v: Any) -> Any:
 def load_samples(path: str | os.PathLike) -> BRDFSamples:
     """Read a ``samples.h5`` file written by :func:`save_samples`.
 
+    Returns
+    -------
+    BRDFSamples
+        With ``units`` as the file's ``radiance``/``irradiance`` datasets state them.
+
     Raises
     ------
     FileFormatError
-        If the file is missing, not HDF5, of another schema or version, or a required
-        dataset is absent or has the wrong shape.
+        If the file is missing, not HDF5 or damaged, of another schema or version, holds
+        no samples, or a dataset is absent, of the wrong type or shape, or holds values
+        outside its domain (non-unit directions, non-integer flags); the message names
+        the file and the dataset.
     """
     path = Path(path)
     if not path.is_file():
         raise FileFormatError(path, "no such file")
     try:
         f = h5py.File(path, "r")
-    except OSError as exc:
+    except Exception as exc:  # h5py raises OSError, or worse on damaged superblocks
         raise FileFormatError(path, f"not a readable HDF5 file ({exc})") from None
-    with f:
-        schema = f.attrs.get("schema")
-        if schema != SCHEMA:
-            raise FileFormatError(path, f"expected schema '{SCHEMA}', found {schema!r}", "schema")
-        raw_version = f.attrs.get("schema_version", -1)
-        try:
-            version: Any = int(raw_version)
-        except (TypeError, ValueError):
-            version = repr(raw_version)
-        if version != SCHEMA_VERSION:
-            raise FileFormatError(
-                path,
-                f"schema version {version} is not supported (expected {SCHEMA_VERSION})",
-                "schema_version",
-            )
-        out: dict[str, Any] = {}
-        for name in ("wi", "wo", "brdf"):
-            if name not in f:
-                raise FileFormatError(path, "required dataset is missing", name)
-        for name in ("wi", "wo", "brdf", "brdf_std", "flags", "radiance", "irradiance"):
-            if name in f:
-                if f[name].dtype.kind not in "biuf":
-                    raise FileFormatError(path, f"expected numbers, found {f[name].dtype}", name)
-                out[name] = f[name][()]
-        if "frames" in f:
-            out["frames"] = f["frames"].asstr()[()]
-        channels = tuple(str(c) for c in f.attrs.get("channels", ()))
-        attrs = {
-            k: (v.decode() if isinstance(v, bytes) else v)
-            for k, v in f.attrs.items()
-            if k not in ("schema", "schema_version", "channels")
-        }
     try:
-        return BRDFSamples(channels=channels or None, attrs=attrs, **out)
+        with f:
+            out, channels, attrs, units = _read(path, f)
+    except FileFormatError:
+        raise
+    except Exception as exc:  # a damaged file can fail inside HDF5 anywhere
+        raise FileFormatError(path, f"damaged or unreadable HDF5 content ({exc})") from None
+    try:
+        samples = BRDFSamples(channels=channels or None, attrs=attrs, units=units, **out)
     except ValueError as exc:
         raise FileFormatError(path, str(exc)) from None
+    _check_values(path, samples)
+    return samples
+
+
+def _dataset(path: Path, f: h5py.File, name: str) -> h5py.Dataset:
+    obj = f.get(name)
+    if not isinstance(obj, h5py.Dataset):
+        raise FileFormatError(path, f"expected a dataset, found {type(obj).__name__}", name)
+    return obj
+
+
+def _read(path: Path, f: h5py.File) -> tuple[dict[str, Any], tuple, dict, dict]:
+    schema = f.attrs.get("schema")
+    if isinstance(schema, bytes):
+        schema = schema.decode("utf-8", "replace")
+    if not isinstance(schema, str) or schema != SCHEMA:
+        raise FileFormatError(path, f"expected schema '{SCHEMA}', found {schema!r}", "schema")
+    raw_version = f.attrs.get("schema_version", -1)
+    try:
+        version: Any = int(raw_version)
+    except (TypeError, ValueError):
+        version = repr(raw_version)
+    if version != SCHEMA_VERSION:
+        raise FileFormatError(
+            path,
+            f"schema version {version} is not supported (expected {SCHEMA_VERSION})",
+            "schema_version",
+        )
+    out: dict[str, Any] = {}
+    units: dict[str, str] = {}
+    for name in ("wi", "wo", "brdf"):
+        if name not in f:
+            raise FileFormatError(path, "required dataset is missing", name)
+    for name in ("wi", "wo", "brdf", "brdf_std", "flags", "radiance", "irradiance"):
+        if name not in f:
+            continue
+        ds = _dataset(path, f, name)
+        kinds = "iu" if name == "flags" else "iuf"
+        if ds.dtype.kind not in kinds:
+            want = "integers (a bit mask)" if name == "flags" else "numbers"
+            raise FileFormatError(path, f"expected {want}, found {ds.dtype}", name)
+        if ds.ndim == 0 or ds.shape[0] == 0:
+            raise FileFormatError(path, f"no samples (shape {ds.shape})", name)
+        _check_size(path, ds, name)
+        out[name] = ds[()]
+        if name in DEFAULT_UNITS and "units" in ds.attrs:
+            u = ds.attrs["units"]
+            units[name] = u.decode("utf-8", "replace") if isinstance(u, bytes) else str(u)
+    if "flags" in out:
+        fl = out["flags"]
+        if fl.size and (fl.min() < 0 or fl.max() > np.iinfo(np.uint32).max):
+            raise FileFormatError(
+                path, f"flags must lie in [0, 2^32), found {fl.min()} .. {fl.max()}", "flags"
+            )
+    if "frames" in f:
+        ds = _dataset(path, f, "frames")
+        if ds.dtype.kind not in "SOU":
+            raise FileFormatError(path, f"expected strings, found {ds.dtype}", "frames")
+        _check_size(path, ds, "frames")
+        out["frames"] = ds.asstr()[()]
+    raw_channels = f.attrs.get("channels", ())
+    if isinstance(raw_channels, str | bytes) or np.ndim(raw_channels) != 1:
+        raise FileFormatError(
+            path, f"expected a list of channel names, found {raw_channels!r}", "channels"
+        )
+    channels = tuple(
+        c.decode("utf-8", "replace") if isinstance(c, bytes) else str(c) for c in raw_channels
+    )
+    attrs = {
+        k: (v.decode("utf-8", "replace") if isinstance(v, bytes) else v)
+        for k, v in f.attrs.items()
+        if k not in ("schema", "schema_version", "channels")
+    }
+    return out, channels, attrs, units
+
+
+# deflate, the strongest compression HDF5 applies here, packs at most ~1032:1.
+_MAX_COMPRESSION = 1100
+
+
+def _check_size(path: Path, ds: h5py.Dataset, name: str) -> None:
+    """Refuse a dataset whose header claims more data than the file can hold: a damaged
+    header would otherwise have numpy allocate whatever it says."""
+    limit = _MAX_COMPRESSION * path.stat().st_size + 2**20
+    if ds.size * ds.dtype.itemsize > limit:
+        raise FileFormatError(
+            path,
+            f"the dataset claims shape {ds.shape} ({ds.size * ds.dtype.itemsize:,} bytes), "
+            f"more than a file of {path.stat().st_size:,} bytes can hold: damaged",
+            name,
+        )
+
+
+def _check_values(path: Path, s: BRDFSamples) -> None:
+    for name in ("wi", "wo"):
+        v = getattr(s, name)
+        # A non-finite row is an unusable sample (BRDFSamples.valid drops it), not a
+        # malformed file; a finite row must be a direction.
+        finite = np.isfinite(v).all(axis=1)
+        norm = np.linalg.norm(v[finite], axis=1)
+        bad = np.abs(norm - 1.0) > UNIT_TOLERANCE
+        if bad.any():
+            k = int(np.flatnonzero(finite)[np.argmax(bad)])
+            raise FileFormatError(
+                path,
+                f"{int(bad.sum())} of {len(v)} rows are not unit vectors (row {k} has "
+                f"length {np.linalg.norm(v[k]):.9g}; expected 1 within {UNIT_TOLERANCE:g})",
+                name,
+            )

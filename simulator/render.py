@@ -36,6 +36,7 @@ same thing (region, board print, reference patch, light-centre visibility).
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -52,7 +53,24 @@ from gonio.simulator.geometry import (
 from gonio.simulator.lights import LEVELS, PreparedLight, prepare_lights
 from gonio.simulator.scene import Scene
 
-__all__ = ["REGION_NAMES", "RenderResult", "RenderStats", "Surface", "render", "save_truth"]
+__all__ = [
+    "REGION_NAMES",
+    "RenderResult",
+    "RenderStats",
+    "Surface",
+    "estimate_render_memory",
+    "render",
+    "render_memory_limit",
+    "save_truth",
+]
+
+# Measured peaks (tracemalloc, examples/scene.toml at 640 x 480): ~400 bytes per pixel
+# (rays, surface points, labels, radiance, the truth arrays: shading itself is chunked)
+# and ~150 bytes per anti-aliasing sub-sample, which are not chunked.  Edge pixels were
+# 5-6 % of the image there (board squares and markers); 10 % is assumed.
+_BYTES_PER_PIXEL = 400
+_BYTES_PER_SUBSAMPLE = 150
+_EDGE_FRACTION = 0.10
 
 NONE, SAMPLE, HOLDER, PATCH, OCCLUDED = 0, 1, 2, 3, 4
 REGION_NAMES = {
@@ -226,7 +244,20 @@ def _load_albedo_map(path) -> np.ndarray:
     if not path.is_file():
         raise ConfigError(f"sample.albedo_map: {path} does not exist")
     if path.suffix == ".npy":
-        m = np.load(path).astype(np.float64)
+        try:
+            # Never unpickle: an object array in a scene's folder is not run, refused.
+            raw = np.load(path, allow_pickle=False)
+            m = np.asarray(raw, dtype=np.float64)
+        except (ValueError, TypeError, OSError, EOFError) as exc:
+            why = (
+                "holds Python objects (a pickled array), which gonio does not load"
+                if "allow_pickle" in str(exc)
+                else f"is not a numeric .npy array ({exc})"
+            )
+            raise ConfigError(
+                f"sample.albedo_map: {path} {why}; expected an (H, W) or (H, W, 3) "
+                "array of numbers in [0, 1]"
+            ) from None
     else:
         import cv2
 
@@ -405,6 +436,42 @@ def _label(
     return region, white, code, x
 
 
+def estimate_render_memory(scene: Scene, antialias: int | None = None) -> float:
+    """Peak memory of :func:`render` for the scene's resolution and anti-aliasing, bytes.
+
+    ``W H (400 + 0.1 n^2 150)`` for ``n`` sub-samples per axis: measured per-pixel and
+    per-sub-sample peaks with edge pixels assumed to be 10 % of the image.
+    """
+    w, h = scene.camera.resolution
+    n = scene.render.antialias if antialias is None else int(antialias)
+    sub = _EDGE_FRACTION * n * n * _BYTES_PER_SUBSAMPLE if n > 1 else 0.0
+    return float(w) * float(h) * (_BYTES_PER_PIXEL + sub)
+
+
+def render_memory_limit() -> float:
+    """Default memory allowed to one render: half of the physical memory, bytes."""
+    try:
+        return 0.5 * float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - not POSIX
+        return 8e9
+
+
+def _check_memory(scene: Scene, antialias: int | None, limit: float | None) -> None:
+    need = estimate_render_memory(scene, antialias)
+    cap = render_memory_limit() if limit is None else float(limit)
+    if need > cap:
+        w, h = scene.camera.resolution
+        n = scene.render.antialias if antialias is None else antialias
+        raise ConfigError(
+            f"camera.resolution: rendering {w} x {h} pixels with render.antialias = {n} "
+            f"would need about {need / 1e9:.3g} GB of memory, more than the "
+            f"{cap / 1e9:.3g} GB allowed"
+            + (" (half of this machine's memory)" if limit is None else "")
+            + "; lower the resolution or the anti-aliasing, or raise the limit "
+            "(gonio sim render --max-memory-gb)"
+        )
+
+
 def render(
     scene: Scene,
     *,
@@ -413,6 +480,7 @@ def render(
     antialias: int | None = None,
     seed: int | None = None,
     brdf: Any = None,
+    max_memory_bytes: float | None = None,
 ) -> RenderResult:
     """Render the scene's camera view of the sample plane.
 
@@ -425,6 +493,9 @@ def render(
     brdf
         An already built sample BRDF (``eval(wi, wo) -> (..., 3)``) to use instead of
         building ``scene.sample.brdf`` again (measured files are slow to load).
+    max_memory_bytes
+        Refuse a render whose :func:`estimate_render_memory` exceeds this (bytes;
+        default :func:`render_memory_limit`), before allocating anything.
 
     Returns
     -------
@@ -434,8 +505,10 @@ def render(
     Raises
     ------
     ConfigError
-        The camera does not see the sample (it is reported, not rendered black).
+        The camera does not see the sample (it is reported, not rendered black), or
+        the render would need more memory than allowed.
     """
+    _check_memory(scene, antialias, max_memory_bytes)
     t0 = time.perf_counter()
     upd = {
         k: v

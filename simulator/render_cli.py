@@ -15,6 +15,16 @@ def _positive(ctx, param, value: float | None) -> float | None:
     return value
 
 
+def _exposure(ctx, param, value: float | None) -> float | None:
+    """A positive exposure of at most an hour (the scene's and the sensor's bound)."""
+    from gonio.simulator.scene import MAX_EXPOSURE_S
+
+    value = _positive(ctx, param, value)
+    if value is not None and value > MAX_EXPOSURE_S:
+        raise click.BadParameter(f"expected at most {MAX_EXPOSURE_S:g} s, got {value:g} s")
+    return value
+
+
 @click.command("render")
 @click.argument("scene_file", metavar="SCENE.toml", type=click.Path(dir_okay=False, path_type=Path))
 @click.option(
@@ -40,7 +50,7 @@ def _positive(ctx, param, value: float | None) -> float | None:
 @click.option(
     "--exposure-time",
     type=float,
-    callback=_positive,
+    callback=_exposure,
     default=None,
     help="Seconds (default: camera.exposure_time in the scene).",
 )
@@ -78,6 +88,14 @@ def _positive(ctx, param, value: float | None) -> float | None:
     default=None,
     help="Write a PNG preview of the radiance (and region mask) too.",
 )
+@click.option(
+    "--max-memory-gb",
+    type=float,
+    default=None,
+    callback=_positive,
+    help="Refuse a render estimated to need more memory than this, GB (default: half of "
+    "this machine's memory).",
+)
 @click.option("--force", is_flag=True, help="Overwrite existing output files.")
 def render_cmd(
     scene_file,
@@ -91,6 +109,7 @@ def render_cmd(
     strategy,
     reference,
     preview,
+    max_memory_gb,
     force,
 ):
     """Render SCENE.toml as the simulated camera would capture it, and write a DNG.
@@ -139,16 +158,28 @@ def render_cmd(
         raise ConfigError(f"{scene_file}: {exc}") from None
     if reference:
         scene = scene.with_reference_target(0.99)
-    with console.status("rendering..."):
-        result = render(scene, tolerance=tolerance, strategy=strategy)
-    frame = simulate_raw(
-        result.radiance,
-        scene.camera,
-        exposure_time=exposure_time,
-        iso=iso,
-        f_number=f_number,
-        seed=seed,
-    )
+    limit = None if max_memory_gb is None else max_memory_gb * 1e9
+    try:
+        with console.status("rendering..."):
+            result = render(scene, tolerance=tolerance, strategy=strategy, max_memory_bytes=limit)
+        frame = simulate_raw(
+            result.radiance,
+            scene.camera,
+            exposure_time=exposure_time,
+            iso=iso,
+            f_number=f_number,
+            seed=seed,
+        )
+    except ConfigError as exc:  # the render's own checks (memory, albedo map, view)
+        raise ConfigError(f"{scene_file}: {exc}") from None
+    except MemoryError:
+        # The estimate passed but the machine had less free memory than it has in all.
+        w, h = scene.camera.resolution
+        raise ConfigError(
+            f"{scene_file}: out of memory rendering {w} x {h} pixels "
+            f"(render.antialias = {scene.render.antialias}); lower camera.resolution or "
+            "render.antialias, or free memory (nothing was written)"
+        ) from None
     write_dng(out, dng_bytes(frame), overwrite=force)
     if truth is not None:
         save_truth(truth, result, scene, overwrite=force)

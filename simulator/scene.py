@@ -113,6 +113,7 @@ __all__ = [
     "Scene",
     "Sensor",
     "Spectrum",
+    "MAX_EXPOSURE_S",
     "load_scene",
     "look_at_rotation",
     "parse_scene",
@@ -121,6 +122,13 @@ __all__ = [
 Vec3 = tuple[float, float, float]
 Vec2 = tuple[float, float]
 Positive = Annotated[float, Field(gt=0)]
+
+#: Longest exposure a scene (or the sensor model) accepts, s.  Cameras time at most 30 s
+#: (longer in bulb mode only); in an hour the dark current alone fills a pixel's well,
+#: and the bound keeps the sensor's Poisson mean far inside numpy's range.  The same
+#: bound as a plan's (``gonio.capture.plan.MAX_EXPOSURE_S``).
+MAX_EXPOSURE_S = 3600.0
+ExposureTime = Annotated[float, Field(gt=0, le=MAX_EXPOSURE_S, allow_inf_nan=False)]
 RGBOrScalar = float | tuple[float, float, float]
 
 
@@ -436,7 +444,7 @@ class Camera(_Model):
     up: Vec3 = (0.0, 0.0, 1.0)
     rotation: tuple[Vec3, Vec3, Vec3] | None = None
     f_number: Positive = 8.0
-    exposure_time: Positive = 0.01
+    exposure_time: ExposureTime = 0.01
     iso: Positive = 100.0
     sensor: Sensor = Field(default_factory=Sensor)
 

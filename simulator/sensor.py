@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gonio.errors import ParameterError
-from gonio.simulator.scene import Camera
+from gonio.simulator.scene import MAX_EXPOSURE_S, Camera
 
 __all__ = [
     "RawFrame",
@@ -81,10 +81,22 @@ def cfa_indices(pattern: str, shape: tuple[int, int]) -> np.ndarray:
     return np.tile(p, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
 
 
-def _check(name: str, value: float) -> float:
-    v = float(value)
+#: Largest Poisson mean drawn, electrons.  numpy refuses lam above ~9.2e18; any mean
+#: this far above a full well (1e5 electrons at most on real sensors) saturates anyway,
+#: so such pixels are set to the full well without a draw.  Below it the draws are
+#: exactly those of a plain ``rng.poisson(mu)`` (same frames for the same seed).
+_POISSON_MAX = 1e18
+
+
+def _check(name: str, value: float, upper: float = np.inf) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{name} must be a positive number, got {value!r}") from None
     if not np.isfinite(v) or v <= 0:
         raise ParameterError(f"{name} must be a positive number, got {value!r}")
+    if v > upper:
+        raise ParameterError(f"{name} must be at most {upper:g}, got {value!r}")
     return v
 
 
@@ -156,15 +168,25 @@ def simulate_raw(
         Camera with sensor parameters; its ``exposure_time``, ``iso`` and ``f_number``
         are used unless given here.
     exposure_time, iso, f_number
-        Capture settings (s, ISO, N).
+        Capture settings (s, ISO, N); positive and finite, the exposure at most
+        :data:`~gonio.simulator.scene.MAX_EXPOSURE_S`.
     seed
         Seed or generator for every random draw: equal seeds give equal frames.
 
     Returns
     -------
     RawFrame
+
+    Raises
+    ------
+    ParameterError
+        A setting is not a positive finite number, or the exposure exceeds an hour.
     """
-    t = _check("exposure_time", camera.exposure_time if exposure_time is None else exposure_time)
+    t = _check(
+        "exposure_time (s)",
+        camera.exposure_time if exposure_time is None else exposure_time,
+        MAX_EXPOSURE_S,
+    )
     n = _check("f_number", camera.f_number if f_number is None else f_number)
     iso_v = _check("iso", camera.iso if iso is None else iso)
     radiance = np.asarray(radiance, float)
@@ -172,12 +194,19 @@ def simulate_raw(
         raise ParameterError(f"radiance must have shape (H, W, 3), got {radiance.shape}")
     s = camera.sensor
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    mu3 = mean_electrons(np.nan_to_num(np.maximum(radiance, 0.0)), camera, t, n)
+    with np.errstate(over="ignore"):  # an overflow is a saturated pixel (below)
+        mu3 = mean_electrons(np.nan_to_num(np.maximum(radiance, 0.0)), camera, t, n)
     idx = cfa_indices(s.cfa_pattern, mu3.shape[:2])
     mu = np.take_along_axis(mu3, idx[..., None], axis=2)[..., 0] + s.dark_current * t
+    # A mean beyond numpy's range (a huge radiance or exposure) is a saturated pixel.
+    over = ~(mu <= _POISSON_MAX)
+    if over.any():
+        mu = np.where(over, 0.0, mu)
     electrons = rng.poisson(mu).astype(np.float64)
     electrons += rng.normal(0.0, s.read_noise, mu.shape) if s.read_noise > 0 else 0.0
     electrons = np.clip(electrons, None, s.full_well)
+    if over.any():
+        electrons[over] = s.full_well
     gain = s.gain_at_base_iso * iso_v / s.base_iso
     dn = np.rint(s.black_level + electrons * gain)
     mosaic = np.clip(dn, 0, s.white_level).astype(np.uint16)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from gonio.capture.plan import expand_plan, load_plan, plan_from_dict
+from gonio.capture.plan import expand_plan, load_plan, plan_digest, plan_from_dict
 from gonio.errors import ConfigError, SessionError
 from gonio.radiometry import half_diff_from_directions
 
@@ -156,3 +156,177 @@ def test_no_reachable_pose_is_a_session_error():
     plan = plan_from_dict({"grid": g})
     with pytest.raises(SessionError, match="no reachable pose"):
         build_schedule(plan, Kinematics(cfg), cfg.park_rad)
+
+
+# --- issue 14.2 (validation half): settle_s is bounded ------------------------------
+
+_G1 = {"theta_i_deg": [0], "theta_o_deg": [30]}
+
+
+@pytest.mark.parametrize("value", [-0.1, 60.5, 1e308, float("inf"), float("nan")])
+def test_settle_s_outside_zero_to_sixty_seconds_is_refused(value):
+    with pytest.raises(ConfigError, match=r"plan.toml.*field 'settle_s'"):
+        plan_from_dict({"grid": _G1, "settle_s": value}, "plan.toml")
+
+
+def test_settle_s_within_bounds_is_kept():
+    assert plan_from_dict({"grid": _G1, "settle_s": 60}).settle_s == 60.0
+    assert plan_from_dict({"grid": _G1, "settle_s": 0}).settle_s == 0.0
+
+
+# --- issue 14.6: every time in a plan is finite and at most an hour --------------------
+
+
+@pytest.mark.parametrize(
+    ("section", "values", "field"),
+    [
+        ("bracket", {"exposure_time_s": float("inf")}, "bracket.exposure_time_s"),
+        (
+            "bracket",
+            {"exposure_time_s": 1e308, "max_exposure_s": 1e308},
+            "bracket.exposure_time_s",
+        ),
+        ("bracket", {"max_exposure_s": 3601}, "bracket.max_exposure_s"),
+        ("bracket", {"min_exposure_s": float("inf")}, "bracket.min_exposure_s"),
+        ("bracket", {"policy": "fixed", "exposures_s": [0.01, 1e308]}, "bracket.exposures_s.1"),
+        ("bracket", {"policy": "fixed", "exposures_s": [float("inf")]}, "bracket.exposures_s.0"),
+        ("bracket", {"shot_overhead_s": float("inf")}, "bracket.shot_overhead_s"),
+        ("darks", {"count": 1, "exposure_times_s": [1e308]}, "darks.exposure_times_s.0"),
+        ("darks", {"count": 1, "exposure_times_s": [float("inf")]}, "darks.exposure_times_s.0"),
+    ],
+)
+def test_times_must_be_finite_and_physical(section, values, field):
+    with pytest.raises(ConfigError) as info:
+        plan_from_dict({"grid": _G1, section: values}, "plan.toml")
+    assert f"field '{field}'" in str(info.value)
+
+
+def test_an_hour_is_the_longest_exposure_accepted():
+    p = plan_from_dict({"grid": _G1, "bracket": {"exposure_time_s": 3600, "max_exposure_s": 3600}})
+    assert p.bracket.exposure_time_s == 3600.0
+
+
+# --- issue 14.3: resource limits, checked before the grid is expanded ------------------
+
+
+def _deg_range(n, step):
+    return {"start": 0, "stop": (n - 1) * step, "step": step}
+
+
+def _no_expansion(monkeypatch):
+    import gonio.capture.plan as plan_mod
+
+    def boom(grid):
+        raise AssertionError("the grid was expanded")
+
+    monkeypatch.setattr(plan_mod, "_grid_directions", boom)
+
+
+def test_a_972000_pose_plan_is_refused_before_expanding_with_the_figures(monkeypatch):
+    # The issue's dry run: 90 x 90 x 120 without symmetry reductions.
+    g = {
+        "theta_i_deg": _deg_range(90, 1),
+        "theta_o_deg": _deg_range(90, 1),
+        "phi_o_deg": _deg_range(120, 3),
+    }
+    plan = plan_from_dict({"grid": g, "bracket": {"max_frames": 4}}, "big.toml")
+    _no_expansion(monkeypatch)
+    with pytest.raises(ConfigError) as info:
+        expand_plan(plan, source="big.toml")
+    msg = str(info.value)
+    n = 90 * 90 * 120
+    assert n == 972_000
+    assert msg.startswith("big.toml: plan 'plan' is too large")
+    assert f"{n:,} poses > limits.max_poses = 50,000" in msg
+    # 4 frames a pose, 30 MB each (no simulation resolution given)
+    assert f"up to {n:,} poses and {4 * n:,} frames" in msg
+    assert f"{4 * n * 30e6 / 1e12:.3g} TB of RAW files" in msg
+    assert "[limits]" in msg
+
+
+def test_a_45_9_million_pose_plan_is_refused_before_allocating(monkeypatch):
+    import tracemalloc
+
+    g = {
+        "theta_i_deg": _deg_range(90, 1),
+        "phi_i_deg": _deg_range(50, 7.2),
+        "theta_o_deg": _deg_range(85, 1),
+        "phi_o_deg": _deg_range(120, 3),
+    }
+    plan = plan_from_dict({"grid": g, "limits": {"max_poses": 10**9, "max_frames": 10**10,
+                                                  "max_bytes": 1e18}})  # fmt: skip
+    n = 90 * 50 * 85 * 120
+    assert n == 45_900_000
+    tracemalloc.start()
+    try:
+        with pytest.raises(ConfigError) as info:
+            expand_plan(plan)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 10e6  # the expansion would need ~47 GB; nothing of it was allocated
+    msg = str(info.value)
+    assert f"{n:,} grid poses" in msg and "of memory > limits.max_memory_bytes" in msg
+    # memory: 1 kB per grid pose + 40 B per pair of poses to order
+    assert f"{(n * 1024 + 40 * (n + 1) ** 2) / 1e15:.3g} PB of memory" in msg
+
+
+def test_isotropy_is_counted_on_the_axes_so_a_big_reduced_grid_passes(monkeypatch):
+    from gonio.capture.plan import estimate_plan
+
+    # 36 x 36 azimuths, but only 19 relative azimuths in [0, 180] survive isotropy.
+    g = {
+        "theta_i_deg": _deg_range(9, 10),
+        "phi_i_deg": _deg_range(36, 10),
+        "theta_o_deg": _deg_range(9, 10),
+        "phi_o_deg": _deg_range(36, 10),
+    }
+    est = estimate_plan(plan_from_dict({"grid": g, "reductions": {"isotropic": True}}))
+    assert est.n_grid == 9 * 36 * 9 * 36
+    assert est.n_poses == 9 * 9 * 19
+    plan = plan_from_dict({"grid": g, "reductions": {"isotropic": True},
+                           "limits": {"max_poses": 9 * 9 * 19}})  # fmt: skip
+    ex = expand_plan(plan)
+    assert len(ex.poses) <= est.n_poses
+
+
+def test_frame_bytes_come_from_the_simulation_resolution():
+    from gonio.capture.plan import estimate_plan
+
+    plan = plan_from_dict(
+        {
+            "grid": {"theta_i_deg": [0, 30], "theta_o_deg": [10, 20, 30]},
+            "bracket": {"policy": "fixed", "exposures_s": [0.01, 0.1]},
+            "darks": {"count": 3},
+            "simulation": {"width": 64, "height": 48},
+        }
+    )
+    est = estimate_plan(plan)
+    assert est.n_poses == 6 and est.n_frames == 6 * 2 + 3 * 2
+    assert est.frame_bytes == 64 * 48 * 2 + 65536
+    with pytest.raises(ConfigError, match=r"18 frames > limits.max_frames = 17"):
+        expand_plan(plan.model_copy(update={"limits": plan.limits.model_copy(
+            update={"max_frames": 17})}))  # fmt: skip
+
+
+def test_a_large_allowed_expansion_reports_progress():
+    g = {"theta_i_deg": _deg_range(10, 5), "theta_o_deg": _deg_range(10, 5),
+         "phi_o_deg": _deg_range(30, 12)}  # fmt: skip
+    calls = []
+    ex = expand_plan(plan_from_dict({"grid": g}), progress=lambda d, t: calls.append((d, t)))
+    n = 10 * 10 * 30
+    assert ex.n_grid == n
+    assert calls[0] == (0, n) and calls[-1] == (n, n)
+    done = [d for d, _ in calls]
+    assert done == sorted(done) and 90 <= len(calls) <= 102
+
+
+def test_default_limits_leave_digests_and_manifests_unchanged():
+    # A plan without [limits] dumps as before the table existed (sessions resume).
+    p = plan_from_dict({"grid": _G1})
+    assert "limits" not in p.model_dump(mode="json")
+    # the digest the code before [limits] gave this plan
+    assert plan_digest(p) == "1fb1cdf5815bc3dd382480b905e0f8ce8063d235acd0b8c0edc49e70aab267a0"
+    q = plan_from_dict({"grid": _G1, "limits": {"max_poses": 7}})
+    assert q.model_dump(mode="json")["limits"]["max_poses"] == 7
+    assert plan_from_dict(q.model_dump(mode="json")).limits.max_poses == 7

@@ -201,6 +201,56 @@ CASES = [
         "'fast'",
         "auto",
     ),
+    # issue 14: huge exposures, huge renders, pickled albedo maps
+    case(
+        "render-exposure-huge",
+        "sim render {ex}/scene.toml --out {tmp}/a.dng --exposure-time 1e308",
+        2,
+        "--exposure-time",
+        "at most 3600",
+    ),
+    case(
+        "render-scene-exposure-huge",
+        "sim render {bad}/scene_exposure.toml --out {tmp}/a.dng",
+        1,
+        "scene_exposure.toml",
+        "camera.exposure_time",
+        "less than or equal to 3600",
+    ),
+    case(
+        "render-scene-exposure-inf",
+        "sim render {bad}/scene_exposure_inf.toml --out {tmp}/a.dng",
+        1,
+        "scene_exposure_inf.toml",
+        "camera.exposure_time",
+        "finite",
+    ),
+    case(
+        "render-huge",
+        "sim render {bad}/scene_huge.toml --out {tmp}/a.dng",
+        1,
+        "scene_huge.toml",
+        "camera.resolution",
+        "20000 x 20000",
+        "GB of memory",
+    ),
+    case(
+        "render-memory-limit",
+        "sim render {ex}/scene.toml --out {tmp}/a.dng --max-memory-gb 0.01",
+        1,
+        "scene.toml",
+        "640 x 480",
+        "0.01 GB allowed",
+    ),
+    case(
+        "render-albedo-pickle",
+        "sim render {bad}/scene_pickle.toml --out {tmp}/a.dng",
+        1,
+        "scene_pickle.toml",
+        "sample.albedo_map",
+        "pickled.npy",
+        "python objects",
+    ),
     case("bus-ids-text", "sim bus --servos a,b", 2, "--servos", "'a,b'", "integers"),
     case("bus-id-range", "sim bus --servos 1,300", 2, "--servos", "0..252", "300"),
     case("bus-id-dup", "sim bus --servos 1,1", 2, "--servos", "duplicate"),
@@ -296,6 +346,17 @@ CASES = [
     case("plan-kind", "capture plan {bad}/plan_kind.toml", 1, "grid.kind", "'cubic'", "spherical"),
     case("plan-range", "capture plan {bad}/plan_range.toml", 1, "theta_i_deg", "[0, 90]", "400"),
     case("plan-step", "capture plan {bad}/plan_step.toml", 1, "theta_o_deg.step", "greater than 0"),
+    case("plan-settle", "capture plan {bad}/plan_settle.toml", 1, "'settle_s'", "60"),
+    case("plan-exposure-inf", "capture plan {bad}/plan_inf.toml", 1, "exposure_time_s", "finite"),
+    case(
+        "plan-too-large",
+        "capture plan {bad}/plan_huge.toml",
+        1,
+        "plan_huge.toml",
+        "too large",
+        "972,002 poses > limits.max_poses",
+        "972,000 grid poses",
+    ),
     case(
         "plan-rig", "capture plan {ex}/plan.toml --rig {bad}/rig_id.toml", 1, "rig_id.toml", "999"
     ),
@@ -478,6 +539,11 @@ CASES = [
     case("fit-h5-field", "fit {bad}/nobrdf.h5 --out {tmp}/F", 1, "nobrdf.h5", "'brdf'", "missing"),
     case("fit-h5-type", "fit {bad}/textwi.h5 --out {tmp}/F", 1, "textwi.h5", "'wi'", "numbers"),
     case("fit-h5-version", "fit {bad}/version.h5 --out {tmp}/F", 1, "'schema_version'", "'one'"),
+    case(
+        "fit-h5-no-samples", "fit {bad}/nosamples.h5 --out {tmp}/F", 1, "nosamples.h5", "no samples"
+    ),
+    case("fit-h5-non-unit", "fit {bad}/nonunit.h5 --out {tmp}/F", 1, "nonunit.h5", "'wo'", "unit"),
+    case("fit-h5-float-flags", "fit {bad}/floatflags.h5 --out {tmp}/F", 1, "'flags'", "integers"),
     case("fit-toml", "fit {bad}/bad.toml --out {tmp}/F", 1, "bad.toml", "unrecognised"),
     case("fit-garbage-bsdf", "fit {bad}/garbage.bsdf --out {tmp}/F", 1, "garbage.bsdf", "expected"),
     case("fit-dir", "fit {bad}/adir --out {tmp}/F", 2, "adir", "is a directory"),
@@ -547,10 +613,24 @@ CASES = [
 ]
 
 
-def _sed(src: Path, old: str, new: str) -> str:
-    text = src.read_text()
+def _sed(src: Path | str, old: str, new: str) -> str:
+    text = src.read_text() if isinstance(src, Path) else src
     assert old in text, f"{old!r} not in {src}: update this test's broken input"
     return text.replace(old, new, 1)
+
+
+def _huge_plan(plan: Path) -> str:
+    """The issue's 972 000-pose dry run: 90 x 90 x 120, no symmetry reductions."""
+    text = plan.read_text()
+    for old, new in (
+        ("theta_i_deg = [0, 20, 40, 60]", "theta_i_deg = {start=0, stop=89, step=1}"),
+        ("stop = 70, step = 10", "stop = 89, step = 1"),
+        ("phi_o_deg = [0, 90, 180]", "phi_o_deg = {start=0, stop=357, step=3}"),
+        ("isotropic = true", "isotropic = false"),
+        ("reciprocity = true", "reciprocity = false"),
+    ):
+        text = _sed(text, old, new)
+    return text
 
 
 @pytest.fixture(scope="module")
@@ -581,12 +661,33 @@ def bad(tmp_path_factory) -> Path:
         f["brdf"] = np.ones((4, 3))
     with h5py.File(d / "version.h5", "w") as f:
         f.attrs.update(schema="gonio.samples", schema_version="one")
+    for name, wo, flags in (  # issue 14.8
+        ("nosamples.h5", np.zeros((0, 3)), np.zeros(0, np.uint32)),
+        ("nonunit.h5", np.tile([0.0, 0.0, 2.0], (4, 1)), np.zeros(4, np.uint32)),
+        ("floatflags.h5", np.tile([0.0, 0.0, 1.0], (4, 1)), np.zeros(4)),
+    ):
+        with h5py.File(d / name, "w") as f:
+            f.attrs.update(schema="gonio.samples", schema_version=1, channels=["R", "G", "B"])
+            f["wi"] = np.tile([0.0, 0.0, 1.0], (len(wo), 1))
+            f["wo"] = wo
+            f["brdf"] = np.ones((len(wo), 3))
+            f["flags"] = flags
+    np.save(d / "pickled.npy", np.array([{"x": 1}, None], dtype=object), allow_pickle=True)
     rgl = refdata / "rgl" / "paper_white_rgb.bsdf"
     if rgl.is_file():
         (d / "trunc.bsdf").write_bytes(rgl.read_bytes()[:1000])
     scene, rig, plan = EXAMPLES / "scene.toml", EXAMPLES / "rig.toml", EXAMPLES / "plan.toml"
     docs = {
         "scene_type.toml": _sed(scene, "exposure_time = ", 'exposure_time = "fast" # '),
+        "scene_exposure.toml": _sed(scene, "exposure_time = ", "exposure_time = 1e308 # "),
+        "scene_exposure_inf.toml": _sed(scene, "exposure_time = ", "exposure_time = inf # "),
+        "scene_huge.toml": _sed(scene, "resolution = [640, 480]", "resolution = [20000, 20000]"),
+        "scene_pickle.toml": _sed(
+            scene, "[sample]\n", f"[sample]\nalbedo_map = '{d / 'pickled.npy'}'\n"
+        ),
+        "plan_settle.toml": _sed(plan, "settle_s = 0.2", "settle_s = 1e308"),
+        "plan_inf.toml": _sed(plan, "exposure_time_s = 0.02", "exposure_time_s = inf"),
+        "plan_huge.toml": _huge_plan(plan),
         "scene_key.toml": "bogus_key = 1\n" + scene.read_text(),
         "scene_model.toml": _sed(scene, 'model = "lambert+ggx"', 'model = "nosuch"'),
         "scene_file.toml": _sed(scene, 'model = "lambert+ggx"', 'file = "nope.bsdf"\n# '),

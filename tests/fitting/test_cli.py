@@ -58,3 +58,125 @@ def test_bad_input_file_is_a_clear_error(tmp_path):
         main(["fit", str(bad), "--out", str(tmp_path / "o")])
     assert e.value.code == 1
     assert not (tmp_path / "o").exists()
+
+
+# --- issue 14.7 / 14.1: outputs replaced as a set, one writer per output folder --------
+
+
+def _samples_file(tmp_path, make_samples):
+    s = make_samples("lambert", {"albedo": [0.2, 0.4, 0.6]}, n=120, seed=2, noise=1e-3)
+    return save_samples(tmp_path / "samples.h5", s)
+
+
+def _snapshot(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+def test_force_replaces_the_outputs_as_a_set(tmp_path, make_samples):
+    from gonio.atomic import stale_temporaries
+
+    src = _samples_file(tmp_path, make_samples)
+    out = tmp_path / "fit"
+    run = CliRunner().invoke
+    assert run(cli, ["fit", str(src), "-m", "lambert", "--out", str(out)]).exit_code == 0
+    (out / "notes.txt").write_text("the user's own file")
+    old = _snapshot(out)
+    assert {"fit.json", "material.xml", "slices.png", "residuals.png"} <= set(old)
+    res = run(cli, ["fit", str(src), "-m", "oren-nayar", "--out", str(out), "--force",
+                    "--no-plots"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    new = _snapshot(out)
+    # The new set: its fit.json alone (oren-nayar has no Mitsuba equivalent, --no-plots),
+    # no material.xml or plot of the previous fit beside it; non-output files stay.
+    assert json.loads(new["fit.json"])["model"] == "oren-nayar"
+    assert "no Mitsuba export" in res.output
+    assert set(new) == {"fit.json", "notes.txt", ".gonio.lock"}
+    assert new["notes.txt"] == old["notes.txt"]
+    assert stale_temporaries(tmp_path) == [] and stale_temporaries(out) == []
+
+
+def test_a_failed_output_phase_leaves_the_old_set(tmp_path, make_samples, monkeypatch):
+    import gonio.fitting.plots as plots
+
+    src = _samples_file(tmp_path, make_samples)
+    out = tmp_path / "fit"
+    assert (
+        CliRunner().invoke(cli, ["fit", str(src), "-m", "lambert", "--out", str(out)]).exit_code
+        == 0
+    )
+    old = _snapshot(out)
+
+    def broken(*a, **k):
+        raise RuntimeError("disk full while plotting")
+
+    monkeypatch.setattr(plots, "plot_residual_map", broken)
+    res = CliRunner().invoke(cli, ["fit", str(src), "-m", "oren-nayar", "--out", str(out),
+                                   "--force"])  # fmt: skip
+    assert res.exit_code != 0
+    assert _snapshot(out) == old  # fit.json and slices.png of the new fit were staged only
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fit", "samples.h5"]
+
+
+_HOLDER = """
+import sys
+from gonio.locks import hold_lock
+with hold_lock(sys.argv[1], "test"):
+    print("held", flush=True)
+    sys.stdin.readline()
+"""
+
+
+def test_a_second_fit_into_a_held_output_is_refused_naming_the_pid(tmp_path, make_samples):
+    import subprocess
+    import sys
+
+    from gonio.cli import main
+
+    src = _samples_file(tmp_path, make_samples)
+    out = tmp_path / "fit"
+    assert (
+        CliRunner().invoke(cli, ["fit", str(src), "-m", "lambert", "--out", str(out)]).exit_code
+        == 0
+    )
+    old = _snapshot(out)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", _HOLDER, str(out / ".gonio.lock")],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout.readline() == "held\n"
+        with pytest.raises(SystemExit) as e:
+            main(["fit", str(src), "-m", "oren-nayar", "--out", str(out), "--force"])
+        assert e.value.code == 1
+    finally:
+        holder.communicate("done\n")
+    assert _snapshot(out) == old
+    # and once the holder is gone the lock is free again
+    res = CliRunner().invoke(cli, ["fit", str(src), "-m", "oren-nayar", "--out", str(out),
+                                   "--force"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+
+
+def test_the_refusal_message_names_the_holder(tmp_path, make_samples, capsys):
+    import subprocess
+    import sys
+
+    from gonio.cli import main
+
+    src = _samples_file(tmp_path, make_samples)
+    out = tmp_path / "fit"
+    out.mkdir()
+    holder = subprocess.Popen(
+        [sys.executable, "-c", _HOLDER, str(out / ".gonio.lock")],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout.readline() == "held\n"
+        capsys.readouterr()
+        with pytest.raises(SystemExit):
+            main(["fit", str(src), "-m", "lambert", "--out", str(out)])
+        err = " ".join(capsys.readouterr().err.split())
+    finally:
+        holder.communicate("done\n")
+    assert f"error: output {out}/ is in use by process {holder.pid}" in err
+    assert sorted(p.name for p in out.iterdir()) == [".gonio.lock"]

@@ -404,3 +404,43 @@ def test_penumbra_of_rectangle_light_vs_visible_sub_rectangle():
     # which is reported as missing the tolerance (a step integrand: error ~ 1/n)
     assert np.max(err[partial]) <= st.penumbra_error
     assert not st.tolerance_met
+
+
+# --- issue 14.3: the renderer's memory is estimated before anything is allocated --------
+
+
+def test_render_memory_estimate_is_arithmetic_on_resolution_and_antialias():
+    from gonio.simulator.render import estimate_render_memory
+
+    s = parse_scene(scene_dict(render=dict(antialias=4)))
+    # 33 x 33 pixels x (400 B + 10 % edge pixels x 16 sub-samples x 150 B)
+    assert estimate_render_memory(s) == 33 * 33 * (400 + 0.1 * 16 * 150)
+    assert estimate_render_memory(s, antialias=1) == 33 * 33 * 400
+
+
+def test_a_render_beyond_the_memory_limit_is_refused_before_allocating():
+    import tracemalloc
+
+    cam = scene_dict()["camera"] | {"resolution": [20000, 20000]}
+    s = parse_scene(scene_dict(camera=cam))
+    tracemalloc.start()
+    try:
+        with pytest.raises(ConfigError) as exc:
+            render(s, max_memory_bytes=8e9)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 10e6  # the first (H, W) array alone would be 3.2 GB
+    msg = str(exc.value)
+    need = 20000 * 20000 * (400 + 0.1 * 16 * 150) / 1e9
+    assert msg.startswith("camera.resolution: rendering 20000 x 20000 pixels")
+    assert f"about {need:.3g} GB" in msg and "8 GB allowed" in msg
+
+
+def test_the_default_memory_limit_is_half_the_physical_memory():
+    import os
+
+    from gonio.simulator.render import render_memory_limit
+
+    phys = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    assert render_memory_limit() == 0.5 * phys

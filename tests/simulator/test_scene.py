@@ -197,3 +197,38 @@ def test_poses_from_rig_joint_angles(tmp_path):
     )
     centre = res.wo[12, 16]
     assert np.degrees(np.arccos(np.clip(centre @ wo, -1, 1))) < 0.5
+
+
+# --- issue 14.6 / 14.8: exposure bounds and albedo maps that cannot be loaded -----------
+
+
+@pytest.mark.parametrize("value", ["1e308", "inf", "nan", "3600.5"])
+def test_scene_exposure_time_is_finite_and_at_most_an_hour(tmp_path, value):
+    p = write(tmp_path, GOOD.replace("fov_deg = 20", f"fov_deg = 20\nexposure_time = {value}"))
+    with pytest.raises(ConfigError) as exc:
+        load_scene(p)
+    assert "field 'camera.exposure_time'" in str(exc.value) and str(p) in str(exc.value)
+    ok = write(tmp_path, GOOD.replace("fov_deg = 20", "fov_deg = 20\nexposure_time = 3600"))
+    assert load_scene(ok).camera.exposure_time == 3600.0
+
+
+@pytest.mark.parametrize(
+    ("make", "match"),
+    [
+        (lambda p: np.save(p, np.array([{"x": 1}], dtype=object), allow_pickle=True),
+         "holds Python objects"),
+        (lambda p: np.save(p, np.array(["a", "b"])), "not a numeric .npy array"),
+        (lambda p: p.write_bytes(b"\x93NUMPY garbage"), "not a numeric .npy array"),
+    ],
+)  # fmt: skip
+def test_albedo_map_that_cannot_be_loaded_names_file_and_field(tmp_path, make, match):
+    npy = tmp_path / "albedo.npy"
+    make(npy)
+    p = write(
+        tmp_path, GOOD.replace("height = 0.05\n", "height = 0.05\nalbedo_map = 'albedo.npy'\n", 1)
+    )
+    scene = load_scene(p)
+    with pytest.raises(ConfigError) as exc:
+        render(scene)
+    msg = str(exc.value)
+    assert msg.startswith("sample.albedo_map: ") and str(npy) in msg and match in msg

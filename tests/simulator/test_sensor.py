@@ -107,3 +107,42 @@ def test_bad_settings_raise():
         simulate_raw(np.zeros((100, 200, 3)), camera(), exposure_time=-1)
     with pytest.raises(ParameterError, match="shape"):
         simulate_raw(np.zeros((100, 200)), camera())
+
+
+# --- issue 14.6: huge exposures and radiances saturate instead of crashing numpy ---------
+
+
+@pytest.mark.parametrize("t", [1e308, float("inf"), 3600.001])
+def test_exposure_beyond_an_hour_is_a_parameter_error(t):
+    with pytest.raises(ParameterError, match="exposure_time"):
+        simulate_raw(np.ones((4, 4, 3)), camera(), exposure_time=t)
+
+
+def test_a_poisson_mean_beyond_numpy_saturates_at_the_full_well():
+    cam = camera(read_noise=0.0)
+    L = np.full((100, 200, 3), 1.0)
+    L[10:20, 30:40] = 1e300  # numpy: "lam value too large" before the fix
+    L[50, 50] = np.inf
+    f = simulate_raw(L, cam, exposure_time=3600.0, seed=3)
+    s = cam.sensor
+    full = min(s.white_level, round(s.black_level + s.full_well * s.gain_at_base_iso))
+    assert (f.mosaic[10:20, 30:40] == full).all() and f.mosaic[50, 50] == full
+
+
+def test_ordinary_frames_are_the_plain_poisson_draws():
+    # The guard must not change a frame whose means numpy can draw: same seed, same bytes
+    # as a hand-written Poisson + read-noise pipeline.
+    cam = camera()
+    s = cam.sensor
+    rng = np.random.default_rng(11)
+    L = rng.uniform(0, 50, (100, 200, 3))
+    f = simulate_raw(L, cam, exposure_time=0.01, f_number=4.0, iso=200, seed=5)
+    mu3 = np.stack([expected_electrons(L[..., k], cam, 0.01, 4.0, k) for k in range(3)], -1)
+    idx = cfa_indices(s.cfa_pattern, L.shape[:2])
+    mu = np.take_along_axis(mu3, idx[..., None], axis=2)[..., 0] + s.dark_current * 0.01
+    r = np.random.default_rng(5)
+    e = r.poisson(mu).astype(float) + r.normal(0.0, s.read_noise, mu.shape)
+    e = np.clip(e, None, s.full_well)
+    dn = np.clip(np.rint(s.black_level + e * s.gain_at_base_iso * 200 / s.base_iso), 0,
+                 s.white_level).astype(np.uint16)  # fmt: skip
+    np.testing.assert_array_equal(f.mosaic, dn)

@@ -1,0 +1,135 @@
+"""Fuzzing ``load_samples`` (issue 14, "Must show"): mutated valid files, truncated files
+and random bytes give a :class:`FileFormatError` or a valid sample set, nothing else.
+
+Bounded: a few hundred examples, each on a file of ~20 kB; ``deadline=None`` because one
+HDF5 open can take tens of milliseconds on a loaded CI machine.  A hang would stall the
+test (and the suite's time budget shows it): nothing in ``load_samples`` loops on input.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from gonio.dataset import BRDFSamples, Flag, load_samples, save_samples
+from gonio.errors import FileFormatError
+from gonio.radiometry import normalize
+
+SETTINGS = settings(
+    max_examples=150,
+    deadline=None,
+    derandomize=True,  # the same examples on every run: a failure reproduces
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+
+DATASETS = ("wi", "wo", "theta_i", "brdf", "brdf_std", "flags", "radiance", "frames")
+
+
+@pytest.fixture(scope="module")
+def valid_file(tmp_path_factory) -> Path:
+    rng = np.random.default_rng(7)
+    n = 40
+    s = BRDFSamples(
+        wi=normalize(rng.normal(size=(n, 3)) + [0, 0, 2]),
+        wo=normalize(rng.normal(size=(n, 3)) + [0, 0, 2]),
+        brdf=rng.uniform(0, 1, (n, 3)),
+        brdf_std=rng.uniform(0, 0.1, (n, 3)),
+        flags=np.where(np.arange(n) % 7 == 0, Flag.SATURATED, 0),
+        radiance=rng.uniform(0, 1, (n, 3)),
+        frames=[f"raw/p{k:04d}.dng" for k in range(n)],
+        attrs={"session": "S"},
+        units={"radiance": "camera DN/s"},
+    )
+    return save_samples(tmp_path_factory.mktemp("fuzz") / "valid.h5", s)
+
+
+def _load_is_clean(path) -> None:
+    try:
+        s = load_samples(path)
+    except FileFormatError as exc:
+        assert str(path) in str(exc)  # every refusal names the file
+        return
+    # Accepted: then it really is a consistent sample set.
+    assert isinstance(s, BRDFSamples)
+    n = len(s)
+    assert n > 0 and s.wo.shape == (n, 3) and s.brdf.shape[0] == n and s.flags.shape == (n,)
+
+
+@SETTINGS
+@given(data=st.data())
+def test_byte_level_damage(valid_file, tmp_path, data):
+    b = bytearray(valid_file.read_bytes())
+    kind = data.draw(st.sampled_from(["flip", "truncate", "splice", "random"]))
+    if kind == "flip":
+        for _ in range(data.draw(st.integers(1, 16))):
+            i = data.draw(st.integers(0, len(b) - 1))
+            b[i] = data.draw(st.integers(0, 255))
+    elif kind == "truncate":
+        b = b[: data.draw(st.integers(0, len(b) - 1))]
+    elif kind == "splice":
+        i = data.draw(st.integers(0, len(b) - 1))
+        b[i : i + 64] = data.draw(st.binary(min_size=1, max_size=64))
+    else:
+        b = bytearray(data.draw(st.binary(max_size=4096)))
+    p = tmp_path / f"damaged_{kind}.h5"
+    p.write_bytes(bytes(b))
+    _load_is_clean(p)
+
+
+_dtypes = st.sampled_from(["f8", "f4", "i8", "u4", "u1", "i2", "b1", "c16", "S4"])
+_values = hnp.arrays(
+    dtype=_dtypes,
+    shape=hnp.array_shapes(min_dims=0, max_dims=3, min_side=0, max_side=50),
+    elements=None,
+)
+_attr_values = st.one_of(
+    st.integers(-(2**40), 2**40),
+    st.floats(allow_nan=True),
+    st.text(max_size=20),
+    st.binary(max_size=20),
+    st.lists(st.text(max_size=5), max_size=5),
+    st.just(np.array([1.5, 2.5])),
+)
+
+
+@SETTINGS
+@given(data=st.data())
+def test_structural_damage(valid_file, tmp_path, data):
+    p = tmp_path / "mutated.h5"
+    p.write_bytes(valid_file.read_bytes())
+    with h5py.File(p, "a") as f:
+        for _ in range(data.draw(st.integers(1, 3))):
+            what = data.draw(st.sampled_from(["replace", "delete", "group", "attr", "values"]))
+            name = data.draw(st.sampled_from(DATASETS))
+            if what == "replace":
+                if name in f:
+                    del f[name]
+                f[name] = data.draw(_values)
+            elif what == "delete" and name in f:
+                del f[name]
+            elif what == "group":
+                if name in f:
+                    del f[name]
+                f.create_group(name)
+            elif what == "attr":
+                key = data.draw(st.sampled_from(["schema", "schema_version", "channels", "x"]))
+                target = f if data.draw(st.booleans()) or name not in f else f[name]
+                target.attrs[key if target is f else "units"] = data.draw(_attr_values)
+            elif (
+                what == "values"
+                and isinstance(f.get(name), h5py.Dataset)
+                and f[name].dtype.kind == "f"
+            ):
+                v = f[name][()]
+                if v.size:
+                    flat = v.reshape(-1)
+                    k = data.draw(st.integers(0, flat.size - 1))
+                    flat[k] = data.draw(st.sampled_from([np.nan, np.inf, -np.inf, 1e308, -2.0]))
+                    f[name][...] = v
+    _load_is_clean(p)
