@@ -19,9 +19,10 @@ The camera, board, sample, light and noise facts come from ``SESSION/reduction.t
 output is the same for any number of threads.  Each region is one sample of
 ``samples.h5`` (:mod:`gonio.dataset`); its ``frames`` entry lists the bracket's RAW files
 joined by ``;``.  Nothing in ``raw/`` is touched; ``samples.h5``, the summary
-``reduction.json`` (samples kept and rejected, with reasons) and ``samples.png`` are each
-written atomically, by one process at a time (a lock beside the output), and the same
-session gives the same files.
+``reduction.json`` (samples kept and rejected, with reasons) and ``samples.png`` are
+written as one set (:mod:`gonio.capture.output_set`: a kill leaves the old set or the
+new), by one process at a time (a lock beside the output), and the same session gives
+the same files.
 """
 
 from __future__ import annotations
@@ -37,9 +38,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gonio.atomic import atomic_path, write_text_atomic
 from gonio.capture.frame_loader import PREFETCH_POSES, FrameLoader, default_threads, load_frame
 from gonio.capture.noise import NoiseModel
+from gonio.capture.output_set import output_set
 from gonio.capture.pose_measure import PoseMeasurement, invalid_pose, measure_pose
 from gonio.capture.radiometric import brdf_of, light_scale
 from gonio.capture.raw import CHANNELS, RawFrame, subtract_dark
@@ -50,6 +51,7 @@ from gonio.capture.reduction_config import (
     resolve_setup,
 )
 from gonio.capture.samples_plot import plot_samples
+from gonio.dataset import save_samples
 from gonio.errors import GonioError, ReductionError, SessionError
 from gonio.locks import hold_lock
 
@@ -175,13 +177,15 @@ def reduce_session(
         run = _PoseRun(session, setup, _kinematics(manifest), records)
         run.measure_all(default_threads() if threads is None else max(1, int(threads)), progress)
         samples = run.samples(manifest)
-        _save_samples(path, samples)
         n_kept = int(samples.valid.sum())
         summary = run.summary(len(samples), n_kept, path)
-        write_text_atomic(
-            path.with_name(SUMMARY_FILE), json.dumps(summary, indent=2, default=str) + "\n"
-        )
-        plot_path = plot_samples(samples, path.with_name(PLOT_FILE)) if plot else None
+        # One set: a kill leaves the old samples, summary and plot, or the new ones.
+        with output_set(path, (path.name, SUMMARY_FILE, PLOT_FILE)) as stage:
+            save_samples(stage / path.name, samples)
+            _write_json(stage / SUMMARY_FILE, summary)
+            if plot:
+                plot_samples(samples, stage / PLOT_FILE)
+        plot_path = path.with_name(PLOT_FILE) if plot else None
     return ReductionResult(path, len(samples), n_kept, dict(run.rejected), summary, plot_path)
 
 
@@ -364,6 +368,7 @@ class _PoseRun:
             irradiance=np.concatenate([x[2] for x in parts]),
             frames=np.array([";".join(m.frames) for m in samples_m for _ in range(len(m.flags))]),
             attrs=attrs,
+            units={"radiance": RADIANCE_UNITS, "irradiance": IRRADIANCE_UNITS},
         )
 
     def summary(self, n_samples: int, n_kept: int, path: Path) -> dict[str, Any]:
@@ -382,24 +387,8 @@ class _PoseRun:
         }
 
 
-def _save_samples(path: Path, samples: Any) -> None:
-    """``save_samples`` with units that say what the reduction stores.
-
-    --- units override: remove when gonio.dataset.save_samples takes ``units=`` ---
-    ``save_samples`` labels ``radiance`` W/(sr m^2) and ``irradiance`` W/m^2, while the
-    reduction stores camera units (:data:`RADIANCE_UNITS`).  Until it takes per-dataset
-    units, the file is written to a temporary name, its two ``units`` attributes are
-    corrected, and only then is it renamed into place: still one atomic replacement.
-    """
-    import h5py
-
-    from gonio.dataset import save_samples
-
-    with atomic_path(path, parents=True) as tmp:
-        save_samples(tmp, samples)
-        with h5py.File(tmp, "r+") as f:
-            f["radiance"].attrs["units"] = RADIANCE_UNITS
-            f["irradiance"].attrs["units"] = IRRADIANCE_UNITS
+def _write_json(path: Path, doc: Mapping[str, Any]) -> None:
+    path.write_text(json.dumps(doc, indent=2, default=str) + "\n", encoding="utf-8")
 
 
 def _kinematics(manifest: Mapping[str, Any]) -> Any | None:

@@ -20,7 +20,7 @@ from gonio.errors import GonioError
 # --help only once its module exists, so there are never placeholder commands.
 _SUBCOMMANDS: dict[str, str] = {
     "brdf": "gonio.brdf.cli:brdf",
-    "sim": "gonio.simulator.cli:sim",
+    "sim": "gonio.app.sim_cli:sim",
     "rig": "gonio.rig.cli:rig",
     "capture": "gonio.app.capture_cli:capture",
     "fit": "gonio.fitting.cli:fit",

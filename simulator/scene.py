@@ -80,6 +80,7 @@ maps sample-frame vectors to camera-frame vectors.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -528,7 +529,11 @@ class Scene(_Model):
         """Camera centre (3,) and world-to-camera rotation (3, 3), sample frame."""
         cam = self.camera
         if cam.position is None:
-            raise ConfigError("camera.position: not given (and rig poses not applied)")
+            raise ConfigError(
+                "camera.position: not given, and the [rig] joint angles were not turned into "
+                "poses (load the scene with gonio.app.scenes.load_scene, as gonio sim render "
+                "does, or give the camera a pose provider)"
+            )
         pos = np.asarray(cam.position, float)
         if cam.rotation is not None:
             R = np.asarray(cam.rotation, float)
@@ -607,8 +612,25 @@ class Scene(_Model):
         return self.model_copy(update={"camera": cam, "lights": lights})
 
 
-def parse_scene(data: dict[str, Any], source: str = "<scene>", base_dir: Path | None = None):
+def parse_scene(
+    data: dict[str, Any],
+    source: str = "<scene>",
+    base_dir: Path | None = None,
+    *,
+    rig_poses: Callable[[Scene], Any] | None = None,
+):
     """Validate a scene given as a dict (e.g. parsed TOML).
+
+    Parameters
+    ----------
+    data, source, base_dir
+        The document, its name for messages, and the folder its paths start from.
+    rig_poses
+        For a scene with a ``[rig]`` table: ``scene -> RigPoses``-like poses of the light
+        and camera at its joint angles.  The simulator does not know the rig's
+        kinematics (they are the controller's); the composition root passes them
+        (:func:`gonio.app.scenes.load_scene`).  Without it the scene keeps the poses it
+        states, if any, and a camera without a pose is refused when it is rendered.
 
     Raises
     ------
@@ -616,28 +638,9 @@ def parse_scene(data: dict[str, Any], source: str = "<scene>", base_dir: Path | 
         Naming the source and each offending field.
     """
     scene = validate(Scene, {**data, "base_dir": base_dir}, f"{source}: invalid scene")
-    if scene.rig is not None:
-        scene = apply_rig_poses(scene)
+    if scene.rig is not None and rig_poses is not None:
+        scene = scene_with_rig_poses(scene, rig_poses(scene))
     return scene
-
-
-def apply_rig_poses(scene: Scene) -> Scene:
-    """Replace the camera and first light poses by those of the rig's joint angles."""
-    from gonio.errors import GonioError
-
-    try:
-        from gonio.rig.config import default_rig_config, load_rig_config
-        from gonio.rig.kinematics import Kinematics
-    except ImportError as exc:  # pragma: no cover - rig arrives in another issue
-        raise ConfigError(f"rig: gonio.rig.kinematics is not available ({exc})") from exc
-    spec = scene.rig
-    try:
-        cfg = load_rig_config(scene.resolve(spec.config)) if spec.config else default_rig_config()
-        joints = {k: np.radians(v) for k, v in spec.joints_deg.items()}
-        poses = Kinematics(cfg).poses(joints)
-    except GonioError as exc:
-        raise ConfigError(f"rig: {exc}") from exc
-    return scene_with_rig_poses(scene, poses)
 
 
 def scene_with_rig_poses(scene: Scene, poses: Any) -> Scene:
@@ -659,7 +662,7 @@ def scene_with_rig_poses(scene: Scene, poses: Any) -> Scene:
     )
 
 
-def load_scene(path: str | Path) -> Scene:
+def load_scene(path: str | Path, *, rig_poses: Callable[[Scene], Any] | None = None) -> Scene:
     """Read and validate a scene TOML file.
 
     Raises
@@ -668,4 +671,4 @@ def load_scene(path: str | Path) -> Scene:
         The file is missing, is not TOML, or a field is invalid (the field is named).
     """
     p = Path(path)
-    return parse_scene(read_toml(p, "scene"), str(p), p.resolve().parent)
+    return parse_scene(read_toml(p, "scene"), str(p), p.resolve().parent, rig_poses=rig_poses)

@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 
 from gonio.atomic import stale_temporaries
+from gonio.capture.reduce import output_lock
 from gonio.cli import run
 from gonio.rig.config import virtual_rig_document
 
@@ -270,25 +271,20 @@ def test_reduce_killed_at_random_leaves_whole_files(session, tmp_path):
     t_reduce = _timed(argv)
     assert _snapshot(s, REDUCE_OUTPUTS) == new_set
     rng = np.random.default_rng(20261203)
-    kills = mixed = 0
+    kills = 0
     while kills < MIN_KILLS:
         for n, data in backup.items():
             (s / n).write_bytes(data)
         if _run_or_kill(_spawn(argv), rng.uniform(0.0, 1.1 * t_reduce)) is None:
             kills += 1
         now = _per_file_old_or_new(s, old_set, new_set)
-        mixed += now not in (old_set, new_set)  # see the xfail test below
+        assert now in (old_set, new_set), f"a mixed set after {kills} kills"
     assert _wait(_spawn(argv)) == 0
     assert _snapshot(s, REDUCE_OUTPUTS) == new_set
     assert stale_temporaries(s) == [] and stale_temporaries(s / "raw") == []
-    print(f"\nreduce: {kills} kills (one run {t_reduce:.2f} s), {mixed} mixed sets seen")
+    print(f"\nreduce: {kills} kills (one run {t_reduce:.2f} s)")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="reduce writes samples.h5 and reduction.json one after the other; writing "
-    "them as a set lands with the reduction branch",
-)
 def test_reduce_killed_between_its_outputs_keeps_the_old_set(session, tmp_path):
     s, old_set, _ = _reduce_sets(session, tmp_path)
 
@@ -335,11 +331,10 @@ with hold_lock(sys.argv[1], "test"):
 """
 
 
-@pytest.mark.xfail(strict=True, reason="the reduce lock lands with the reduction branch")
 def test_a_reduce_into_a_held_session_is_refused_naming_the_pid(session, tmp_path):
     s, old_set, _ = _reduce_sets(session, tmp_path)
     holder = subprocess.Popen(
-        [sys.executable, "-c", _HOLDER, str(s / ".gonio.lock")],
+        [sys.executable, "-c", _HOLDER, str(output_lock(s / "samples.h5"))],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:

@@ -185,10 +185,17 @@ def test_poses_from_rig_joint_angles(tmp_path):
     text = GOOD.replace("position = [0.0, -0.25, 0.43]\n", "")
     text += (
         "[rig]\njoints_deg = { "
-        + ", ".join(f"{n} = {np.degrees(v)!r}" for n, v in joints.items())
+        + ", ".join(f"{n} = {float(np.degrees(v))!r}" for n, v in joints.items())
         + " }\n"
     )
-    scene = load_scene(write(tmp_path, text))
+    path = write(tmp_path, text)
+    with pytest.raises(
+        ConfigError, match="camera.position"
+    ):  # the simulator alone has no kinematics
+        load_scene(path).camera_pose()
+    from gonio.app.scenes import load_scene as load_with_rig
+
+    scene = load_with_rig(path)
     C, R = scene.camera_pose()
     assert np.allclose(C, poses.camera_position) and np.allclose(R, poses.camera_rotation.T)
     assert np.allclose(scene.lights[0].position, poses.light_position)

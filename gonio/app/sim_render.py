@@ -127,10 +127,10 @@ def render_cmd(
     """
     from rich.console import Console
 
+    from gonio.app.scenes import load_scene
     from gonio.errors import ConfigError, FileFormatError
     from gonio.simulator.dng import dng_bytes, write_dng
     from gonio.simulator.render import render, save_truth
-    from gonio.simulator.scene import load_scene
     from gonio.simulator.sensor import simulate_raw
 
     console = Console(stderr=True)

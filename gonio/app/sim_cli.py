@@ -10,7 +10,7 @@ from gonio.cli import LazyGroup
 @click.group(
     cls=LazyGroup,
     lazy_commands={
-        "render": "gonio.simulator.render_cli:render_cmd",
+        "render": "gonio.app.sim_render:render_cmd",
         "bus": "gonio.app.sim_bus:bus_cmd",
     },
 )
