@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from gonio.capture.journal import xxh3_bytes
+from gonio.capture.journal import session_file, xxh3_bytes
 from gonio.capture.raw import CameraSignature, RawFrame, read_file, read_raw
 from gonio.errors import FileFormatError, GonioError
 
@@ -45,8 +45,8 @@ def load_frame(
     foreign file.  Runs in worker threads: it touches no shared state.
     """
     rel = rec.get("file", "")
-    path = session / rel
     try:
+        path = session_file(session, rec)  # never a file outside the session
         if not path.is_file():
             raise FileFormatError(path, "missing (the journal lists it)")
         data = read_file(path)

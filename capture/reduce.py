@@ -161,12 +161,15 @@ def reduce_session(
     gonio.locks.LockedError
         Another process is writing the same output (nothing is written).
     """
-    from gonio.capture.journal import read_journal
-    from gonio.capture.session import load_manifest
+    from gonio.capture.journal import read_journal, session_file
+    from gonio.capture.manifest import load_manifest
 
     session = Path(session_dir)
     manifest = load_manifest(session)
     records = read_journal(session / "journal.jsonl")
+    for rec in records:  # a journal naming a file outside the session is refused outright
+        if rec.get("type") == "shot":
+            session_file(session, rec)
     if setup is None:
         setup = resolve_setup(session, manifest, noise)
     elif noise is not None:

@@ -115,9 +115,9 @@ def reduce_cmd(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
     from rich.table import Table
 
+    from gonio.capture.manifest import load_manifest
     from gonio.capture.noise import NoiseModel
     from gonio.capture.reduce import reduce_session, resolve_setup
-    from gonio.capture.session import load_manifest
 
     console = Console(stderr=True, quiet=quiet)
     noise = NoiseModel.load(noise_file) if noise_file else None

@@ -26,6 +26,7 @@ from gonio.capture.plan import ExpandedPlan, Plan, Pose, expand_plan
 from gonio.capture.session_plan import PlanState, session_plan
 from gonio.devices import MoveResult, RigState
 from gonio.errors import SessionError
+from gonio.radiometry.frames import angle_between
 
 __all__ = ["DryRunRig", "Refusal", "Schedule", "build_schedule", "dry_run"]
 
@@ -87,8 +88,8 @@ class DryRunRig:
             wi_achieved=ai,
             wo_achieved=ao,
             joints=dict(self.joints),
-            error_i=float(np.arccos(np.clip(ai @ wi_u, -1, 1))),
-            error_o=float(np.arccos(np.clip(ao @ wo_u, -1, 1))),
+            error_i=float(angle_between(ai, wi_u)),
+            error_o=float(angle_between(ao, wo_u)),
             duration=float(duration),
         )
 

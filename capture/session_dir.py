@@ -71,6 +71,30 @@ def check_new_session_dir(session_dir: Path) -> None:
         )
 
 
+def _manifest_bytes(d: Path, manifest: dict[str, Any]) -> bytes:
+    """The manifest as written, checked as every reader will check it: a session that
+    no reader accepts (an infinite estimate, a field out of its model) is never made."""
+    from pydantic import ValidationError
+
+    from gonio.capture.manifest import Manifest
+    from gonio.config import validation_message
+
+    try:
+        text = json.dumps(manifest, indent=1, allow_nan=False)
+        Manifest.model_validate(json.loads(text))
+    except ValidationError as exc:
+        raise SessionError(
+            f"{d}: the session's manifest would be invalid "
+            f"({validation_message(exc, 'manifest')}); nothing was written"
+        ) from None
+    except ValueError as exc:  # inf or nan, which JSON cannot hold
+        raise SessionError(
+            f"{d}: the session's manifest would hold a non-finite number ({exc}); "
+            "nothing was written"
+        ) from None
+    return text.encode()
+
+
 def create_session(
     session_dir: str | os.PathLike,
     plan: Plan,
@@ -146,7 +170,7 @@ def create_session(
             "estimated_duration_s": schedule.estimated_duration_s,
             "travel_time_s": schedule.travel_time_s,
         }
-        write_atomic(tmp / MANIFEST, json.dumps(manifest, indent=1).encode())
+        write_atomic(tmp / MANIFEST, _manifest_bytes(d, manifest))
         if hold is not None:
             hold.enter_context(hold_lock(tmp / LOCK_NAME, f"session {d}"))
         fsync_dir(tmp)

@@ -105,6 +105,12 @@ def main(argv: list[str] | None = None) -> None:
     except GonioError as exc:
         click.secho(f"error: {exc}", fg="red", err=True)
         sys.exit(1)
+    except OSError as exc:
+        # The last resort for a file system that refuses (a read-only or missing folder,
+        # a full disk): the path and the system's reason, not a traceback.
+        where = f"{exc.filename}: " if exc.filename else ""
+        click.secho(f"error: {where}{exc.strerror or exc}", fg="red", err=True)
+        sys.exit(1)
     except KeyboardInterrupt:
         click.echo("interrupted", err=True)
         sys.exit(130)

@@ -57,6 +57,44 @@ def lock_holder(path: str | os.PathLike) -> int | None:
     return int(text) if text.isdigit() else None
 
 
+def _locked_fd(path: Path, what: str) -> int:
+    """Open ``path`` and take its flock; the descriptor of the file that *is* at ``path``.
+
+    A holder may unlink its lock file when it is done (a lock beside a directory that
+    is about to exist).  Whoever opened the old file before the unlink would then lock
+    an inode no longer at ``path`` while a newcomer locks the new one: both would
+    believe they hold it.  So after taking the lock, the descriptor's inode must still be
+    the path's; if not, start again.
+    """
+    for _ in range(100):
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)  # mode follows the umask
+        except OSError as exc:
+            raise GonioError(
+                f"{what}: cannot create the lock file {path}: {exc.strerror}"
+            ) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            pid = lock_holder(path)
+            who = f"process {pid}" if pid is not None else "another process"
+            raise LockedError(
+                f"{what} is in use by {who} (lock {path}); wait for it to finish or stop it "
+                "first (nothing was written)",
+                path,
+                pid,
+            ) from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            return fd
+        os.close(fd)  # we locked a file its holder had already removed
+    raise GonioError(f"{what}: the lock file {path} keeps being replaced; try again")
+
+
 @contextlib.contextmanager
 def hold_lock(path: str | os.PathLike, what: str) -> Iterator[Path]:
     """Hold an exclusive lock on ``path`` for the duration of the block.
@@ -75,19 +113,8 @@ def hold_lock(path: str | os.PathLike, what: str) -> Iterator[Path]:
         written in that case.
     """
     path = Path(path)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = _locked_fd(path, what)
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            pid = lock_holder(path)
-            who = f"process {pid}" if pid is not None else "another process"
-            raise LockedError(
-                f"{what} is in use by {who} (lock {path}); wait for it to finish or stop it "
-                "first (nothing was written)",
-                path,
-                pid,
-            ) from None
         # We hold it: whatever PID is in the file is from a holder that has died.
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)

@@ -216,7 +216,7 @@ def write_reduction_toml(
     SessionError
         Not a simulated session, or another ``reduction.toml`` is there.
     """
-    from gonio.capture.session import load_manifest
+    from gonio.capture.manifest import load_manifest
 
     session = Path(session_dir)
     manifest = load_manifest(session)

@@ -143,7 +143,7 @@ def test_half_difference_grid_round_trips():
 
 
 def test_no_reachable_pose_is_a_session_error():
-    from gonio.capture.session import build_schedule
+    from gonio.capture.schedule import build_schedule
     from gonio.rig.config import default_rig_config
     from gonio.rig.kinematics import Kinematics
 

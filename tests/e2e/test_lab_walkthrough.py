@@ -66,3 +66,28 @@ def test_scan_home_move_status_off_on_a_fresh_virtual_rig(bus_port):
     assert "light theta 29.9" in status or "light theta 30.0" in status, status
     assert "camera theta 45.0" in status, status
     gonio("rig", "off", *cfg)
+
+
+@pytest.mark.slow
+def test_the_example_session_plans_runs_inspects_reduces_and_fits(tmp_path):
+    """The README's session commands on examples/ (a virtual bus in place of the U2D2):
+    each step as a user types it, each output opened by the next step."""
+    rig = tmp_path / "rig.toml"
+    text = (REPO / "examples" / "rig.toml").read_text()
+    rig.write_text(text.replace('port = "/dev/ttyUSB0"', 'port = "virtual"'))
+    assert 'port = "virtual"' in rig.read_text()
+    plan = str(REPO / "examples" / "plan.toml")
+    dry = json.loads(gonio("capture", "plan", plan, "--rig", str(rig), "--json"))
+    s = tmp_path / "S"
+    gonio("capture", "run", plan, "--rig", str(rig), "--camera", "simulated", "--out", str(s),
+          "--quiet")  # fmt: skip
+    info = json.loads(gonio("capture", "inspect", str(s), "--json"))
+    assert info["status"] == "completed" and info["bad_files"] == []
+    steps = dry["sample_poses"] + dry["reference_poses"] + dry["dark_steps"]
+    assert info["poses_done"] == info["poses_total"] == steps
+    gonio("capture", "reduce", str(s), "--quiet")
+    fit = tmp_path / "fit"
+    gonio("fit", str(s / "samples.h5"), "--model", "auto", "--out", str(fit))
+    result = json.loads((fit / "fit.json").read_text())
+    assert result["success"] is True
+    assert (fit / "material.xml").is_file()
