@@ -7,7 +7,6 @@ reduction's output does not depend on the number of threads.
 
 from __future__ import annotations
 
-import hashlib
 import os
 from collections.abc import Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -16,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from gonio.capture.journal import session_file, xxh3_bytes
+from gonio.capture.journal import frame_problem, session_file
 from gonio.capture.raw import CameraSignature, RawFrame, read_file, read_raw
 from gonio.errors import FileFormatError, GonioError
 
@@ -50,16 +49,11 @@ def load_frame(
         if not path.is_file():
             raise FileFormatError(path, "missing (the journal lists it)")
         data = read_file(path)
-        changed = "the file was changed, truncated or corrupted after capture"
-        if rec.get("bytes") is not None and len(data) != int(rec["bytes"]):
+        problem = frame_problem(data, rec)
+        if problem is not None:
             raise FileFormatError(
-                path, f"{len(data)} bytes, the journal recorded {int(rec['bytes'])}: {changed}"
+                path, f"{problem}: the file was changed, truncated or corrupted after capture"
             )
-        if rec.get("xxh3_128"):
-            if xxh3_bytes(data) != rec["xxh3_128"]:
-                raise FileFormatError(path, f"XXH3-128 digest differs from the journal: {changed}")
-        elif rec.get("sha256") and hashlib.sha256(data).hexdigest() != rec["sha256"]:
-            raise FileFormatError(path, f"sha256 differs from the journal: {changed}")
         fr = read_raw(data, name=rel, expect=signature)
     except GonioError as exc:
         return None, str(exc)

@@ -57,6 +57,33 @@ def xxh3_bytes(data: bytes) -> str:
     return xxhash.xxh3_128_hexdigest(data)
 
 
+def frame_problem(data: bytes | int, record: Mapping[str, Any], digest: str = "xxh3") -> str | None:
+    """Why a frame's bytes are not what its journal record says, or None when they are.
+
+    Parameters
+    ----------
+    data
+        The file's bytes, or only its size in bytes (then only the size is checked).
+    record
+        Its ``shot`` record (``bytes``, ``xxh3_128``, ``sha256``).
+    digest
+        ``"xxh3"`` (byte count and XXH3-128; sha256 for records from before XXH3),
+        ``"sha256"`` (byte count and sha256) or ``"size"`` (byte count only).
+    """
+    n = record.get("bytes")
+    size = data if isinstance(data, int) else len(data)
+    if n is not None and size != int(n):
+        return f"{size} bytes, the journal recorded {int(n)}"
+    if digest == "size" or isinstance(data, int):
+        return None
+    if digest == "xxh3" and record.get("xxh3_128"):
+        if xxh3_bytes(data) != record["xxh3_128"]:
+            return "XXH3-128 digest differs from the journal"
+    elif record.get("sha256") and sha256_bytes(data) != record["sha256"]:
+        return "sha256 differs from the journal"
+    return None
+
+
 def sha256_file(path: str | os.PathLike) -> str:
     """Hex sha256 of the file at ``path`` (read in 1 MiB chunks)."""
     h = hashlib.sha256()
@@ -209,16 +236,18 @@ def latest_shots(records: Iterable[Mapping[str, Any]]) -> dict[tuple[int, int], 
 def stale_temporaries(session: str | os.PathLike) -> list[str]:
     """Temporary files and directories a killed writer left in or beside a session.
 
-    ``.NAME.XXXX.tmp`` files (from :mod:`gonio.atomic`) anywhere in the session, and
-    ``.NAME.creating-PID`` directories (a session being created) inside it or beside it,
-    relative to the session (``../`` for those beside it).
+    :mod:`gonio.atomic`'s ``.NAME.XXXX.tmp`` temporaries that no live writer holds,
+    anywhere in the session, and ``.NAME.creating-PID`` directories (a session being
+    created) inside it or beside it; relative to the session (``../`` for those beside).
     """
+    from gonio.atomic import stale_temporaries as stale_in
+
     root = Path(session)
-    found = [
-        str(p.relative_to(root))
-        for p in sorted(root.rglob(".*"))
-        if (p.is_file() and p.name.endswith(".tmp")) or (p.is_dir() and ".creating-" in p.name)
-    ]
+    if not root.is_dir():
+        return []
+    folders = [root, *sorted(p for p in root.rglob("*") if p.is_dir())]
+    found = sorted(str(p.relative_to(root)) for d in folders for p in stale_in(d))
+    found += [str(p.relative_to(root)) for p in sorted(root.rglob(".*.creating-*")) if p.is_dir()]
     if root.parent.is_dir():
         found += [
             f"../{p.name}"

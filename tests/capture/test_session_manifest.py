@@ -192,3 +192,27 @@ def test_random_manifests_raise_only_gonio_errors(tmp_path_factory, data):
     (d / "manifest.json").write_bytes(data)
     with pytest.raises(GonioError):
         read_manifest(d)
+
+
+def test_a_manifest_no_reader_would_accept_is_never_written(tmp_path, monkeypatch, capsys):
+    """An infinite estimate (JSON has no inf: ``json.dumps`` wrote ``Infinity``) made a
+    session that inspect, resume and reduce refused for good; now nothing is made."""
+    import gonio.capture.schedule as schedule
+
+    real = schedule.build_schedule
+
+    def infinite(*a, **k):
+        s = real(*a, **k)
+        s.estimated_duration_s = float("inf")
+        return s
+
+    monkeypatch.setattr(schedule, "build_schedule", infinite)
+    monkeypatch.setattr("gonio.capture.sessions.build_schedule", infinite)
+    (tmp_path / "rig.toml").write_text(virtual_rig_document())
+    (tmp_path / "plan.toml").write_text(PLAN)
+    out = tmp_path / "S"
+    args = ["capture", "run", str(tmp_path / "plan.toml"), "--rig", str(tmp_path / "rig.toml")]
+    assert run(*args, "--camera", "simulated", "--out", str(out), "--quiet") == 1
+    assert "non-finite" in capsys.readouterr().err
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.toml", "rig.toml"]

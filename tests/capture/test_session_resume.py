@@ -119,7 +119,11 @@ def test_journal_paths_outside_the_session_are_refused(finished, tmp_path, capsy
     i = next(k for k, line in enumerate(lines) if json.loads(line) == shot)
     lines[i] = json.dumps({**shot, "file": "../victim/v.txt"})
     (s / "journal.jsonl").write_text("\n".join(lines) + "\n")
-    for args in (["inspect", str(s)], ["resume", str(s), "--quiet", "--sim-speed", "200"]):
+    for args in (
+        ["inspect", str(s)],
+        ["resume", str(s), "--quiet", "--sim-speed", "200"],
+        ["reduce", str(s), "--quiet", "--no-plot"],
+    ):
         assert run("capture", *args) == 1
         err = capsys.readouterr().err
         assert "../victim/v.txt" in err and "outside the session" in err
@@ -139,19 +143,19 @@ def test_session_file_refuses_absolute_and_symlinked_escapes(tmp_path):
 
 def test_stale_temporaries_are_listed_and_removed_by_resume(finished, tmp_path, capsys):
     s = _copy(finished, tmp_path / "S")
-    stale = s / "raw" / ".p0001_f00_sample.dng.abcd.tmp"
+    stale = s / "raw" / ".p0001_f00_sample.dng.abcd1234.tmp"
     stale.write_bytes(b"half a frame")
-    (s / ".samples.h5.x1y2.tmp").write_bytes(b"half a file")
+    (s / ".samples.h5.x1y2z3w4.tmp").write_bytes(b"half a file")
     assert run("capture", "inspect", str(s), "--json") == 0
     info = json.loads(capsys.readouterr().out)
     assert info["stale_temporaries"] == [
-        ".samples.h5.x1y2.tmp",
-        "raw/.p0001_f00_sample.dng.abcd.tmp",
+        ".samples.h5.x1y2z3w4.tmp",
+        "raw/.p0001_f00_sample.dng.abcd1234.tmp",
     ]
     assert info["orphans"] == []  # temporaries are not frames
     assert run("capture", "resume", str(s), "--quiet", "--sim-speed", "200") == 0
     assert not stale.exists()  # its own kind: RAW temporaries
-    assert (s / ".samples.h5.x1y2.tmp").exists()  # the reduction's to remove
+    assert (s / ".samples.h5.x1y2z3w4.tmp").exists()  # the reduction's to remove
 
 
 def test_settle_time_is_waited_after_every_move_on_the_servo_clock(tmp_path):
