@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Generator, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -40,7 +40,15 @@ from gonio.capture.messages import (
     Settle,
     Shoot,
 )
-from gonio.devices import Camera, Light, RigDevice, SeededShots, TargetChanger
+from gonio.devices import (
+    Camera,
+    Light,
+    MoveResult,
+    RigDevice,
+    RigState,
+    SeededShots,
+    TargetChanger,
+)
 from gonio.errors import BusError, CameraError, RigError, RigFault
 
 __all__ = [
@@ -55,6 +63,15 @@ __all__ = [
 ]
 
 Subscriber = Callable[[dict[str, Any]], None]
+
+
+@runtime_checkable
+class ForwardKinematics(Protocol):
+    """What the session needs of the rig's kinematics: the directions its joints give."""
+
+    def forward(self, joints: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
+        """``(wi, wo)`` unit vectors in the sample frame for joint angles in rad."""
+        ...
 
 
 @dataclass
@@ -92,7 +109,7 @@ class SessionDevices:
     camera: Camera
     light: Light | None = None
     target: TargetChanger | None = None
-    kinematics: Any = None
+    kinematics: ForwardKinematics | None = None
     sleep: Callable[[float], None] = time.sleep
     read_noise_dn: Callable[[float], float] | None = None
     files: Mapping[str, bytes] = field(default_factory=dict)
@@ -192,14 +209,14 @@ class Engine:
                 error = exc
 
     # -- handlers -----------------------------------------------------------------------
-    def _move(self, msg: Move) -> Any:
+    def _move(self, msg: Move) -> MoveResult:
         return self.devices.rig.move_to(
             np.asarray(msg.wi, dtype=np.float64),
             np.asarray(msg.wo, dtype=np.float64),
             joints=msg.joints,
         )
 
-    def _read(self, msg: Read) -> Any:  # noqa: ARG002
+    def _read(self, msg: Read) -> RigState:  # noqa: ARG002
         return self.devices.rig.read()
 
     def _settle(self, msg: Settle) -> None:

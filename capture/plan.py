@@ -38,6 +38,7 @@ from pydantic import (
 )
 
 from gonio.config import read_toml, validate
+from gonio.errors import PoseRefused
 from gonio.radiometry import (
     direction_to_spherical,
     directions_from_half_diff,
@@ -399,10 +400,16 @@ class Pose:
 
 @dataclass(frozen=True)
 class ExcludedPose:
-    """A grid pose left out, with the reason (shown by ``gonio capture plan``)."""
+    """A grid pose left out, with the reason (shown by ``gonio capture plan``).
+
+    ``code`` is machine-readable: ``"plan"`` for the plan's own exclusions (grazing
+    limit, horizon, the plan's shadowing rule), else the rig's
+    :class:`~gonio.errors.RefusalReason` value.
+    """
 
     pose: Pose
     reason: str
+    code: str = "plan"
 
 
 @dataclass
@@ -478,7 +485,16 @@ def _exclusion_reason(wi: np.ndarray, wo: np.ndarray, ex: Exclusions) -> str | N
     return None
 
 
-RigCheck = Callable[[np.ndarray, np.ndarray], "str | None"]
+#: ``rig_check(wi, wo)``: why the rig cannot reach a pose (a ``PoseRefused``, or a
+#: sentence), or None.
+RigCheck = Callable[[np.ndarray, np.ndarray], "PoseRefused | str | None"]
+
+
+def _excluded(pose: Pose, refusal: PoseRefused | str) -> ExcludedPose:
+    if isinstance(refusal, PoseRefused):
+        return ExcludedPose(pose, str(refusal), refusal.reason.value)
+    return ExcludedPose(pose, refusal, "rig")
+
 
 #: Progress of a long expansion: ``progress(done, total)`` in grid poses.
 Progress = Callable[[int, int], None]
@@ -688,10 +704,13 @@ def expand_plan(
             seen.add(key)
         pose = Pose(_as_tuple(wi), _as_tuple(wo))
         reason = _exclusion_reason(wi, wo, plan.exclusions)
-        if reason is None and use_rig:
-            reason = rig_check(np.array(pose.wi), np.array(pose.wo))
+        refusal = (
+            rig_check(np.array(pose.wi), np.array(pose.wo)) if reason is None and use_rig else None
+        )
         if reason is not None:
             excluded.append(ExcludedPose(pose, reason))
+        elif refusal is not None:
+            excluded.append(_excluded(pose, refusal))
         else:
             poses.append(pose)
     n_grid = len(wi_all)
@@ -702,9 +721,9 @@ def expand_plan(
         wi = spherical_to_direction(math.radians(rp.theta_i_deg), math.radians(rp.phi_i_deg))
         wo = spherical_to_direction(math.radians(rp.theta_o_deg), math.radians(rp.phi_o_deg))
         pose = Pose(_as_tuple(wi), _as_tuple(wo), kind="reference")
-        reason = rig_check(np.array(pose.wi), np.array(pose.wo)) if use_rig else None
-        if reason is not None:
-            excluded.append(ExcludedPose(pose, reason))
+        refusal = rig_check(np.array(pose.wi), np.array(pose.wo)) if use_rig else None
+        if refusal is not None:
+            excluded.append(_excluded(pose, refusal))
         else:
             poses.append(pose)
     return ExpandedPlan(

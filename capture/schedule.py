@@ -176,13 +176,15 @@ def build_schedule(plan: Plan, kinematics: Any, start_joints: dict[str, float]) 
     SessionError
         When no pose of the plan is reachable (the message lists the commonest reasons).
     """
-    expanded = expand_plan(plan, rig_check=lambda wi, wo: kinematics.check(wi, wo))
+    expanded = expand_plan(plan, rig_check=kinematics.refusal)
     if not any(p.kind == "sample" for p in expanded.poses):
-        reasons: dict[str, int] = {}
+        by_code: dict[str, list[str]] = {}
         for e in expanded.excluded:
-            key = e.reason.split(":")[0]
-            reasons[key] = reasons.get(key, 0) + 1
-        top = ", ".join(f"{n} x {r}" for r, n in sorted(reasons.items(), key=lambda x: -x[1])[:4])
+            by_code.setdefault(e.code, []).append(e.reason)
+        top = ", ".join(
+            f"{len(r)} x {code} (e.g. {r[0]})"
+            for code, r in sorted(by_code.items(), key=lambda x: -len(x[1]))[:4]
+        )
         raise SessionError(
             f"plan {plan.name!r}: no reachable pose: all {expanded.n_grid} grid poses are "
             f"excluded or reduced ({top or 'empty grid'}); check the grid and exclusions"

@@ -159,7 +159,8 @@ def create_session(
             "simulation": dict(simulation) if simulation is not None else None,
             "schedule": schedule.steps,
             "excluded": [
-                {**e.pose.to_json(), "reason": e.reason} for e in schedule.expanded.excluded
+                {**e.pose.to_json(), "reason": e.reason, "code": e.code}
+                for e in schedule.expanded.excluded
             ],
             "estimated_duration_s": schedule.estimated_duration_s,
             "travel_time_s": schedule.travel_time_s,

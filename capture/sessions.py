@@ -132,7 +132,9 @@ class DryRun:
             "travel_time_s": round(sched.travel_time_s, 3),
             "raster_travel_time_s": round(sched.raster_travel_time_s, 3),
             "estimated_duration_s": round(sched.estimated_duration_s, 1),
-            "excluded_poses": [{**e.pose.angles_deg(), "reason": e.reason} for e in ex.excluded],
+            "excluded_poses": [
+                {**e.pose.angles_deg(), "reason": e.reason, "code": e.code} for e in ex.excluded
+            ],
             "refused_in_order": [
                 {"step": r.step, "code": r.code, "reason": r.message} for r in sched.refused
             ],
@@ -460,6 +462,11 @@ def _run(
         if t == "pose_skipped":
             skipped.append(SkippedPose(doc["pose"], doc["reason"], doc.get("code")))
 
+    if devices.kinematics is None:
+        raise SessionError(
+            "SessionDevices.kinematics is missing: a session journals the directions the "
+            "rig reached, which takes its forward kinematics"
+        )
     engine = Engine(devices, d, [journal.append, tally, *subscribers])
     gen = session_plan(
         steps,

@@ -330,3 +330,20 @@ def test_default_limits_leave_digests_and_manifests_unchanged():
     q = plan_from_dict({"grid": _G1, "limits": {"max_poses": 7}})
     assert q.model_dump(mode="json")["limits"]["max_poses"] == 7
     assert plan_from_dict(q.model_dump(mode="json")).limits.max_poses == 7
+
+
+def test_excluded_poses_carry_a_code_the_rig_chose():
+    """Exclusions are grouped and journaled by code, not by parsing their sentences."""
+    from gonio.rig.config import default_rig_config
+    from gonio.rig.kinematics import Kinematics
+
+    kin = Kinematics(default_rig_config())
+    g = {"theta_i_deg": [30, 89], "phi_i_deg": [0], "theta_o_deg": [30], "phi_o_deg": [180, 0]}
+    plan = plan_from_dict({"grid": g, "exclusions": {"grazing_limit_deg": 85}})
+    ex = expand_plan(plan, rig_check=kin.refusal)
+    codes = {(round(e.pose.angles_deg()["theta_i_deg"]), e.code) for e in ex.excluded}
+    assert (89, "plan") in codes  # the plan's own grazing limit
+    rig = [e for e in ex.excluded if e.code != "plan"]
+    assert rig, ex.excluded
+    for e in rig:  # the rig's code is the one its own check gives for that pose
+        assert e.code == kin.refusal(np.array(e.pose.wi), np.array(e.pose.wo)).reason.value

@@ -20,7 +20,7 @@ class PathLimitedKinematics:
 
     config = None
 
-    def check(self, wi, wo, current=None):
+    def refusal(self, wi, wo, current=None):
         return None
 
     def inverse(self, wi, wo, current=None):
