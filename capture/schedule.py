@@ -12,7 +12,7 @@ passes to ``rig.move_to(wi, wo, joints=...)``.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,7 +28,7 @@ from gonio.devices import MoveResult, RigState
 from gonio.errors import SessionError
 from gonio.radiometry.frames import angle_between
 
-__all__ = ["DryRunRig", "Refusal", "Schedule", "build_schedule", "dry_run"]
+__all__ = ["DryRunRig", "Refusal", "Schedule", "StageProgress", "build_schedule", "dry_run"]
 
 
 @dataclass
@@ -158,7 +158,17 @@ def _expected_frames(plan: Plan) -> float:
     return float(len(b.exposures_s)) if b.policy == "fixed" else min(2.0, b.max_frames)
 
 
-def build_schedule(plan: Plan, kinematics: Any, start_joints: dict[str, float]) -> Schedule:
+#: ``progress(stage, done, total)`` of a long dry run: stages ``"expand"`` (grid poses),
+#: ``"solve"`` (poses solved from home), ``"order"`` and ``"dry run"`` (steps).
+StageProgress = Callable[[str, int, int], None]
+
+
+def build_schedule(
+    plan: Plan,
+    kinematics: Any,
+    start_joints: dict[str, float],
+    progress: StageProgress | None = None,
+) -> Schedule:
     """Expand, check against the rig, order, and dry-run a plan.
 
     Parameters
@@ -170,13 +180,24 @@ def build_schedule(plan: Plan, kinematics: Any, start_joints: dict[str, float]) 
         ``move_time``, ``forward``).
     start_joints
         Where the rig starts (its park pose), joint name -> rad.
+    progress
+        Told how far each stage has come (a large plan takes minutes to dry-run).
 
     Raises
     ------
     SessionError
         When no pose of the plan is reachable (the message lists the commonest reasons).
+    ConfigError
+        When the plan exceeds its ``[limits]`` (checked before anything is expanded).
     """
-    expanded = expand_plan(plan, rig_check=kinematics.refusal)
+
+    def tell(stage: str, done: int, total: int) -> None:
+        if progress is not None:
+            progress(stage, done, total)
+
+    expanded = expand_plan(
+        plan, rig_check=kinematics.refusal, progress=lambda d, t: tell("expand", d, t)
+    )
     if not any(p.kind == "sample" for p in expanded.poses):
         by_code: dict[str, list[str]] = {}
         for e in expanded.excluded:
@@ -192,8 +213,15 @@ def build_schedule(plan: Plan, kinematics: Any, start_joints: dict[str, float]) 
     # The visiting order needs a move time between every pair of poses before the path
     # is known, so it uses each pose's solution from home; the dry run below then solves
     # each pose from the one before it, as the run will.
-    home_joints = [kinematics.inverse(np.array(p.wi), np.array(p.wo)) for p in expanded.poses]
+    n = len(expanded.poses)
+    home_joints = []
+    for k, p in enumerate(expanded.poses):
+        if k % 100 == 0:
+            tell("solve", k, n)
+        home_joints.append(kinematics.inverse(np.array(p.wi), np.array(p.wo)))
+    tell("solve", n, n)
     servos = getattr(getattr(kinematics, "config", None), "servos", None)
+    tell("order", 0, 1)
     D = move_time_matrix(home_joints, kinematics.move_time, start=start_joints, servos=servos)
     # Reference poses are shot as a group at the start or end; order each group apart so
     # the reference target is swapped in only once.
@@ -224,7 +252,10 @@ def build_schedule(plan: Plan, kinematics: Any, start_joints: dict[str, float]) 
         dark = {"kind": "dark", "wi": None, "wo": None}
         steps.insert(0, dark) if plan.darks.when == "start" else steps.append(dark)
 
+    tell("order", 1, 1)
+    tell("dry run", 0, len(steps))
     joints, refused = dry_run(steps, plan, kinematics, start_joints)
+    tell("dry run", len(steps), len(steps))
     for k, step in enumerate(steps):
         if k in joints:
             step["joints"] = joints[k]

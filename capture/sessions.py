@@ -37,7 +37,7 @@ from gonio.capture.engine import Engine, SessionDevices, Subscriber, run_plan
 from gonio.capture.journal import Journal, read_journal, session_file, write_atomic
 from gonio.capture.manifest import Manifest, check_journal_fits, read_manifest
 from gonio.capture.plan import Plan, plan_digest
-from gonio.capture.schedule import Refusal, Schedule, build_schedule
+from gonio.capture.schedule import Refusal, Schedule, StageProgress, build_schedule
 from gonio.capture.session_dir import (
     JOURNAL,
     BadFrame,
@@ -199,7 +199,11 @@ class SessionStopped(SessionError):
 
 
 def plan_session(
-    plan: Plan, rig_config: Any, *, start_joints: Mapping[str, float] | None = None
+    plan: Plan,
+    rig_config: Any,
+    *,
+    start_joints: Mapping[str, float] | None = None,
+    progress: StageProgress | None = None,
 ) -> DryRun:
     """Dry-run ``plan`` on the rig of ``rig_config``: nothing moves.
 
@@ -211,6 +215,9 @@ def plan_session(
         ``gonio.rig.config.RigConfig``.
     start_joints
         Where the rig starts (default: its park pose), rad.
+    progress
+        ``progress(stage, done, total)`` on a long dry run
+        (:data:`gonio.capture.schedule.StageProgress`).
 
     Raises
     ------
@@ -221,7 +228,7 @@ def plan_session(
 
     kin = Kinematics(rig_config)
     start = dict(start_joints) if start_joints is not None else rig_config.park_rad
-    return DryRun(plan, rig_config, build_schedule(plan, kin, start))
+    return DryRun(plan, rig_config, build_schedule(plan, kin, start, progress))
 
 
 def _enter(
