@@ -283,6 +283,13 @@ class VirtualServo:
                 self.pending_fault = (bits, during_next_move)
 
     @property
+    def temperature_c(self) -> float:
+        """Motor temperature (degC, unrounded; the register holds it rounded)."""
+        with self.lock:
+            self._update()
+            return _AMBIENT_C + self._heat_at(self.clock())
+
+    @property
     def alert(self) -> bool:
         return self.get_u("hardware_error_status") != 0
 
