@@ -82,12 +82,15 @@ class CameraRecord(_Open):
 
 class SimulationRecord(_Open):
     """How a simulated session renders: the scene document (file paths relative to the
-    session directory) and the virtual bus's speed-up."""
+    session directory) and the virtual bus's speed: ``"virtual"`` (servo time advanced
+    by the commanded motion) or a speed-up factor over the wall clock."""
 
     scene: dict[str, Any] | None = None
     width: Annotated[int, Field(ge=8)] | None = None
     height: Annotated[int, Field(ge=8)] | None = None
-    time_scale: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    time_scale: Annotated[float, Field(gt=0, allow_inf_nan=False)] | Literal["virtual"] | None = (
+        None
+    )
     reference_reflectance: float | tuple[float, float, float] | None = None
 
 

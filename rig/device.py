@@ -95,6 +95,10 @@ class Rig:
     port, baud_rate
         Override ``config.bus.port`` / ``config.bus.baud_rate`` of the transport built
         here (not allowed together with ``transport``).
+    clock
+        What :attr:`MoveResult.duration <gonio.devices.MoveResult.duration>` is timed on,
+        s (a virtual bus's servo clock behind a pty); default the transport's ``clock()``
+        when it has one (the loopback), else the wall clock.
 
     Examples
     --------
@@ -109,6 +113,7 @@ class Rig:
         transport: BusTransport | None = None,
         port: str | None = None,
         baud_rate: int | None = None,
+        clock: Callable[[], float] | None = None,
     ) -> None:
         self.config = config
         if transport is None:
@@ -124,7 +129,7 @@ class Rig:
             raise RigError("Rig: give either a transport or port/baud_rate, not both")
         self.transport: BusTransport = transport
         # a virtual bus's servo clock times moves in servo time; a real one has none
-        self._clock: Callable[[], float] = getattr(transport, "clock", time.monotonic)
+        self._clock: Callable[[], float] = clock or getattr(transport, "clock", time.monotonic)
         self.kinematics = Kinematics(config)
         self.servos = {s.joint: Servo(self.transport, s) for s in config.servos}
         self._ids = tuple(s.id for s in config.servos)

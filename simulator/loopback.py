@@ -11,11 +11,14 @@ framer: the bytes on the wire are exercised, only the wire is missing.  A reply 
 does not come (a silent servo, a dropped packet) is a timeout at once; there is no
 clock between request and reply, so the bus's reply delays have no effect here.
 
-The servos' motion follows the bus's scaled wall clock (``time_scale``), as on the pty.
+The servos' motion follows the bus's clock, as on the pty: the wall clock ``time_scale``
+times faster, or with ``time_scale="virtual"`` a virtual clock that a poll of a moving
+servo brings to the end of its move (:mod:`gonio.simulator.servo_clock`), so a rig
+test's moves take no wall time.
 
 Example
 -------
->>> t = LoopbackTransport([1, 2, 3, 4], time_scale=100.0)         # doctest: +SKIP
+>>> t = LoopbackTransport([1, 2, 3, 4], time_scale="virtual")      # doctest: +SKIP
 >>> rig = Rig(config, transport=t)                                  # doctest: +SKIP
 """
 
@@ -92,6 +95,10 @@ class LoopbackTransport:
     def clock(self) -> float:
         """The servos' clock (s), for timing moves in servo time."""
         return self.bus.clock()
+
+    def sleep(self, seconds: float) -> None:
+        """Let ``seconds`` of servo time pass (see :meth:`ServoBus.sleep`)."""
+        self.bus.sleep(seconds)
 
     # ------------------------------------------------------------- lifecycle
     def open(self) -> LoopbackTransport:

@@ -2,8 +2,13 @@
 
 The register layout comes from :mod:`gonio.rig.control_table` (declared once).  Motion
 follows the goal on a trapezoid from Profile Velocity / Profile Acceleration; it is
-computed on demand from timestamps (no thread per servo), with a ``time_scale`` so tests
-can run moves faster than real time.  Temperature and current follow load crudely.
+computed on demand from the bus's servo clock (no thread per servo): a scaled wall clock,
+or a virtual one that jumps to the end of a polled move (:mod:`gonio.simulator.servo_clock`).
+Current follows load crudely.  The motor heats while it moves, towards 12 degC above
+ambient with a time constant of 60 s of *motion* time, and keeps its temperature at rest:
+the temperature is a function of the commanded moves alone (each accounted exactly from
+its own start and duration, not from when it is polled), so a virtual-time session reads
+the same temperatures as a watched one.
 """
 
 from __future__ import annotations
@@ -26,6 +31,13 @@ from gonio.rig.protocol import (
 
 TABLE_SIZE = 662  # XM430 control table incl. indirect address/data (plain RAM here)
 _AMBIENT_C = 30.0
+_HEAT_MOVING_C = 12.0  # steady rise above ambient of a motor that never stops, degC
+_HEAT_TAU_S = 60.0  # heating time constant, s of motion
+
+
+def _heated(heat: float, moving_s: float) -> float:
+    """Rise above ambient (degC) after ``moving_s`` seconds of motion starting at ``heat``."""
+    return _HEAT_MOVING_C + (heat - _HEAT_MOVING_C) * math.exp(-moving_s / _HEAT_TAU_S)
 
 
 def _trapezoid(d: float, v: float, a: float, t: float) -> tuple[float, float, float]:
@@ -79,7 +91,7 @@ class VirtualServo:
     firmware
         Firmware Version register value.
     clock
-        Monotonic clock in (scaled) seconds, shared by the servos of a bus.
+        The servo clock (s), shared by the servos of a bus (the bus sets it).
     position
         Initial Present Position (pulses).
     """
@@ -105,8 +117,7 @@ class VirtualServo:
         self._pos = float(position)
         self._seg: _Segment | None = None
         self._fault_at: tuple[float, int] | None = None
-        self._heat = 0.0
-        self._t_last = clock()
+        self._heat = 0.0  # degC above ambient when the present segment (if any) started
         self.registered: tuple[int, bytes] | None = None
         self.torque_log: list[tuple[float, int]] = []  # (clock, torque) for tests and audits
 
@@ -155,35 +166,58 @@ class VirtualServo:
         sign = 1.0 if seg.p1 >= seg.p0 else -1.0
         return seg.p0 + sign * covered, sign * speed, t - seg.t0 < total
 
+    def _segment_total(self) -> float:
+        seg = self._seg
+        assert seg is not None
+        return _trapezoid(abs(seg.p1 - seg.p0), seg.speed, seg.accel, 0.0)[2]
+
+    def _heat_at(self, t: float) -> float:
+        """Rise above ambient (degC) at servo time ``t``: the present segment's motion
+        up to ``t`` on top of the heat it started with."""
+        if self._seg is None:
+            return self._heat
+        return _heated(self._heat, min(max(t - self._seg.t0, 0.0), self._segment_total()))
+
+    def _end_segment(self, t: float, pos: float) -> None:
+        """Stop the present segment at servo time ``t`` at ``pos``, its heat accounted."""
+        self._heat = self._heat_at(t)
+        self._pos, self._seg = pos, None
+
+    def motion_end(self) -> float | None:
+        """Servo time (s) at which the commanded move ends, None when not moving."""
+        with self.lock:
+            if self._seg is None:
+                return None
+            t0, total = self._seg.t0, self._segment_total()
+            end = t0 + total
+            while end - t0 < total:  # rounding: at ``end`` the move must be over
+                end = math.nextafter(end, math.inf)
+            return end
+
     def _update(self) -> None:
         now = self.clock()
         if self._fault_at is not None and now >= self._fault_at[0]:
             t_fault, bits = self._fault_at
             self._fault_at = None
-            pos, _, _ = self._position_at(t_fault)
-            self._pos, self._seg = pos, None
+            if self._seg is not None:
+                self._end_segment(t_fault, self._position_at(t_fault)[0])
             self._trip(bits)
         pos, speed, moving = self._position_at(now)
         if self._seg is not None and not moving:
-            self._pos, self._seg = self._seg.p1, None
+            self._end_segment(now, self._seg.p1)
             pos = self._pos
         elif self._seg is not None:
             self._pos = pos
-        dt = max(0.0, now - self._t_last)
-        self._t_last = now
         torque = self.get_u("torque_enable")
         # Current: holding + acceleration share while moving (crude, in 2.69 mA units).
         load = (120 if moving else 15) if torque else 0
-        # First-order heating towards a load-dependent temperature, tau 60 s.
-        target = 12.0 * load / 120.0
-        self._heat += (target - self._heat) * (1 - math.exp(-dt / 60.0))
         present = round(pos)
         self.set_u("present_position", le_int(present, 4))
         self.set_u(
             "present_velocity", le_int(round(speed * 60 / 4096 / ct.RPM_PER_VELOCITY_UNIT), 4)
         )
         self.set_u("present_current", le_int(load if speed >= 0 else -load, 2))
-        temperature = int(round(_AMBIENT_C + self._heat))
+        temperature = int(round(_AMBIENT_C + self._heat_at(now)))
         self.set_u("present_temperature", temperature)
         if temperature > self.get_u("temperature_limit"):
             self._trip(ct.HW_OVERHEATING)
@@ -201,14 +235,16 @@ class VirtualServo:
 
     def _set_torque(self, value: int) -> None:
         if value == 0 and self._seg is not None:
-            self._pos, _, _ = self._position_at(self.clock())
-            self._seg = None
+            now = self.clock()
+            self._end_segment(now, self._position_at(now)[0])
         self.set_u("torque_enable", value)
         self.torque_log.append((self.clock(), value))
 
     def _start_move(self, goal: int) -> None:
         now = self.clock()
         pos, _, _ = self._position_at(now)
+        if self._seg is not None:  # a new goal mid-move: the motion so far has heated
+            self._end_segment(now, pos)
         self._pos = pos
         v, a = self._profile()
         self._seg = _Segment(now, pos, float(goal), v, a)
@@ -222,7 +258,19 @@ class VirtualServo:
     def set_position(self, pulses: int) -> None:
         """Place the horn at ``pulses`` (as if turned by hand with torque off)."""
         with self.lock:
+            if self._seg is not None:
+                self._end_segment(self.clock(), float(pulses))
             self._pos, self._seg = float(pulses), None
+            self._update()
+
+    def set_temperature(self, celsius: float) -> None:
+        """Make the resting motor ``celsius`` degC warm (as if from earlier work); it
+        keeps that temperature until it moves."""
+        with self.lock:
+            self._update()
+            if self._seg is not None:
+                raise RuntimeError(f"servo {self.dxl_id} is moving: set its temperature at rest")
+            self._heat = float(celsius) - _AMBIENT_C
             self._update()
 
     def inject_fault(self, bits: int, during_next_move: float | None = None) -> None:
@@ -233,6 +281,13 @@ class VirtualServo:
                 self._trip(bits)
             else:
                 self.pending_fault = (bits, during_next_move)
+
+    @property
+    def temperature_c(self) -> float:
+        """Motor temperature (degC, unrounded; the register holds it rounded)."""
+        with self.lock:
+            self._update()
+            return _AMBIENT_C + self._heat_at(self.clock())
 
     @property
     def alert(self) -> bool:
@@ -323,7 +378,8 @@ class VirtualServo:
     def reboot(self) -> int:
         with self.lock:
             self._update()
-            self._seg = None
+            if self._seg is not None:
+                self._end_segment(self.clock(), self._pos)
             self._fault_at = None
             self._reset_all(keep=_EEPROM_NAMES)
             self.torque_log.append((self.clock(), 0))

@@ -11,6 +11,13 @@ status packets, with faults (corrupted or dropped replies) drawn from a seeded
 * :class:`gonio.simulator.loopback.LoopbackTransport` calls it in-process, without a pty
   or a thread (fast rig unit tests).
 
+The servos keep time on the bus's clock (:mod:`gonio.simulator.servo_clock`): the wall
+clock ``time_scale`` times faster, or, with ``time_scale="virtual"``, a virtual clock
+that advances only by :meth:`ServoBus.sleep` (settle times) and by polled motion: an
+instruction that reads a moving servo (READ, SYNC_READ, FAST_SYNC_READ, BULK_READ) first
+brings servo time to the end of the polled servos' commanded moves, so the client finds
+them arrived (or stopped by the fault that was due on the way) without waiting.
+
 Example
 -------
 >>> with VirtualBus([1, 2, 3, 4], seed=0) as bus:   # doctest: +SKIP
@@ -26,7 +33,6 @@ import struct
 import sys
 import termios
 import threading
-import time
 import tty
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -34,7 +40,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gonio.rig import protocol as p
+from gonio.simulator.servo_clock import ServoClock, TimeScale, make_clock
 from gonio.simulator.servo_model import VirtualServo
+
+_READS = (p.READ, p.SYNC_READ, p.FAST_SYNC_READ, p.BULK_READ)
 
 
 @dataclass
@@ -104,7 +113,19 @@ class ServoBus:
     seed
         Seed of the fault generator.
     time_scale
-        Servo time runs this many times faster than the wall clock (fast tests).
+        Servo time runs this many times faster than the wall clock (to watch a session
+        or a test), or ``"virtual"``: servo time advances by the commanded motion and
+        :meth:`sleep` only (see the module docstring).
+    clock
+        A ready :class:`~gonio.simulator.servo_clock.ServoClock` instead of
+        ``time_scale``'s.
+
+    Attributes
+    ----------
+    servo_clock
+        The clock the servos keep time on.
+    time_scale
+        Its speed-up factor, or ``"virtual"``.
     """
 
     def __init__(
@@ -117,12 +138,13 @@ class ServoBus:
         delay_rate: float = 0.0,
         delay_s: float = 0.0,
         seed: int | None = None,
-        time_scale: float = 1.0,
+        time_scale: TimeScale = 1.0,
+        clock: ServoClock | None = None,
     ) -> None:
         if not 0.0 <= fault_rate <= 1.0:
             raise ValueError(f"fault_rate must be in [0, 1], got {fault_rate}")
-        self._t0 = time.monotonic()
-        self.time_scale = float(time_scale)
+        self.servo_clock: ServoClock = clock if clock is not None else make_clock(time_scale)
+        self.time_scale: TimeScale = self.servo_clock.time_scale
         self.servos: dict[int, VirtualServo] = {}
         for s in servos:
             if not isinstance(s, VirtualServo):
@@ -139,8 +161,29 @@ class ServoBus:
         self.stats = BusStats()
 
     def clock(self) -> float:
-        """Servo time (s): wall-clock time since creation times ``time_scale``."""
-        return (time.monotonic() - self._t0) * self.time_scale
+        """Servo time (s) since the bus was made (see :attr:`servo_clock`)."""
+        return self.servo_clock.now()
+
+    def sleep(self, seconds: float) -> None:
+        """Let ``seconds`` (s) of servo time pass: waited on a scaled wall clock, added at
+        once on a virtual one (a session's settle time)."""
+        self.servo_clock.sleep(seconds)
+
+    @property
+    def virtual(self) -> bool:
+        """Whether servo time is virtual (advanced by motion, not by the wall clock)."""
+        return self.time_scale == "virtual"
+
+    def _catch_up(self, ids: Iterable[int]) -> None:
+        """Servo time to the end of the moves of the polled servos ``ids`` (virtual
+        clock; a scaled clock ignores it)."""
+        ends = [
+            t
+            for i in ids
+            if (s := self.servos.get(i)) is not None and (t := s.motion_end()) is not None
+        ]
+        if ends:
+            self.servo_clock.catch_up(max(ends))
 
     def torque(self) -> dict[int, int]:
         """Torque Enable of every servo, by ID."""
@@ -190,6 +233,8 @@ class ServoBus:
             s = self._live(bid)
             return [p.build_status(bid, s.error_byte(p.ERR_CRC))] if s else []
         inst, prm = pkt.instruction, pkt.params
+        if inst in _READS:
+            self._catch_up(self._polled(bid, inst, prm))
 
         if inst == p.PING:
             targets = sorted(self.servos) if bid == p.BROADCAST_ID else [bid]
@@ -237,6 +282,16 @@ class ServoBus:
             if level >= 2 and bid != p.BROADCAST_ID:
                 replies.append(p.build_status(i, err))
         return replies
+
+    def _polled(self, bid: int, inst: int, prm: bytes) -> list[int]:
+        """IDs a read instruction addresses (malformed parameters: none)."""
+        if inst == p.READ:
+            return sorted(self.servos) if bid == p.BROADCAST_ID else [bid]
+        if bid != p.BROADCAST_ID:
+            return []
+        if inst == p.BULK_READ:
+            return [prm[k] for k in range(0, len(prm) - 4, 5)]
+        return list(prm[4:])  # SYNC_READ, FAST_SYNC_READ: the IDs follow address, length
 
     def _group(self, inst: int, prm: bytes) -> list[bytes]:
         if inst in (p.SYNC_READ, p.FAST_SYNC_READ, p.SYNC_WRITE):
@@ -293,7 +348,7 @@ class VirtualBus(ServoBus):
 
     Parameters
     ----------
-    servos, model, firmware, fault_rate, delay_rate, delay_s, seed, time_scale
+    servos, model, firmware, fault_rate, delay_rate, delay_s, seed, time_scale, clock
         As for :class:`ServoBus`.
     baud_rate
         The servos' baud rate; a client whose port is set to another rate is not heard
@@ -312,7 +367,8 @@ class VirtualBus(ServoBus):
         delay_rate: float = 0.0,
         delay_s: float = 0.0,
         seed: int | None = None,
-        time_scale: float = 1.0,
+        time_scale: TimeScale = 1.0,
+        clock: ServoClock | None = None,
     ) -> None:
         super().__init__(
             servos,
@@ -323,6 +379,7 @@ class VirtualBus(ServoBus):
             delay_s=delay_s,
             seed=seed,
             time_scale=time_scale,
+            clock=clock,
         )
         self.baud_rate = baud_rate
         self._speed = getattr(termios, f"B{baud_rate}", None)

@@ -169,11 +169,17 @@ def _check_image_path(path: Path, force: bool, hint: str) -> None:
         )
 
 
-def _sim_speed(ctx, param, value: float | None) -> float | None:
+def sim_speed_option(ctx, param, value: str | None) -> float | str | None:
+    """``--sim-speed``: ``virtual`` or a speed-up factor (click callback)."""
+    if value is None:
+        return None
+    from gonio.simulator.servo_clock import parse_time_scale
+
     # Zero, negative or nan time would stall or crash the virtual servos mid-session.
-    if value is not None and not (math.isfinite(value) and value > 0):
-        raise click.BadParameter(f"expected a positive finite speed-up factor, got {value}")
-    return value
+    try:
+        return parse_time_scale(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
 
 
 def _plot_poses(path: Path, sched) -> None:
@@ -245,11 +251,13 @@ _COMMON_RUN = [
     ),
     click.option(
         "--sim-speed",
-        type=float,
+        metavar="virtual|FACTOR",
         default=None,
-        callback=_sim_speed,
-        help='With a virtual bus (rig bus.port = "virtual"): servo time runs this many '
-        "times faster than the wall clock [run: 20; resume: the session's own].",
+        callback=sim_speed_option,
+        help='With a virtual bus (rig bus.port = "virtual"): "virtual" advances servo '
+        "time by the commanded motion (no waiting for it); a number makes servo time run "
+        "that many times faster than the wall clock, to watch the arms (e.g. 20) "
+        "[run: virtual; resume: the session's own]. The journal is the same either way.",
     ),
     click.option("--quiet", is_flag=True, help="No progress bar."),
 ]
@@ -293,7 +301,7 @@ def run_cmd(
     scene_file: str | None,
     camera_backend: str,
     camera_port: str | None,
-    sim_speed: float | None,
+    sim_speed: float | str | None,
     quiet: bool,
 ) -> None:
     """Run a measurement session: move, shoot adaptive brackets, journal every shot.
@@ -310,9 +318,10 @@ def run_cmd(
     \b
     Simulated end to end (virtual servo bus on a pty, rendered DNGs):
       gonio capture run examples/plan.toml --rig virtual_rig.toml --camera simulated --out S/
-    where virtual_rig.toml has [bus] port = "virtual".
+    where virtual_rig.toml has [bus] port = "virtual". Servo time is virtual by default
+    (the moves cost no wall time); add --sim-speed 20 to watch the arms at 20x.
     """
-    from gonio.app.devices import device_opener
+    from gonio.app.devices import DEFAULT_TIME_SCALE, device_opener
     from gonio.app.progress import SessionProgress
     from gonio.app.simulation import relocatable, scene_source
     from gonio.capture.plan import load_plan
@@ -323,7 +332,9 @@ def run_cmd(
     plan = load_plan(plan_file)
     cfg = _load_rig(rig_file)
     dry = plan_session(plan, cfg)
-    simulation, attachments, opener = None, None, device_opener(camera_port=camera_port)
+    speed = sim_speed or DEFAULT_TIME_SCALE
+    simulation, attachments = None, None
+    opener = device_opener(camera_port=camera_port, time_scale=speed)
     if camera_backend == "simulated":
         source = scene_source(plan, plan_file, scene_file)
         document, attachments = relocatable(source)
@@ -331,9 +342,9 @@ def run_cmd(
             "scene": document,
             "width": plan.simulation.width,
             "height": plan.simulation.height,
-            "time_scale": sim_speed or 20.0,
+            "time_scale": speed,
         }
-        opener = device_opener(scene=source.document, scene_base=source.base_dir)
+        opener = device_opener(scene=source.document, scene_base=source.base_dir, time_scale=speed)
     with SessionProgress(quiet) as progress:
         result = run_session(
             out,
@@ -385,7 +396,7 @@ def resume_cmd(
     retake: bool,
     camera_backend: str,
     camera_port: str | None,
-    sim_speed: float | None,
+    sim_speed: float | str | None,
     quiet: bool,
 ) -> None:
     """Continue a session after a fault, a crash or Ctrl-C.

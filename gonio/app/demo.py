@@ -25,6 +25,7 @@ from typing import Any
 import click
 import numpy as np
 
+from gonio.app.capture_cli import sim_speed_option
 from gonio.errors import ConfigError, GonioError, SessionError
 
 #: The default ground truth: a glossy plastic-like material.
@@ -249,10 +250,13 @@ def run_demo(
     model: str = "auto",
     quiet: bool = False,
     say: Callable[[str], None] = print,
+    time_scale: float | str = "virtual",
 ) -> DemoResult:
     """Run capture, reduction and fit of a simulated session into ``out``.
 
     ``quiet`` hides the capture's progress bar; ``say`` receives one line per stage.
+    ``time_scale`` is the virtual bus's speed: ``"virtual"`` (servo time advanced by the
+    commanded motion: no waiting) or a speed-up factor over the wall clock (to watch).
     """
     from gonio.app.devices import device_opener
     from gonio.app.simulation import relocatable, scene_source
@@ -301,14 +305,14 @@ def run_demo(
             session,
             plan,
             cfg,
-            device_opener(scene=source.document, scene_base=source.base_dir),
+            device_opener(scene=source.document, scene_base=source.base_dir, time_scale=time_scale),
             camera_backend="simulated",
             dry_run=plan_session(plan, cfg),
             simulation={
                 "scene": document,
                 "width": plan.simulation.width,
                 "height": plan.simulation.height,
-                "time_scale": 20.0,
+                "time_scale": time_scale,
             },
             attachments=attachments,
             subscribers=[progress],
@@ -457,6 +461,16 @@ def _count_poses(session: Path) -> int:
     show_default=True,
     help="Simulated camera resolution, pixels (width height).",
 )
+@click.option(
+    "--sim-speed",
+    metavar="virtual|FACTOR",
+    default="virtual",
+    show_default=True,
+    callback=sim_speed_option,
+    help='Virtual servo bus speed: "virtual" advances servo time by the commanded motion '
+    "(no waiting for it); a number runs servo time that many times faster than the wall "
+    "clock, to watch the arms (e.g. 20). Same journal and results either way.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
 def demo(
     out: Path | None,
@@ -465,6 +479,7 @@ def demo(
     n_poses: int,
     model: str,
     resolution: tuple[int, int],
+    sim_speed: float | str,
     as_json: bool,
 ) -> None:
     """Run a whole simulated measurement session: no hardware, no network.
@@ -508,6 +523,7 @@ def demo(
             model=model,
             quiet=as_json,
             say=say,
+            time_scale=sim_speed,
         )
     except KeyboardInterrupt:
         console.print(

@@ -5,6 +5,10 @@ for: a rig (a virtual Dynamixel bus on a pty for ``bus.port = "virtual"``, drive
 the real dynamixel-sdk like the lab rig), its kinematics, and a camera -- gphoto2, or the
 simulator's :class:`~gonio.simulator.rig_camera.SimulatedRigCamera`, which is also the
 session's light and target changer and sees the pose the virtual servos reached.
+
+A virtual bus keeps servo time on a virtual clock by default (:data:`DEFAULT_TIME_SCALE`,
+``"virtual"``): moves and settle times cost no wall time, and the journal is the one a
+watched session (a speed-up factor, e.g. ``--sim-speed 20``) writes.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from gonio.capture.sessions import DeviceOpener, DeviceRequest
 from gonio.devices import RigDevice
 
 __all__ = [
+    "DEFAULT_TIME_SCALE",
     "VIRTUAL_PORTS",
     "device_opener",
     "is_virtual_port",
@@ -30,6 +35,10 @@ __all__ = [
 
 VIRTUAL_PORTS = ("virtual", "sim", "simulated")
 
+#: A virtual bus's speed when neither the caller nor the session's simulation record
+#: says: servo time advances by the commanded motion, not by the wall clock.
+DEFAULT_TIME_SCALE = "virtual"
+
 
 def is_virtual_port(port: str) -> bool:
     """A rig port that asks for the simulator's virtual bus (``"virtual"``)."""
@@ -37,17 +46,24 @@ def is_virtual_port(port: str) -> bool:
 
 
 @contextlib.contextmanager
-def open_rig(config: Any) -> Iterator[RigDevice]:
-    """Open the rig of ``config`` (pings, checks models, reboots servos left in a fault)."""
+def open_rig(config: Any, clock: Callable[[], float] | None = None) -> Iterator[RigDevice]:
+    """Open the rig of ``config`` (pings, checks models, reboots servos left in a fault).
+
+    ``clock`` (s) times its moves (a virtual bus's servo clock); default the wall clock.
+    """
     from gonio.rig.device import Rig
 
-    with Rig(config) as rig:
+    with Rig(config, clock=clock) as rig:
         yield rig
 
 
 def servo_clock_sleep(clock: Callable[[], float], time_scale: float) -> Callable[[float], None]:
     """A sleep of ``seconds`` of servo time on a virtual bus running ``time_scale`` times
-    faster than the wall clock (it waits until ``clock()`` has advanced that much)."""
+    faster than the wall clock (it waits until ``clock()`` has advanced that much).
+
+    For a bus object, ``bus.sleep`` does this on either clock (a virtual one adds the
+    seconds at once); this form stays for callers that only hold the clock function.
+    """
 
     def sleep(seconds: float) -> None:
         end = clock() + seconds
@@ -62,7 +78,7 @@ def open_session_devices(
     request: DeviceRequest,
     *,
     camera_port: str | None = None,
-    time_scale: float | None = None,
+    time_scale: float | str | None = None,
     scene: Mapping[str, Any] | None = None,
     scene_base: Path | None = None,
 ) -> Iterator[SessionDevices]:
@@ -75,7 +91,9 @@ def open_session_devices(
     camera_port
         gphoto2 port.
     time_scale
-        Servo-time speed-up of a virtual bus (default: the simulation record's, else 20).
+        Speed of a virtual bus: ``"virtual"`` (servo time advances by the commanded
+        motion and the settle times) or a speed-up factor over the wall clock; default
+        the simulation record's, else :data:`DEFAULT_TIME_SCALE`.
     scene, scene_base
         The scene to render and the folder its paths start from (a new run: the user's
         files); by default the simulation record's scene, relative to the session.
@@ -88,13 +106,15 @@ def open_session_devices(
     cfg = request.rig_config
     sim = dict(request.simulation or {})
     kin = Kinematics(cfg)
-    scale = float(time_scale or sim.get("time_scale") or 20.0)
     with contextlib.ExitStack() as stack:
         sleep: Callable[[float], None] = time.sleep
+        clock: Callable[[], float] | None = None
         if is_virtual_port(cfg.bus.port):
+            from gonio.simulator.servo_clock import parse_time_scale
             from gonio.simulator.servo_model import VirtualServo
             from gonio.simulator.virtual_bus import VirtualBus
 
+            scale = parse_time_scale(time_scale or sim.get("time_scale") or DEFAULT_TIME_SCALE)
             # The virtual rig starts where a real one is left: parked.
             park = cfg.park_pulses
             servos = [VirtualServo(s.id, model=s.model, position=park[s.id]) for s in cfg.servos]
@@ -103,8 +123,9 @@ def open_session_devices(
             )
             stack.enter_context(bus)
             cfg = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})
-            sleep = servo_clock_sleep(bus.clock, scale)
-        rig = stack.enter_context(open_rig(cfg))
+            # Settle times and move durations in servo time, whichever clock it keeps.
+            sleep, clock = bus.sleep, bus.clock
+        rig = stack.enter_context(open_rig(cfg, clock))
         if request.camera_backend == "simulated":
             from gonio.simulator.rig_camera import SimulatedRigCamera
 
@@ -161,7 +182,7 @@ def open_session_devices(
 def device_opener(
     *,
     camera_port: str | None = None,
-    time_scale: float | None = None,
+    time_scale: float | str | None = None,
     scene: Mapping[str, Any] | None = None,
     scene_base: Path | None = None,
 ) -> DeviceOpener:

@@ -50,8 +50,8 @@ def files(tmp_path):
 
 def run_simulated(files: Path, out: Path, *, fast: bool = True):
     """``gonio capture run`` of the test plan on the virtual rig and simulated camera
-    (servo time 100x faster than real when ``fast``); the exit code."""
-    speed = ["--sim-speed", "100"] if fast else []
+    (servo time virtual when ``fast``, else 20x the wall clock); the exit code."""
+    speed = [] if fast else ["--sim-speed", "20"]
     return run(
         "capture",
         "run",
@@ -136,7 +136,7 @@ def test_simulated_session_end_to_end(files):
 def devices_on(bus, cfg, seed: int, width: int = 32, height: int = 24):
     """The session devices the composition root builds, on a virtual bus the test holds
     (to inject faults into its servos)."""
-    from gonio.app.devices import open_rig, servo_clock_sleep
+    from gonio.app.devices import open_rig
     from gonio.capture.engine import SessionDevices
     from gonio.simulator.rig_camera import SimulatedRigCamera
 
@@ -146,9 +146,7 @@ def devices_on(bus, cfg, seed: int, width: int = 32, height: int = 24):
         cam = SimulatedRigCamera(
             None, lambda: kin.poses(rig.read().joints), seed, width=width, height=height
         )
-        yield SessionDevices(
-            rig, cam, cam, cam, kin, servo_clock_sleep(bus.clock, bus.time_scale), None
-        )
+        yield SessionDevices(rig, cam, cam, cam, kin, bus.sleep, None)
 
 
 def test_fault_on_the_bus_stops_with_torque_off_and_resume_completes(files):
@@ -160,7 +158,7 @@ def test_fault_on_the_bus_stops_with_torque_off_and_resume_completes(files):
     park = cfg.park_pulses
     servos = [VirtualServo(s.id, position=park[s.id]) for s in cfg.servos]
     out = files / "S"
-    with VirtualBus(servos, time_scale=100.0, seed=0) as bus:
+    with VirtualBus(servos, time_scale="virtual", seed=0) as bus:
         state = {"armed": True}
 
         def inject(rec):
@@ -260,9 +258,7 @@ def test_invalid_plan_cli_names_the_field(files, capsys):
 def test_inspect_finds_tampered_and_missing_files(files, capsys):
     out = files / "S"
     args = ["capture", "run", str(files / "plan.toml"), "--rig", str(files / "rig.toml")]
-    assert (
-        run(*args, "--camera", "simulated", "--out", str(out), "--sim-speed", "100", "--quiet") == 0
-    )
+    assert run(*args, "--camera", "simulated", "--out", str(out), "--quiet") == 0
     capsys.readouterr()
     shots = [r for r in read_journal(out / "journal.jsonl") if r["type"] == "shot"]
     victim = out / shots[1]["file"]

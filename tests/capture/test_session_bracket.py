@@ -98,7 +98,7 @@ def test_adaptive_brackets_in_a_simulated_session(tmp_path):
                 "--out",
                 str(out),
                 "--sim-speed",
-                "100",
+                "virtual",
                 "--quiet",
             ]
         )

@@ -51,9 +51,7 @@ def finished(tmp_path_factory):
     (d / "rig.toml").write_text(virtual_rig_document())
     (d / "plan.toml").write_text(PLAN)
     args = ["capture", "run", str(d / "plan.toml"), "--rig", str(d / "rig.toml")]
-    code = run(
-        *args, "--camera", "simulated", "--out", str(d / "S"), "--sim-speed", "200", "--quiet"
-    )
+    code = run(*args, "--camera", "simulated", "--out", str(d / "S"), "--quiet")
     assert code == 0
     return d
 
@@ -77,12 +75,12 @@ def test_resume_of_a_held_session_is_refused_and_writes_nothing(finished, tmp_pa
     s = _copy(finished, tmp_path / "S", keep_lines=12)
     with hold_lock(s / LOCK_NAME, "test holder"):
         before = _snapshot(s)
-        assert run("capture", "resume", str(s), "--quiet", "--sim-speed", "200") == 1
+        assert run("capture", "resume", str(s), "--quiet") == 1
         err = capsys.readouterr().err
         assert f"process {os.getpid()}" in err and "in use" in err
         assert _snapshot(s) == before
     # released: the resume goes ahead
-    assert run("capture", "resume", str(s), "--quiet", "--sim-speed", "200") == 0
+    assert run("capture", "resume", str(s), "--quiet") == 0
 
 
 def test_run_into_an_out_being_created_is_refused(finished, tmp_path, capsys):
@@ -141,11 +139,11 @@ def test_a_dead_holders_lock_is_taken_over(finished, tmp_path):
     try:
         assert p.stdout.readline().strip() == "held"
         assert lock_holder(s / LOCK_NAME) == p.pid
-        assert run("capture", "resume", str(s), "--quiet", "--sim-speed", "200") == 1  # alive
+        assert run("capture", "resume", str(s), "--quiet") == 1  # alive
         os.kill(p.pid, signal.SIGKILL)
     finally:
         p.kill()
         p.wait(timeout=30)
     assert lock_holder(s / LOCK_NAME) == p.pid  # the dead holder's PID is still written
-    assert run("capture", "resume", str(s), "--quiet", "--sim-speed", "200") == 0
+    assert run("capture", "resume", str(s), "--quiet") == 0
     assert read_journal(s / "journal.jsonl")[-1]["status"] == "completed"

@@ -49,10 +49,7 @@ def finished(tmp_path_factory):
     (d / "rig.toml").write_text(virtual_rig_document())
     (d / "plan.toml").write_text(PLAN)
     args = ["capture", "run", str(d / "plan.toml"), "--rig", str(d / "rig.toml")]
-    assert (
-        run(*args, "--camera", "simulated", "--out", str(d / "S"), "--sim-speed", "200", "--quiet")
-        == 0
-    )
+    assert run(*args, "--camera", "simulated", "--out", str(d / "S"), "--quiet") == 0
     return d / "S"
 
 
@@ -90,7 +87,7 @@ def test_damaged_manifest_is_a_clear_error(finished, tmp_path, capsys, case):
     before = (s / "journal.jsonl").read_bytes()
     for args in (
         ["inspect", str(s)],
-        ["resume", str(s), "--quiet", "--sim-speed", "200"],
+        ["resume", str(s), "--quiet"],
         ["reduce", str(s), "--quiet", "--no-plot"],
     ):
         code = run("capture", *args)

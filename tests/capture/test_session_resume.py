@@ -49,9 +49,7 @@ height = 12
 
 def _run(d: Path, out: Path, *extra: str) -> int:
     args = ["capture", "run", str(d / "plan.toml"), "--rig", str(d / "rig.toml")]
-    return run(
-        *args, "--camera", "simulated", "--out", str(out), "--sim-speed", "200", "--quiet", *extra
-    )
+    return run(*args, "--camera", "simulated", "--out", str(out), "--quiet", *extra)
 
 
 @pytest.fixture(scope="module")
@@ -83,12 +81,12 @@ def test_resume_refuses_a_changed_frame_and_retake_shoots_it_again(finished, tmp
     path.write_bytes(bytes(flipped))
     journal_before = (s / "journal.jsonl").read_bytes()
 
-    assert run("capture", "resume", str(s), "--quiet", "--sim-speed", "200") == 1
+    assert run("capture", "resume", str(s), "--quiet") == 1
     err = capsys.readouterr().err
     assert victim["file"] in err and "XXH3-128" in err and "--retake" in err
     assert (s / "journal.jsonl").read_bytes() == journal_before  # nothing written
 
-    assert run("capture", "resume", str(s), "--quiet", "--sim-speed", "200", "--retake") == 0
+    assert run("capture", "resume", str(s), "--quiet", "--retake") == 0
     assert "shot again" in capsys.readouterr().out
     recs = read_journal(s / "journal.jsonl")
     new = [r for r in recs[len(read_journal(finished / "journal.jsonl")) :] if r["type"] == "shot"]
@@ -121,7 +119,7 @@ def test_journal_paths_outside_the_session_are_refused(finished, tmp_path, capsy
     (s / "journal.jsonl").write_text("\n".join(lines) + "\n")
     for args in (
         ["inspect", str(s)],
-        ["resume", str(s), "--quiet", "--sim-speed", "200"],
+        ["resume", str(s), "--quiet"],
         ["reduce", str(s), "--quiet", "--no-plot"],
     ):
         assert run("capture", *args) == 1
@@ -153,7 +151,7 @@ def test_stale_temporaries_are_listed_and_removed_by_resume(finished, tmp_path, 
         "raw/.p0001_f00_sample.dng.abcd1234.tmp",
     ]
     assert info["orphans"] == []  # temporaries are not frames
-    assert run("capture", "resume", str(s), "--quiet", "--sim-speed", "200") == 0
+    assert run("capture", "resume", str(s), "--quiet") == 0
     assert not stale.exists()  # its own kind: RAW temporaries
     assert (s / ".samples.h5.x1y2z3w4.tmp").exists()  # the reduction's to remove
 
@@ -260,7 +258,7 @@ def test_a_moved_session_with_a_scene_file_resumes_and_inspects(tmp_path, capsys
     moved.parent.mkdir()
     os.rename(first, moved)
     shutil.rmtree(scene_dir)
-    assert run("capture", "resume", str(moved), "--quiet", "--sim-speed", "200") == 0
+    assert run("capture", "resume", str(moved), "--quiet") == 0
     capsys.readouterr()
     assert run("capture", "inspect", str(moved), "--json") == 0
     info = json.loads(capsys.readouterr().out)

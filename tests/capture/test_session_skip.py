@@ -102,7 +102,7 @@ def files(tmp_path):
     return tmp_path
 
 
-def _simulation(plan, time_scale=100.0):
+def _simulation(plan, time_scale="virtual"):
     return {
         "scene": tomllib.loads(SCENE),
         "width": plan.simulation.width,
@@ -160,7 +160,7 @@ def test_pose_refused_by_a_narrowed_rig_is_skipped_and_the_rest_completes(files,
     assert run(*args) == 1
     assert "light_azimuth" in capsys.readouterr().err
     assert (out / "journal.jsonl").read_bytes() == jbytes
-    assert run(*args, "--force", "--sim-speed", "100") == 0
+    assert run(*args, "--force") == 0
     said = capsys.readouterr().out
     assert f"pose {victim} skipped" in said and "1 pose skipped" in said
 
@@ -213,7 +213,7 @@ def test_pose_refused_by_a_narrowed_rig_is_skipped_and_the_rest_completes(files,
 
     # a second resume does not retry or duplicate anything
     jbytes = (out / "journal.jsonl").read_bytes()
-    assert run("capture", "resume", str(out), "--quiet", "--sim-speed", "100") == 0
+    assert run("capture", "resume", str(out), "--quiet") == 0
     capsys.readouterr()
     again = read_journal(out / "journal.jsonl")
     assert (out / "journal.jsonl").read_bytes().startswith(jbytes)
@@ -254,7 +254,7 @@ def test_a_servo_that_stops_answering_is_a_fault_not_a_skipped_pose(files, when)
     park = cfg.park_pulses
     servos = [VirtualServo(s.id, position=park[s.id]) for s in cfg.servos]
     out = files / "S"
-    with VirtualBus(servos, time_scale=100.0, seed=0) as bus:
+    with VirtualBus(servos, time_scale="virtual", seed=0) as bus:
         real = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})
 
         def unplug(rec):

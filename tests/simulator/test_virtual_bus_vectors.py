@@ -91,7 +91,7 @@ def test_sync_read_and_sync_write():
 def test_bulk_read_and_bulk_write():
     with manual_bus() as bus:
         bus.servos[1].voltage_raw = 119
-        bus.servos[2]._heat = 6.0  # 30 degC ambient + 6
+        bus.servos[2].set_temperature(36.0)  # 30 degC ambient + 6
         replies = exchange(bus, h("FF FF FD 00 FE 0D 00 92 01 90 00 02 00 02 92 00 01 00 1A 05"), 2)
         assert replies == [
             h("FF FF FD 00 01 06 00 55 00 77 00 C3 69"),

@@ -1,0 +1,166 @@
+"""A virtual-time session is the watched session: same journal, same samples.h5.
+
+The same plan and seed are captured twice through ``gonio capture run`` (real
+dynamixel-sdk on the virtual bus's pty, rendered DNGs): once with servo time on the
+virtual clock (the default), once on the wall clock at 20x (what sessions did before
+virtual time).  The wall-clock run is the independent reference: its servos move in real
+(scaled) time and are polled many times per move, its settle times are waited for, and
+the camera's rendering time passes on its servo clock too.  Both are reduced, and the
+journals must agree record by record apart from the timestamps, and every array and
+attribute of the two ``samples.h5`` files must be equal.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from gonio.capture.journal import read_journal
+from gonio.cli import run
+from gonio.rig.config import virtual_rig_document
+
+PLAN = """
+name = "virtual-time"
+seed = 11
+settle_s = 0.5
+[grid]
+theta_i_deg = [20, 45]
+phi_i_deg = [0]
+theta_o_deg = [30, 55]
+phi_o_deg = [180]
+[bracket]
+policy = "adaptive"
+roi = [0.42, 0.42, 0.58, 0.58]
+exposure_time_s = 0.0005
+[darks]
+count = 1
+[reference]
+poses = [{theta_i_deg = 0, theta_o_deg = 30}, {theta_i_deg = 30, theta_o_deg = 30, phi_o_deg = 180}]
+[simulation]
+scene = "scene.toml"
+"""
+
+SCENE = """
+[sample]
+width = 0.05
+height = 0.05
+[sample.brdf]
+model = "lambert"
+params = { albedo = [0.6, 0.5, 0.4] }
+[holder]
+width = 0.16
+height = 0.16
+[holder.board]
+[[lights]]
+type = "disk"
+position = [0.0, 0.25, 0.433]
+look_at = [0.0, 0.0, 0.0]
+radius = 0.01
+radiance = [2.0e4, 2.0e4, 2.0e4]
+[camera]
+# the reduction needs about this many pixels to find the reference target's region
+resolution = [400, 300]
+focal_length = 0.016
+fov_deg = 30.0
+position = [0.1, -0.2, 0.35]
+look_at = [0.0, 0.0, 0.0]
+[render]
+strategy = "quadrature"
+quadrature_order = 1
+"""
+
+#: Journal fields that are wall-clock timestamps by design.
+TIMESTAMPS = {"time"}
+#: samples.h5 attributes that are: the session's creation time (from its manifest).
+H5_TIMESTAMPS = {"/@session"}
+
+
+def capture_and_reduce(d: Path, name: str, *speed: str) -> Path:
+    out = d / name
+    args = ["capture", "run", str(d / "plan.toml"), "--rig", str(d / "rig.toml")]
+    assert run(*args, "--camera", "simulated", "--out", str(out), *speed, "--quiet") == 0
+    reduce = ("capture", "reduce", str(out), "--grid", "2")
+    assert run(*reduce, "--quiet", "--no-plot") == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory):
+    d = tmp_path_factory.mktemp("vtime")
+    (d / "rig.toml").write_text(virtual_rig_document())
+    (d / "plan.toml").write_text(PLAN)
+    (d / "scene.toml").write_text(SCENE)
+    virtual = capture_and_reduce(d, "virtual")  # the default: no --sim-speed
+    watched = capture_and_reduce(d, "watched", "--sim-speed", "20")
+    return virtual, watched
+
+
+def _without_timestamps(rec: dict) -> dict:
+    return {k: v for k, v in rec.items() if k not in TIMESTAMPS}
+
+
+def test_the_sessions_ran_on_the_clocks_they_say(sessions):
+    virtual, watched = sessions
+    sims = [json.loads((s / "manifest.json").read_text())["simulation"] for s in sessions]
+    assert [s["time_scale"] for s in sims] == ["virtual", 20.0]
+    # the manifests differ in that record (and their creation time) only
+    a, b = (json.loads((s / "manifest.json").read_text()) for s in (virtual, watched))
+    for m in (a, b):
+        m.pop("created")
+        m["simulation"].pop("time_scale")
+    assert a == b
+
+
+def test_journals_are_identical_apart_from_timestamps(sessions):
+    virtual, watched = sessions
+    a, b = (read_journal(s / "journal.jsonl") for s in sessions)
+    assert [r["type"] for r in a] == [r["type"] for r in b]
+    assert a[-1]["type"] == "stop" and a[-1]["status"] == "completed"
+    for ra, rb in zip(a, b, strict=True):
+        assert _without_timestamps(ra) == _without_timestamps(rb)
+    # the comparison covers fields that move with the servos: the read-back joints and
+    # the motors' temperatures, which rose above the 30 degC ambient during the moves
+    shots = [r for r in a if r["type"] == "shot" and r["kind"] != "dark"]
+    temps = {t for r in shots for t in r["temperatures"].values()}
+    assert min(temps) == 30.0 and max(temps) > 30.0
+    assert len({json.dumps(r["joints"], sort_keys=True) for r in shots}) >= 6  # six poses
+    # and the RAW files are the same bytes
+    for ra in a:
+        if ra["type"] == "shot":
+            assert (virtual / ra["file"]).read_bytes() == (watched / ra["file"]).read_bytes()
+
+
+def _h5_items(path: Path) -> dict[str, object]:
+    items: dict[str, object] = {}
+
+    def visit(name: str, obj) -> None:
+        for k, v in obj.attrs.items():
+            items[f"{name}@{k}"] = v
+        if isinstance(obj, h5py.Dataset):
+            items[name] = obj[()]
+
+    with h5py.File(path, "r") as f:
+        for k, v in f.attrs.items():
+            items[f"/@{k}"] = v
+        f.visititems(visit)
+    return items
+
+
+def test_samples_are_identical(sessions):
+    a, b = (_h5_items(s / "samples.h5") for s in sessions)
+    assert sorted(a) == sorted(b)
+    for items, s in zip((a, b), sessions, strict=True):
+        created = json.loads((s / "manifest.json").read_text())["created"]
+        assert {str(items.pop(k)) for k in H5_TIMESTAMPS} == {created}
+    assert "brdf" in a and np.isfinite(np.asarray(a["brdf"], dtype=float)).any()
+    for key in a:
+        va, vb = np.asarray(a[key]), np.asarray(b[key])
+        assert va.dtype == vb.dtype and va.shape == vb.shape, key
+        if va.dtype.kind == "f":
+            assert np.array_equal(va, vb, equal_nan=True), key
+        else:
+            assert np.array_equal(va, vb), key
