@@ -95,7 +95,8 @@ def plan_cmd(
         _check_image_path(plot, force, "--plot")
     plan = load_plan(plan_file)
     cfg = _load_rig(rig_file)
-    dry = plan_session(plan, cfg)
+    with _DryRunProgress() as progress:
+        dry = plan_session(plan, cfg, progress=progress)
     sched = dry.schedule
     ex = sched.expanded
     summary = dry.summary(with_poses=show_poses or as_json)
@@ -113,11 +114,14 @@ def plan_cmd(
         + (f" + {n_ref} reference" if n_ref else "")
     )
     if ex.excluded:
-        t = Table("theta_i", "phi_i", "theta_o", "phi_o", "reason", title="excluded poses")
+        t = Table(
+            "theta_i", "phi_i", "theta_o", "phi_o", "code", "reason", title="excluded poses"
+        )  # fmt: skip
         for e in ex.excluded:
             a = e.pose.angles_deg()
             t.add_row(
                 *(f"{a[k]:.1f}" for k in ("theta_i_deg", "phi_i_deg", "theta_o_deg", "phi_o_deg")),
+                e.code,
                 e.reason,
             )
         con.print(t)
@@ -149,6 +153,48 @@ def plan_cmd(
         f"estimated duration [bold]{_fmt_duration(sched.estimated_duration_s)}[/] "
         f"(bracket policy {plan.bracket.policy!r}; nothing was moved)"
     )
+
+
+class _DryRunProgress:
+    """A progress bar on stderr for the dry run's stages, shown only when it takes long
+    (a few seconds: large grids), so a quick plan prints nothing extra."""
+
+    SHOW_AFTER_S = 2.0
+
+    def __init__(self) -> None:
+        import time
+
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+        self._clock = time.monotonic
+        self._t0 = self._clock()
+        self._progress = Progress(
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            console=Console(stderr=True),
+            transient=True,
+        )
+        self._tasks: dict[str, int] = {}
+        self._shown = False
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if not self._shown:
+            if self._clock() - self._t0 < self.SHOW_AFTER_S:
+                return
+            self._progress.start()
+            self._shown = True
+        if stage not in self._tasks:
+            self._tasks[stage] = self._progress.add_task(stage, total=total)
+        self._progress.update(self._tasks[stage], completed=done, total=total)
+
+    def __enter__(self) -> _DryRunProgress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._shown:
+            self._progress.stop()
 
 
 def _check_image_path(path: Path, force: bool, hint: str) -> None:
@@ -235,15 +281,17 @@ def _report(result) -> None:
         click.echo(f"{len(result.retaken)} frame(s) shot again: {', '.join(result.retaken)}")
 
 
+#: Only for ``run``: a resumed session keeps the camera backend it was started with.
+_CAMERA = click.option(
+    "--camera",
+    "camera_backend",
+    type=click.Choice(["simulated", "gphoto2"]),
+    default="gphoto2",
+    show_default=True,
+    help="Camera backend: a tethered camera via gphoto2, or the renderer.",
+)
+
 _COMMON_RUN = [
-    click.option(
-        "--camera",
-        "camera_backend",
-        type=click.Choice(["simulated", "gphoto2"]),
-        default="gphoto2",
-        show_default=True,
-        help="Camera backend: a tethered camera via gphoto2, or the renderer.",
-    ),
     click.option(
         "--camera-port",
         default=None,
@@ -293,6 +341,7 @@ def _common(f):
     default=None,
     help="With --camera simulated: scene TOML (overrides the plan's [simulation]).",
 )
+@_CAMERA
 @_common
 def run_cmd(
     plan_file: Path,
@@ -323,7 +372,7 @@ def run_cmd(
     """
     from gonio.app.devices import DEFAULT_TIME_SCALE, device_opener
     from gonio.app.progress import SessionProgress
-    from gonio.app.simulation import relocatable, scene_source
+    from gonio.app.simulation import simulated_run
     from gonio.capture.plan import load_plan
     from gonio.capture.session_dir import check_new_session_dir
     from gonio.capture.sessions import plan_session, run_session
@@ -336,15 +385,8 @@ def run_cmd(
     simulation, attachments = None, None
     opener = device_opener(camera_port=camera_port, time_scale=speed)
     if camera_backend == "simulated":
-        source = scene_source(plan, plan_file, scene_file)
-        document, attachments = relocatable(source)
-        simulation = {
-            "scene": document,
-            "width": plan.simulation.width,
-            "height": plan.simulation.height,
-            "time_scale": speed,
-        }
-        opener = device_opener(scene=source.document, scene_base=source.base_dir, time_scale=speed)
+        sim = simulated_run(plan, plan_file, scene_file, speed)
+        simulation, attachments, opener = sim.simulation, sim.attachments, sim.opener
     with SessionProgress(quiet) as progress:
         result = run_session(
             out,
@@ -394,7 +436,6 @@ def resume_cmd(
     rig_file: str | None,
     force: bool,
     retake: bool,
-    camera_backend: str,
     camera_port: str | None,
     sim_speed: float | str | None,
     quiet: bool,
@@ -408,7 +449,7 @@ def resume_cmd(
     continues where it stopped; a RAW file written but not journaled is shot again.
     The session's own plan and rig configuration (from its manifest) are used; with --plan
     or --rig the files are compared with them and a difference is refused unless --force.
-    The camera backend is the session's (the --camera option is ignored). One process at
+    The camera backend is the session's own. One process at
     a time: a second resume of the same session is refused.
     """
     from gonio.app.devices import device_opener
@@ -439,7 +480,7 @@ def resume_cmd(
     "--verify/--no-verify",
     default=True,
     show_default=True,
-    help="Check every RAW file against its journaled sha256.",
+    help="Check every RAW file against its journal record (byte count and sha256).",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 def inspect_cmd(session_dir: Path, verify: bool, as_json: bool) -> None:

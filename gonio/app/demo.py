@@ -26,6 +26,7 @@ import click
 import numpy as np
 
 from gonio.app.capture_cli import sim_speed_option
+from gonio.atomic import write_text_atomic
 from gonio.errors import ConfigError, GonioError, SessionError
 
 #: The default ground truth: a glossy plastic-like material.
@@ -258,8 +259,7 @@ def run_demo(
     ``time_scale`` is the virtual bus's speed: ``"virtual"`` (servo time advanced by the
     commanded motion: no waiting) or a speed-up factor over the wall clock (to watch).
     """
-    from gonio.app.devices import device_opener
-    from gonio.app.simulation import relocatable, scene_source
+    from gonio.app.simulation import simulated_run
     from gonio.capture.manifest import load_manifest
     from gonio.capture.plan import load_plan
     from gonio.capture.reduce import reduce_session, resolve_setup
@@ -277,15 +277,17 @@ def run_demo(
     t = time.perf_counter()
     grid = _grid_for(n_poses)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "rig.toml").write_text(virtual_rig_document())
-    (out / "plan.toml").write_text(
+    write_text_atomic(out / "rig.toml", virtual_rig_document())
+    write_text_atomic(
+        out / "plan.toml",
         "# Written by gonio demo: rerun with gonio capture run plan.toml --rig rig.toml "
-        "--camera simulated --out S/\n" + _toml(_plan_dict(grid, seed, width, height)) + "\n"
+        "--camera simulated --out S/\n" + _toml(_plan_dict(grid, seed, width, height)) + "\n",
     )
-    (out / "scene.toml").write_text(
+    write_text_atomic(
+        out / "scene.toml",
         "# Written by gonio demo: the simulated camera's scene (gonio sim render scene.toml)\n"
         + _toml(scene_document(material, width, height))
-        + "\n"
+        + "\n",
     )
     seconds["setup"] = time.perf_counter() - t
 
@@ -296,8 +298,7 @@ def run_demo(
     # the library: the API prints nothing, the demo says what it does through ``say``.
     plan = load_plan(out / "plan.toml")
     cfg = load_rig_config(out / "rig.toml")
-    source = scene_source(plan, out / "plan.toml", None)
-    document, attachments = relocatable(source)
+    sim = simulated_run(plan, out / "plan.toml", None, time_scale)
     from gonio.app.progress import SessionProgress
 
     with SessionProgress(quiet) as progress:
@@ -305,16 +306,11 @@ def run_demo(
             session,
             plan,
             cfg,
-            device_opener(scene=source.document, scene_base=source.base_dir, time_scale=time_scale),
+            sim.opener,
             camera_backend="simulated",
             dry_run=plan_session(plan, cfg),
-            simulation={
-                "scene": document,
-                "width": plan.simulation.width,
-                "height": plan.simulation.height,
-                "time_scale": time_scale,
-            },
-            attachments=attachments,
+            simulation=sim.simulation,
+            attachments=sim.attachments,
             subscribers=[progress],
         )
     say(f"session {session} completed")

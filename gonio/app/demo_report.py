@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from gonio.atomic import write_text_atomic
+
 
 def _sample_images(session: Path, out: Path, n: int = 3) -> list[tuple[Path, str]]:
     """Render a few of the session's RAW frames to PNG (rawpy demosaic, for looking only)."""
@@ -128,5 +130,5 @@ def write_report(
         for path, caption in images:
             lines += [f"![{caption}]({path.relative_to(out)})", "", f"*{caption}*", ""]
     report = out / "report.md"
-    report.write_text("\n".join(lines) + "\n")
+    write_text_atomic(report, "\n".join(lines) + "\n")
     return report

@@ -17,7 +17,14 @@ from typing import Any
 
 from gonio.errors import ConfigError
 
-__all__ = ["SIM_DIR", "SceneSource", "relocatable", "scene_source"]
+__all__ = [
+    "SIM_DIR",
+    "SceneSource",
+    "SimulatedRun",
+    "relocatable",
+    "scene_source",
+    "simulated_run",
+]
 
 #: Folder inside a session for the files a simulated scene refers to.
 SIM_DIR = "sim"
@@ -113,3 +120,52 @@ def relocatable(source: SceneSource) -> tuple[dict[str, Any], dict[str, Path]]:
 
     doc = walk(copy.deepcopy(source.document))
     return doc, dict(copies.files)
+
+
+@dataclass(frozen=True)
+class SimulatedRun:
+    """What a simulated session needs besides its plan and rig.
+
+    Attributes
+    ----------
+    simulation
+        The manifest's simulation record (relocatable scene document, resolution, servo
+        time scale).
+    attachments
+        Files to copy into the session (``{"sim/NAME": source}``).
+    opener
+        The device opener (virtual bus, rig, simulated camera) for
+        :func:`gonio.capture.sessions.run_session`.
+    """
+
+    simulation: dict[str, Any]
+    attachments: dict[str, Path]
+    opener: Any
+
+
+def simulated_run(
+    plan: Any, plan_path: Path | None, scene_path: str | Path | None, time_scale: Any
+) -> SimulatedRun:
+    """Everything ``gonio capture run --camera simulated`` and the demo wire the same way.
+
+    Parameters
+    ----------
+    plan, plan_path
+        The validated plan and its file (a relative ``[simulation] scene`` starts there).
+    scene_path
+        ``--scene``, overriding the plan's scene; None for the plan's (or the default).
+    time_scale
+        ``"virtual"`` or a wall-clock speed-up factor of the virtual servos.
+    """
+    from gonio.app.devices import device_opener
+
+    source = scene_source(plan, plan_path, scene_path)
+    document, attachments = relocatable(source)
+    simulation = {
+        "scene": document,
+        "width": plan.simulation.width,
+        "height": plan.simulation.height,
+        "time_scale": time_scale,
+    }
+    opener = device_opener(scene=source.document, scene_base=source.base_dir, time_scale=time_scale)
+    return SimulatedRun(simulation, attachments, opener)
