@@ -79,3 +79,30 @@ def test_dry_run_rig_solves_from_its_last_accepted_pose():
     res = rig.move_to(d(50), wo)  # 25 deg from 25: fine
     assert math.isclose(res.joints["theta_i"], math.radians(50))
     assert math.isclose(res.duration, math.radians(25))
+
+
+def test_the_dry_run_reports_each_stage_to_its_end():
+    """A large dry run takes minutes: every stage is reported, each up to its total."""
+    from gonio.capture.sessions import plan_session
+    from gonio.rig.config import default_rig_config
+
+    plan = plan_from_dict(
+        {
+            "grid": {
+                "theta_i_deg": [10, 30, 50],
+                "phi_i_deg": [0],
+                "theta_o_deg": [20, 40],
+                "phi_o_deg": [150, 180],
+            }
+        }
+    )
+    seen: list[tuple[str, int, int]] = []
+    dry = plan_session(plan, default_rig_config(), progress=lambda *a: seen.append(a))
+    stages = list(dict.fromkeys(s for s, _, _ in seen))
+    assert stages == ["expand", "solve", "order", "dry run"]
+    for stage in stages:
+        last = [(d, t) for s, d, t in seen if s == stage][-1]
+        assert last[0] == last[1] > 0
+    solved = [t for s, _, t in seen if s == "solve"][-1]
+    assert solved == len(dry.schedule.expanded.poses)
+    assert [t for s, _, t in seen if s == "dry run"][-1] == len(dry.schedule.steps)
