@@ -14,6 +14,7 @@ from pathlib import Path
 import click
 
 from gonio.cli import LazyGroup
+from gonio.errors import SessionError
 
 __all__ = ["capture", "inspect_cmd", "plan_cmd", "resume_cmd", "run_cmd"]
 
@@ -429,6 +430,13 @@ def run_cmd(
     help="Shoot again the journaled frames that are missing or changed (journaled as "
     "replacements) instead of refusing to resume.",
 )
+@click.option(
+    "--camera",
+    "camera_backend",
+    type=click.Choice(["simulated", "gphoto2"]),
+    default=None,
+    hidden=True,  # accepted for old scripts; must name the session's own backend
+)
 @_common
 def resume_cmd(
     session_dir: Path,
@@ -436,6 +444,7 @@ def resume_cmd(
     rig_file: str | None,
     force: bool,
     retake: bool,
+    camera_backend: str | None,
     camera_port: str | None,
     sim_speed: float | str | None,
     quiet: bool,
@@ -459,6 +468,15 @@ def resume_cmd(
 
     plan = load_plan(plan_file) if plan_file is not None else None
     cfg = _load_rig(rig_file) if rig_file is not None else None
+    if camera_backend is not None:
+        from gonio.capture.manifest import read_manifest
+
+        own = read_manifest(session_dir).camera.backend
+        if camera_backend != own:
+            raise SessionError(
+                f"{session_dir} was shot with the {own} camera; a session resumes with its "
+                f"own backend (drop --camera {camera_backend})"
+            )
     with SessionProgress(quiet) as progress:
         result = resume_session(
             session_dir,
@@ -527,8 +545,6 @@ def inspect_cmd(session_dir: Path, verify: bool, as_json: bool) -> None:
         if left:
             con.print(f"left: {left} poses; continue with 'gonio capture resume {session_dir}'")
     if info["bad_files"]:
-        from gonio.errors import SessionError
-
         raise SessionError(
             f"{session_dir}: {len(info['bad_files'])} RAW file(s) missing or "
             "not matching their journal hash"

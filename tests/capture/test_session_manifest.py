@@ -213,3 +213,16 @@ def test_a_manifest_no_reader_would_accept_is_never_written(tmp_path, monkeypatc
     assert "non-finite" in capsys.readouterr().err
     assert not out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.toml", "rig.toml"]
+
+
+def test_resume_with_another_camera_backend_is_refused(finished, tmp_path, capsys):
+    """--camera on resume (accepted for old scripts) must name the session's own backend;
+    the session is left as it was."""
+    s = tmp_path / "S"
+    shutil.copytree(finished, s)
+    before = (s / "journal.jsonl").read_bytes()
+    assert run("capture", "resume", str(s), "--camera", "gphoto2") == 1
+    err = capsys.readouterr().err
+    assert "simulated camera" in err and "--camera gphoto2" in err
+    assert (s / "journal.jsonl").read_bytes() == before
+    assert run("capture", "resume", str(s), "--camera", "simulated", "--quiet") == 0
