@@ -6,8 +6,7 @@ Usage::
 
 Without ``--session`` a simulated session is captured first (virtual servo bus, rendered
 DNGs: 8 sample poses, 2 reference poses, 3-frame brackets: 30 frames) in a temporary
-directory, with the ``reduction.toml`` a simulated capture writes
-(:func:`gonio.app.sim_reduction.write_reduction_toml`).  Ten poses, not a handful, because
+directory (it writes its own ``reduction.toml`` when the session is created).  Ten poses, not a handful, because
 a session's first frames are decoded before anything can overlap them and its last pose is
 measured with nothing left to decode: a lab session has hundreds of frames, where the
 per-frame figure is the steady state's.
@@ -84,31 +83,29 @@ antialias = 2
 
 
 def make_session(root: Path, width: int, height: int) -> Path:
-    from gonio.app.sim_reduction import write_reduction_toml
-    from gonio.cli import run
-    from gonio.rig.config import virtual_rig_document
+    """A simulated session (its reduction.toml written at capture), through the library:
+    stdout carries only the benchmark's JSON."""
+    from gonio.app.simulation import simulated_run
+    from gonio.capture.plan import load_plan
+    from gonio.capture.sessions import run_session
+    from gonio.rig.config import load_rig_config, virtual_rig_document
 
     (root / "rig.toml").write_text(virtual_rig_document())
     # exposures that keep the diffuse reference near half scale at this pixel size
     t = 0.0005 * (480.0 / width) ** 2 * 4
     (root / "plan.toml").write_text(PLAN.format(t1=t / 4, t2=t, t3=4 * t))
     (root / "scene.toml").write_text(SCENE.format(w=width, h=height))
-    code = run(
-        "capture",
-        "run",
-        str(root / "plan.toml"),
-        "--rig",
-        str(root / "rig.toml"),
-        "--camera",
-        "simulated",
-        "--out",
-        str(root / "S"),
-        "--quiet",
+    plan = load_plan(root / "plan.toml")
+    sim = simulated_run(plan, root / "plan.toml", None, "virtual")
+    run_session(
+        root / "S",
+        plan,
+        load_rig_config(root / "rig.toml"),
+        sim.opener,
+        camera_backend="simulated",
+        simulation=sim.simulation,
+        attachments=sim.attachments,
     )
-    if code:
-        raise SystemExit(code)
-    # the simulated session's reduction setup, as a capture writes it (not timed)
-    write_reduction_toml(root / "S")
     return root / "S"
 
 
