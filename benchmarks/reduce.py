@@ -6,10 +6,10 @@ Usage::
 
 Without ``--session`` a simulated session is captured first (virtual servo bus, rendered
 DNGs: 8 sample poses, 2 reference poses, 3-frame brackets: 30 frames) in a temporary
-directory (it writes its own ``reduction.toml`` when the session is created).  Ten poses, not a handful, because
-a session's first frames are decoded before anything can overlap them and its last pose is
-measured with nothing left to decode: a lab session has hundreds of frames, where the
-per-frame figure is the steady state's.
+directory (it writes its own ``reduction.toml`` when the session is created).  Ten poses,
+not a handful, because a session's first frames are decoded before anything can overlap
+them and its last pose is measured with nothing left to decode: a lab session has
+hundreds of frames, where the per-frame figure is the steady state's.
 All timings are medians over ``--repeat`` interleaved runs in this process, after one
 warm-up run of each (imports, numba's cached kernel); the reduction includes everything
 ``gonio capture reduce`` does (journal digest check, decoding, darks, board detection,
