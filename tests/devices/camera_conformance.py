@@ -36,6 +36,8 @@ class CameraConformance:
     """
 
     backend: str = ""
+    #: whether the backend is also the rig's switchable light
+    has_light: bool = False
     exposure_time: float = 0.01
     iso: float | None = None
     f_number: float | None = None
@@ -95,10 +97,7 @@ class CameraConformance:
         with pytest.raises(CameraError, match=self.unsupported_names):
             camera.capture(*self.unsupported)
 
-    def test_light_ability_if_any(self, camera):
-        if not isinstance(camera, Light):
-            pytest.skip(f"{self.backend}: no light ability (a real rig's light is separate)")
-        camera.set_light(False)
-        shot = camera.capture(self.exposure_time, self.iso, self.f_number)
-        camera.set_light(True)
-        assert read_raw(shot.data).shape
+    def test_claims_exactly_the_abilities_it_has(self, camera):
+        """The engine asks for abilities with isinstance: a backend must not claim a light
+        it cannot switch (a real rig's light is separate hardware), nor hide one."""
+        assert isinstance(camera, Light) is self.has_light

@@ -33,6 +33,7 @@ def _rig_poses():
 
 class TestSimulatedRigCamera(CameraConformance):
     backend = "simulated"
+    has_light = True
     exposure_time = 0.01
     iso = 100.0
     f_number = 8.0
@@ -43,6 +44,20 @@ class TestSimulatedRigCamera(CameraConformance):
         from gonio.simulator.rig_camera import SimulatedRigCamera
 
         return SimulatedRigCamera(None, _rig_poses(), seed=7, width=32, height=24)
+
+    def test_a_frame_with_the_light_off_is_dark(self, camera):
+        """Dark frames: with the light off the frame is the sensor's black level and
+        noise only, far below the same exposure with the light on."""
+        from gonio.capture.raw import read_raw
+
+        camera.next_shot(1, 0)
+        lit = read_raw(camera.capture(0.05, 100, 8).data)
+        camera.set_light(False)
+        camera.next_shot(1, 1)
+        dark = read_raw(camera.capture(0.05, 100, 8).data)
+        camera.set_light(True)
+        # ``linear`` is DN above the black level: zero-mean noise when dark
+        assert lit.linear.mean() > 50 * max(abs(dark.linear.mean()), dark.linear.std() / 10)
 
     def test_seeded_shots_are_reproducible_per_step_and_frame(self, camera):
         """The same (seed, step, frame) renders the same bytes; another frame, other
