@@ -30,7 +30,6 @@ __all__ = [
     "is_virtual_port",
     "open_rig",
     "open_session_devices",
-    "servo_clock_sleep",
 ]
 
 VIRTUAL_PORTS = ("virtual", "sim", "simulated")
@@ -55,22 +54,6 @@ def open_rig(config: Any, clock: Callable[[], float] | None = None) -> Iterator[
 
     with Rig(config, clock=clock) as rig:
         yield rig
-
-
-def servo_clock_sleep(clock: Callable[[], float], time_scale: float) -> Callable[[float], None]:
-    """A sleep of ``seconds`` of servo time on a virtual bus running ``time_scale`` times
-    faster than the wall clock (it waits until ``clock()`` has advanced that much).
-
-    For a bus object, ``bus.sleep`` does this on either clock (a virtual one adds the
-    seconds at once); this form stays for callers that only hold the clock function.
-    """
-
-    def sleep(seconds: float) -> None:
-        end = clock() + seconds
-        while (left := end - clock()) > 0:
-            time.sleep(left / time_scale)
-
-    return sleep
 
 
 @contextlib.contextmanager

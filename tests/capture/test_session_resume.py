@@ -160,7 +160,7 @@ def test_settle_time_is_waited_after_every_move_on_the_servo_clock(tmp_path):
     """Each pose's first frame is shot at least ``settle_s`` of servo time after the move
     ended.  Without settling, the gap is the read-back and one render (a few ms of wall
     time, well under 5 s of servo time at 100x)."""
-    from gonio.app.devices import open_rig, servo_clock_sleep
+    from gonio.app.devices import open_rig
     from gonio.capture.engine import SessionDevices
     from gonio.capture.plan import plan_from_dict
     from gonio.capture.sessions import run_session
@@ -216,9 +216,7 @@ def test_settle_time_is_waited_after_every_move_on_the_servo_clock(tmp_path):
                 return capture(*a)
 
             cam.capture = timed_capture
-            dev = SessionDevices(
-                Timed(rig), cam, cam, cam, kin, servo_clock_sleep(bus.clock, bus.time_scale)
-            )
+            dev = SessionDevices(Timed(rig), cam, cam, cam, kin, bus.sleep)
             run_session(tmp_path / "S", plan, cfg, dev)
     moves = [k for k, (what, _) in enumerate(events) if what == "moved"]
     assert len(moves) == 2
