@@ -8,10 +8,12 @@ import os
 import shutil
 import subprocess
 import sys
+import tomllib
 
 import numpy as np
 import pytest
 import rawpy
+import tomli_w
 import xxhash
 
 from gonio.app.sim_reduction import write_reduction_toml
@@ -474,3 +476,25 @@ def test_a_second_reduction_into_the_same_output_refuses(session, tmp_path):
     # the lock died with its holder: the next reduction runs
     assert run("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
     assert load_samples(s / "samples.h5").valid.all()
+
+
+def test_a_broken_config_file_is_refused_naming_it_and_keeps_the_samples(
+    session, tmp_path, capsys
+):
+    """``--config`` with a file that is not TOML, or a field out of its model: exit 1
+    naming the file (and field), and the previous samples.h5 is left as it was."""
+    s = copy_session(session, tmp_path / "S")
+    assert run("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
+    before = (s / "samples.h5").read_bytes()
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[camera\n")
+    good = tomllib.loads((s / "reduction.toml").read_text())
+    good["camera"]["K"] = [[1.0, 0.0], [0.0, 1.0]]
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text(tomli_w.dumps(good))
+    for path, named in ((broken, "not a valid TOML"), (wrong, "camera.K")):
+        capsys.readouterr()
+        assert run("capture", "reduce", str(s), "--quiet", "--config", str(path)) == 1
+        err = capsys.readouterr().err
+        assert str(path) in err and named in err and "Traceback" not in err
+        assert (s / "samples.h5").read_bytes() == before
