@@ -47,6 +47,10 @@ SDK_BAUD_RATES: tuple[int, ...] = (
 )
 
 
+#: How far from horizontal an as-built tilt axis may be, deg.
+MAX_TILT_AXIS_PITCH_DEG = 10.0
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -92,6 +96,14 @@ class ServoConfig(_Strict):
     velocity_deg_s: float = Field(default=60.0, ge=0)
     acceleration_deg_s2: float = Field(default=240.0, ge=0)
     operating_mode: Literal["position", "extended_position"] = "position"
+    #: As built: the joint lags the encoder by half this on the side it was approached
+    #: from (``gonio.rig.asbuilt``), deg.  0 on a nominal rig; ``gonio calibrate rig``
+    #: measures it.
+    backlash_deg: float = Field(default=0.0, ge=0, le=10)
+    #: As built: the joint bends under gravity by ``a cos(q) + b sin(q)`` (q the joint
+    #: angle the encoder gives), ``(a, b)`` in deg.  Only a joint whose axis is not
+    #: vertical (the stage tilt) carries a gravity torque that changes with its angle.
+    compliance_deg: tuple[float, float] = (0.0, 0.0)
 
     @field_validator("model")
     @classmethod
@@ -165,6 +177,17 @@ class GeometryConfig(_Strict):
     max_theta_deg: float = Field(default=85.0, gt=0, le=90)
     camera_body_radius_m: float = Field(default=0.04, ge=0)
     light_body_radius_m: float = Field(default=0.03, ge=0)
+    # As built (``gonio.rig.asbuilt``; all 0 on a nominal rig, measured by ``gonio
+    # calibrate rig``).  The camera's turn on its arm, about its own x, y, z axes:
+    camera_mount_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: The holder plate (sample and board) tilted on the spin plate, about the sample's
+    #: x then y axis, deg.
+    holder_tilt_deg: tuple[float, float] = (0.0, 0.0)
+    #: The sample centre in the spin plate's frame (off the spin axis in x, y; above the
+    #: rotation centre along the normal in z: holder and sample thickness), m.
+    holder_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: The stage's rotation centre from the arms' axis, world frame, m.
+    stage_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @model_validator(mode="after")
     def _axes(self) -> GeometryConfig:
@@ -177,8 +200,11 @@ class GeometryConfig(_Strict):
         n, r, k = self.rest_normal, self.rest_reference, self.tilt_axis
         if abs(sum(a * b for a, b in zip(n, r, strict=True))) > 1e-6 * norm(n) * norm(r):
             raise ValueError("rest_reference must be perpendicular to rest_normal")
-        if abs(k[2]) > 1e-6 * norm(k):
-            raise ValueError("tilt_axis must be horizontal (z component 0)")
+        if abs(k[2]) > math.sin(math.radians(MAX_TILT_AXIS_PITCH_DEG)) * norm(k):
+            raise ValueError(
+                f"tilt_axis must be within {MAX_TILT_AXIS_PITCH_DEG:g} deg of horizontal "
+                "(a calibrated rig's axis is a little off it; a nominal one has z = 0)"
+            )
         return self
 
 
