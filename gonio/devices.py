@@ -197,14 +197,19 @@ class CameraInfo:
     model: str
     sensor_size_mm: tuple[float, float] | None = None
     settings: dict[str, Any] = field(default_factory=dict)
+    serial: str | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        doc = {
             "backend": self.backend,
             "model": self.model,
             "sensor_size_mm": list(self.sensor_size_mm) if self.sensor_size_mm else None,
             "settings": dict(self.settings),
         }
+        # only when known: manifests of cameras without one stay as they were
+        if self.serial is not None:
+            doc["serial"] = self.serial
+        return doc
 
 
 @runtime_checkable

@@ -4,6 +4,7 @@
 >>> dng = cam.capture(exposure_time=0.01, iso=100, f_number=8.0, seed=7)
 >>> dng, truth = cam.capture(0.01, 100, 8.0, seed=7, return_truth=True)
 >>> ref = cam.capture(0.01, 100, 8.0, seed=8, target="reference")   # calibration shot
+>>> spot = cam.capture(1e-5, 100, 8.0, seed=9, target="mirror")   # light's direction
 
 ``pose_provider()`` returns where the light and the camera are *now*, in the sample
 frame: a :class:`gonio.rig.kinematics.RigPoses` (or a mapping with the same names:
@@ -26,7 +27,13 @@ from gonio.simulator.render import RenderResult, render
 from gonio.simulator.scene import Scene, scene_with_rig_poses
 from gonio.simulator.sensor import RawFrame, simulate_raw
 
-__all__ = ["SimulatedCamera"]
+__all__ = ["MIRROR_REFLECTANCE", "TARGETS", "SimulatedCamera"]
+
+#: What can be put in the sample's place.
+TARGETS = ("sample", "reference", "mirror")
+#: Grey reflectance of the simulated first-surface mirror (aluminium: ~0.9 in the visible).
+MIRROR_REFLECTANCE = 0.9
+Target = Literal["sample", "reference", "mirror"]
 
 
 class SimulatedCamera:
@@ -40,6 +47,9 @@ class SimulatedCamera:
         Callable returning the current poses (see the module docstring), or None.
     reference_albedo
         Albedo of the Lambertian reference target rendered for ``target="reference"``.
+    mirror_reflectance
+        Reflectance of the flat mirror rendered for ``target="mirror"``
+        (:meth:`gonio.simulator.scene.Scene.with_mirror_target`).
     """
 
     def __init__(
@@ -47,10 +57,12 @@ class SimulatedCamera:
         scene: Scene,
         pose_provider: Callable[[], Any] | None = None,
         reference_albedo: float | tuple[float, float, float] = 0.99,
+        mirror_reflectance: float = MIRROR_REFLECTANCE,
     ) -> None:
         self.scene = scene
         self.pose_provider = pose_provider
         self.reference_albedo = reference_albedo
+        self.mirror_reflectance = mirror_reflectance
         self._brdf: Any = None
         self._cache: tuple[bytes, RenderResult] | None = None
         self.renders = 0
@@ -60,18 +72,21 @@ class SimulatedCamera:
         """Camera model name written into the DNG."""
         return self.scene.camera.sensor.model
 
-    def current_scene(self, target: Literal["sample", "reference"] = "sample") -> Scene:
-        """The scene at the current pose, with the sample or the reference target."""
+    def current_scene(self, target: Target = "sample") -> Scene:
+        """The scene at the current pose, with the sample, the reference target or the
+        mirror in the sample's place."""
+        if target not in TARGETS:
+            raise CameraError(f"target must be one of {', '.join(TARGETS)}; got {target!r}")
         scene = self.scene
         if self.pose_provider is not None:
             scene = scene_with_rig_poses(scene, self.pose_provider())
         if target == "reference":
             scene = scene.with_reference_target(self.reference_albedo)
-        elif target != "sample":
-            raise CameraError(f"target must be 'sample' or 'reference', got {target!r}")
+        elif target == "mirror":
+            scene = scene.with_mirror_target(self.mirror_reflectance)
         return scene
 
-    def render(self, target: Literal["sample", "reference"] = "sample") -> RenderResult:
+    def render(self, target: Target = "sample") -> RenderResult:
         """Noise-free radiance and ground truth at the current pose (cached per pose)."""
         scene = self.current_scene(target)
         key = scene.model_dump_json().encode()
@@ -96,7 +111,7 @@ class SimulatedCamera:
         iso: float,
         f_number: float,
         seed: int,
-        target: Literal["sample", "reference"] = "sample",
+        target: Target = "sample",
     ) -> RawFrame:
         """The RAW frame (mosaic and metadata) of one exposure."""
         result = self.render(target)
@@ -116,7 +131,7 @@ class SimulatedCamera:
         f_number: float,
         seed: int,
         *,
-        target: Literal["sample", "reference"] = "sample",
+        target: Target = "sample",
         return_truth: bool = False,
     ) -> bytes | tuple[bytes, RenderResult]:
         """Take one exposure and return it as DNG bytes.
@@ -132,8 +147,9 @@ class SimulatedCamera:
         seed
             Seed of the sensor noise: equal seeds (and poses) give equal bytes.
         target
-            ``"sample"``, or ``"reference"`` for a radiometric calibration shot of a
-            Lambertian target of ``reference_albedo`` in the sample's place.
+            ``"sample"``, ``"reference"`` for a radiometric calibration shot of a
+            Lambertian target of ``reference_albedo`` in the sample's place, or
+            ``"mirror"`` for the light's image in a flat mirror there (rig calibration).
         return_truth
             Also return the :class:`RenderResult` (noise-free radiance, wi, wo, masks).
 

@@ -47,10 +47,13 @@ from gonio.errors import ConfigError
 from gonio.simulator.geometry import (
     camera_rays,
     intersect_plane_z0,
+    pixel_grid,
     prepare_occluders,
+    rays_from_normalized,
     segments_blocked,
 )
 from gonio.simulator.lights import LEVELS, PreparedLight, prepare_lights
+from gonio.simulator.mirror import light_hits, mirror_radiance
 from gonio.simulator.scene import Scene
 
 __all__ = [
@@ -157,7 +160,12 @@ class Surface:
     def __init__(self, scene: Scene, brdf: Any = None) -> None:
         s = scene.sample
         self.half = np.array([s.width / 2, s.height / 2])
-        self.brdf = scene.build_brdf() if brdf is None else brdf
+        self.mirror = s.mirror_reflectance
+        # a mirror target has no BRDF to evaluate (a measured file is slow to load)
+        if self.mirror is not None:
+            self.brdf = None
+        else:
+            self.brdf = scene.build_brdf() if brdf is None else brdf
         self.albedo_map = None
         if s.albedo_map is not None:
             self.albedo_map = _load_albedo_map(scene.resolve(s.albedo_map))
@@ -436,6 +444,17 @@ def _label(
     return region, white, code, x
 
 
+def _spot_code(lights, light_occ, C, x, region) -> np.ndarray:
+    """Bit i set where a mirror point's reflected camera ray reaches light i."""
+    code = np.zeros(region.shape, np.int64)
+    on = region == SAMPLE
+    for bit, (light, occ) in enumerate(zip(lights, light_occ, strict=True)):
+        hit = np.zeros(region.shape, bool)
+        hit[on] = light_hits(light, occ, C, x[on])
+        code += np.int64(1 << bit) * hit
+    return code
+
+
 def estimate_render_memory(scene: Scene, antialias: int | None = None) -> float:
     """Peak memory of :func:`render` for the scene's resolution and anti-aliasing, bytes.
 
@@ -523,6 +542,7 @@ def render(
     if C[2] <= 0:
         raise ConfigError(f"camera.position: {C.tolist()} is not above the sample plane (z > 0)")
     K = scene.camera.intrinsics()
+    dist = scene.camera.distortion if scene.camera.has_distortion else None
     W, H = scene.camera.resolution
     surface = Surface(scene, brdf)
     lights = prepare_lights(scene)
@@ -539,13 +559,11 @@ def render(
     occ_cam = [o for o in occluders if o.overlaps(cam_box.min(0), cam_box.max(0))]
     light_vis = [(oc, li.center) for li, oc in zip(lights, light_occ, strict=True) if oc]
 
-    # Pixel centres and corners.
-    jj, ii = np.mgrid[0:H, 0:W]
-    d = camera_rays(K, R, ii + 0.5, jj + 0.5)
+    # Pixel centres and corners (their undistorted coordinates are cached per camera).
+    d = rays_from_normalized(R, *pixel_grid(K, W, H, dist))
     x, front = intersect_plane_z0(C, d)
     region, white, code_c, _ = _label(surface, occ_cam, C, x, front, light_vis)
-    jc, ic = np.mgrid[0 : H + 1, 0 : W + 1]
-    xc, frontc = intersect_plane_z0(C, camera_rays(K, R, ic.astype(float), jc.astype(float)))
+    xc, frontc = intersect_plane_z0(C, rays_from_normalized(R, *pixel_grid(K, W, H, dist, True)))
     region_k, _, code_k, _ = _label(surface, occ_cam, C, xc, frontc, light_vis)
     if not (np.any(region == SAMPLE) or np.any(region_k == SAMPLE)):
         raise ConfigError(
@@ -560,13 +578,26 @@ def render(
         else np.zeros((H, W), bool)
     )
     surf = (region > 0) & (region != OCCLUDED)
+    mirror = surface.mirror is not None
+    spot_rim = np.zeros((H, W), bool)
+    if mirror:
+        # The light's image in the mirror has a hard rim: pixels whose centre and corners
+        # do not all see the same lights get spot_antialias^2 sub-rays (even when the
+        # rest of the image is not anti-aliased), so that the spot's centroid is unbiased.
+        sc = _spot_code(lights, light_occ, C, x, region)
+        sk = _spot_code(lights, light_occ, C, xc, region_k)
+        sk4 = np.stack([sk[:-1, :-1], sk[1:, :-1], sk[:-1, 1:], sk[1:, 1:]])
+        spot_rim = np.any(sk4 != sc[None], axis=0)
+        edge &= ~spot_rim
 
     radiance = np.zeros((H, W, 3))
     integrators = [
         _Integrator(li, oc, surface, C) for li, oc in zip(lights, light_occ, strict=True)
     ]
     xs, rs, ws = x[surf], region[surf], white[surf]
-    pilot = np.unique(np.linspace(0, len(xs) - 1, min(_PILOT_PIXELS, len(xs))).astype(int))
+    # the mirror is not integrated over the lights: the strategy is chosen without it
+    lit = np.flatnonzero(rs != SAMPLE) if mirror else np.arange(len(xs))
+    pilot = lit[np.unique(np.linspace(0, len(lit) - 1, min(_PILOT_PIXELS, len(lit))).astype(int))]
     light_stats = []
     plans = []
     for integ, oc in zip(integrators, light_occ, strict=True):
@@ -614,6 +645,15 @@ def render(
                     light_stats[i].tolerance_met = False
 
     def shade_all(xp, rp, wp):
+        if mirror:
+            acc = np.zeros((len(xp), 3))
+            on = rp == SAMPLE
+            acc[on] = mirror_radiance(lights, light_occ, C, xp[on], surface.mirror)
+            acc[~on] = shade_lit(xp[~on], rp[~on], wp[~on])
+            return acc
+        return shade_lit(xp, rp, wp)
+
+    def shade_lit(xp, rp, wp):
         acc = np.zeros((len(xp), 3))
         for i, (integ, (strat, level, n_mc)) in enumerate(zip(integrators, plans, strict=True)):
             out = integ.shade(xp, rp, wp, strat, level, n_mc, rng, settings.chunk_size)
@@ -635,21 +675,23 @@ def render(
     radiance[surf] = shade_all(xs, rs, ws)
 
     # Anti-aliasing: n x n sub-pixel samples (box filter) on edge pixels only.
-    n_aa = settings.antialias
-    ej, ei = np.nonzero(edge)
     n_sub = 0
-    if len(ej):
+    for mask, n_aa in ((edge, settings.antialias), (spot_rim, settings.spot_antialias)):
+        ej, ei = np.nonzero(mask)
+        if not len(ej):
+            continue
         off = (np.arange(n_aa) + 0.5) / n_aa
         ou, ov = np.meshgrid(off, off, indexing="ij")
         su = (ei[:, None] + ou.ravel()).ravel()
         sv = (ej[:, None] + ov.ravel()).ravel()
-        xsub, fsub = intersect_plane_z0(C, camera_rays(K, R, su, sv))
+        xsub, fsub = intersect_plane_z0(C, camera_rays(K, R, su, sv, dist))
         rsub, wsub, _, _ = _label(surface, occ_cam, C, xsub, fsub, [])
         ok = (rsub > 0) & (rsub != OCCLUDED)
         lsub = np.zeros((len(su), 3))
         lsub[ok] = shade_all(xsub[ok], rsub[ok], wsub[ok])
         radiance[ej, ei] = lsub.reshape(len(ej), n_aa * n_aa, 3).mean(1)
-        n_sub = len(su)
+        n_sub += len(su)
+    edge = edge | spot_rim
 
     nan3 = np.full((H, W, 3), np.nan)
     pts = np.where(surf[..., None], x, nan3)
@@ -662,7 +704,7 @@ def render(
         pixels_shaded=int(surf.sum()),
         pixels_skipped=int((region == NONE).sum()),
         pixels_occluded=int((region == OCCLUDED).sum()),
-        edge_pixels=int(len(ej)),
+        edge_pixels=int(edge.sum()),
         subpixel_samples=n_sub,
         camera_occluders_tested=len(occ_cam),
         lights=light_stats,

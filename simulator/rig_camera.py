@@ -25,7 +25,7 @@ import numpy as np
 
 from gonio.devices import CameraInfo, Shot
 from gonio.errors import CameraError, ConfigError
-from gonio.simulator.camera import SimulatedCamera
+from gonio.simulator.camera import TARGETS, SimulatedCamera
 from gonio.simulator.scene import Scene, parse_scene
 
 __all__ = ["SimulatedRigCamera", "minimal_scene", "shot_seed"]
@@ -90,6 +90,9 @@ class SimulatedRigCamera:
         Reflectance of the rendered reference target.
     base_dir
         Folder a scene document's relative paths start from.
+    serial
+        The camera unit's serial number, reported by :meth:`describe` (calibrations
+        name the camera they belong to by it); the as-built world gives one.
     """
 
     def __init__(
@@ -102,6 +105,7 @@ class SimulatedRigCamera:
         height: int | None = None,
         reference_albedo: float | tuple[float, float, float] = 0.99,
         base_dir: str | Path | None = None,
+        serial: str | None = None,
     ) -> None:
         if pose_provider is None:
             raise CameraError("the simulated camera needs a pose provider (the rig's pose)")
@@ -121,6 +125,7 @@ class SimulatedRigCamera:
             scene = scene.model_copy(update={"camera": cam})
         self.scene = scene
         self.seed = int(seed)
+        self.serial = None if serial is None else str(serial)
         self._cam = SimulatedCamera(
             scene, pose_provider=pose_provider, reference_albedo=reference_albedo
         )
@@ -154,6 +159,7 @@ class SimulatedRigCamera:
         return CameraInfo(
             backend="simulated",
             model=self._cam.model,
+            serial=self.serial,
             sensor_size_mm=(w * pitch_mm, h * pitch_mm),
             settings={
                 "resolution": [w, h],
@@ -223,7 +229,9 @@ class SimulatedRigCamera:
         self._light_on = bool(on)
 
     def set_target(self, kind: str) -> None:
-        """``"sample"`` or ``"reference"`` (the Lambertian target in the sample's place)."""
-        if kind not in ("sample", "reference"):
-            raise CameraError(f"target must be 'sample' or 'reference', got {kind!r}")
+        """``"sample"``, ``"reference"`` (the Lambertian target in the sample's place) or
+        ``"mirror"`` (a flat first-surface mirror there, reflectance 0.9: the light's
+        image in it is the rig calibration's spot)."""
+        if kind not in TARGETS:
+            raise CameraError(f"target must be one of {', '.join(TARGETS)}; got {kind!r}")
         self._target = kind

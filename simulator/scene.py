@@ -56,6 +56,9 @@ TOML schema (every length in metres, angles in degrees where the name says ``_de
     resolution = [640, 480]      # width, height in pixels
     focal_length = 0.035
     pixel_pitch = 5.0e-6         # or fov_deg (horizontal), giving the pitch
+    principal_point = [320.0, 240.0]   # optional (cx, cy), px, pixel centres at +0.5
+    distortion = [-0.15, 0.02, 0.0, 0.0, 0.0]   # optional OpenCV Brown-Conrady
+                                 # (k1, k2, p1, p2, k3) on normalised coordinates
     position = [0.0, -0.25, 0.433]
     look_at = [0.0, 0.0, 0.0]    # or rotation (3x3 world->camera, OpenCV axes)
     up = [0.0, 0.0, 1.0]
@@ -68,6 +71,7 @@ TOML schema (every length in metres, angles in degrees where the name says ``_de
     tolerance = 1e-4             # relative per-pixel error target of the light integral
     strategy = "auto"            # "auto" | "point" | "quadrature" | "mc"
     antialias = 4                # sub-samples per axis on edge pixels (1: off)
+    spot_antialias = 16          # the same on the rim of a light's image in the mirror
 
     [rig]                        # optional: light and camera poses from joint angles
     joints_deg = { light_azimuth = 0.0, camera_azimuth = 180.0, stage_tilt = 30.0,
@@ -75,7 +79,16 @@ TOML schema (every length in metres, angles in degrees where the name says ``_de
     config = "rig.toml"          # optional; the default rig preset otherwise
 
 The camera follows OpenCV's convention: camera x right, y down, z forward; ``rotation``
-maps sample-frame vectors to camera-frame vectors.
+maps sample-frame vectors to camera-frame vectors.  The scene's K puts pixel centres at
+integer + 0.5 (pixel (0, 0) spans [0, 1) x [0, 1)); OpenCV puts them at integers, so the
+OpenCV matrix of the same camera has ``cx - 0.5, cy - 0.5``.  ``distortion`` is the same
+in both conventions: a normalised point (x, y) = (X/Z, Y/Z) is imaged at
+``K @ (x_d, y_d, 1)`` with OpenCV's ``x_d = x (1 + k1 r^2 + k2 r^4 + k3 r^6) +
+2 p1 x y + p2 (r^2 + 2 x^2)`` (and y likewise).
+
+``[sample] mirror_reflectance = 0.9`` (set by :meth:`Scene.with_mirror_target`, not
+usually written) puts a flat first-surface mirror of that grey reflectance in the
+sample's rectangle in place of the sample (the rig calibration's light-direction target).
 """
 
 from __future__ import annotations
@@ -242,6 +255,7 @@ class Sample(_Model):
     height: Positive
     brdf: BRDFSpec
     albedo_map: Path | None = None
+    mirror_reflectance: Annotated[float, Field(gt=0, le=1)] | None = None
 
 
 class Board(_Model):
@@ -433,13 +447,15 @@ class Sensor(_Model):
 
 
 class Camera(_Model):
-    """A pinhole camera with a thin-lens aperture for exposure."""
+    """A pinhole camera with a thin-lens aperture for exposure, optionally with lens
+    distortion (OpenCV Brown-Conrady ``(k1, k2, p1, p2, k3)``, see the module docstring)."""
 
     resolution: tuple[Annotated[int, Field(ge=1)], Annotated[int, Field(ge=1)]]
     focal_length: Positive = 0.035
     pixel_pitch: Positive | None = None
     fov_deg: Annotated[float, Field(gt=0, lt=180)] | None = None
     principal_point: Vec2 | None = None
+    distortion: tuple[float, float, float, float, float] | None = None
     position: Vec3 | None = None
     look_at: Vec3 = (0.0, 0.0, 0.0)
     up: Vec3 = (0.0, 0.0, 1.0)
@@ -453,7 +469,14 @@ class Camera(_Model):
     def _intrinsics(self) -> Camera:
         if (self.pixel_pitch is None) == (self.fov_deg is None):
             raise ValueError("give exactly one of 'pixel_pitch' or 'fov_deg'")
+        if self.distortion is not None and not all(np.isfinite(self.distortion)):
+            raise ValueError(f"distortion must be finite, got {list(self.distortion)}")
         return self
+
+    @property
+    def has_distortion(self) -> bool:
+        """Whether ``distortion`` is given and not all zero."""
+        return self.distortion is not None and any(c != 0.0 for c in self.distortion)
 
     @property
     def pitch(self) -> float:
@@ -486,6 +509,7 @@ class RenderSettings(_Model):
     quadrature_order: Annotated[int, Field(ge=1, le=64)] = 4
     mc_samples: Annotated[int, Field(ge=1)] = 64
     antialias: Annotated[int, Field(ge=1, le=16)] = 4
+    spot_antialias: Annotated[int, Field(ge=1, le=32)] = 16
     chunk_size: Annotated[int, Field(ge=1024)] = 262144
     seed: int = 0
 
@@ -582,6 +606,22 @@ class Scene(_Model):
         """The same scene with a Lambertian target of ``albedo`` in place of the sample."""
         brdf = BRDFSpec(model="lambert", params={"albedo": list(_rgb(albedo))})
         sample = self.sample.model_copy(update={"brdf": brdf, "albedo_map": None})
+        return self.model_copy(update={"sample": sample})
+
+    def with_mirror_target(self, reflectance: float = 0.9) -> Scene:
+        """The same scene with a flat first-surface mirror of grey ``reflectance`` in the
+        sample's rectangle (flush with the holder) in place of the sample.
+
+        Raises
+        ------
+        ConfigError
+            ``reflectance`` is not in (0, 1].
+        """
+        if not 0.0 < float(reflectance) <= 1.0:
+            raise ConfigError(f"mirror reflectance = {reflectance!r}: expected a value in (0, 1]")
+        sample = self.sample.model_copy(
+            update={"mirror_reflectance": float(reflectance), "albedo_map": None}
+        )
         return self.model_copy(update={"sample": sample})
 
     def with_poses(

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gonio.errors import ParameterError
+from gonio.simulator.geometry import pixel_grid
 from gonio.simulator.scene import MAX_EXPOSURE_S, Camera
 
 __all__ = [
@@ -121,8 +122,13 @@ def mean_electrons(
     irr = radiance * (np.pi / (4.0 * f_number**2))
     if s.vignetting:
         K = camera.intrinsics()
-        v, u = np.mgrid[0:h, 0:w]
-        r2 = ((u + 0.5 - K[0, 2]) ** 2 + (v + 0.5 - K[1, 2]) ** 2) / K[0, 0] ** 2
+        if camera.has_distortion:
+            # the field angle is the true ray's: undistorted normalised coordinates
+            x, y = pixel_grid(K, w, h, camera.distortion)
+            r2 = x * x + y * y
+        else:
+            v, u = np.mgrid[0:h, 0:w]
+            r2 = ((u + 0.5 - K[0, 2]) ** 2 + (v + 0.5 - K[1, 2]) ** 2) / K[0, 0] ** 2
         irr = irr * (1.0 / (1.0 + r2))[..., None] ** 2  # cos^4 = (1 + tan^2)^-2
     energy = irr * camera.pitch**2 * exposure_time  # J per pixel
     photons_per_joule = np.asarray(s.wavelength_nm) * 1e-9 / (_H * _C)
