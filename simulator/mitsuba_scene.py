@@ -64,6 +64,10 @@ def to_mitsuba_dict(scene: Scene, mi: Any, spp: int, seed: int = 0) -> dict:
     W, H = scene.camera.resolution
     if not np.allclose([K[0, 2], K[1, 2]], [W / 2, H / 2]):
         raise ValueError("only a centred principal point is supported")
+    if scene.camera.has_distortion:
+        raise ValueError("only a pinhole camera is supported (camera.distortion is set)")
+    if scene.sample.mirror_reflectance is not None:
+        raise ValueError("the mirror target is not supported")
     fov = np.degrees(2 * np.arctan(W / 2 / K[0, 0]))
     d: dict[str, Any] = {
         "type": "scene",
