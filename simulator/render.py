@@ -23,6 +23,14 @@ rectangle), whose error there (about 1e-2 of the unshadowed radiance: a step con
 like 1/n) is estimated against the next coarser rule and reported as ``penumbra_error``;
 ``tolerance_met`` is false when it exceeds the tolerance.
 
+With ``camera.distortion`` each pixel's ray is the undistorted direction the lens images
+there (:func:`gonio.simulator.geometry.pixel_grid`, cached per camera); pixel corners and
+anti-aliasing sub-rays likewise.  With the mirror target (``sample.mirror_reflectance``)
+the sample's rectangle is a flat mirror: its pixels are not integrated over the lights
+but see, along the reflected ray, ``reflectance * L_e`` of an area light or nothing
+(:mod:`gonio.simulator.mirror`); the spot's rim gets ``render.spot_antialias``^2
+sub-rays (counted in ``edge_pixels``), whatever ``render.antialias`` is.
+
 Only the plane z = 0 is shaded: occluders seen by the camera are black (region 4), an
 emitter in view is not drawn, and there is no interreflection (the gonio scene has none
 worth the cost: the arms are matte black and far away).
