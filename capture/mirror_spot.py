@@ -38,7 +38,7 @@ def spot_centroid(
     image: NDArray[np.float64],
     *,
     name: str = "frame",
-    threshold: float = 0.2,
+    threshold: float = 0.3,
     comparable: float = 0.25,
     margin_px: int = 3,
 ) -> tuple[float, float, dict[str, Any]]:
@@ -51,7 +51,8 @@ def spot_centroid(
     name
         Frame name for messages.
     threshold
-        Blobs are the connected pixels above this fraction of the peak.
+        Blobs are the connected pixels above this fraction of the way from the image's
+        median (the background) to its peak; the spot is the blob holding the peak.
     comparable
         A second blob whose summed signal is at least this fraction of the brightest's
         makes the spot ambiguous.
@@ -76,19 +77,25 @@ def spot_centroid(
     peak = float(finite.max()) if finite.size else 0.0
     if not peak > 0:
         raise SpotError(f"{name}: no light spot (the frame has no signal)")
-    mask = (finite > threshold * peak).astype(np.uint8)
+    # The threshold is set between the frame's median (the background: board, holder)
+    # and the peak, so a bright background does not join the spot's blob.
+    floor = float(np.median(finite))
+    if not peak > floor:
+        raise SpotError(f"{name}: no light spot (nothing brighter than the background)")
+    mask = (finite > floor + threshold * (peak - floor)).astype(np.uint8)
     n, labels, stats, _c = cv2.connectedComponentsWithStats(mask, connectivity=8)
     if n < 2:
         raise SpotError(f"{name}: no light spot above {threshold:g} of the peak")
-    flux = np.bincount(labels.ravel(), weights=finite.ravel(), minlength=n)[1:]
+    flux = np.bincount(labels.ravel(), weights=finite.ravel() - floor, minlength=n)[1:]
     order = np.argsort(flux)[::-1]
-    best = int(order[0]) + 1
-    if n > 2 and flux[order[1]] >= comparable * flux[order[0]]:
-        x2, y2 = stats[order[1] + 1, :2]
+    best = int(labels.flat[int(np.argmax(finite))])  # the blob holding the peak
+    others = [int(k) for k in order if int(k) + 1 != best]
+    if others and flux[others[0]] >= comparable * flux[best - 1]:
+        x2, y2 = stats[others[0] + 1, :2]
         x1, y1 = stats[best, :2]
         raise SpotError(
             f"{name}: two comparable bright blobs (near pixel ({x1}, {y1}) and "
-            f"({x2}, {y2}), signal ratio {flux[order[1]] / flux[order[0]]:.2f}): is "
+            f"({x2}, {y2}), signal ratio {flux[others[0]] / flux[best - 1]:.2f}): is "
             "something else reflecting, or the mirror not where the sample is?"
         )
     x, y, w, h, area = (int(s) for s in stats[best])
@@ -128,7 +135,7 @@ def find_spot(
     frames: RawFrame | Sequence[RawFrame],
     *,
     name: str | None = None,
-    threshold: float = 0.2,
+    threshold: float = 0.3,
     comparable: float = 0.25,
 ) -> tuple[float, float, dict[str, Any]]:
     """The light's mirror image in a bracket: centroid in its least-exposed frame.
