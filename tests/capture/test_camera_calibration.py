@@ -194,3 +194,15 @@ def test_rendered_views_recover_the_renderers_K():
     assert len(c.used) == 8 and c.rms_px < 0.3
     assert np.all(np.abs(est - truth) < 4 * c.K_std), (est - truth, c.K_std)
     assert abs(est[0] / truth[0] - 1) < 5e-3 and abs(est[1] / truth[1] - 1) < 5e-3
+
+
+def test_all_views_degenerate_is_refused_with_the_reason():
+    views = synthetic_views(np.random.default_rng(6), 0.2, n=7)
+    line = []
+    for v in views:  # keep the board's first row only: corners on one line
+        row = np.isclose(v.object_points[:, 1], v.object_points[0, 1])
+        line.append(CalibrationView(v.label, v.ids[row], v.image_points[row],
+                                    v.object_points[row], v.image_size))  # fmt: skip
+    with pytest.raises(CameraCalibrationError, match="0 views with a board, need at least 6") as e:
+        calibrate_camera(line)
+    assert "view 0: its corners lie on one line (degenerate)" in str(e.value)
