@@ -475,6 +475,12 @@ def calibrate_camera(
                 f"the calibration from {len(usable)} views did not converge (all views "
                 "degenerate: the board must be seen at several different tilts)"
             )
+        if not np.isfinite(std_in[:9]).all():
+            raise CameraCalibrationError(
+                f"the calibration from {len(usable)} views leaves some parameters "
+                "undetermined (standard deviations not finite): show the board at more "
+                "different tilts and positions in the image"
+            )
         med = float(np.median(errs))
         bad = [i for i, e in enumerate(errs) if e > outlier_factor * med and e > outlier_floor_px]
         if not bad:

@@ -7,7 +7,6 @@ session or a folder of images, or shot first through the session API exactly as
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
@@ -175,7 +174,9 @@ def plot_calibration(cal: Any, path: Path) -> None:
     type=click.Choice(["simulated", "gphoto2"]),
     default="gphoto2",
     show_default=True,
-    help="With --plan: the camera to shoot with.",
+    help="With --plan: the camera to shoot with; with an image folder: the backend the "
+    "images came from (recorded in the calibration's identity with --camera-model and "
+    "--camera-serial, and checked when the calibration is used).",
 )
 @click.option(
     "--out",
@@ -237,7 +238,6 @@ def camera_cmd(
     --force.
     """
     from gonio.capture.camera_calibration import (
-        CameraCalibrationError,
         calibrate_camera,
         views_from_folder,
         views_from_session,
@@ -285,17 +285,12 @@ def camera_cmd(
         identity, cfa = _session_identity(source, cal.image_size)
     else:
         identity = {
-            "backend": "images",
+            "backend": camera_backend,
             "model": camera_model or "unknown",
             "serial": camera_serial,
             "resolution": list(cal.image_size),
         }
         cfa = None
-    if not all(math.isfinite(x) for x in (*cal.K_std, *cal.dist_std)):
-        raise CameraCalibrationError(
-            "the calibration's standard deviations are not finite (the views do not "
-            "constrain every parameter: show the board at more tilts)"
-        )
     write_camera_calibration(out, cal, identity, cfa_pattern=cfa, force=force)
     if plot:
         plot_calibration(cal, plot_path)
