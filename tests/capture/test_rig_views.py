@@ -105,7 +105,7 @@ def test_observations_of_a_calibration_session(session):
     assert boards[1].joints["light_azimuth"] == pytest.approx(0.1)
     # the drawn spot (the scene's pixel grid: centre of pixel c at c + 0.5 there, at c in
     # OpenCV's; the disk was drawn on the array, so its OpenCV centre is SPOT itself)
-    assert np.allclose(spots[0].image_point, SPOT[:2], atol=0.1), spots[0].image_point
+    assert np.allclose(spots[0].image_point, SPOT[:2], atol=0.05), spots[0].image_point
 
 
 def test_a_changed_frame_is_a_problem_not_an_error(session, tmp_path):
