@@ -396,6 +396,7 @@ def calibrate_camera(
     flags: int = DEFAULT_FLAGS,
     outlier_factor: float = 3.0,
     outlier_floor_px: float = 1.0,
+    source: str | None = None,
 ) -> CameraCalibration:
     """Solve the camera matrix and distortion from board views.
 
@@ -414,6 +415,8 @@ def calibrate_camera(
     outlier_factor, outlier_floor_px
         A view whose reprojection RMS exceeds both ``outlier_factor`` x the median view's
         and ``outlier_floor_px`` is rejected and the solve repeated.
+    source
+        Where the views came from (a session or folder), to name in errors.
 
     Returns
     -------
@@ -425,13 +428,14 @@ def calibrate_camera(
         Fewer than ``min_views`` usable views ("N views with a board, need at least M"),
         images of different sizes, or a solve OpenCV cannot make (degenerate views).
     """
+    where = f"{source}: " if source else ""
     rejected: list[RejectedView] = []
     usable: list[CalibrationView] = []
     sizes = {v.image_size for v in views if v.problem is None}
     if image_size is None:
         if len(sizes) > 1:
             raise CameraCalibrationError(
-                f"the views have different image sizes {sorted(sizes)}; calibrate one "
+                f"{where}the views have different image sizes {sorted(sizes)}; calibrate one "
                 "camera and resolution at a time"
             )
         image_size = next(iter(sizes), (0, 0))
@@ -456,7 +460,7 @@ def calibrate_camera(
     while True:
         if len(usable) < min_views:
             raise CameraCalibrationError(
-                f"{len(usable)} views with a board, need at least {min_views}"
+                f"{where}{len(usable)} views with a board, need at least {min_views}"
                 + (f" ({n_board} with a board found, {len(rejected)} rejected: "
                    + "; ".join(f"{r.label}: {r.reason}" for r in rejected[:5]) + ")"
                    if rejected else "")
@@ -465,19 +469,19 @@ def calibrate_camera(
             rms, K, dist, _r, _t, std_in, _std_ex, per_view = _solve(usable, image_size, flags)
         except cv2.error as exc:
             raise CameraCalibrationError(
-                f"OpenCV could not calibrate from {len(usable)} views (degenerate views: "
+                f"{where}OpenCV could not calibrate from {len(usable)} views (degenerate views: "
                 f"too few distinct board orientations?): {exc.msg.strip()}"
             ) from None
         errs = np.asarray(per_view, float).ravel()
         std_in = np.asarray(std_in, float).ravel()
         if not (np.isfinite(K).all() and np.isfinite(dist).all() and np.isfinite(rms)):
             raise CameraCalibrationError(
-                f"the calibration from {len(usable)} views did not converge (all views "
+                f"{where}the calibration from {len(usable)} views did not converge (all views "
                 "degenerate: the board must be seen at several different tilts)"
             )
         if not np.isfinite(std_in[:9]).all():
             raise CameraCalibrationError(
-                f"the calibration from {len(usable)} views leaves some parameters "
+                f"{where}the calibration from {len(usable)} views leaves some parameters "
                 "undetermined (standard deviations not finite): show the board at more "
                 "different tilts and positions in the image"
             )

@@ -280,7 +280,7 @@ def camera_cmd(
         views = views_from_session(source, board)
     else:
         views = views_from_folder(source, board)
-    cal = calibrate_camera(views, min_views=min_views, min_corners=min_corners)
+    cal = calibrate_camera(views, min_views=min_views, min_corners=min_corners, source=str(source))
     if is_session:
         identity, cfa = _session_identity(source, cal.image_size)
     else:

@@ -92,7 +92,7 @@ def test_too_few_views_is_an_error(folder, tmp_path, capsys):
     code = run("calibrate", "camera", str(few), "--board", str(folder.parent / "board.toml"),
                "--calibration", str(out))  # fmt: skip
     assert code == 1
-    assert "error: 4 views with a board, need at least 6" in capsys.readouterr().err
+    assert f"error: {few}: 4 views with a board, need at least 6" in capsys.readouterr().err
     assert not out.exists()
 
 
