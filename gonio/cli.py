@@ -23,6 +23,7 @@ _SUBCOMMANDS: dict[str, str] = {
     "sim": "gonio.app.sim_cli:sim",
     "rig": "gonio.rig.cli:rig",
     "capture": "gonio.app.capture_cli:capture",
+    "calibrate": "gonio.app.calibrate_cli:calibrate",
     "fit": "gonio.fitting.cli:fit",
     "demo": "gonio.app.demo:demo",
 }
