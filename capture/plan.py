@@ -263,6 +263,9 @@ class SimulationSettings(_Strict):
     """Used only with ``--camera simulated``: the scene the simulator renders."""
 
     scene: str | None = None
+    #: The as-built world: ``"perfect"``, ``"realistic"``, a world TOML (relative to
+    #: the plan) or an inline table (``gonio.simulator.world``).
+    world: str | dict[str, Any] | None = None
     width: int | None = Field(default=None, ge=8)
     height: int | None = Field(default=None, ge=8)
     options: dict[str, Any] = {}
