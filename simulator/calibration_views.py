@@ -102,7 +102,9 @@ def simulated_pose(
     states = {}
     for s in rig.servos:
         zero = s.zero_deg * 4096.0 / 360.0
-        goal = round(zero + s.direction * s.gear_ratio * float(joints[s.joint]) * 4096 / (2 * math.pi))
+        goal = round(
+            zero + s.direction * s.gear_ratio * float(joints[s.joint]) * 4096 / (2 * math.pi)
+        )
         e = int(rng.integers(-n, n + 1)) if (n and rng is not None) else 0
         states[s.id] = (goal + e, int(approach.get(s.joint, 0)) * s.direction)
     reported = readings_from_pulses(rig, {i: st[0] for i, st in states.items()})
@@ -115,7 +117,11 @@ def simulated_pose(
 
 
 def _visible(
-    cam_pts: Array, pix: Array, sample_pts: Array, poses: TruePoses, size: tuple[int, int],
+    cam_pts: Array,
+    pix: Array,
+    sample_pts: Array,
+    poses: TruePoses,
+    size: tuple[int, int],
     max_view_deg: float,
 ) -> Array:
     w, h = size

@@ -369,7 +369,9 @@ def draw_world(
             "fx_scale": fx,
             "fy_scale": fx,
             "principal_offset": tuple(float(x) for x in rng.uniform(-0.01, 0.01, 2)),
-            "dist": tuple(float(rng.uniform(lo, hi)) if hi > lo else 0.0 for lo, hi in _REALISTIC_DIST),
+            "dist": tuple(
+                float(rng.uniform(lo, hi)) if hi > lo else 0.0 for lo, hi in _REALISTIC_DIST
+            ),
         }
         servos = {
             "landing_pulses": 1,

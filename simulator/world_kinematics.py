@@ -33,7 +33,15 @@ from scipy.spatial.transform import Rotation
 
 from gonio.simulator.world import JOINTS, World
 
-__all__ = ["NominalRig", "TruePoses", "joint_truth", "poses_from_joints", "true_poses"]
+__all__ = [
+    "NominalRig",
+    "TruePoses",
+    "approach_from_servos",
+    "joint_truth",
+    "poses_from_joints",
+    "readings_from_pulses",
+    "true_poses",
+]
 
 Array = NDArray[np.float64]
 _PULSES_PER_TURN = 4096.0

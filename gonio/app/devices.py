@@ -84,8 +84,6 @@ def open_session_devices(
     Everything opened is closed on exit (torque off is the session finalizer's job and
     is repeated by the rig's own exit as a last resort).
     """
-    from gonio.rig.kinematics import Kinematics
-
     from gonio.app.world_wiring import (
         as_built_scene,
         nominal_scene,
@@ -94,6 +92,7 @@ def open_session_devices(
         world_pose_provider,
         world_servos,
     )
+    from gonio.rig.kinematics import Kinematics
 
     cfg = request.rig_config
     nominal_cfg = cfg

@@ -47,7 +47,15 @@ def test_realistic_draw_is_seeded_and_within_the_documented_ranges():
 
 
 def test_explicit_values_override_the_draw():
-    w = draw_world("realistic", 3, {"rig": {"stage_tilt.offset": 0.8}, "servos": {"landing_pulses": 0}, "camera": {"fx_scale": 0.02}})
+    w = draw_world(
+        "realistic",
+        3,
+        {
+            "rig": {"stage_tilt.offset": 0.8},
+            "servos": {"landing_pulses": 0},
+            "camera": {"fx_scale": 0.02},
+        },
+    )
     base = draw_world("realistic", 3)
     assert w.rig["stage_tilt.offset"] == 0.8
     assert w.rig["light_azimuth.offset"] == base.rig["light_azimuth.offset"]
@@ -56,7 +64,11 @@ def test_explicit_values_override_the_draw():
 
 
 def test_truth_parameters_are_absolute():
-    w = draw_world("perfect", 0, {"rig": {"light_elevation": 0.3, "camera_radius": 0.001, "stage_tilt.offset": 1.0}})
+    w = draw_world(
+        "perfect",
+        0,
+        {"rig": {"light_elevation": 0.3, "camera_radius": 0.001, "stage_tilt.offset": 1.0}},
+    )
     t = w.truth_parameters({"geometry": {"light_elevation_deg": 10.0, "camera_radius_m": 0.4}})
     assert t["light_elevation"] == pytest.approx(10.3)
     assert t["camera_radius"] == pytest.approx(0.401)
@@ -66,7 +78,17 @@ def test_truth_parameters_are_absolute():
 
 def test_intrinsics_in_opencv_convention():
     cam = Camera(resolution=(400, 300), focal_length=0.016, fov_deg=30.0)
-    w = draw_world("perfect", 0, {"camera": {"fx_scale": 0.01, "principal_offset": [0.01, -0.02], "dist": [0.1, 0, 0, 0, 0]}})
+    w = draw_world(
+        "perfect",
+        0,
+        {
+            "camera": {
+                "fx_scale": 0.01,
+                "principal_offset": [0.01, -0.02],
+                "dist": [0.1, 0, 0, 0, 0],
+            }
+        },
+    )
     K, dist = w.intrinsics(cam)
     f = 200 / np.tan(np.radians(15))  # closed form: half width over tan(half fov)
     assert K[0, 0] == pytest.approx(f * 1.01) and K[1, 1] == pytest.approx(f * 1.01)

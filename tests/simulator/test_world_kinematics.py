@@ -16,8 +16,8 @@ from gonio.rig.config import RigConfig, default_rig_document, rig_config_from_di
 from gonio.rig.kinematics import Kinematics
 from gonio.simulator.world import JOINTS, RIG_PARAMETERS, draw_world
 from gonio.simulator.world_kinematics import (
-    approach_from_servos,
     NominalRig,
+    approach_from_servos,
     joint_truth,
     readings_from_pulses,
     true_poses,
@@ -37,14 +37,21 @@ def _rig_doc(direction_flip: bool = False, gear: float = 1.0) -> dict:
 def calibrated_config(truth: dict, doc: dict) -> RigConfig:
     """The i15 table's 'calibrated config field' column, written with the core's
     Rodrigues (gonio.radiometry.frames.rotation_about), not the simulator's."""
-    doc = {**doc, "servos": [dict(s) for s in doc["servos"]], "geometry": dict(doc.get("geometry", {}))}
+    doc = {
+        **doc,
+        "servos": [dict(s) for s in doc["servos"]],
+        "geometry": dict(doc.get("geometry", {})),
+    }
     for s in doc["servos"]:
         j = s["joint"]
         d, g = s.get("direction", 1), s.get("gear_ratio", 1.0)
         s["zero_deg"] = s.get("zero_deg", 180.0) - d * g * truth[f"{j}.offset"]
         s["backlash_deg"] = truth[f"{j}.backlash"]
         if j == "stage_tilt":
-            s["compliance_deg"] = (truth["stage_tilt.compliance_a"], truth["stage_tilt.compliance_b"])
+            s["compliance_deg"] = (
+                truth["stage_tilt.compliance_a"],
+                truth["stage_tilt.compliance_b"],
+            )
         for lim in ("min_deg", "max_deg"):
             s[lim] = s.get(lim, -180.0 if lim == "min_deg" else 180.0)
         s["operating_mode"] = "extended_position"
@@ -110,9 +117,19 @@ def test_true_poses_equal_asbuilt_rig_poses(seed, odd_servos):
         approach = {s.joint: dirs[s.id] * s.direction for s in nominal.servos}
         ref = rig_poses(cfg, reported, approach)
         got = true_poses(world, doc, states)
-        for name in ("wi", "wo", "light_position", "light_normal", "camera_position",
-                     "camera_rotation", "sample_to_world", "sample_origin"):
-            np.testing.assert_allclose(getattr(got, name), getattr(ref, name), rtol=0, atol=1e-12, err_msg=name)
+        for name in (
+            "wi",
+            "wo",
+            "light_position",
+            "light_normal",
+            "camera_position",
+            "camera_rotation",
+            "sample_to_world",
+            "sample_origin",
+        ):
+            np.testing.assert_allclose(
+                getattr(got, name), getattr(ref, name), rtol=0, atol=1e-12, err_msg=name
+            )
 
 
 def test_perfect_world_is_the_nominal_kinematics():
@@ -125,8 +142,15 @@ def test_perfect_world_is_the_nominal_kinematics():
         joints = {j: float(rng.uniform(-1.2, 1.2)) for j in JOINTS}
         states = {s.id: (s.pulses(joints[s.joint]), 1) for s in cfg.servos}
         ref, got = kin.poses(joints), true_poses(world, doc, states)
-        for name in ("wi", "wo", "light_position", "light_normal", "camera_position",
-                     "camera_rotation", "sample_to_world"):
+        for name in (
+            "wi",
+            "wo",
+            "light_position",
+            "light_normal",
+            "camera_position",
+            "camera_rotation",
+            "sample_to_world",
+        ):
             np.testing.assert_allclose(getattr(got, name), getattr(ref, name), atol=1e-12)
 
 

@@ -87,7 +87,9 @@ def _fast_config():
 def test_rig_moves_with_landing_error_pass_the_one_pulse_check():
     cfg = _fast_config()
     assert cfg.motion.position_tolerance_pulses == 1
-    servos = [VirtualServo(i, position=p, landing_pulses=1, landing_seed=3) for i, p in HOME.items()]
+    servos = [
+        VirtualServo(i, position=p, landing_pulses=1, landing_seed=3) for i, p in HOME.items()
+    ]
     bus = ServoBus(servos, time_scale="virtual")
     rng = np.random.default_rng(2)
     landed = []

@@ -55,7 +55,9 @@ def test_project_matches_cv2_projectPoints():
     rng = np.random.default_rng(0)
     K = np.array([[2000.0, 0, 610.3], [0, 2010.0, 390.7], [0, 0, 1]])
     for _ in range(5):
-        dist = np.concatenate([rng.uniform(-0.2, 0.2, 2), rng.uniform(-2e-3, 2e-3, 2), rng.uniform(-0.05, 0.05, 1)])
+        dist = np.concatenate(
+            [rng.uniform(-0.2, 0.2, 2), rng.uniform(-2e-3, 2e-3, 2), rng.uniform(-0.05, 0.05, 1)]
+        )
         P = np.column_stack([rng.uniform(-0.1, 0.1, (50, 2)), rng.uniform(0.3, 0.6, 50)])
         ref, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, dist)
         np.testing.assert_allclose(project(P, K, dist), ref.reshape(-1, 2), atol=1e-9)
@@ -80,7 +82,9 @@ def test_perfect_world_views_are_the_controllers_projection():
 
 
 def _solve_pnp(view, K, dist):
-    ok, rvec, tvec = cv2.solvePnP(view["object_points"], view["image_points"], K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+    ok, rvec, tvec = cv2.solvePnP(
+        view["object_points"], view["image_points"], K, dist, flags=cv2.SOLVEPNP_ITERATIVE
+    )
     assert ok
     R = cv2.Rodrigues(rvec)[0]  # sample -> camera
     return R, tvec.ravel()
@@ -104,7 +108,15 @@ def test_a_tilt_offset_shows_in_the_measured_camera_pose():
         reported = kin.poses(v["joints"]).camera_rotation.T
         assert _angle(R, reported) == pytest.approx(1.0, abs=0.05)
     perfect = draw_world("perfect")
-    for v in board_views(perfect, DOC, CAM, BOARD, [simulated_pose(perfect, DOC, j, {}) for j in _joints()], 0.05, np.random.default_rng(1)):
+    for v in board_views(
+        perfect,
+        DOC,
+        CAM,
+        BOARD,
+        [simulated_pose(perfect, DOC, j, {}) for j in _joints()],
+        0.05,
+        np.random.default_rng(1),
+    ):
         R, _ = _solve_pnp(v, K, dist)
         assert _angle(R, kin.poses(v["joints"]).camera_rotation.T) < 0.05
 
@@ -113,10 +125,15 @@ def test_noise_and_distortion_of_the_views():
     world = draw_world("realistic", 3)
     K, dist = world.intrinsics(CAM)
     assert np.any(dist != 0)
-    poses = [simulated_pose(world, DOC, j, {"stage_tilt": 1}, np.random.default_rng(2)) for j in _joints()]
+    poses = [
+        simulated_pose(world, DOC, j, {"stage_tilt": 1}, np.random.default_rng(2))
+        for j in _joints()
+    ]
     clean = board_views(world, DOC, CAM, BOARD, poses, 0.0, np.random.default_rng(0))
     noisy = board_views(world, DOC, CAM, BOARD, poses, 0.3, np.random.default_rng(0))
-    d = np.concatenate([n["image_points"] - c["image_points"] for n, c in zip(noisy, clean, strict=True)])
+    d = np.concatenate(
+        [n["image_points"] - c["image_points"] for n, c in zip(noisy, clean, strict=True)]
+    )
     assert d.std() == pytest.approx(0.3, rel=0.15)
     # the clean corners are not the pinhole's: distortion is applied
     from gonio.simulator.world_kinematics import true_poses
@@ -135,11 +152,15 @@ def test_hidden_corners_and_oblique_views_are_left_out():
     world = draw_world("perfect")
     poses = [simulated_pose(world, DOC, j, {}) for j in _joints()]
     all_ = board_views(world, DOC, CAM, BOARD, poses, 0.0, np.random.default_rng(0))
-    cut = board_views(world, DOC, CAM, BOARD, poses, 0.0, np.random.default_rng(0), hidden=(0.05, 0.05))
+    cut = board_views(
+        world, DOC, CAM, BOARD, poses, 0.0, np.random.default_rng(0), hidden=(0.05, 0.05)
+    )
     for a, c in zip(all_, cut, strict=True):
         assert np.all(np.abs(c["object_points"][:, :2]).max(axis=1) >= 0.025)
         assert len(c["ids"]) < len(a["ids"])
-    none = board_views(world, DOC, CAM, BOARD, poses, 0.0, np.random.default_rng(0), max_view_deg=1.0)
+    none = board_views(
+        world, DOC, CAM, BOARD, poses, 0.0, np.random.default_rng(0), max_view_deg=1.0
+    )
     assert none == []
 
 
@@ -178,7 +199,9 @@ def test_camera_views_are_consistent_with_cv2():
     assert views
     board_pts, _ = board_corners(BOARD)
     for v in views:
-        np.testing.assert_allclose(v["camera_points"], v["object_points"] @ v["R"].T + v["t"], atol=1e-12)
+        np.testing.assert_allclose(
+            v["camera_points"], v["object_points"] @ v["R"].T + v["t"], atol=1e-12
+        )
         ref, _ = cv2.projectPoints(v["object_points"], cv2.Rodrigues(v["R"])[0], v["t"], K, dist)
         np.testing.assert_allclose(v["image_points"], ref.reshape(-1, 2), atol=1e-6)
         np.testing.assert_array_equal(v["object_points"], board_pts[v["ids"]])

@@ -1,0 +1,330 @@
+"""The as-built world wired into simulated sessions.
+
+* perfect world: journal and RAW bytes identical to the wiring before worlds existed
+  (re-implemented here: nominal kinematics of the controller's read-back, exact servos,
+  the scene's own camera);
+* realistic world: recorded in the manifest, rebuilt on resume, the camera renders the
+  world's pose (a board measured in a rendered frame shows a 1 deg tilt offset the
+  controller does not know of), reduction.toml keeps the nominal camera;
+* bad --world values exit 1 with a message, nothing written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import tomllib
+
+import numpy as np
+import pytest
+
+from gonio.app.devices import device_opener
+from gonio.app.world_wiring import (
+    as_built_scene,
+    nominal_scene,
+    resolve_world,
+    world_pose_provider,
+    world_servos,
+)
+from gonio.capture.engine import SessionDevices
+from gonio.capture.plan import load_plan
+from gonio.capture.sessions import run_session
+from gonio.cli import run
+from gonio.rig.config import load_rig_config, virtual_rig_document
+from gonio.simulator.world import draw_world, world_document
+
+PLAN = """
+name = "world-test"
+seed = 3
+[grid]
+theta_i_deg = [30]
+phi_i_deg = [0]
+theta_o_deg = [20, 40]
+phi_o_deg = [180]
+[bracket]
+policy = "adaptive"
+roi = [0.42, 0.42, 0.58, 0.58]
+exposure_time_s = 0.0005
+[darks]
+count = 0
+[simulation]
+width = 96
+height = 64
+"""
+
+SCENE = {
+    "sample": {
+        "width": 0.05,
+        "height": 0.05,
+        "brdf": {"model": "lambert", "params": {"albedo": [0.6, 0.5, 0.4]}},
+    },
+    "holder": {"width": 0.16, "height": 0.16, "board": {}},
+    "lights": [
+        {
+            "type": "disk",
+            "position": [0.0, 0.25, 0.433],
+            "look_at": [0.0, 0.0, 0.0],
+            "radius": 0.01,
+            "radiance": [2e4, 2e4, 2e4],
+        }
+    ],
+    "camera": {
+        "resolution": [400, 300],
+        "focal_length": 0.016,
+        "fov_deg": 30.0,
+        "position": [0.1, -0.2, 0.35],
+        "look_at": [0.0, 0.0, 0.0],
+    },
+    "render": {"strategy": "point", "antialias": 1},
+}
+
+
+@pytest.fixture
+def setup(tmp_path):
+    (tmp_path / "rig.toml").write_text(virtual_rig_document())
+    (tmp_path / "plan.toml").write_text(PLAN)
+    return load_plan(tmp_path / "plan.toml"), load_rig_config(tmp_path / "rig.toml")
+
+
+def _legacy_opener():
+    """The session devices as wired before the as-built world (a second implementation
+    of the old composition root, for the perfect-world identity check)."""
+    from gonio.app.sim_reduction import CONFIG_FILE, reduction_document, reduction_toml_text
+    from gonio.rig.device import Rig
+    from gonio.rig.kinematics import Kinematics
+    from gonio.simulator.rig_camera import SimulatedRigCamera
+    from gonio.simulator.servo_clock import parse_time_scale
+    from gonio.simulator.servo_model import VirtualServo
+    from gonio.simulator.virtual_bus import VirtualBus
+
+    @contextlib.contextmanager
+    def opener(request):
+        cfg = request.rig_config
+        sim = dict(request.simulation or {})
+        kin = Kinematics(cfg)
+        refl = request.reference_reflectance
+        if refl is None:
+            refl = sim.get("reference_reflectance")
+        if isinstance(refl, list | tuple):
+            refl = tuple(float(x) for x in refl)
+        park = cfg.park_pulses
+        servos = [VirtualServo(s.id, model=s.model, position=park[s.id]) for s in cfg.servos]
+        with VirtualBus(
+            servos,
+            baud_rate=cfg.bus.baud_rate,
+            seed=request.seed,
+            time_scale=parse_time_scale("virtual"),
+        ) as bus:
+            cfg2 = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})
+            with Rig(cfg2, clock=bus.clock) as rig:
+                camera = SimulatedRigCamera(
+                    dict(sim["scene"]),
+                    lambda: kin.poses({k: float(v) for k, v in rig.read().joints.items()}),
+                    request.seed,
+                    width=sim.get("width"),
+                    height=sim.get("height"),
+                    base_dir=request.session_dir,
+                    **({"reference_albedo": refl} if refl is not None else {}),
+                )
+                setup = reduction_toml_text(reduction_document(camera.scene, refl))
+                try:
+                    yield SessionDevices(
+                        rig,
+                        camera,
+                        light=camera,
+                        target=camera,
+                        kinematics=kin,
+                        sleep=bus.sleep,
+                        read_noise_dn=camera.read_noise_dn,
+                        files={CONFIG_FILE: setup.encode()},
+                    )
+                finally:
+                    camera.close()
+
+    return opener
+
+
+def _journal(session):
+    out = []
+    for line in (session / "journal.jsonl").read_text().splitlines():
+        rec = json.loads(line)
+        for k in [
+            k for k in rec if "time" in k.lower() or k in ("created", "t", "wall", "pid", "host")
+        ]:
+            rec.pop(k)
+        out.append(rec)
+    return out
+
+
+def _raws(session):
+    return {p.name: p.read_bytes() for p in sorted((session / "raw").glob("*"))}
+
+
+def _sim(plan, world=None):
+    sim = {
+        "scene": SCENE,
+        "width": plan.simulation.width,
+        "height": plan.simulation.height,
+        "time_scale": "virtual",
+    }
+    if world is not None:
+        sim["world"] = world_document(world)
+    return sim
+
+
+def test_perfect_world_session_is_todays(setup, tmp_path):
+    plan, cfg = setup
+    run_session(
+        tmp_path / "old",
+        plan,
+        cfg,
+        _legacy_opener(),
+        camera_backend="simulated",
+        simulation=_sim(plan),
+    )
+    run_session(
+        tmp_path / "new",
+        plan,
+        cfg,
+        device_opener(),
+        camera_backend="simulated",
+        simulation=_sim(plan, draw_world("perfect")),
+    )
+    old, new = _journal(tmp_path / "old"), _journal(tmp_path / "new")
+    assert len(old) == len(new) > 2
+    assert old == new
+    assert _raws(tmp_path / "old") == _raws(tmp_path / "new") != {}
+    assert (tmp_path / "old" / "reduction.toml").read_bytes() == (
+        tmp_path / "new" / "reduction.toml"
+    ).read_bytes()
+
+
+def test_realistic_world_is_recorded_and_the_reduction_keeps_the_nominal_camera(setup, tmp_path):
+    plan, cfg = setup
+    world = draw_world("realistic", 6)
+    run_session(
+        tmp_path / "S",
+        plan,
+        cfg,
+        device_opener(),
+        camera_backend="simulated",
+        simulation=_sim(plan, world),
+    )
+    manifest = json.loads((tmp_path / "S" / "manifest.json").read_text())
+    assert resolve_world(recorded=manifest["simulation"]["world"]) == world
+    red = tomllib.loads((tmp_path / "S" / "reduction.toml").read_text())
+    nominal = nominal_scene(SCENE, None, 96, 64).camera
+    K_nominal = nominal.intrinsics() - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    np.testing.assert_allclose(red["camera"]["K"], K_nominal, rtol=1e-12)
+    K_true, _ = world.intrinsics(nominal)
+    assert abs(K_true[0, 0] - K_nominal[0, 0]) > 1e-3 * K_nominal[0, 0]
+    # the same plan in a perfect world: the as-built camera renders other bytes
+    run_session(
+        tmp_path / "P",
+        plan,
+        cfg,
+        device_opener(),
+        camera_backend="simulated",
+        simulation=_sim(plan, draw_world("perfect")),
+    )
+    assert _raws(tmp_path / "S").keys() == _raws(tmp_path / "P").keys()
+    assert _raws(tmp_path / "S") != _raws(tmp_path / "P")
+
+
+def test_world_pose_provider_reads_the_servos_truth(setup):
+    """A 1 deg tilt offset: the frame the camera renders shows a board pose 1 deg off
+    the controller's report (OpenCV detection on a rendered frame)."""
+    from gonio.capture.fiducials import BoardSpec, detect_pose, to_uint8
+    from gonio.rig.device import Rig
+    from gonio.rig.kinematics import Kinematics
+    from gonio.simulator.camera import SimulatedCamera
+    from gonio.simulator.virtual_bus import VirtualBus
+
+    _, cfg = setup
+    world = draw_world("perfect", 0, {"rig": {"stage_tilt.offset": 1.0}})
+    kin = Kinematics(cfg)
+    doc = {**SCENE, "render": {"strategy": "point", "antialias": 3}}
+    scene = as_built_scene(world, nominal_scene(doc, None, 1200, 900))
+    with VirtualBus(
+        world_servos(world, cfg), baud_rate=cfg.bus.baud_rate, time_scale="virtual"
+    ) as bus:
+        cfg2 = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})
+        with Rig(cfg2, clock=bus.clock) as rig:
+            target = {
+                "light_azimuth": math.radians(-60),
+                "camera_azimuth": math.radians(0),
+                "stage_tilt": math.radians(-55),
+                "stage_spin": 0.0,
+            }
+            rig.move_joints(target)
+            reported = kin.poses(rig.read().joints)
+            provider = world_pose_provider(world, cfg, bus)
+            truth = provider()
+            cam = SimulatedCamera(scene, pose_provider=provider)
+            img = cam.render().radiance.mean(axis=-1)
+    grey = to_uint8((img / np.percentile(img, 99)).clip(0, 1).astype(np.float32))
+    K = scene.camera.intrinsics() - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    pose = detect_pose(grey, BoardSpec(), K)
+    angle = math.degrees(pose.angle_to(reported.camera_rotation.T))
+    err = math.degrees(pose.angle_to(truth.camera_rotation.T))
+    assert err < 0.05  # the frame shows the world's pose ...
+    assert angle == pytest.approx(1.0, abs=0.05)  # ... 1 deg off what the controller reports
+
+
+def test_cli_bad_world_exits_1_and_writes_nothing(tmp_path):
+    (tmp_path / "rig.toml").write_text(virtual_rig_document())
+    (tmp_path / "plan.toml").write_text(PLAN)
+    out = tmp_path / "S"
+    code = run(
+        "capture",
+        "run",
+        str(tmp_path / "plan.toml"),
+        "--rig",
+        str(tmp_path / "rig.toml"),
+        "--camera",
+        "simulated",
+        "--out",
+        str(out),
+        "--world",
+        "sloppy",
+        "--quiet",
+    )
+    assert code == 1
+    assert not out.exists() or not any(out.iterdir())
+    (tmp_path / "w.toml").write_text(
+        '[world]\npreset = "realistic"\n[world.rig]\n"stage_tilt.ofset" = 1.0\n'
+    )
+    code = run(
+        "capture",
+        "run",
+        str(tmp_path / "plan.toml"),
+        "--rig",
+        str(tmp_path / "rig.toml"),
+        "--camera",
+        "simulated",
+        "--out",
+        str(out),
+        "--world",
+        str(tmp_path / "w.toml"),
+        "--quiet",
+    )
+    assert code == 1
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_cli_world_needs_the_simulated_camera(tmp_path, capsys):
+    (tmp_path / "rig.toml").write_text(virtual_rig_document())
+    (tmp_path / "plan.toml").write_text(PLAN)
+    code = run(
+        "capture",
+        "run",
+        str(tmp_path / "plan.toml"),
+        "--rig",
+        str(tmp_path / "rig.toml"),
+        "--out",
+        str(tmp_path / "S"),
+        "--world",
+        "realistic",
+    )
+    assert code != 0
