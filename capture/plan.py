@@ -270,6 +270,14 @@ class SimulationSettings(_Strict):
     height: int | None = Field(default=None, ge=8)
     options: dict[str, Any] = {}
 
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> Any:
+        data = handler(self)
+        # No world: dumped as before the field existed (plan digests, sessions resume).
+        if self.world is None and isinstance(data, dict):
+            data.pop("world", None)
+        return data
+
 
 def _physical_memory() -> float:
     try:

@@ -328,3 +328,32 @@ def test_cli_world_needs_the_simulated_camera(tmp_path, capsys):
         "realistic",
     )
     assert code != 0
+
+
+def test_where_the_world_comes_from(tmp_path):
+    """--world > the plan's [simulation] world > the scene's [world] > perfect."""
+    import tomli_w
+
+    from gonio.app.simulation import simulated_run
+
+    scene = {**SCENE, "world": {"preset": "realistic", "seed": 2}}
+    (tmp_path / "scene.toml").write_text(tomli_w.dumps(scene))
+    (tmp_path / "w.toml").write_text('[world]\npreset = "realistic"\nseed = 9\n')
+    base = PLAN + 'scene = "scene.toml"\n'
+    (tmp_path / "a.toml").write_text(base)
+    (tmp_path / "b.toml").write_text(base + 'world = "w.toml"\n')
+    (tmp_path / "c.toml").write_text(PLAN)
+    a, b, c = (load_plan(tmp_path / f"{n}.toml") for n in "abc")
+    doc = world_document
+
+    def world_of(plan, path, *args):
+        return simulated_run(plan, path, None, "virtual", *args).simulation["world"]
+
+    assert world_of(a, tmp_path / "a.toml") == doc(draw_world("realistic", 2))
+    assert world_of(b, tmp_path / "b.toml") == doc(draw_world("realistic", 9))
+    assert world_of(b, tmp_path / "b.toml", "perfect") == doc(draw_world("perfect"))
+    assert world_of(b, tmp_path / "b.toml", "realistic", 4) == doc(draw_world("realistic", 4))
+    assert world_of(c, tmp_path / "c.toml") == doc(draw_world("perfect"))
+    # the renderer never sees the [world] table
+    sim = simulated_run(a, tmp_path / "a.toml", None, "virtual").simulation
+    assert "world" not in sim["scene"]
