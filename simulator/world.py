@@ -18,9 +18,9 @@ Presets
     ==========================  ==================  =============================================
     parameter                   range               source
     ==========================  ==================  =============================================
-    ``<joint>.offset``          +-2 deg             horn and zero mounting (one spline tooth of
-                                                    the X-series horn is ~14 deg; a hand-aligned
-                                                    horn is off by a degree or two)
+    ``<joint>.offset``          +-2 deg             horn and zero mounting of a DIY rig (a
+                                                    degree or two; a typical tolerance, not a
+                                                    manufacturer figure)
     ``<joint>.backlash``        0.15 .. 0.35 deg    ROBOTIS e-Manual: "Backlash 15 [arcmin]
                                                     (0.25 [deg])" on the X-series pages
                                                     (XH430-W350, XM540-W150/W270); the

@@ -9,6 +9,11 @@ session's light and target changer and sees the pose the virtual servos reached.
 A virtual bus keeps servo time on a virtual clock by default (:data:`DEFAULT_TIME_SCALE`,
 ``"virtual"``): moves and settle times cost no wall time, and the journal is the one a
 watched session (a speed-up factor, e.g. ``--sim-speed 20``) writes.
+
+A simulated session renders the as-built world its simulation record names
+(:mod:`gonio.app.world_wiring`; none recorded: ``perfect``, exactly the rig as configured):
+the camera sees the world's true pose of the servos' physical state through the as-built
+lens, while ``reduction.toml`` and the controller keep the nominal rig and camera.
 """
 
 from __future__ import annotations

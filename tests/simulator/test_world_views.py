@@ -174,12 +174,14 @@ def test_spot_is_the_mirror_image_of_the_light():
     poses = []
     for t in (20, 30, 40):
         try:
-            poses.append(simulated_pose(world, DOC, _pose_for(t, t), {}))
+            poses.append(simulated_pose(world, DOC, _pose_for(t, t), {}, label=f"t{t}"))
         except Exception:  # noqa: BLE001
             pass
     spots = spot_views(world, DOC, CAM, (0.05, 0.05), poses, 0.0, np.random.default_rng(0))
     assert len(spots) >= 2
-    for s, pose in zip(spots, poses, strict=False):
+    by_label = {p["label"]: p for p in poses}
+    for s in spots:
+        pose = by_label[s["label"]]
         truth = true_poses(world, DOC, pose["servo_states"])
         und = cv2.undistortPoints(s["image_point"].reshape(1, 1, 2), K, dist).ravel()
         ray = truth.camera_rotation @ np.array([und[0], und[1], 1.0])
