@@ -2,7 +2,7 @@
 
 No rendering: the ChArUco corners (and the mirror spot) a camera would see at a pose of
 the as-built rig, projected with the world's TRUE intrinsics and Brown-Conrady
-distortion, plus Gaussian noise.  Thousands of views cost milliseconds, so a test can
+distortion, plus Gaussian noise.  A view costs about a millisecond, so a test can
 check over many seeds that a calibration's reported uncertainties are honest.
 
 Pixel coordinates are in the OpenCV convention (pixel centres at integer coordinates).
@@ -187,6 +187,7 @@ def board_views(
         ``object_points`` (sample frame, m), ``image_points`` (px).
     """
     K, dist = world.intrinsics(scene_camera)
+    rig_doc = NominalRig.of(rig_doc)  # parsed once, not per pose
     _, sample_pts = board_corners(board)
     ids = np.arange(len(sample_pts))
     keep = np.ones(len(sample_pts), bool)
@@ -239,6 +240,7 @@ def spot_views(
         ``label``, ``joints``, ``approach``, ``image_point`` (2,), px, with noise.
     """
     K, dist = world.intrinsics(scene_camera)
+    rig_doc = NominalRig.of(rig_doc)  # parsed once, not per pose
     w, h = scene_camera.resolution
     out = []
     for k, pose in enumerate(poses):
@@ -292,6 +294,7 @@ def camera_views(
         pose ``R`` (3x3), ``t`` (3,) with ``camera_points = object_points @ R.T + t``.
     """
     K, dist = world.intrinsics(scene_camera)
+    rig_doc = NominalRig.of(rig_doc)  # parsed once, not per pose
     board_pts, sample_pts = board_corners(board)
     Rb, tb = board.board_to_sample()
     ids = np.arange(len(board_pts))

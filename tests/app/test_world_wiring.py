@@ -357,3 +357,16 @@ def test_where_the_world_comes_from(tmp_path):
     # the renderer never sees the [world] table
     sim = simulated_run(a, tmp_path / "a.toml", None, "virtual").simulation
     assert "world" not in sim["scene"]
+
+
+def test_world_servos_start_on_the_worlds_side_of_backlash(setup):
+    from gonio.simulator.world_kinematics import NominalRig, approach_from_servos
+
+    _, cfg = setup
+    world = draw_world("realistic", 12)
+    servos = world_servos(world, cfg)
+    rig = NominalRig.of(cfg.model_dump(mode="json"))
+    got = approach_from_servos(rig, {s.dxl_id: s.last_direction for s in servos})
+    assert got == dict(world.servos.initial_approach)
+    assert {s.dxl_id: s.true_state()[0] for s in servos} == cfg.park_pulses
+    assert all(s.landing_pulses == 1 and s.landing_seed == 12 for s in servos)
