@@ -146,13 +146,11 @@ def _legacy_opener():
 
 
 def _journal(session):
+    """The journal's records without their wall-clock stamps."""
     out = []
     for line in (session / "journal.jsonl").read_text().splitlines():
         rec = json.loads(line)
-        for k in [
-            k for k in rec if "time" in k.lower() or k in ("created", "t", "wall", "pid", "host")
-        ]:
-            rec.pop(k)
+        rec.pop("time", None)
         out.append(rec)
     return out
 
