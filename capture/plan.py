@@ -263,9 +263,20 @@ class SimulationSettings(_Strict):
     """Used only with ``--camera simulated``: the scene the simulator renders."""
 
     scene: str | None = None
+    #: The as-built world: ``"perfect"``, ``"realistic"``, a world TOML (relative to
+    #: the plan) or an inline table (``gonio.simulator.world``).
+    world: str | dict[str, Any] | None = None
     width: int | None = Field(default=None, ge=8)
     height: int | None = Field(default=None, ge=8)
     options: dict[str, Any] = {}
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> Any:
+        data = handler(self)
+        # No world: dumped as before the field existed (plan digests, sessions resume).
+        if self.world is None and isinstance(data, dict):
+            data.pop("world", None)
+        return data
 
 
 def _physical_memory() -> float:

@@ -19,6 +19,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+
 from gonio.rig import control_table as ct
 from gonio.rig.protocol import (
     ERR_ACCESS,
@@ -94,6 +96,15 @@ class VirtualServo:
         The servo clock (s), shared by the servos of a bus (the bus sets it).
     position
         Initial Present Position (pulses).
+    landing_pulses
+        As built: a move ends within +-``landing_pulses`` of its goal (the encoder
+        reports where it ended); 0 lands exactly.
+    landing_seed
+        Seed of the landing errors: move ``n`` of servo ``id`` draws its error from
+        ``default_rng([landing_seed, id, n])``, so a session is reproducible.
+    last_direction
+        Sign of the horn's last move before this servo was made (pulses: +1, -1, 0
+        unknown): which side of its backlash the gear train rests on.
     """
 
     def __init__(
@@ -103,6 +114,10 @@ class VirtualServo:
         firmware: int = 45,
         clock: Callable[[], float] = time.monotonic,
         position: int = 2048,
+        *,
+        landing_pulses: int = 0,
+        landing_seed: int = 0,
+        last_direction: int = 0,
     ) -> None:
         self.model = ct.MODELS[model]
         self.firmware = firmware
@@ -120,6 +135,11 @@ class VirtualServo:
         self._heat = 0.0  # degC above ambient when the present segment (if any) started
         self.registered: tuple[int, bytes] | None = None
         self.torque_log: list[tuple[float, int]] = []  # (clock, torque) for tests and audits
+        self.landing_pulses = int(landing_pulses)
+        self.landing_seed = int(landing_seed)
+        self._moves = 0  # moves with a landing error drawn so far
+        # Physical state, not memory: kept through REBOOT (the gears stay where they are).
+        self._last_direction = int(np.sign(last_direction))
 
     # ------------------------------------------------------------- raw memory
     def _reset_all(self, keep: tuple[str, ...] = ()) -> None:
@@ -181,6 +201,8 @@ class VirtualServo:
     def _end_segment(self, t: float, pos: float) -> None:
         """Stop the present segment at servo time ``t`` at ``pos``, its heat accounted."""
         self._heat = self._heat_at(t)
+        if self._seg is not None and pos != self._seg.p0:
+            self._last_direction = 1 if pos > self._seg.p0 else -1
         self._pos, self._seg = pos, None
 
     def motion_end(self) -> float | None:
@@ -247,7 +269,16 @@ class VirtualServo:
             self._end_segment(now, pos)
         self._pos = pos
         v, a = self._profile()
-        self._seg = _Segment(now, pos, float(goal), v, a)
+        target = float(goal)
+        if self.landing_pulses and abs(goal - pos) > self.landing_pulses:
+            # A real servo stops within a pulse or so of its goal (its deadband); the
+            # encoder reports where.  A goal already within that band does not move it.
+            rng = np.random.default_rng([self.landing_seed, self.dxl_id, self._moves])
+            self._moves += 1
+            target += int(rng.integers(-self.landing_pulses, self.landing_pulses + 1))
+        elif self.landing_pulses:
+            target = pos
+        self._seg = _Segment(now, pos, target, v, a)
         if self.pending_fault is not None:
             bits, frac = self.pending_fault
             self.pending_fault = None
@@ -288,6 +319,22 @@ class VirtualServo:
         with self.lock:
             self._update()
             return _AMBIENT_C + self._heat_at(self.clock())
+
+    @property
+    def last_direction(self) -> int:
+        """Sign of the horn's last motion in pulses (+1, -1; 0 never moved): the side of
+        its backlash the gear train rests on (physical truth, not a register)."""
+        with self.lock:
+            self._update()
+            return self._last_direction
+
+    def true_state(self) -> tuple[int, int]:
+        """(Present Position in pulses, :attr:`last_direction`), read together."""
+        with self.lock:
+            self._update()
+            return self.model["present_position"].to_signed(
+                self.get_u("present_position")
+            ), self._last_direction
 
     @property
     def alert(self) -> bool:

@@ -185,6 +185,15 @@ class ServoBus:
         if ends:
             self.servo_clock.catch_up(max(ends))
 
+    def servo_states(self) -> dict[int, tuple[int, int]]:
+        """The servos' physical truth, by ID: (Present Position in pulses, sign of the
+        horn's last move in pulses: +1, -1, 0 never moved).
+
+        What the as-built world's pose provider reads (not the controller's view): the
+        side of its backlash each gear train rests on is not in any register.
+        """
+        return {i: s.true_state() for i, s in self.servos.items()}
+
     def torque(self) -> dict[int, int]:
         """Torque Enable of every servo, by ID."""
         return {i: s.get("torque_enable") for i, s in self.servos.items()}

@@ -342,6 +342,21 @@ def _common(f):
     default=None,
     help="With --camera simulated: scene TOML (overrides the plan's [simulation]).",
 )
+@click.option(
+    "--world",
+    "world",
+    metavar="perfect|realistic|FILE",
+    default=None,
+    help="With --camera simulated: the as-built world the simulator renders (overrides "
+    "the plan's [simulation] world and the scene's [world]) [default: perfect, the rig "
+    "exactly as configured].",
+)
+@click.option(
+    "--world-seed",
+    type=click.IntRange(min=0),
+    default=None,
+    help="Seed the world's errors are drawn from (a realistic world) [default: 0].",
+)
 @_CAMERA
 @_common
 def run_cmd(
@@ -349,6 +364,8 @@ def run_cmd(
     rig_file: str | None,
     out: Path,
     scene_file: str | None,
+    world: str | None,
+    world_seed: int | None,
     camera_backend: str,
     camera_port: str | None,
     sim_speed: float | str | None,
@@ -379,6 +396,8 @@ def run_cmd(
     from gonio.capture.sessions import plan_session, run_session
 
     check_new_session_dir(out)  # before anything slow or physical
+    if (world is not None or world_seed is not None) and camera_backend != "simulated":
+        raise click.UsageError("--world and --world-seed need --camera simulated")
     plan = load_plan(plan_file)
     cfg = _load_rig(rig_file)
     dry = plan_session(plan, cfg)
@@ -386,7 +405,7 @@ def run_cmd(
     simulation, attachments = None, None
     opener = device_opener(camera_port=camera_port, time_scale=speed)
     if camera_backend == "simulated":
-        sim = simulated_run(plan, plan_file, scene_file, speed)
+        sim = simulated_run(plan, plan_file, scene_file, speed, world, world_seed)
         simulation, attachments, opener = sim.simulation, sim.attachments, sim.opener
     with SessionProgress(quiet) as progress:
         result = run_session(

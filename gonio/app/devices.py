@@ -9,6 +9,11 @@ session's light and target changer and sees the pose the virtual servos reached.
 A virtual bus keeps servo time on a virtual clock by default (:data:`DEFAULT_TIME_SCALE`,
 ``"virtual"``): moves and settle times cost no wall time, and the journal is the one a
 watched session (a speed-up factor, e.g. ``--sim-speed 20``) writes.
+
+A simulated session renders the as-built world its simulation record names
+(:mod:`gonio.app.world_wiring`; none recorded: ``perfect``, exactly the rig as configured):
+the camera sees the world's true pose of the servos' physical state through the as-built
+lens, while ``reduction.toml`` and the controller keep the nominal rig and camera.
 """
 
 from __future__ import annotations
@@ -84,11 +89,24 @@ def open_session_devices(
     Everything opened is closed on exit (torque off is the session finalizer's job and
     is repeated by the rig's own exit as a last resort).
     """
+    from gonio.app.world_wiring import (
+        as_built_scene,
+        nominal_scene,
+        resolve_world,
+        simulated_camera_kwargs,
+        world_pose_provider,
+        world_servos,
+    )
     from gonio.rig.kinematics import Kinematics
 
     cfg = request.rig_config
+    nominal_cfg = cfg
     sim = dict(request.simulation or {})
+    # The as-built world: recorded in the simulation record (a new run writes it there,
+    # resume rebuilds the same one); none recorded: perfect (sessions from before).
+    world = resolve_world(recorded=sim.get("world"))
     kin = Kinematics(cfg)
+    bus = None
     with contextlib.ExitStack() as stack:
         sleep: Callable[[float], None] = time.sleep
         clock: Callable[[], float] | None = None
@@ -98,9 +116,14 @@ def open_session_devices(
             from gonio.simulator.virtual_bus import VirtualBus
 
             scale = parse_time_scale(time_scale or sim.get("time_scale") or DEFAULT_TIME_SCALE)
-            # The virtual rig starts where a real one is left: parked.
-            park = cfg.park_pulses
-            servos = [VirtualServo(s.id, model=s.model, position=park[s.id]) for s in cfg.servos]
+            if world.perfect:
+                # The virtual rig starts where a real one is left: parked.
+                park = cfg.park_pulses
+                servos = [
+                    VirtualServo(s.id, model=s.model, position=park[s.id]) for s in cfg.servos
+                ]
+            else:
+                servos = world_servos(world, cfg)
             bus = VirtualBus(
                 servos, baud_rate=cfg.bus.baud_rate, seed=request.seed, time_scale=scale
             )
@@ -127,21 +150,30 @@ def open_session_devices(
             def poses() -> Any:
                 return kin.poses({k: float(v) for k, v in rig.read().joints.items()})
 
-            camera = SimulatedRigCamera(
+            drawn = nominal_scene(
                 dict(scene) if scene is not None else None,
+                scene_base,
+                sim.get("width"),
+                sim.get("height"),
+            )
+            if not world.perfect and bus is not None:
+                # The camera sees where the rig really is: the world's physics of the
+                # servos' true state, not the controller's read-back.
+                poses = world_pose_provider(world, nominal_cfg, bus)
+            camera = SimulatedRigCamera(
+                as_built_scene(world, drawn),
                 poses,
                 request.seed,
-                width=sim.get("width"),
-                height=sim.get("height"),
-                base_dir=scene_base,
                 **({"reference_albedo": refl} if refl is not None else {}),
+                **simulated_camera_kwargs(world),
             )
             stack.callback(camera.close)
             from gonio.app.sim_reduction import CONFIG_FILE, reduction_document, reduction_toml_text
 
             # The reduction learns the simulated camera as a lab's reduction learns its
-            # camera: from the session's reduction.toml, never from the scene.
-            setup = reduction_toml_text(reduction_document(camera.scene, refl))
+            # camera: from the session's reduction.toml, never from the scene -- and the
+            # NOMINAL camera (the drawing), as a lab knows it before calibrating.
+            setup = reduction_toml_text(reduction_document(drawn, refl))
             yield SessionDevices(
                 rig,
                 camera,

@@ -36,6 +36,9 @@ class SceneSource:
 
     document: dict[str, Any]
     base_dir: Path | None = None
+    #: The scene's ``[world]`` table (the as-built world), kept apart from the document
+    #: the renderer reads.
+    world: dict[str, Any] | None = None
 
 
 def scene_source(plan: Any, plan_path: Path | None, scene_path: str | Path | None) -> SceneSource:
@@ -63,9 +66,12 @@ def scene_source(plan: Any, plan_path: Path | None, scene_path: str | Path | Non
         raise ConfigError(f"{p}: cannot read the simulation scene: {exc.strerror}") from None
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ConfigError(f"{p}: scene is not valid TOML: {exc}") from None
+    from gonio.app.world_wiring import split_scene_world
+
     base = p.resolve().parent
+    doc, world = split_scene_world(doc)
     parse_scene(doc, str(p), base)  # an error names this file, before the session starts
-    return SceneSource(doc, base)
+    return SceneSource(doc, base, world)
 
 
 #: Keys whose string values in a scene document are file paths.
@@ -144,7 +150,12 @@ class SimulatedRun:
 
 
 def simulated_run(
-    plan: Any, plan_path: Path | None, scene_path: str | Path | None, time_scale: Any
+    plan: Any,
+    plan_path: Path | None,
+    scene_path: str | Path | None,
+    time_scale: Any,
+    world: str | None = None,
+    world_seed: int | None = None,
 ) -> SimulatedRun:
     """Everything ``gonio capture run --camera simulated`` and the demo wire the same way.
 
@@ -156,16 +167,30 @@ def simulated_run(
         ``--scene``, overriding the plan's scene; None for the plan's (or the default).
     time_scale
         ``"virtual"`` or a wall-clock speed-up factor of the virtual servos.
+    world, world_seed
+        ``--world`` (``perfect``, ``realistic`` or a world TOML) and ``--world-seed``;
+        None: the plan's ``[simulation] world``, else the scene's ``[world]``, else
+        perfect.  The record holds the whole world, so resume rebuilds it.
     """
     from gonio.app.devices import device_opener
+    from gonio.app.world_wiring import resolve_world
+    from gonio.simulator.world import world_document
 
     source = scene_source(plan, plan_path, scene_path)
+    the_world = resolve_world(
+        world,
+        world_seed,
+        getattr(plan.simulation, "world", None),
+        plan_path.parent if plan_path is not None else None,
+        source.world,
+    )
     document, attachments = relocatable(source)
     simulation = {
         "scene": document,
         "width": plan.simulation.width,
         "height": plan.simulation.height,
         "time_scale": time_scale,
+        "world": world_document(the_world),
     }
     opener = device_opener(scene=source.document, scene_base=source.base_dir, time_scale=time_scale)
     return SimulatedRun(simulation, attachments, opener)
