@@ -88,6 +88,12 @@ class View(NamedTuple):
     has_normal: bool
     light_radius: float  # disk radius, metres (0: a point source)
     n_channels: int
+    # A distorting lens: the (h, w) undistorted normalised coordinates of the crop's
+    # pixels (gonio.capture.fiducials.undistorted_coordinates), the rays' directions;
+    # (0, 0) arrays and False for a pinhole camera, whose rays come from ``cam``.
+    ray_x: NDArray[np.float64]
+    ray_y: NDArray[np.float64]
+    undistorted: bool
 
 
 @njit(**_JIT)
@@ -108,6 +114,7 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     cam, rot, cpos, r0, c0 = view.cam, view.rot, view.cpos, view.r0, view.c0
     roi, grid, light, light_normal = view.roi, view.grid, view.light, view.light_normal
     has_normal, light_radius, n_channels = view.has_normal, view.light_radius, view.n_channels
+    ray_x, ray_y, undistorted = view.ray_x, view.ray_y, view.undistorted
     F, h, w = raws.shape
     n = grid * grid
     label = np.full((h, w), -1, np.int64)
@@ -120,6 +127,9 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
         y = (r0 + i - cy) / fy
         for j in range(w):
             x = (c0 + j - cx) / fx
+            if undistorted:
+                x = ray_x[i, j]
+                y = ray_y[i, j]
             d0 = rot[0, 0] * x + rot[1, 0] * y + rot[2, 0]
             d1 = rot[0, 1] * x + rot[1, 1] * y + rot[2, 1]
             d2 = rot[0, 2] * x + rot[1, 2] * y + rot[2, 2]
@@ -231,7 +241,8 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
                 w_k = expo2[k] / (noise_gain[k] * sig + noise_read2[k] + noise_quant + dv)
                 wsum += w_k
                 vsum += w_k * lin[k] * inv_e[k]
-            # natural vignetting (1 / cos^4) and the point this pixel sees
+            # natural vignetting (1 / cos^4, of the pixel's place on the sensor) and the
+            # point this pixel sees (along its undistorted ray when the lens distorts)
             x = xs[j]
             y = ys[i]
             r2 = x * x + y * y + 1.0
@@ -243,6 +254,9 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
             if sat:
                 val = 0.0
                 var = 0.0
+            if undistorted:
+                x = ray_x[i, j]
+                y = ray_y[i, j]
             d0 = rot[0, 0] * x + rot[1, 0] * y + rot[2, 0]
             d1 = rot[0, 1] * x + rot[1, 1] * y + rot[2, 1]
             d2 = rot[0, 2] * x + rot[1, 2] * y + rot[2, 2]
