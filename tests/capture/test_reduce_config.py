@@ -3,6 +3,7 @@ example file, and the simulated session's document (exact floats)."""
 
 from __future__ import annotations
 
+import hashlib
 import tomllib
 from pathlib import Path
 
@@ -45,6 +46,21 @@ def test_the_example_is_valid_and_says_what_it_means():
     assert setup.reflectance.tolist() == [0.99] * 3
     assert setup.reflectance_std.tolist() == [0.005] * 3
     assert (setup.grid, setup.roi_fraction, setup.geometry) == (3, 0.6, "board")
+    cal = setup.camera_calibration
+    assert cal["rms_px"] == 0.18 and cal["dist_std"][4] == 0.0071
+    assert cal["camera"] == {
+        "backend": "gphoto2",
+        "model": "Nikon D750",
+        "serial": "3021458",
+        "resolution": [6000, 4000],
+    }
+    # the digest the example states is that identity's (canonical JSON typed out here)
+    ident = b'{"backend": "gphoto2", "model": "Nikon D750", "resolution": [6000, 4000], '
+    ident += b'"serial": "3021458"}'
+    assert cal["digest"] == "sha256:" + hashlib.sha256(ident).hexdigest()
+    # the commented `file =` form is valid too
+    text = EXAMPLE.read_text()
+    assert '#   [camera]\n#   file = "camera.toml"\n' in text
 
 
 def test_defaults_of_a_minimal_file(tmp_path):
