@@ -11,7 +11,9 @@ the sample-frame origin, columns along +x, rows along -y (see
    planar) refined by Levenberg-Marquardt,
 4. maps the sample's region of interest: every pixel whose ray meets the sample plane
    inside the ROI, split into a grid of regions, with its sample-frame point, ``wo`` and
-   (given the light position) ``wi``.
+   (given the light position) ``wi``.  With lens distortion (OpenCV coefficients) a
+   pixel's ray is its undistorted one (:func:`undistorted_coordinates`), as the board's
+   pose is solved with the distortion.
 
 Pixel coordinates follow OpenCV: the centre of pixel (row r, column c) is at u = c, v = r.
 """

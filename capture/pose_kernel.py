@@ -18,6 +18,11 @@ It runs serially on the calling thread (``nogil``): the reduction decodes the ne
 on the other core meanwhile, and a serial sum is the same for any thread count.  Compiled
 code is cached next to this module (``cache=True``, ~3 s cold, once per installation).
 
+With lens distortion the pixels' rays come from the undistorted coordinates computed
+once per pose (:func:`gonio.capture.fiducials.undistorted_coordinates`, in ``View``), the
+numpy path's own arrays, so the labels and directions stay the same bit for bit; without
+it the pinhole expressions run as they always did.
+
 Its inputs come as three namedtuples (:class:`Bracket`, :class:`Stencils`, :class:`View`),
 which numba passes as typed structs: named fields instead of 28 positional arguments.
 """
