@@ -297,3 +297,41 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
                 if sat:
                     sums[r, c, SUM_SAT] += wt
     return label, sums, dirs
+
+
+@njit(**_JIT)
+def undistort_pixels(r0, c0, cam, dist, x_out, y_out):
+    """Normalised undistorted coordinates of a crop's pixel centres, by Newton's method.
+
+    ``cam`` is (fx, fy, cx, cy) in pixels, ``dist`` the five OpenCV coefficients (k1, k2,
+    p1, p2, k3); ``x_out``, ``y_out`` (h, w) receive the coordinates ``(X / Z, Y / Z)``
+    whose Brown-Conrady image is each pixel centre ``(c0 + j, r0 + i)``.  The caller
+    checks the round trip (:func:`gonio.capture.fiducials.undistorted_coordinates`).
+    """
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    h, w = x_out.shape
+    for i in range(h):
+        yd = (r0 + i - cy) / fy
+        for j in range(w):
+            xd = (c0 + j - cx) / fx
+            x = xd
+            y = yd
+            for _ in range(30):
+                r2 = x * x + y * y
+                rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                drad = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3))  # d rad / d(x, y) / (x, y)
+                ex = x * rad + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
+                ey = y * rad + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
+                a = rad + drad * x * x + 2.0 * p1 * y + 6.0 * p2 * x
+                b = drad * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+                d = rad + drad * y * y + 6.0 * p1 * y + 2.0 * p2 * x
+                det = a * d - b * b
+                sx = (d * ex - b * ey) / det
+                sy = (a * ey - b * ex) / det
+                x -= sx
+                y -= sy
+                if abs(sx) + abs(sy) < 1e-15:
+                    break
+            x_out[i, j] = x
+            y_out[i, j] = y

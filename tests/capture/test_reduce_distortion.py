@@ -328,3 +328,26 @@ def test_roi_box_holds_the_distorted_image_of_the_roi(views):
     assert inside.sum() > 1000
     assert r.min() >= rs.start and r.max() < rs.stop
     assert c.min() >= cs.start and c.max() < cs.stop
+
+
+def test_opencvs_longer_models_and_a_folding_lens():
+    """Eight coefficients (rational model) go through OpenCV's inversion, checked the
+    same way; a lens model that folds over inside the crop is refused, naming a pixel."""
+    from gonio.errors import ReductionError
+
+    K = np.array([[800.0, 0, 319.5], [0, 800.0, 239.5], [0, 0, 1]])
+    box = (slice(0, 480), slice(0, 640))
+    rational = np.array([-0.2, 0.05, 0.001, 0.0, 0.0, 0.1, 0.0, 0.0])
+    x, y = undistorted_coordinates(K, rational, box)
+    pts = np.c_[x.ravel(), y.ravel(), np.ones(x.size)]
+    uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, rational)
+    v, u = np.mgrid[box]
+    err = np.linalg.norm(uv.reshape(-1, 2) - np.c_[u.ravel(), v.ravel()], axis=1)
+    assert err.max() < UNDISTORT_TOLERANCE_PX
+    # five coefficients: the compiled Newton iteration, against the test's own
+    xn, yn = undistorted_coordinates(K, DIST, box)
+    xr, yr = newton_undistort((u - 319.5) / 800.0, (v - 239.5) / 800.0, DIST)
+    np.testing.assert_allclose(xn, xr, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(yn, yr, rtol=0, atol=1e-12)
+    with pytest.raises(ReductionError, match=r"cannot be inverted at pixel \(u=\d+, v=\d+\)"):
+        undistorted_coordinates(K, [-3.0, 0.0, 0.0, 0.0, 0.0], box)
