@@ -11,7 +11,9 @@ the sample-frame origin, columns along +x, rows along -y (see
    planar) refined by Levenberg-Marquardt,
 4. maps the sample's region of interest: every pixel whose ray meets the sample plane
    inside the ROI, split into a grid of regions, with its sample-frame point, ``wo`` and
-   (given the light position) ``wi``.
+   (given the light position) ``wi``.  With lens distortion (OpenCV coefficients) a
+   pixel's ray is its undistorted one (:func:`undistorted_coordinates`), as the board's
+   pose is solved with the distortion.
 
 Pixel coordinates follow OpenCV: the centre of pixel (row r, column c) is at u = c, v = r.
 """
@@ -455,8 +457,13 @@ def roi_geometry(
     roi_fraction: float = 0.6,
     grid: int = 3,
     margin_px: float = 2.0,
+    dist: ArrayLike | None = None,
 ) -> RoiGeometry:
     """The ROI's crop and grid in one camera pose (see :func:`map_regions`).
+
+    With a distorting lens (``dist``, OpenCV coefficients) the crop is the bounding box
+    of the ROI's distorted image: its outline (corners and edges, which distortion bends)
+    projected with ``cv2.projectPoints``.
 
     Raises
     ------
@@ -469,7 +476,10 @@ def roi_geometry(
     pc = corners @ pose.rotation.T + pose.translation
     if not (np.all(pc[:, 2] > 0) and pose.position[2] > 0):
         raise ReductionError("the sample's ROI is behind the camera or seen from below")
-    uv = (pc @ K.T)[:, :2] / pc[:, 2:3]
+    if has_distortion(dist):
+        uv = _project_outline(corners, pose, K, dist)
+    else:
+        uv = (pc @ K.T)[:, :2] / pc[:, 2:3]
     c0, r0 = np.floor(uv.min(0)).astype(int)
     c1, r1 = np.ceil(uv.max(0)).astype(int) + 1
     H, W = shape
@@ -495,8 +505,135 @@ def roi_geometry(
     )
 
 
+#: Round trip (undistort, then distort with ``cv2.projectPoints``) that
+#: :func:`undistorted_coordinates` guarantees, pixels.
+UNDISTORT_TOLERANCE_PX = 1e-6
+
+
+def has_distortion(dist: ArrayLike | None) -> bool:
+    """Whether OpenCV distortion coefficients bend any ray (None or all zeros do not)."""
+    return dist is not None and bool(np.any(np.asarray(dist, dtype=np.float64) != 0.0))
+
+
+def _project_outline(
+    corners: NDArray[np.float64], pose: CameraPose, K: NDArray[np.float64], dist: ArrayLike
+) -> NDArray[np.float64]:
+    """(n, 2) distorted image (pixels) of a planar polygon's outline, 64 points an edge."""
+    t = np.linspace(0.0, 1.0, 64, endpoint=False)[:, None]
+    nxt = np.roll(corners, -1, axis=0)
+    outline = np.concatenate([a + t * (b - a) for a, b in zip(corners, nxt, strict=True)])
+    rvec = cv2.Rodrigues(np.asarray(pose.rotation, float))[0]
+    uv, _ = cv2.projectPoints(
+        outline, rvec, np.asarray(pose.translation, float), K, np.asarray(dist, float)
+    )
+    return uv.reshape(-1, 2)
+
+
+def undistorted_coordinates(
+    K: ArrayLike, dist: ArrayLike, box: tuple[slice, slice]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Normalised undistorted coordinates of every pixel centre of a crop.
+
+    Parameters
+    ----------
+    K
+        3x3 camera matrix, pixels (OpenCV convention: pixel centres at integers).
+    dist
+        OpenCV distortion coefficients (k1, k2, p1, p2[, k3[, ...]]), dimensionless.
+    box
+        ``(row_slice, col_slice)`` of the crop in the image.
+
+    Returns
+    -------
+    (x, y)
+        Two (h, w) arrays: the pinhole coordinates ``(X / Z, Y / Z)`` of the ray each
+        pixel sees (dimensionless), i.e. the points that ``cv2.projectPoints`` distorts
+        onto the pixel centres.
+
+    Raises
+    ------
+    ReductionError
+        When neither the Newton iteration nor OpenCV's inverts the distortion to
+        :data:`UNDISTORT_TOLERANCE_PX` on the crop's border or its 8-pixel grid
+        (coefficients so strong that the lens model folds over inside the image).
+    """
+    K = np.asarray(K, dtype=np.float64)
+    dist = np.asarray(dist, dtype=np.float64)
+    v, u = np.mgrid[box[0].start : box[0].stop, box[1].start : box[1].stop]
+    h, w = v.shape
+    pix = np.stack([u.ravel(), v.ravel()], axis=-1).astype(np.float64).reshape(-1, 1, 2)
+    xy = _newton_undistort(K, dist, box, (h, w))
+    if xy is None or _round_trip_error(xy, pix, K, dist, h, w)[0] is not None:
+        # 20 fixed-point steps take a moderate lens (|k1| ~ 0.2) to ~1e-13 px; the 30
+        # allowed are a margin, and the round trip below checks the result
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-15)
+        xy = cv2.undistortPoints(pix, K, dist, R=np.eye(3), P=np.eye(3), criteria=crit)
+        xy = xy.reshape(-1, 2)
+    k, e = _round_trip_error(xy, pix, K, dist, h, w)
+    if k is not None:
+        raise ReductionError(
+            f"camera dist {dist.tolist()}: the distortion cannot be inverted at pixel "
+            f"(u={int(pix[k, 0, 0])}, v={int(pix[k, 0, 1])}) (round trip {e:.3g} px, "
+            f"expected <= {UNDISTORT_TOLERANCE_PX:g} px); check the camera calibration"
+        )
+    return xy[:, 0].reshape(h, w).copy(), xy[:, 1].reshape(h, w).copy()
+
+
+def _newton_undistort(
+    K: NDArray[np.float64], dist: NDArray[np.float64], box: tuple[slice, slice], shape: tuple
+) -> NDArray[np.float64] | None:
+    """(h w, 2) undistorted coordinates by the compiled Newton iteration (five or fewer
+    coefficients; ~20x faster than ``cv2.undistortPoints``), or None without numba or for
+    OpenCV's longer models."""
+    if len(dist) > 5 and np.any(dist[5:] != 0):
+        return None
+    try:
+        from gonio.capture.pose_kernel import undistort_pixels
+    except ImportError:
+        return None
+    d5 = np.zeros(5)
+    d5[: min(len(dist), 5)] = dist[:5]
+    x, y = np.empty(shape), np.empty(shape)
+    cam = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    undistort_pixels(int(box[0].start), int(box[1].start), cam, d5, x, y)
+    return np.stack([x.ravel(), y.ravel()], axis=-1)
+
+
+def _round_trip_error(
+    xy: NDArray[np.float64],
+    pix: NDArray[np.float64],
+    K: NDArray[np.float64],
+    dist: NDArray[np.float64],
+    h: int,
+    w: int,
+) -> tuple[int | None, float]:
+    """``(index, px)`` of the worst round trip above the tolerance, or ``(None, px)``."""
+    # The round trip on the crop's border (farthest from the centre: where the iteration
+    # converges slowest) and every 8th row and column: the map is smooth, and
+    # cv2.projectPoints over every pixel would cost 4x the undistortion itself.
+    sel = np.zeros((h, w), bool)
+    sel[::8, ::8] = sel[[0, -1], :] = sel[:, [0, -1]] = True
+    idx = np.flatnonzero(sel)
+    back, _ = cv2.projectPoints(
+        np.concatenate([xy[idx], np.ones((len(idx), 1))], axis=1),
+        np.zeros(3),
+        np.zeros(3),
+        K,
+        dist,
+    )
+    err = np.linalg.norm(back.reshape(-1, 2) - pix.reshape(-1, 2)[idx], axis=1)
+    err = np.where(np.isfinite(err), err, np.inf)
+    bad = int(np.argmax(err))
+    if err[bad] <= UNDISTORT_TOLERANCE_PX:
+        return None, float(err[bad])
+    return int(idx[bad]), float(err[bad])
+
+
 def pixel_rays(
-    pose: CameraPose, K: ArrayLike, box: tuple[slice, slice]
+    pose: CameraPose,
+    K: ArrayLike,
+    box: tuple[slice, slice],
+    dist: ArrayLike | None = None,
 ) -> tuple[tuple[NDArray, NDArray, NDArray], NDArray[np.float64]]:
     """Sample-plane point seen by every pixel of a crop, and its natural vignetting.
 
@@ -504,12 +641,22 @@ def pixel_rays(
     frame, metres (NaN off the plane), the vignetting is cos^4 of the angle to the optical
     axis.  One (h, w) array per component: numpy's batched (h, w, 3) @ (3, 3) products and
     norms over a last axis of 3 are several times slower.
+
+    With a distorting lens (``dist``) each pixel's ray is the undistorted one
+    (:func:`undistorted_coordinates`), while the vignetting stays that of the pixel's
+    place on the sensor: the cos^4 law is the image side's (the exit pupil seen from the
+    pixel), which distortion, a remapping of object-side directions, does not change
+    (the simulator's sensor applies it so too).  Without distortion (None or zeros) the
+    pinhole expressions run unchanged, to the bit.
     """
     K = np.asarray(K, float)
     x = ((np.arange(box[1].start, box[1].stop, dtype=np.float64) - K[0, 2]) / K[0, 0])[None, :]
     y = ((np.arange(box[0].start, box[0].stop, dtype=np.float64) - K[1, 2]) / K[1, 1])[:, None]
     r2 = x * x + y * y + 1.0
     vign = 1.0 / (r2 * r2)
+    if has_distortion(dist):
+        assert dist is not None
+        x, y = undistorted_coordinates(K, dist, box)
     Rm = pose.rotation
     d = [Rm[0, k] * x + Rm[1, k] * y + Rm[2, k] for k in range(3)]  # sample frame (R^T d)
     C = pose.position
@@ -535,6 +682,8 @@ class RegionMap:
         The camera pose the regions were mapped with.
     K
         The camera matrix.
+    dist
+        The lens distortion (OpenCV coefficients), None for none.
     """
 
     box: tuple[slice, slice]
@@ -544,10 +693,11 @@ class RegionMap:
     pose: CameraPose
     K: NDArray[np.float64]
     extra: dict[str, Any] = field(default_factory=dict)
+    dist: NDArray[np.float64] | None = None
 
     def _rays(self) -> tuple[tuple[NDArray, NDArray, NDArray], NDArray[np.float64]]:
         if "_rays" not in self.extra:  # computed once, on first use
-            self.extra["_rays"] = pixel_rays(self.pose, self.K, self.box)
+            self.extra["_rays"] = pixel_rays(self.pose, self.K, self.box, self.dist)
         return self.extra["_rays"]
 
     @property
@@ -585,6 +735,7 @@ def map_regions(
     roi_fraction: float = 0.6,
     grid: int = 3,
     margin_px: float = 2.0,
+    dist: ArrayLike | None = None,
 ) -> RegionMap:
     """Split the sample's central area into ``grid x grid`` regions and find their pixels.
 
@@ -605,6 +756,9 @@ def map_regions(
     margin_px
         Pixels whose centre lies closer than this to a region boundary (in the image) are
         left out, so no pixel mixes two regions or the holder.
+    dist
+        Lens distortion (OpenCV coefficients): every pixel's ray is then the undistorted
+        one (:func:`pixel_rays`); None or zeros keep the pinhole camera.
 
     Raises
     ------
@@ -613,9 +767,17 @@ def map_regions(
     """
     K = np.asarray(K, float)
     roi = roi_geometry(
-        pose, K, shape, sample_size, roi_fraction=roi_fraction, grid=grid, margin_px=margin_px
+        pose,
+        K,
+        shape,
+        sample_size,
+        roi_fraction=roi_fraction,
+        grid=grid,
+        margin_px=margin_px,
+        dist=dist,
     )
-    xyz, vign = rays = pixel_rays(pose, K, roi.box)
+    dist = np.asarray(dist, float) if has_distortion(dist) else None
+    xyz, vign = rays = pixel_rays(pose, K, roi.box, dist)
     (hw, hh), (cell_x, cell_y), m = roi.half_size, roi.cell, roi.margin
     ux, uy = xyz[0] + hw, xyz[1] + hh
     ix = np.floor(ux / cell_x)
@@ -625,7 +787,7 @@ def map_regions(
     inside = (ix >= 0) & (ix < grid) & (iy >= 0) & (iy < grid)
     inside &= (fx > m) & (fx < cell_x - m) & (fy > m) & (fy < cell_y - m)
     label = np.where(inside, iy * grid + ix, -1).astype(np.int64)
-    return RegionMap(roi.box, label, grid * grid, roi.centers, pose, K, {"_rays": rays})
+    return RegionMap(roi.box, label, grid * grid, roi.centers, pose, K, {"_rays": rays}, dist)
 
 
 def directions_to(points: NDArray[np.float64], position: ArrayLike) -> NDArray[np.float64]:

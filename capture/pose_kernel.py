@@ -18,6 +18,11 @@ It runs serially on the calling thread (``nogil``): the reduction decodes the ne
 on the other core meanwhile, and a serial sum is the same for any thread count.  Compiled
 code is cached next to this module (``cache=True``, ~3 s cold, once per installation).
 
+With lens distortion the pixels' rays come from the undistorted coordinates computed
+once per pose (:func:`gonio.capture.fiducials.undistorted_coordinates`, in ``View``), the
+numpy path's own arrays, so the labels and directions stay the same bit for bit; without
+it the pinhole expressions run as they always did.
+
 Its inputs come as three namedtuples (:class:`Bracket`, :class:`Stencils`, :class:`View`),
 which numba passes as typed structs: named fields instead of 28 positional arguments.
 """
@@ -88,6 +93,12 @@ class View(NamedTuple):
     has_normal: bool
     light_radius: float  # disk radius, metres (0: a point source)
     n_channels: int
+    # A distorting lens: the (h, w) undistorted normalised coordinates of the crop's
+    # pixels (gonio.capture.fiducials.undistorted_coordinates), the rays' directions;
+    # (0, 0) arrays and False for a pinhole camera, whose rays come from ``cam``.
+    ray_x: NDArray[np.float64]
+    ray_y: NDArray[np.float64]
+    undistorted: bool
 
 
 @njit(**_JIT)
@@ -108,6 +119,7 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     cam, rot, cpos, r0, c0 = view.cam, view.rot, view.cpos, view.r0, view.c0
     roi, grid, light, light_normal = view.roi, view.grid, view.light, view.light_normal
     has_normal, light_radius, n_channels = view.has_normal, view.light_radius, view.n_channels
+    ray_x, ray_y, undistorted = view.ray_x, view.ray_y, view.undistorted
     F, h, w = raws.shape
     n = grid * grid
     label = np.full((h, w), -1, np.int64)
@@ -120,6 +132,9 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
         y = (r0 + i - cy) / fy
         for j in range(w):
             x = (c0 + j - cx) / fx
+            if undistorted:
+                x = ray_x[i, j]
+                y = ray_y[i, j]
             d0 = rot[0, 0] * x + rot[1, 0] * y + rot[2, 0]
             d1 = rot[0, 1] * x + rot[1, 1] * y + rot[2, 1]
             d2 = rot[0, 2] * x + rot[1, 2] * y + rot[2, 2]
@@ -231,7 +246,8 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
                 w_k = expo2[k] / (noise_gain[k] * sig + noise_read2[k] + noise_quant + dv)
                 wsum += w_k
                 vsum += w_k * lin[k] * inv_e[k]
-            # natural vignetting (1 / cos^4) and the point this pixel sees
+            # natural vignetting (1 / cos^4, of the pixel's place on the sensor) and the
+            # point this pixel sees (along its undistorted ray when the lens distorts)
             x = xs[j]
             y = ys[i]
             r2 = x * x + y * y + 1.0
@@ -243,6 +259,9 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
             if sat:
                 val = 0.0
                 var = 0.0
+            if undistorted:
+                x = ray_x[i, j]
+                y = ray_y[i, j]
             d0 = rot[0, 0] * x + rot[1, 0] * y + rot[2, 0]
             d1 = rot[0, 1] * x + rot[1, 1] * y + rot[2, 1]
             d2 = rot[0, 2] * x + rot[1, 2] * y + rot[2, 2]
@@ -278,3 +297,41 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
                 if sat:
                     sums[r, c, SUM_SAT] += wt
     return label, sums, dirs
+
+
+@njit(**_JIT)
+def undistort_pixels(r0, c0, cam, dist, x_out, y_out):
+    """Normalised undistorted coordinates of a crop's pixel centres, by Newton's method.
+
+    ``cam`` is (fx, fy, cx, cy) in pixels, ``dist`` the five OpenCV coefficients (k1, k2,
+    p1, p2, k3); ``x_out``, ``y_out`` (h, w) receive the coordinates ``(X / Z, Y / Z)``
+    whose Brown-Conrady image is each pixel centre ``(c0 + j, r0 + i)``.  The caller
+    checks the round trip (:func:`gonio.capture.fiducials.undistorted_coordinates`).
+    """
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    h, w = x_out.shape
+    for i in range(h):
+        yd = (r0 + i - cy) / fy
+        for j in range(w):
+            xd = (c0 + j - cx) / fx
+            x = xd
+            y = yd
+            for _ in range(30):
+                r2 = x * x + y * y
+                rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                drad = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3))  # d rad / d(x, y) / (x, y)
+                ex = x * rad + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
+                ey = y * rad + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
+                a = rad + drad * x * x + 2.0 * p1 * y + 6.0 * p2 * x
+                b = drad * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+                d = rad + drad * y * y + 6.0 * p1 * y + 2.0 * p2 * x
+                det = a * d - b * b
+                sx = (d * ex - b * ey) / det
+                sy = (a * ey - b * ex) / det
+                x -= sx
+                y -= sy
+                if abs(sx) + abs(sy) < 1e-15:
+                    break
+            x_out[i, j] = x
+            y_out[i, j] = y

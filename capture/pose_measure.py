@@ -25,8 +25,10 @@ from gonio.capture.fiducials import (
     RegionMap,
     angle_between,
     detect_pose_in_frame,
+    has_distortion,
     map_regions,
     roi_geometry,
+    undistorted_coordinates,
 )
 from gonio.capture.hdr import check_bracket, merge_bracket
 from gonio.capture.raw import CHANNELS, RawFrame
@@ -275,6 +277,7 @@ def _pose_sums_numpy(
         setup.sample_size,
         roi_fraction=setup.roi_fraction,
         grid=setup.grid,
+        dist=setup.dist,
     )
     merged = merge_bracket(frames, setup.noise, dark_variance, region=regions.box)
     n, nc = regions.n_regions, len(CHANNELS)
@@ -380,6 +383,7 @@ def _pose_sums_fused(
         setup.sample_size,
         roi_fraction=setup.roi_fraction,
         grid=setup.grid,
+        dist=setup.dist,
     )
     box = roi.box
     r0, c0 = box[0].start, box[1].start
@@ -411,6 +415,11 @@ def _pose_sums_fused(
         for t, e in enumerate(entries):
             st[:, 2 * y0 + x0, t] = e
     K = np.asarray(setup.K, float)
+    dist = np.asarray(setup.dist, float) if has_distortion(setup.dist) else None
+    if dist is not None:  # once per pose: the kernel reads each pixel's ray from these
+        ray_x, ray_y = undistorted_coordinates(K, dist, box)
+    else:
+        ray_x = ray_y = np.zeros((0, 0))
     hw, hh = roi.half_size
     bracket = pk.Bracket(
         raws=np.stack([f.raw[box] for f in frames]),
@@ -445,9 +454,12 @@ def _pose_sums_fused(
         has_normal=light_normal is not None,
         light_radius=float(setup.light_radius or 0.0),
         n_channels=len(CHANNELS),
+        ray_x=ray_x,
+        ray_y=ray_y,
+        undistorted=dist is not None,
     )
     label, sums, dirs = kernel(bracket, stencils, view)
-    regions = RegionMap(box, label, roi.grid**2, roi.centers, cam, K)
+    regions = RegionMap(box, label, roi.grid**2, roi.centers, cam, K, dist=dist)
     return regions, sums, dirs
 
 

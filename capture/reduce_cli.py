@@ -26,6 +26,15 @@ from gonio.errors import ReductionError
     "examples/reduction.toml) to use instead of SESSION/reduction.toml.",
 )
 @click.option(
+    "--camera-calibration",
+    "camera_file",
+    type=click.Path(dir_okay=False, exists=True, path_type=Path),
+    default=None,
+    help="Camera calibration from 'gonio calibrate camera' (camera.toml): its [camera] "
+    "replaces the reduction setup's.  One made with another camera than the session's "
+    "is refused.",
+)
+@click.option(
     "--noise",
     "noise_file",
     type=click.Path(dir_okay=False, exists=True, path_type=Path),
@@ -77,6 +86,7 @@ def reduce_cmd(
     session_dir: Path,
     out: Path | None,
     config_file: Path | None,
+    camera_file: Path | None,
     noise_file: Path | None,
     grid: int | None,
     roi_fraction: float | None,
@@ -99,7 +109,8 @@ def reduce_cmd(
 
     \b
     The camera matrix, board, sample size, light and noise model come from
-    SESSION/reduction.toml (or --config; see examples/reduction.toml).
+    SESSION/reduction.toml (or --config; see examples/reduction.toml); the camera from
+    its [camera] table, its [camera] file = "camera.toml", or --camera-calibration.
 
     \b
     Writes SESSION/samples.h5 (see gonio.dataset), SESSION/reduction.json (samples kept
@@ -121,7 +132,13 @@ def reduce_cmd(
 
     console = Console(stderr=True, quiet=quiet)
     noise = NoiseModel.load(noise_file) if noise_file else None
-    setup = resolve_setup(session_dir, load_manifest(session_dir), noise, config=config_file)
+    setup = resolve_setup(
+        session_dir,
+        load_manifest(session_dir),
+        noise,
+        config=config_file,
+        camera_calibration=camera_file,
+    )
     upd = {
         k: v
         for k, v in dict(

@@ -16,8 +16,10 @@ naming the file and the field, as for plans, rigs and scenes.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -31,14 +33,21 @@ from gonio.capture.fiducials import BoardSpec
 from gonio.capture.noise import NoiseModel
 from gonio.capture.raw import CameraSignature
 from gonio.config import read_toml, validate
-from gonio.errors import FileFormatError, ReductionError, SessionError
+from gonio.errors import ConfigError, FileFormatError, ReductionError, SessionError
 
 __all__ = [
     "CONFIG_FILE",
+    "CameraCalibrationSection",
+    "CameraIdentity",
+    "CameraSection",
     "NOISE_FILE",
     "NoiseDocument",
     "ReductionConfig",
     "ReductionSetup",
+    "camera_identity",
+    "check_camera_identity",
+    "identity_digest",
+    "load_camera_file",
     "load_noise",
     "load_reduction_config",
     "resolve_setup",
@@ -60,15 +69,59 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class CameraIdentity(BaseModel):
+    """``[camera.calibration.camera]``: the camera a calibration was made with, as its
+    ``describe()`` reports it (other keys are kept)."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+    backend: str
+    model: str
+    serial: str | None = None
+    resolution: tuple[Annotated[int, Field(ge=1)], Annotated[int, Field(ge=1)]] | None = None
+
+
+class CameraCalibrationSection(BaseModel):
+    """``[camera.calibration]``: how ``gonio calibrate camera`` found the ``[camera]``
+    numbers: their standard deviations, the reprojection RMS, the camera's identity and
+    its digest (further keys, such as the views used and rejected, are kept as given)."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+    K_std: tuple[tuple[NonNegative, ...], ...] | tuple[NonNegative, ...] | None = None
+    dist_std: tuple[NonNegative, ...] | None = None
+    rms_px: NonNegative | None = None
+    camera: CameraIdentity | None = None
+    digest: Annotated[str, Field(pattern=r"^sha256:[0-9a-f]{64}$")] | None = None
+    created: str | None = None
+
+
 class CameraSection(_Strict):
     """``[camera]``: intrinsics (OpenCV convention: pixel centres at integers) and the
-    CFA layout and size every frame of the session must have."""
+    CFA layout and size every frame of the session must have; or ``file`` naming a
+    camera calibration (``gonio calibrate camera --out camera.toml``) relative to the
+    ``reduction.toml``, whose ``[camera]`` table gives all of them."""
 
-    K: tuple[Row3, Row3, Row3]
+    file: str | None = None
+    K: tuple[Row3, Row3, Row3] | None = None
     dist: tuple[Finite, ...] | None = None
     cfa_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] | None = None
     width: Annotated[int, Field(ge=1)] | None = None
     height: Annotated[int, Field(ge=1)] | None = None
+    calibration: CameraCalibrationSection | None = None
+
+    @model_validator(mode="after")
+    def _file_or_numbers(self) -> CameraSection:
+        if self.file is not None:
+            given = [k for k in self.model_fields_set if k != "file"]
+            if given:
+                raise ValueError(
+                    f"give file = 'camera.toml' or the camera's numbers, not both (also "
+                    f"given: {', '.join(sorted(given))})"
+                )
+        elif self.K is None:
+            raise ValueError("give K (3x3 camera matrix, pixels), or file = 'camera.toml'")
+        return self
 
     @field_validator("cfa_pattern", mode="before")
     @classmethod
@@ -77,7 +130,9 @@ class CameraSection(_Strict):
 
     @field_validator("K")
     @classmethod
-    def _camera_matrix(cls, v: tuple[Row3, Row3, Row3]) -> tuple[Row3, Row3, Row3]:
+    def _camera_matrix(cls, v: tuple[Row3, Row3, Row3] | None) -> tuple[Row3, Row3, Row3] | None:
+        if v is None:
+            return v
         if not (v[0][0] > 0 and v[1][1] > 0):
             raise ValueError(f"focal lengths K[0][0] and K[1][1] must be > 0 pixels, got {v}")
         if tuple(v[2]) != (0.0, 0.0, 1.0):
@@ -240,6 +295,11 @@ class ReductionSetup:
         0.04 deg pose error is a percent of BRDF, shared by every region of the pose.
     min_snr
         Regions whose signal-to-noise ratio is lower are flagged UNDEREXPOSED.
+    camera_calibration
+        The camera calibration's ``[camera.calibration]`` table (standard deviations,
+        RMS, camera identity and digest) when the camera came from one, else None.
+    camera_file
+        The camera calibration file it came from, None for numbers in the document.
     """
 
     K: NDArray[np.float64]
@@ -257,6 +317,8 @@ class ReductionSetup:
     position_tolerance_m: float = 0.01
     min_snr: float = 5.0
     geometry: str = "board"
+    camera_calibration: dict[str, Any] | None = None
+    camera_file: str | None = None
 
     def replace(self, **changes: Any) -> ReductionSetup:
         """A copy with some fields changed (``dataclasses.replace``)."""
@@ -279,6 +341,127 @@ def load_noise(path: str | os.PathLike) -> NoiseModel:
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise FileFormatError(p, f"not a readable JSON noise model ({exc})") from None
     return validate(NoiseDocument, doc, f"{p} (noise model)").model()
+
+
+def load_camera_file(path: str | os.PathLike) -> CameraSection:
+    """Read the ``[camera]`` table of a camera calibration file (``gonio calibrate camera
+    --out camera.toml``), with its ``[camera.calibration]`` sub-table.
+
+    Raises
+    ------
+    ConfigError
+        Unreadable, not TOML, no ``[camera]`` table, or a field missing or wrong (names
+        the file and the field); a camera file that names another (``file =``).
+    """
+    p = Path(path)
+    doc = read_toml(p, "camera calibration")
+    if not isinstance(doc.get("camera"), dict):
+        raise ConfigError(
+            f"{p}: field 'camera': missing: a camera calibration holds a [camera] table "
+            "(K, dist, width, height, cfa_pattern; from gonio calibrate camera)"
+        )
+    cam = validate(CameraSection, doc["camera"], f"{p} (camera calibration), table [camera]")
+    if cam.file is not None:
+        raise ConfigError(
+            f"{p} (camera calibration): field 'camera.file': a camera file must give the "
+            f"camera's numbers itself, not name another file ({cam.file!r})"
+        )
+    return cam
+
+
+def camera_identity(record: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The identity ``{backend, model, serial, resolution}`` of a manifest's camera record
+    (:meth:`gonio.devices.CameraInfo.to_json`), or None when it records no backend and
+    model.  ``serial`` and ``resolution`` are read from the record or its ``settings``
+    (None when absent); ``resolution`` is ``[width, height]``, pixels."""
+    if not isinstance(record, Mapping) or not record.get("backend") or not record.get("model"):
+        return None
+    settings = record.get("settings") or {}
+
+    def pick(key: str) -> Any:
+        v = record.get(key)
+        return settings.get(key) if v is None and isinstance(settings, Mapping) else v
+
+    res = pick("resolution")
+    return {
+        "backend": str(record["backend"]),
+        "model": str(record["model"]),
+        "serial": None if pick("serial") is None else str(pick("serial")),
+        "resolution": None if res is None else [int(x) for x in res],
+    }
+
+
+def identity_digest(identity: Mapping[str, Any]) -> str:
+    """``"sha256:<hex>"`` of a camera identity's canonical JSON (sorted keys, as the
+    session's plan and rig digests)."""
+    doc = {
+        "backend": identity.get("backend"),
+        "model": identity.get("model"),
+        "serial": identity.get("serial"),
+        "resolution": None
+        if identity.get("resolution") is None
+        else [int(x) for x in identity["resolution"]],
+    }
+    return "sha256:" + hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
+
+def check_camera_identity(setup: ReductionSetup, manifest: Mapping[str, Any]) -> None:
+    """Refuse a camera calibration made with another camera than the session's.
+
+    Checked when the calibration carries a ``digest`` and the manifest records the
+    camera (:func:`camera_identity`).  The calibration is accepted when its digest is
+    the session camera's, or when its recorded ``camera`` identity is the session's
+    field by field.
+
+    Raises
+    ------
+    ReductionError
+        Naming the calibration file, both digests and the fields that differ.
+    """
+    cal = setup.camera_calibration or {}
+    digest = cal.get("digest")
+    session = camera_identity(manifest.get("camera") or {})
+    if digest is None or session is None:
+        return
+    ours = identity_digest(session)
+    if digest == ours:
+        return
+    theirs = cal.get("camera")
+    if isinstance(theirs, Mapping):
+        mine = {k: theirs.get(k) for k in session}
+        if mine.get("resolution") is not None:
+            mine["resolution"] = [int(x) for x in mine["resolution"]]
+        if mine == session:
+            return
+        diff = "; ".join(
+            f"{k}: calibration {mine[k]!r}, session {session[k]!r}"
+            for k in session
+            if mine[k] != session[k]
+        )
+    else:
+        diff = f"session camera {session}"
+    raise ReductionError(
+        f"{setup.camera_file or 'camera calibration'}: made with another camera (calibration "
+        f"digest {digest}, the session's camera {ours}; {diff}): calibrate this camera "
+        "(gonio calibrate camera) or give its own calibration"
+    )
+
+
+def _camera_setup(setup: ReductionSetup, cam: CameraSection, source: Path | None) -> ReductionSetup:
+    """``setup`` with the camera numbers of a ``[camera]`` table (from ``source``)."""
+    assert cam.K is not None
+    signature = None
+    if cam.cfa_pattern is not None and cam.width is not None and cam.height is not None:
+        signature = CameraSignature(cam.cfa_pattern, (cam.height, cam.width))
+    return setup.replace(
+        K=np.asarray(cam.K, dtype=np.float64),
+        dist=None if cam.dist is None else np.asarray(cam.dist, dtype=np.float64),
+        signature=signature,
+        camera_calibration=None
+        if cam.calibration is None
+        else cam.calibration.model_dump(mode="json", exclude_none=True),
+        camera_file=None if source is None else str(source),
+    )
 
 
 def load_reduction_config(path: str | os.PathLike) -> ReductionConfig:
@@ -341,25 +524,24 @@ def setup_from_config(
                 config.noise.quantisation,
             )
     cam = config.camera
+    cam_file = None
+    if cam.file is not None:
+        cam_file = root / cam.file
+        cam = load_camera_file(cam_file)
     ref = config.reference
     refl = reflectance if ref.reflectance is None else ref.reflectance
     if isinstance(refl, str):
         refl = root / refl
     b = config.board
-    signature = None
-    if cam.cfa_pattern is not None and cam.width is not None and cam.height is not None:
-        signature = CameraSignature(cam.cfa_pattern, (cam.height, cam.width))
     red = config.reduction
-    return ReductionSetup(
-        K=np.asarray(cam.K, dtype=np.float64),
+    setup = ReductionSetup(
+        K=np.eye(3),  # the camera's numbers follow (_camera_setup)
         board=BoardSpec(b.squares_x, b.squares_y, b.square_length, b.marker_length, b.dictionary),
         sample_size=(config.sample.width, config.sample.height),
         noise=noise,
         reflectance=reference_reflectance(refl),
         reflectance_std=np.broadcast_to(np.asarray(ref.reflectance_std, float), (3,)).copy(),
         light_radius=config.light.radius,
-        dist=None if cam.dist is None else np.asarray(cam.dist, dtype=np.float64),
-        signature=signature,
         roi_fraction=red.roi_fraction,
         grid=red.grid,
         geometry_tolerance_deg=red.geometry_tolerance_deg,
@@ -367,6 +549,7 @@ def setup_from_config(
         min_snr=red.min_snr,
         geometry=red.geometry,
     )
+    return _camera_setup(setup, cam, cam_file)
 
 
 def resolve_setup(
@@ -375,20 +558,26 @@ def resolve_setup(
     noise: NoiseModel | None = None,
     *,
     config: str | os.PathLike | None = None,
+    camera_calibration: str | os.PathLike | None = None,
 ) -> ReductionSetup:
     """Find the reduction facts of a session.
 
     The setup is ``config`` when given, else ``SESSION/reduction.toml``.  The noise model
     is ``noise`` when given, else ``SESSION/noise.json`` (``gonio capture
     calibrate-noise``) when present, else the document's ``[noise]``.  The reference
-    reflectance defaults to the session plan's (the manifest's ``reference``).
+    reflectance defaults to the session plan's (the manifest's ``reference``).  The
+    camera is ``camera_calibration``'s ``[camera]`` when given (``--camera-calibration``),
+    else the document's; a calibration of another camera than the manifest's is refused
+    (:func:`check_camera_identity`).
 
     Raises
     ------
     SessionError
         When there is no ``reduction.toml`` to read.
     ConfigError
-        When it is not valid (names the file and the field).
+        When it or the camera file is not valid (names the file and the field).
+    ReductionError
+        When the camera calibration was made with another camera (names both digests).
     """
     session = Path(session)
     path = Path(config) if config is not None else session / CONFIG_FILE
@@ -403,9 +592,14 @@ def resolve_setup(
     nfile = session / NOISE_FILE
     if noise is None and nfile.is_file():
         noise = load_noise(nfile)
-    return setup_from_config(
+    setup = setup_from_config(
         load_reduction_config(path),
         path,
         reflectance=ref.get("reflectance", 0.99),
         noise=noise,
     )
+    if camera_calibration is not None:
+        cam_file = Path(camera_calibration)
+        setup = _camera_setup(setup, load_camera_file(cam_file), cam_file)
+    check_camera_identity(setup, manifest)
+    return setup

@@ -44,7 +44,14 @@ __all__ = [
 
 _HEADER = (
     "# Reduction setup of a simulated session, written by gonio.app.sim_reduction from the\n"
-    "# scene the simulator rendered (see examples/reduction.toml for the fields).\n"
+    "# NOMINAL scene: what a lab knows before calibrating (see examples/reduction.toml).\n"
+    "# [camera] is the nominal camera (the lens's focal length over the pixel pitch, a\n"
+    "# centred principal point, no distortion), not the camera as built: after\n"
+    "#   gonio calibrate camera --out camera.toml\n"
+    "# replace the [camera] table with\n"
+    "#   [camera]\n"
+    '#   file = "camera.toml"\n'
+    "# (or pass gonio capture reduce S/ --camera-calibration camera.toml).\n"
 )
 
 
@@ -55,10 +62,17 @@ def reduction_document(
 ) -> dict[str, Any]:
     """The ``reduction.toml`` document of a simulated scene.
 
+    Only what a lab knows before it calibrates goes in: the camera is the NOMINAL one
+    (focal length over pixel pitch, the principal point at the image centre, no
+    distortion), whatever the scene's camera says about its principal point or lens.
+    The camera as built (an as-built world's intrinsics and distortion) is found by
+    ``gonio calibrate camera``, whose ``camera.toml`` then replaces ``[camera]``.
+
     Parameters
     ----------
     scene
-        A :class:`gonio.simulator.scene.Scene`.
+        The NOMINAL :class:`gonio.simulator.scene.Scene` (the session's scene as drawn,
+        never a world's as-built camera).
     reference_reflectance
         The reference target's reflectance (the session plan's); left out when None, so
         the reduction takes the manifest's.
@@ -78,8 +92,11 @@ def reduction_document(
         When the scene's holder has no ChArUco board (the camera pose cannot be measured).
     """
     cam = scene.camera
-    # The simulator puts pixel centres at integer + 0.5, OpenCV at integers.
-    K = np.array(cam.intrinsics(), float)
+    w, h = cam.resolution
+    f = cam.focal_length / cam.pitch
+    # The nominal principal point is the image centre; the simulator puts pixel centres
+    # at integer + 0.5, OpenCV at integers.
+    K = np.array([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
     K[0, 2] -= 0.5
     K[1, 2] -= 0.5
     if scene.holder is None or scene.holder.board is None:
@@ -88,7 +105,6 @@ def reduction_document(
         )
     b = scene.holder.board
     s = cam.sensor
-    w, h = cam.resolution
     doc: dict[str, Any] = {
         "camera": {
             "K": K.tolist(),
@@ -132,7 +148,8 @@ def setup_from_scene(
 
     The same validation as a ``reduction.toml`` file (:func:`reduction_document` through
     :class:`~gonio.capture.reduction_config.ReductionConfig`), without the file; for
-    tests and tools that render frames themselves.  ``options`` replace setup fields
+    tests and tools that render frames themselves.  ``scene`` is the nominal scene (the
+    camera is the nominal one, :func:`reduction_document`).  ``options`` replace setup fields
     (``grid=6``, ``geometry="rig"``).
     """
     doc = reduction_document(scene, reference_reflectance)

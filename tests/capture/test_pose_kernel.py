@@ -170,3 +170,27 @@ def test_the_kernel_is_compiled_for_the_structured_arguments(brackets, monkeypat
     assert sigs, "the fused kernel was never compiled"
     assert all(len(sig) == 3 for sig in sigs)
     assert [t.instance_class for t in sigs[0]] == [pk.Bracket, pk.Stencils, pk.View]
+
+
+def test_fused_kernel_matches_numpy_path_with_distortion(brackets, monkeypatch):
+    """Both paths read each pixel's ray from the same undistorted coordinates: labels and
+    directions the same to the bit, sums to rounding; and the distortion changed them."""
+    setup, poses = brackets
+    frames, rp = poses[1]
+    lens = setup.replace(dist=np.array([-0.3, 0.1, 0.002, -0.001, 0.01]))
+    ref, got = both_paths(monkeypatch, frames, lens, rp)
+    assert_same(ref, got)
+    pinhole, _ = both_paths(monkeypatch, frames, setup, rp)
+    assert not np.array_equal(pinhole.wo, ref.wo)
+
+
+def test_zero_distortion_is_the_pinhole_path_to_the_bit(brackets, monkeypatch):
+    setup, poses = brackets
+    frames, rp = poses[0]
+    for zero in (np.zeros(5), np.zeros(4)):
+        a = both_paths(monkeypatch, frames, setup, rp)
+        b = both_paths(monkeypatch, frames, setup.replace(dist=zero), rp)
+        for x, y in zip(a, b, strict=True):
+            assert np.array_equal(x.regions.label, y.regions.label)
+            for name in ("wi", "wo", "radiance", "radiance_var", "geometry", "ratio"):
+                np.testing.assert_array_equal(getattr(x, name), getattr(y, name), err_msg=name)

@@ -498,3 +498,35 @@ def test_a_broken_config_file_is_refused_naming_it_and_keeps_the_samples(
         err = capsys.readouterr().err
         assert str(path) in err and named in err and "Traceback" not in err
         assert (s / "samples.h5").read_bytes() == before
+
+
+def test_a_camera_calibration_of_another_camera_is_refused_and_nothing_written(
+    session, tmp_path, capsys
+):
+    """``--camera-calibration`` made with another camera (its digest is not the manifest
+    camera's): exit 1 naming the file and both digests; no samples.h5 is written."""
+    from gonio.capture.manifest import load_manifest
+    from gonio.capture.reduction_config import camera_identity, identity_digest
+
+    s = copy_session(session, tmp_path / "S")
+    ours = camera_identity(load_manifest(s)["camera"])
+    assert ours is not None
+    other = identity_digest({**ours, "serial": "another-camera"})
+    cam = tomllib.loads((s / "reduction.toml").read_text())["camera"]
+    cam["calibration"] = {"rms_px": 0.2, "digest": other}
+    cal = tmp_path / "camera.toml"
+    cal.write_text(tomli_w.dumps({"camera": cam}))
+    assert run("capture", "reduce", str(s), "--quiet", "--camera-calibration", str(cal)) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "Traceback" not in err
+    assert str(cal) in err and other in err and identity_digest(ours) in err
+    assert not (s / "samples.h5").exists() and not (s / "reduction.json").exists()
+    # the session's own camera digest is accepted, and reduces as the inline [camera]
+    cam["calibration"]["digest"] = identity_digest(ours)
+    cal.write_text(tomli_w.dumps({"camera": cam}))
+    assert run("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
+    plain = load_samples(s / "samples.h5")
+    out = tmp_path / "with_file.h5"
+    args = ("capture", "reduce", str(s), "--quiet", "--no-plot", "--out", str(out))
+    assert run(*args, "--camera-calibration", str(cal)) == 0
+    np.testing.assert_array_equal(load_samples(out).brdf, plain.brdf)

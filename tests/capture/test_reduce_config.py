@@ -3,6 +3,7 @@ example file, and the simulated session's document (exact floats)."""
 
 from __future__ import annotations
 
+import hashlib
 import tomllib
 from pathlib import Path
 
@@ -45,6 +46,21 @@ def test_the_example_is_valid_and_says_what_it_means():
     assert setup.reflectance.tolist() == [0.99] * 3
     assert setup.reflectance_std.tolist() == [0.005] * 3
     assert (setup.grid, setup.roi_fraction, setup.geometry) == (3, 0.6, "board")
+    cal = setup.camera_calibration
+    assert cal["rms_px"] == 0.18 and cal["dist_std"][4] == 0.0071
+    assert cal["camera"] == {
+        "backend": "gphoto2",
+        "model": "Nikon D750",
+        "serial": "3021458",
+        "resolution": [6000, 4000],
+    }
+    # the digest the example states is that identity's (canonical JSON typed out here)
+    ident = b'{"backend": "gphoto2", "model": "Nikon D750", "resolution": [6000, 4000], '
+    ident += b'"serial": "3021458"}'
+    assert cal["digest"] == "sha256:" + hashlib.sha256(ident).hexdigest()
+    # the commented `file =` form is shown
+    text = EXAMPLE.read_text()
+    assert '#   [camera]\n#   file = "camera.toml"\n' in text
 
 
 def test_defaults_of_a_minimal_file(tmp_path):
@@ -228,3 +244,34 @@ def test_a_point_light_has_no_radius():
     doc = reduction_document(scene)
     assert "light" not in doc and "reference" not in doc
     assert np.isfinite(setup_from_scene(scene).K).all()
+
+
+def test_a_simulated_sessions_camera_is_the_nominal_one():
+    """Only what a lab knows before calibrating: f = focal length / pitch, the principal
+    point at the image centre (OpenCV: (W - 1) / 2), no distortion, even when the scene's
+    camera has its principal point elsewhere; the text tells the lab to use camera.toml."""
+    from gonio.app.sim_reduction import reduction_toml_text
+    from gonio.simulator.scene import parse_scene
+
+    scene = parse_scene(
+        {
+            "sample": {"width": 0.05, "height": 0.05, "brdf": {"model": "lambert"}},
+            "holder": {"width": 0.16, "height": 0.16, "board": {}},
+            "lights": [{"type": "point", "position": [0, 0.2, 0.4], "intensity": 1.0}],
+            "camera": {
+                "resolution": [640, 480],
+                "focal_length": 0.016,
+                "pixel_pitch": 4e-6,
+                "principal_point": [331.0, 229.0],
+                "position": [0.1, -0.2, 0.35],
+            },
+        }
+    )
+    doc = reduction_document(scene)
+    f = 0.016 / 4e-6  # 4000 px, to the rounding of the division
+    assert doc["camera"]["K"] == [[f, 0.0, 319.5], [0.0, f, 239.5], [0.0, 0.0, 1.0]]
+    assert abs(f - 4000.0) < 1e-9
+    assert "dist" not in doc["camera"]
+    text = reduction_toml_text(doc)
+    assert 'file = "camera.toml"' in text and "gonio calibrate camera" in text
+    assert tomllib.loads(text) == doc
