@@ -537,9 +537,9 @@ def camera_identity(info: Any, image_size: tuple[int, int] | None = None) -> dic
 def camera_digest(identity: Mapping[str, Any]) -> str:
     """``"sha256:<hex>"`` of the canonical JSON of a camera's backend, model, serial and
     resolution (sorted keys, no spaces)."""
-    ident = camera_identity(identity)
-    text = json.dumps(ident, sort_keys=True, separators=(",", ":"))
-    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
+    from gonio.capture.reduction_config import identity_digest
+
+    return identity_digest(camera_identity(identity))
 
 
 # -- file ----------------------------------------------------------------------------------

@@ -392,8 +392,8 @@ def camera_identity(record: Mapping[str, Any]) -> dict[str, Any] | None:
 
 
 def identity_digest(identity: Mapping[str, Any]) -> str:
-    """``"sha256:<hex>"`` of a camera identity's canonical JSON (sorted keys, as the
-    session's plan and rig digests)."""
+    """``"sha256:<hex>"`` of a camera identity's canonical JSON (sorted keys, no spaces);
+    :func:`gonio.capture.camera_calibration.camera_digest` is this function."""
     doc = {
         "backend": identity.get("backend"),
         "model": identity.get("model"),
@@ -402,7 +402,8 @@ def identity_digest(identity: Mapping[str, Any]) -> str:
         if identity.get("resolution") is None
         else [int(x) for x in identity["resolution"]],
     }
-    return "sha256:" + hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+    text = json.dumps(doc, sort_keys=True, separators=(",", ":"))
+    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
 
 
 def check_camera_identity(setup: ReductionSetup, manifest: Mapping[str, Any]) -> None:

@@ -27,10 +27,8 @@ height = 0.04
 """
 
 SIM = {"backend": "simulated", "model": "gonio-sim", "serial": "SIM-0007", "resolution": [400, 300]}
-# sha256 of the identity's canonical JSON, typed out here (json.dumps with sorted keys)
-SIM_JSON = (
-    '{"backend": "simulated", "model": "gonio-sim", "resolution": [400, 300], "serial": "SIM-0007"}'
-)
+# sha256 of the identity's canonical JSON, typed out here (sorted keys, no spaces)
+SIM_JSON = '{"backend":"simulated","model":"gonio-sim","resolution":[400,300],"serial":"SIM-0007"}'
 SIM_DIGEST = "sha256:" + hashlib.sha256(SIM_JSON.encode()).hexdigest()
 
 
@@ -157,7 +155,7 @@ def test_identity_is_checked_only_when_both_sides_record_it(tmp_path):
 
 def test_same_identity_under_another_digest_spelling_is_accepted(tmp_path):
     """A digest written with other JSON separators: the identity table decides."""
-    compact = hashlib.sha256(SIM_JSON.replace(", ", ",").replace(": ", ":").encode())
+    compact = hashlib.sha256(SIM_JSON.replace(",", ", ").replace(":", ": ").encode())
     s = session(tmp_path, camera_toml(digest="sha256:" + compact.hexdigest()))
     assert resolve_setup(s, manifest()).K[0, 0] == 812.5
 

@@ -55,8 +55,8 @@ def test_the_example_is_valid_and_says_what_it_means():
         "resolution": [6000, 4000],
     }
     # the digest the example states is that identity's (canonical JSON typed out here)
-    ident = b'{"backend": "gphoto2", "model": "Nikon D750", "resolution": [6000, 4000], '
-    ident += b'"serial": "3021458"}'
+    ident = b'{"backend":"gphoto2","model":"Nikon D750","resolution":[6000,4000],'
+    ident += b'"serial":"3021458"}'
     assert cal["digest"] == "sha256:" + hashlib.sha256(ident).hexdigest()
     # the commented `file =` form is shown
     text = EXAMPLE.read_text()
