@@ -20,8 +20,6 @@ noise of sigma px per coordinate it is about ``sigma sqrt(2 (1 - p / (2 N)))``.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
