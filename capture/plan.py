@@ -843,9 +843,7 @@ def _expand_joint_poses(
         refusal = kinematics.joints_refusal(q) if use_rig else None
         if refusal is not None:
             excluded.append(
-                ExcludedPose(
-                    pose, f"joint_poses[{k}] ({label}): {refusal}", refusal.reason.value
-                )
+                ExcludedPose(pose, f"joint_poses[{k}] ({label}): {refusal}", refusal.reason.value)
             )
         else:
             poses.append(pose)

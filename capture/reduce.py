@@ -162,10 +162,11 @@ def reduce_session(
         Another process is writing the same output (nothing is written).
     """
     from gonio.capture.journal import read_journal, session_file
-    from gonio.capture.manifest import load_manifest
+    from gonio.capture.manifest import load_manifest, refuse_calibration_session
 
     session = Path(session_dir)
     manifest = load_manifest(session)
+    refuse_calibration_session(session, manifest)
     records = read_journal(session / "journal.jsonl")
     for rec in records:  # a journal naming a file outside the session is refused outright
         if rec.get("type") == "shot":

@@ -225,6 +225,14 @@ class Kinematics:
         z_s = normalize(g.rest_normal)
         self._B = np.stack([x_s, np.cross(z_s, x_s), z_s], axis=1)  # columns: sample axes
         self.nominal = is_nominal(config)
+        # Constant factors of the as-built stage transform (rig.asbuilt.stage_transform).
+        k = normalize(np.asarray(g.tilt_axis, float))
+        self._K_true = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        self._B_true = asbuilt.rest_orientation(g)
+        hx, hy = np.radians(g.holder_tilt_deg)
+        self._H = asbuilt.elementary_rotation(1, hy) @ asbuilt.elementary_rotation(0, hx)
+        self._o = np.asarray(g.holder_offset_m, float)
+        self._t = np.asarray(g.stage_offset_m, float)
         # The closed form works on the nominal part: an as-built tilt axis made horizontal.
         self._k = normalize(np.array([g.tilt_axis[0], g.tilt_axis[1], 0.0]))
         # Up seen from the rest stage: v(t) = p cos t - q sin t with p = B^T z, q = B^T (k x z).
@@ -311,10 +319,26 @@ class Kinematics:
     def _asbuilt_directions(
         self, joints: Mapping[str, ArrayLike], approach: Mapping[str, ArrayLike] | None
     ) -> tuple[Array, Array]:
-        # rig_poses without the camera's orientation: the refinement calls this in its loop.
+        # rig_poses' directions, with the constant factors of the stage transform made
+        # once (the refinement calls this in its loop); tests hold it to rig_poses.
         g = self.geometry
         q = asbuilt.true_joints(self.config, joints, approach)
-        M, T = asbuilt.stage_transform(g, q["stage_tilt"], q["stage_spin"])
+        tilt, spin = np.asarray(q["stage_tilt"], float), np.asarray(q["stage_spin"], float)
+        st, ct = np.sin(tilt)[..., None, None], np.cos(tilt)[..., None, None]
+        A = np.eye(3) + st * self._K_true + (1.0 - ct) * (self._K_true @ self._K_true)
+        ss, cs = np.sin(spin), np.cos(spin)
+        zero, one = np.zeros_like(ss), np.ones_like(ss)
+        S = np.stack(
+            [
+                np.stack([cs, -ss, zero], -1),
+                np.stack([ss, cs, zero], -1),
+                np.stack([zero, zero, one], -1),
+            ],
+            -2,
+        )
+        ABS = A @ self._B_true @ S
+        M = ABS @ self._H
+        T = ABS @ self._o + self._t
         P_L = self._device(q["light_azimuth"], self._eL) * g.light_radius_m
         P_C = self._device(q["camera_azimuth"], self._eC) * g.camera_radius_m
         Mt = np.swapaxes(M, -1, -2)
