@@ -429,8 +429,12 @@ class Rig:
         if not need:
             return None
         current = {j: st.position for j, st in states.items()}
+        target = {
+            st.joint: self._by_id[st.dxl_id].to_joint(goals[st.dxl_id]) for st in states.values()
+        }
         pre_goals = {st.dxl_id: st.position_pulses for st in states.values()}
         sides = {}
+        kin = self.kinematics
         for st in need:
             servo = self._by_id[st.dxl_id]
             for side in (1, -1):
@@ -438,7 +442,9 @@ class Rig:
                 q[st.joint] = st.position - side * PRE_MOVE_RAD
                 lo, hi = servo.config.limits_rad
                 if lo <= q[st.joint] <= hi and not (
-                    self.kinematics.joints_refusal(q) or self.kinematics.path_refusal(current, q)
+                    kin.joints_refusal(q)
+                    or kin.path_refusal(current, q)
+                    or kin.path_refusal(q, target)
                 ):
                     pre_goals[st.dxl_id] = int(round(servo.config.pulses(q[st.joint])))
                     sides[st.joint] = side
