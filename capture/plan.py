@@ -365,7 +365,8 @@ class Plan(_Strict):
         n = len(info.data["joint_poses"])
         if v is None and not n:
             raise ValueError(
-                "a plan needs either a [grid] of directions or a list of [[joint_poses]]"
+                "required: a [grid] of directions or a list of [[joint_poses]] (the plan "
+                "has neither)"
             )
         if v is not None and n:
             raise ValueError(
