@@ -34,6 +34,7 @@ __all__ = [
     "ScheduleStep",
     "SimulationRecord",
     "check_journal_fits",
+    "refuse_calibration_session",
     "load_manifest",
     "read_manifest",
 ]
@@ -54,11 +55,12 @@ class ScheduleStep(_Open):
     """One step of the schedule (journaled as pose ``k``).
 
     ``joints`` are the joint angles (rad) the dry run chose for the step, from the
-    previous step's; ``refused`` holds ``{"code", "message"}`` when the dry run's
-    kinematics refused it (the run still asks the rig, which decides).
+    previous step's (a joint-pose plan's own joints); ``refused`` holds ``{"code",
+    "message"}`` when the dry run's kinematics refused it (the run still asks the rig,
+    which decides).  ``kind = "mirror"``: a rig calibration's view of the flat mirror.
     """
 
-    kind: Literal["sample", "reference", "dark"]
+    kind: Literal["sample", "reference", "dark", "mirror"]
     wi: _Vec3 | None = None
     wo: _Vec3 | None = None
     joints: dict[str, _Finite] | None = None
@@ -166,6 +168,27 @@ def load_manifest(session_dir: str | os.PathLike) -> dict[str, Any]:
     such as the reduction); see :func:`read_manifest`."""
     read_manifest(session_dir)
     return _load_json(_path(session_dir))
+
+
+def refuse_calibration_session(session_dir: str | os.PathLike, manifest: Any) -> None:
+    """Refuse to reduce a calibration session (its plan lists joint poses).
+
+    ``manifest``: the :class:`Manifest` or its JSON document (:func:`load_manifest`).
+
+    Raises
+    ------
+    SessionError
+        When the session's plan has ``joint_poses``.
+    """
+    plan = manifest.plan if isinstance(manifest, Manifest) else (manifest or {}).get("plan")
+    has = (
+        plan.is_joint_pose_plan if isinstance(plan, Plan) else bool((plan or {}).get("joint_poses"))
+    )
+    if has:
+        raise SessionError(
+            f"{session_dir}: a calibration session (joint poses); use gonio calibrate "
+            "camera|rig on it"
+        )
 
 
 def check_journal_fits(

@@ -12,6 +12,12 @@ a list of poses (``wi``, ``wo`` in the sample frame) by
    the light's path (too small a separation between ``wi`` and ``wo``), and whatever the
    rig's kinematics refuses (unreachable joint angles, arm collisions, arm shadowing).
 
+Instead of a grid, a plan may list joint poses (``[[joint_poses]]``: the four joint
+angles in degrees and the ``target``, ``"sample"`` or ``"mirror"``): a calibration plan,
+whose poses and their order (which decides the side each joint approaches from) are
+given, not derived.  Its poses are checked against the rig by the schedule
+(:func:`gonio.capture.schedule.build_schedule`), which knows the kinematics.
+
 Degrees appear only in the file (``*_deg`` fields); :class:`Pose` holds unit vectors.
 """
 
@@ -32,6 +38,7 @@ from pydantic import (
     ConfigDict,
     Field,
     PrivateAttr,
+    ValidationInfo,
     field_validator,
     model_serializer,
     model_validator,
@@ -50,6 +57,7 @@ __all__ = [
     "DarkFrames",
     "Exclusions",
     "Grid",
+    "JointPose",
     "Plan",
     "Pose",
     "ExcludedPose",
@@ -164,6 +172,30 @@ class Grid(_Strict):
             else ("theta_h_deg", "phi_h_deg", "theta_d_deg", "phi_d_deg")
         )
         return [_angles(getattr(self, n)) for n in names]
+
+
+class JointPose(_Strict):
+    """One pose of a joint-pose plan: joint angles (deg) and what stands on the stage.
+
+    ``target = "mirror"`` puts the flat calibration mirror in the sample's place (a rig
+    calibration's spot views); ``label`` names the pose in messages and the journal.
+    """
+
+    light_azimuth_deg: float
+    camera_azimuth_deg: float
+    stage_tilt_deg: float
+    stage_spin_deg: float
+    target: Literal["sample", "mirror"] = "sample"
+    label: str | None = None
+
+    def joints_rad(self) -> dict[str, float]:
+        """Joint name -> angle (rad)."""
+        return {
+            "light_azimuth": math.radians(self.light_azimuth_deg),
+            "camera_azimuth": math.radians(self.camera_azimuth_deg),
+            "stage_tilt": math.radians(self.stage_tilt_deg),
+            "stage_spin": math.radians(self.stage_spin_deg),
+        }
 
 
 class Reductions(_Strict):
@@ -319,7 +351,9 @@ class Plan(_Strict):
     limits: Limits = Limits()
     # Where the plan came from (its file), for messages; not part of the plan's content.
     _source: str = PrivateAttr(default="plan")
-    grid: Grid
+    # joint_poses before grid: grid's validator sees them (and names 'grid' in errors).
+    joint_poses: tuple[JointPose, ...] = ()
+    grid: Grid | None = Field(default=None, validate_default=True)
     reductions: Reductions = Reductions()
     exclusions: Exclusions = Exclusions()
     bracket: BracketPolicy = BracketPolicy()
@@ -334,13 +368,42 @@ class Plan(_Strict):
             raise ValueError("name must not be empty")
         return v
 
+    @field_validator("grid")
+    @classmethod
+    def _grid_or_joint_poses(cls, v: Grid | None, info: ValidationInfo) -> Grid | None:
+        if "joint_poses" not in info.data:  # joint_poses invalid: that error is enough
+            return v
+        n = len(info.data["joint_poses"])
+        if v is None and not n:
+            raise ValueError(
+                "required: a [grid] of directions or a list of [[joint_poses]] (the plan "
+                "has neither)"
+            )
+        if v is not None and n:
+            raise ValueError(
+                f"a plan has either a [grid] or [[joint_poses]], not both (this one has a "
+                f"grid and {n} joint poses)"
+            )
+        return v
+
+    @property
+    def is_joint_pose_plan(self) -> bool:
+        """Whether the plan lists joint poses (a calibration plan) instead of a grid."""
+        return bool(self.joint_poses)
+
     @model_serializer(mode="wrap")
     def _dump(self, handler: Any) -> dict[str, Any]:
-        # Default limits are left out of the dump, so a plan's digest and its manifest
-        # copy stay what they were before [limits] existed (sessions resume unchanged).
+        # Default limits, and the side (grid or joint poses) a plan does not use, are left
+        # out of the dump, so a plan's digest and its manifest copy stay what they were
+        # before these fields existed (sessions resume unchanged).
         data = handler(self)
-        if self.limits == Limits() and isinstance(data, dict):
-            data.pop("limits", None)
+        if isinstance(data, dict):
+            if self.limits == Limits():
+                data.pop("limits", None)
+            if not self.joint_poses:
+                data.pop("joint_poses", None)
+            if self.grid is None:
+                data.pop("grid", None)
         return data
 
 
@@ -382,14 +445,16 @@ def plan_digest(obj: BaseModel | dict) -> str:
 class Pose:
     """One measurement pose in the sample frame.
 
-    ``wi``/``wo`` are unit vectors (tuples, JSON friendly); ``kind`` is ``"sample"`` or
-    ``"reference"``; ``joints`` the planned joint angles (rad) when the rig was consulted.
+    ``wi``/``wo`` are unit vectors (tuples, JSON friendly); ``kind`` is ``"sample"``,
+    ``"reference"`` or ``"mirror"``; ``joints`` the planned joint angles (rad) when the
+    rig was consulted (given, for a joint pose); ``label`` a joint pose's label.
     """
 
     wi: tuple[float, float, float]
     wo: tuple[float, float, float]
     kind: str = "sample"
     joints: dict[str, float] | None = None
+    label: str | None = None
 
     def angles_deg(self) -> dict[str, float]:
         ti, pi = direction_to_spherical(np.array(self.wi))
@@ -406,6 +471,8 @@ class Pose:
         d.update(self.angles_deg())
         if self.joints is not None:
             d["joints"] = dict(self.joints)
+        if self.label is not None:
+            d["label"] = self.label
         return d
 
 
@@ -586,9 +653,13 @@ def estimate_plan(plan: Plan) -> PlanEstimate:
     PlanEstimate
         Upper bounds (see its attributes).
     """
-    a, b, c, d = plan.grid.axes()
-    n_grid = len(a) * len(b) * len(c) * len(d)
-    if not plan.reductions.isotropic:
+    if plan.grid is None:  # joint poses: each one is measured, none reduced
+        a = b = c = d = [0.0]
+        n_grid = len(plan.joint_poses)
+    else:
+        a, b, c, d = plan.grid.axes()
+        n_grid = len(a) * len(b) * len(c) * len(d)
+    if not plan.reductions.isotropic or plan.grid is None:
         n_sample = n_grid
     elif plan.grid.kind == "spherical":
         # Isotropy keeps (theta_i, theta_o, |phi_o - phi_i|).
@@ -665,6 +736,7 @@ def expand_plan(
     rig_check: RigCheck | None = None,
     progress: Progress | None = None,
     source: str | None = None,
+    kinematics: Any = None,
 ) -> ExpandedPlan:
     """Expand a plan into the poses to measure, in grid (raster) order.
 
@@ -680,11 +752,15 @@ def expand_plan(
         expansion and once at its end (a dry run shows it as a progress bar).
     source
         Name of the plan in messages (default: the file :func:`load_plan` read).
+    kinematics
+        The rig's ``Kinematics``: a joint-pose plan needs it (each pose's directions
+        are its ``forward``, each pose is checked with ``joints_refusal``).
 
     Returns
     -------
     ExpandedPlan
-        Sample poses first (raster order), then reference poses.
+        Sample poses first (raster order, or the joint poses in their order), then
+        reference poses.
 
     Raises
     ------
@@ -693,6 +769,8 @@ def expand_plan(
         before anything is allocated.
     """
     check_limits(plan, source or plan._source)
+    if plan.grid is None:
+        return _expand_joint_poses(plan, rig_check, kinematics, source or plan._source)
     wi_all, wo_all = _grid_directions(plan.grid)
     n_total = len(wi_all)
     every = max(1, n_total // 100)
@@ -739,6 +817,54 @@ def expand_plan(
             poses.append(pose)
     return ExpandedPlan(
         poses=poses, excluded=excluded, n_grid=n_grid, n_reduced=n_reduced, notes=notes
+    )
+
+
+def _reference_poses(plan: Plan, rig_check: RigCheck | None, use_rig: bool):
+    poses, excluded = [], []
+    for rp in plan.reference.poses:
+        wi = spherical_to_direction(math.radians(rp.theta_i_deg), math.radians(rp.phi_i_deg))
+        wo = spherical_to_direction(math.radians(rp.theta_o_deg), math.radians(rp.phi_o_deg))
+        pose = Pose(_as_tuple(wi), _as_tuple(wo), kind="reference")
+        refusal = rig_check(np.array(pose.wi), np.array(pose.wo)) if use_rig else None
+        if refusal is not None:
+            excluded.append(_excluded(pose, refusal))
+        else:
+            poses.append(pose)
+    return poses, excluded
+
+
+def _expand_joint_poses(
+    plan: Plan, rig_check: RigCheck | None, kinematics: Any, source: str
+) -> ExpandedPlan:
+    from gonio.errors import ConfigError
+
+    if kinematics is None:
+        raise ConfigError(
+            f"{source}: plan {plan.name!r} lists joint poses; expanding it needs the rig's "
+            "kinematics (their directions and limits)"
+        )
+    use_rig = plan.exclusions.check_rig
+    poses: list[Pose] = []
+    excluded: list[ExcludedPose] = []
+    for k, jp in enumerate(plan.joint_poses):
+        q = jp.joints_rad()
+        wi, wo = (np.asarray(v, dtype=np.float64) for v in kinematics.forward(q))
+        label = jp.label if jp.label is not None else f"joint pose {k}"
+        pose = Pose(_as_tuple(wi), _as_tuple(wo), kind=jp.target, joints=q, label=label)
+        refusal = kinematics.joints_refusal(q) if use_rig else None
+        if refusal is not None:
+            excluded.append(
+                ExcludedPose(pose, f"joint_poses[{k}] ({label}): {refusal}", refusal.reason.value)
+            )
+        else:
+            poses.append(pose)
+    ref, ref_excluded = _reference_poses(plan, rig_check, rig_check is not None and use_rig)
+    return ExpandedPlan(
+        poses=poses + ref,
+        excluded=excluded + ref_excluded,
+        n_grid=len(plan.joint_poses),
+        n_reduced=0,
     )
 
 

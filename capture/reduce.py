@@ -162,10 +162,11 @@ def reduce_session(
         Another process is writing the same output (nothing is written).
     """
     from gonio.capture.journal import read_journal, session_file
-    from gonio.capture.manifest import load_manifest
+    from gonio.capture.manifest import load_manifest, refuse_calibration_session
 
     session = Path(session_dir)
     manifest = load_manifest(session)
+    refuse_calibration_session(session, manifest)
     records = read_journal(session / "journal.jsonl")
     for rec in records:  # a journal naming a file outside the session is refused outright
         if rec.get("type") == "shot":
@@ -284,7 +285,9 @@ class _PoseRun:
         last = recs[-1]
         wi_rep = np.asarray(last.get("wi_achieved") or last.get("wi_requested"), float)
         wo_rep = np.asarray(last.get("wo_achieved") or last.get("wo_requested"), float)
-        light_pos, light_n, cam_rep = _rig_pose(self.kin, last.get("joints"), wi_rep, wo_rep)
+        light_pos, light_n, cam_rep = _rig_pose(
+            self.kin, last.get("joints"), wi_rep, wo_rep, last.get("approach")
+        )
         if not frames:
             why = "; ".join(self.frame_problems.get(r.get("file", ""), "?") for r in recs)
             self._fail(p, kind, f"no decodable frame: {why}")
@@ -438,11 +441,21 @@ def _reason_key(reason: str) -> str:
     return reason.split(":")[0][:60]
 
 
-def _rig_pose(kin: Any, joints: Mapping[str, float] | None, wi: NDArray, wo: NDArray):
-    """Light position/normal and reported camera (position, world->camera R) of a pose."""
+def _rig_pose(
+    kin: Any,
+    joints: Mapping[str, float] | None,
+    wi: NDArray,
+    wo: NDArray,
+    approach: Mapping[str, int] | None = None,
+):
+    """Light position/normal and reported camera (position, world->camera R) of a pose.
+
+    ``approach``: the journal's approach signs of the joints (None in journals written
+    before they were recorded: unknown)."""
     if kin is not None and joints:
         try:
-            rp = kin.poses({k: float(v) for k, v in joints.items()})
+            appr = {k: int(v) for k, v in approach.items()} if approach else None
+            rp = kin.poses({k: float(v) for k, v in joints.items()}, appr)
             return (
                 np.asarray(rp.light_position, float),
                 np.asarray(rp.light_normal, float),

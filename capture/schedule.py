@@ -25,7 +25,7 @@ from gonio.capture.ordering import move_time_matrix, order_poses, tour_time
 from gonio.capture.plan import ExpandedPlan, Plan, Pose, expand_plan
 from gonio.capture.session_plan import PlanState, session_plan
 from gonio.devices import MoveResult, RigState
-from gonio.errors import SessionError
+from gonio.errors import PoseRefused, SessionError
 from gonio.radiometry.frames import angle_between
 
 __all__ = ["DryRunRig", "Refusal", "Schedule", "StageProgress", "build_schedule", "dry_run"]
@@ -65,22 +65,54 @@ class DryRunRig:
 
     Implements :class:`gonio.devices.RigDevice`.  ``move_to`` solves from the joints of
     the last move it accepted (the park pose at first), so the path check sees the same
-    previous pose as the run; a refused move leaves the joints where they were.
+    previous pose as the run; a refused move leaves the joints where they were.  With
+    ``joints`` (a joint-pose plan's step) it moves there, checked as the rig checks them.
+    It tracks the approach signs as :class:`gonio.rig.device.Rig` does (a move of at
+    least one pulse sets a joint's sign, a smaller one keeps it; the first move takes up
+    the backlash of an unmoved joint from below), so the schedule's joints and
+    directions are those of the run.
     """
 
     def __init__(self, kinematics: Any, start_joints: Mapping[str, float]) -> None:
         self.kinematics = kinematics
         self.joints = {k: float(v) for k, v in start_joints.items()}
+        self.approach: dict[str, int] = dict.fromkeys(self.joints, 0)
+
+    def _approach_after(self, q: Mapping[str, float]) -> dict[str, int]:
+        config = getattr(self.kinematics, "config", None)
+        if config is None:
+            return dict(self.approach)
+        from gonio.rig.kinematics import approach_of_move
+
+        appr = approach_of_move(config, self.joints, q, self.approach)
+        for s in config.servos:  # the rig's pre-move: from below
+            if appr[s.joint] == 0 and s.backlash_deg > 0:
+                appr[s.joint] = 1
+        return appr
 
     def move_to(
         self, wi: ArrayLike, wo: ArrayLike, *, joints: Mapping[str, float] | None = None
     ) -> MoveResult:
         wi = np.asarray(wi, dtype=np.float64)
         wo = np.asarray(wo, dtype=np.float64)
-        q = self.kinematics.inverse(wi, wo, current=self.joints)  # PoseRefused: nothing moved
+        # Only an as-built rig's kinematics needs the approach (duck-typed kinematics
+        # of other rigs need not take it).
+        asbuilt = not getattr(self.kinematics, "nominal", True)
+        extra = {"approach": self.approach} if asbuilt else {}
+        if joints is None:
+            # PoseRefused: nothing moved
+            q = self.kinematics.inverse(wi, wo, current=self.joints, **extra)
+        else:
+            q = {k: float(v) for k, v in joints.items()}
+            refusal = self.kinematics.joints_refusal(q) or self.kinematics.path_refusal(
+                self.joints, q
+            )
+            if refusal is not None:
+                raise PoseRefused(refusal.reason, f"refusing to move: {refusal}")
         duration = self.kinematics.move_time(self.joints, q)
+        self.approach = self._approach_after(q)
         self.joints = {k: float(v) for k, v in q.items()}
-        ai, ao = self.kinematics.forward(self.joints)
+        ai, ao = self.kinematics.forward(self.joints, *([self.approach] if asbuilt else []))
         wi_u, wo_u = wi / np.linalg.norm(wi), wo / np.linalg.norm(wo)
         return MoveResult(
             wi=wi_u,
@@ -94,7 +126,7 @@ class DryRunRig:
         )
 
     def read(self) -> RigState:
-        return RigState(joints=dict(self.joints))
+        return RigState(joints=dict(self.joints), approach=dict(self.approach))
 
     def stop(self) -> None:
         pass
@@ -117,9 +149,18 @@ class _Dark:
 
 
 def dry_run(
-    steps: list[dict[str, Any]], plan: Plan, kinematics: Any, start_joints: Mapping[str, float]
+    steps: list[dict[str, Any]],
+    plan: Plan,
+    kinematics: Any,
+    start_joints: Mapping[str, float],
+    approach_out: dict[int, dict[str, int]] | None = None,
 ) -> tuple[dict[int, dict[str, float]], list[Refusal]]:
     """Execute the session plan against a :class:`DryRunRig`.
+
+    Parameters
+    ----------
+    approach_out
+        When given, filled with step -> the approach signs after its move.
 
     Returns
     -------
@@ -142,6 +183,8 @@ def dry_run(
     def move(msg: Move) -> MoveResult:
         res = rig.move_to(msg.wi, msg.wo, joints=msg.joints)
         joints[msg.step] = dict(res.joints)
+        if approach_out is not None:
+            approach_out[msg.step] = dict(rig.approach)
         return res
 
     def watch(doc: dict[str, Any]) -> None:
@@ -196,9 +239,12 @@ def build_schedule(
             progress(stage, done, total)
 
     expanded = expand_plan(
-        plan, rig_check=kinematics.refusal, progress=lambda d, t: tell("expand", d, t)
+        plan,
+        rig_check=kinematics.refusal,
+        progress=lambda d, t: tell("expand", d, t),
+        kinematics=kinematics,
     )
-    if not any(p.kind == "sample" for p in expanded.poses):
+    if not any(p.kind != "reference" for p in expanded.poses):
         by_code: dict[str, list[str]] = {}
         for e in expanded.excluded:
             by_code.setdefault(e.code, []).append(e.reason)
@@ -207,9 +253,13 @@ def build_schedule(
             for code, r in sorted(by_code.items(), key=lambda x: -len(x[1]))[:4]
         )
         raise SessionError(
-            f"plan {plan.name!r}: no reachable pose: all {expanded.n_grid} grid poses are "
-            f"excluded or reduced ({top or 'empty grid'}); check the grid and exclusions"
+            f"plan {plan.name!r}: no reachable pose: all {expanded.n_grid} "
+            f"{'joint' if plan.is_joint_pose_plan else 'grid'} poses are "
+            f"excluded or reduced ({top or 'empty grid'}); check the "
+            f"{'joint poses' if plan.is_joint_pose_plan else 'grid and exclusions'}"
         )
+    if plan.is_joint_pose_plan:
+        return _joint_pose_schedule(plan, expanded, kinematics, start_joints, tell)
     # The visiting order needs a move time between every pair of poses before the path
     # is known, so it uses each pose's solution from home; the dry run below then solves
     # each pose from the one before it, as the run will.
@@ -262,13 +312,65 @@ def build_schedule(
     for r in refused:
         steps[r.step]["refused"] = {"code": r.code, "message": r.message}
 
+    est = _estimated_duration(plan, len(expanded.poses), travel)
+    return Schedule(steps, expanded, travel, raster, est, refused)
+
+
+def _estimated_duration(plan: Plan, n_pose: int, travel: float) -> float:
     b = plan.bracket
     per_frame = (
         b.exposures_s and float(np.mean(b.exposures_s)) or b.exposure_time_s
     ) + b.shot_overhead_s
-    n_pose = len(expanded.poses)
     est = travel + n_pose * (plan.settle_s + _expected_frames(plan) * per_frame)
     if plan.darks.count:
         n_t = len(plan.darks.exposure_times_s) or (len(b.exposures_s) or 3)
         est += plan.darks.count * n_t * per_frame
-    return Schedule(steps, expanded, travel, raster, est, refused)
+    return est
+
+
+def _joint_pose_schedule(
+    plan: Plan,
+    expanded: ExpandedPlan,
+    kinematics: Any,
+    start_joints: Mapping[str, float],
+    tell: Callable[[str, int, int], None],
+) -> Schedule:
+    """The schedule of a joint-pose plan: the poses in the plan's order (their order
+    decides the side each joint approaches from, so nothing is reordered), reference
+    poses as a group at the start or end, darks as for a grid plan."""
+    joint_steps = [p.to_json() for p in expanded.poses if p.kind != "reference"]
+    ref_steps = [p.to_json() for p in expanded.poses if p.kind == "reference"]
+    if plan.reference.when == "start":
+        steps = ref_steps + joint_steps
+    else:
+        steps = joint_steps + ref_steps
+    if plan.darks.count:
+        dark = {"kind": "dark", "wi": None, "wo": None}
+        steps.insert(0, dark) if plan.darks.when == "start" else steps.append(dark)
+    tell("dry run", 0, len(steps))
+    approach: dict[int, dict[str, int]] = {}
+    joints, refused = dry_run(steps, plan, kinematics, start_joints, approach)
+    tell("dry run", len(steps), len(steps))
+    travel, prev = 0.0, dict(start_joints)
+    for k, step in enumerate(steps):
+        if k not in joints:
+            continue
+        travel += kinematics.move_time(prev, joints[k])
+        prev = joints[k]
+        if step.get("joints") is not None and step["kind"] != "reference":
+            # The directions these joints give with the approach signs the run will have
+            # (on a nominal rig: the nominal forward, the approach does not matter).
+            appr = [] if getattr(kinematics, "nominal", True) else [approach[k]]
+            wi, wo = kinematics.forward(step["joints"], *appr)
+            pose = Pose(_tuple3(wi), _tuple3(wo), step["kind"], step["joints"], step.get("label"))
+            step.update(pose.to_json())
+        step["joints"] = joints[k]
+    for r in refused:
+        steps[r.step]["refused"] = {"code": r.code, "message": r.message}
+    est = _estimated_duration(plan, len(expanded.poses), travel)
+    return Schedule(steps, expanded, travel, travel, est, refused)
+
+
+def _tuple3(v: Any) -> tuple[float, float, float]:
+    r = np.round(np.asarray(v, dtype=np.float64), 12) + 0.0
+    return (float(r[0]), float(r[1]), float(r[2]))

@@ -199,7 +199,7 @@ class _Shot(_Record):
     type: Literal["shot"]
     pose: _Count
     frame: _Count
-    kind: Literal["sample", "reference", "dark"]
+    kind: Literal["sample", "reference", "dark", "mirror"]
     file: str
     exposure_time_requested: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     bytes: _Count | None = None

@@ -40,7 +40,8 @@ __all__ = ["RAW_DIR", "PlanState", "session_plan"]
 
 RAW_DIR = "raw"
 
-Forward = Callable[[Mapping[str, float]], tuple[Any, Any]]
+#: ``forward(joints)`` or ``forward(joints, approach)`` (``Kinematics.forward``).
+Forward = Callable[..., tuple[Any, Any]]
 
 
 @dataclass
@@ -149,7 +150,13 @@ def _pose_fields(step: Mapping[str, Any], state: RigState, forward: Forward) -> 
         wi = wo = wi_a = wo_a = None
     else:
         wi, wo = list(step["wi"]), list(step["wo"])
-        a_i, a_o = forward(state.joints)
+        # An as-built rig's directions depend on the side of the backlash each joint is
+        # on (other kinematics, e.g. tests' stand-ins, need not take the approach).
+        asbuilt = not getattr(getattr(forward, "__self__", None), "nominal", True)
+        if asbuilt and state.approach:
+            a_i, a_o = forward(state.joints, state.approach)
+        else:
+            a_i, a_o = forward(state.joints)
         wi_a, wo_a = [float(x) for x in a_i], [float(x) for x in a_o]
     return {
         "wi_requested": wi,
@@ -157,6 +164,7 @@ def _pose_fields(step: Mapping[str, Any], state: RigState, forward: Forward) -> 
         "wi_achieved": wi_a,
         "wo_achieved": wo_a,
         "joints": dict(state.joints),
+        "approach": {j: int(v) for j, v in state.approach.items()},
         "temperatures": dict(state.temperatures),
     }
 

@@ -139,9 +139,13 @@ class DryRun:
                 {"step": r.step, "code": r.code, "reason": r.message} for r in sched.refused
             ],
         }
+        if self.plan.is_joint_pose_plan:
+            out["joint_poses"] = len(self.plan.joint_poses)
+            out["mirror_poses"] = sum(1 for s in sched.steps if s["kind"] == "mirror")
         if with_poses:
             out["poses"] = [
-                {k: s[k] for k in s if k.endswith("_deg") or k == "kind"} for s in sched.steps
+                {k: s[k] for k in s if k.endswith("_deg") or k in ("kind", "label")}
+                for s in sched.steps
             ]
         return out
 
@@ -196,6 +200,21 @@ class SessionStopped(SessionError):
 
 
 # --------------------------------------------------------------------------------------
+
+
+def _check_target_changer(
+    steps: Sequence[Mapping[str, Any]], devices: SessionDevices, plan: Plan
+) -> None:
+    """A step of kind "mirror" needs something that puts the mirror in place: refused
+    before anything moves or is written when the devices have none."""
+    n = sum(1 for s in steps if s.get("kind") == "mirror")
+    if n and devices.target is None:
+        raise SessionError(
+            f"plan {plan.name!r}: {n} step(s) view the calibration mirror (target = "
+            "'mirror') but these devices have no target changer to put it in the sample's "
+            "place; use a rig that has one (the simulated camera, or an operator prompt) "
+            "(nothing was moved or written)"
+        )
 
 
 def plan_session(
@@ -299,6 +318,7 @@ def run_session(
             shutil.rmtree(stale, ignore_errors=True)
         with contextlib.ExitStack() as opened:
             dev = _enter(devices, request, opened)
+            _check_target_changer(dry.steps, dev, plan)
             if plan.darks.count and dev.light is None:
                 raise SessionError(
                     f"plan {plan.name!r}: darks.count = {plan.darks.count} but the "
@@ -417,6 +437,7 @@ def resume_session(
         )
         with contextlib.ExitStack() as opened:
             dev = _enter(devices, request, opened)
+            _check_target_changer([s.model_dump() for s in manifest.schedule], dev, manifest.plan)
             for rel, data in dev.files.items():  # sessions made before the devices gave it
                 dest = session_file(d, {"file": rel})
                 if not dest.exists():

@@ -61,12 +61,17 @@ class RigState:
         Hardware error bits (register 70 on X-series) per joint; 0 when healthy.
     moving
         Whether any servo reports that it is still moving.
+    approach
+        Sign of each joint's last commanded move in joint angle, joint name -> +1 (its
+        angle increased), -1 (decreased) or 0 (unknown); a move of less than one pulse
+        keeps it.  Which side of its backlash a joint sits on (``gonio.rig.asbuilt``).
     """
 
     joints: dict[str, float]
     temperatures: dict[str, float] = field(default_factory=dict)
     errors: dict[str, int] = field(default_factory=dict)
     moving: bool = False
+    approach: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -256,7 +261,8 @@ class TargetChanger(Protocol):
     """Something that puts the reference target in place of the sample (or back)."""
 
     def set_target(self, kind: str) -> None:
-        """``"sample"`` or ``"reference"``."""
+        """``"sample"``, ``"reference"`` or ``"mirror"`` (the flat mirror of a rig
+        calibration in the sample's place)."""
         ...
 
 

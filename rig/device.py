@@ -39,7 +39,7 @@ from gonio.radiometry.frames import angle_between
 from gonio.rig import control_table as ct
 from gonio.rig.bus import BusTransport
 from gonio.rig.config import JOINT_NAMES, RigConfig
-from gonio.rig.kinematics import Kinematics
+from gonio.rig.kinematics import Kinematics, approach_of_move
 from gonio.rig.servo import Servo, ServoState
 from gonio.rig.transport import Transport
 
@@ -50,6 +50,10 @@ log = logging.getLogger("gonio.rig")
 #: How far (rad) the directions of a ``joints=`` hint may lie from the request: far below
 #: one pulse (1.5e-3 rad), far above the rounding of joints written to JSON and read back.
 _HINT_TOLERANCE_RAD = 1e-6
+
+#: How far below its goal (joint angle, rad) the first move of a connection takes a joint
+#: whose approach side is unknown, to take its backlash up from below.
+PRE_MOVE_RAD = math.radians(1.0)
 
 
 @dataclass
@@ -137,6 +141,10 @@ class Rig:
         self._abort = threading.Event()
         self._saved_handlers: dict[int, Any] = {}
         self._opened = False
+        # Sign of each joint's last commanded move (0 unknown), for this connection only.
+        self._approach: dict[str, int] = dict.fromkeys(JOINT_NAMES, 0)
+        #: Joints the last move pre-moved to take their backlash up (for tests, logs).
+        self.last_pre_move: dict[str, int] = {}
         #: Keep torque on when the ``with`` block ends normally (never after an error).
         self.hold_on_exit = False
 
@@ -156,6 +164,7 @@ class Rig:
             Model mismatch.
         """
         self.transport.open()
+        self._forget_approach()
         try:
             self._check_servos()
             for s in self.servos.values():
@@ -274,8 +283,18 @@ class Rig:
                 log.info("torque off on servos %s", list(self._ids))
             return failed
         finally:
+            self._forget_approach()  # without torque a joint may settle on either side
             if main:
                 signal.signal(signal.SIGINT, old)
+
+    def _forget_approach(self) -> None:
+        self._approach = dict.fromkeys(JOINT_NAMES, 0)
+
+    @property
+    def approach(self) -> dict[str, int]:
+        """Sign of each joint's last commanded move in joint angle (+1 up, -1 down, 0
+        unknown: nothing moved it since the connection was opened or torque went off)."""
+        return dict(self._approach)
 
     def stop(self) -> None:
         """Stop the move in progress at once; safe from another thread or a signal handler.
@@ -302,6 +321,7 @@ class Rig:
             temperatures={j: float(st[j].temperature) for j in JOINT_NAMES},
             errors={j: int(st[j].hardware_error) for j in JOINT_NAMES},
             moving=any(s.moving for s in st.values()),
+            approach=dict(self._approach),
         )
 
     def read_states(self) -> dict[str, ServoState]:
@@ -364,6 +384,76 @@ class Rig:
         return self._move_pulses(goals, timeout, states)
 
     def _move_pulses(
+        self,
+        goals: dict[int, int],
+        timeout: float | None,
+        states: Mapping[str, ServoState] | None = None,
+    ) -> dict[str, float]:
+        """Move to ``goals`` (servo ID -> pulses): the backlash pre-move when needed, the
+        move, and the approach signs it leaves."""
+        states = self.read_states() if states is None else states
+        self.last_pre_move = {}
+        pre = self._pre_move_goals(goals, states)
+        if pre is not None:
+            pre_goals, self.last_pre_move = pre
+            log.info("taking up the backlash of %s first", sorted(self.last_pre_move))
+            self._move_raw(pre_goals, timeout, states)
+            self._track_approach(pre_goals, states)
+            states = self.read_states()
+        achieved = self._move_raw(goals, timeout, states)
+        self._track_approach(goals, states)
+        return achieved
+
+    def _track_approach(self, goals: Mapping[int, int], states: Mapping[str, ServoState]) -> None:
+        # The sign of the commanded change in joint angle; a zero move keeps the sign.
+        for st in states.values():
+            d = goals[st.dxl_id] - st.position_pulses
+            if d:
+                direction = self._by_id[st.dxl_id].config.direction
+                self._approach[st.joint] = direction * (1 if d > 0 else -1)
+
+    def _pre_move_goals(
+        self, goals: Mapping[int, int], states: Mapping[str, ServoState]
+    ) -> tuple[dict[int, int], dict[str, int]] | None:
+        """Goals of the pre-move that takes up the backlash of the joints whose side is
+        unknown, whose servo has backlash and which this move would not move: each goes
+        :data:`PRE_MOVE_RAD` below its goal (above when below is not allowed), the others
+        stay.  None when no joint needs it."""
+        need = [
+            st
+            for st in states.values()
+            if self._approach[st.joint] == 0
+            and self._by_id[st.dxl_id].config.backlash_deg > 0
+            and goals[st.dxl_id] == st.position_pulses
+        ]
+        if not need:
+            return None
+        current = {j: st.position for j, st in states.items()}
+        target = {
+            st.joint: self._by_id[st.dxl_id].to_joint(goals[st.dxl_id]) for st in states.values()
+        }
+        pre_goals = {st.dxl_id: st.position_pulses for st in states.values()}
+        sides = {}
+        kin = self.kinematics
+        for st in need:
+            servo = self._by_id[st.dxl_id]
+            for side in (1, -1):
+                q = dict(current)
+                q[st.joint] = st.position - side * PRE_MOVE_RAD
+                lo, hi = servo.config.limits_rad
+                if lo <= q[st.joint] <= hi and not (
+                    kin.joints_refusal(q)
+                    or kin.path_refusal(current, q)
+                    or kin.path_refusal(q, target)
+                ):
+                    pre_goals[st.dxl_id] = int(round(servo.config.pulses(q[st.joint])))
+                    sides[st.joint] = side
+                    break
+            else:
+                log.warning("%s: no room to take up its backlash; side unknown", st.joint)
+        return (pre_goals, sides) if sides else None
+
+    def _move_raw(
         self,
         goals: dict[int, int],
         timeout: float | None,
@@ -443,13 +533,18 @@ class Rig:
                 )
 
     def quantised_goals(
-        self, wi: ArrayLike, wo: ArrayLike, joints: Mapping[str, float]
+        self,
+        wi: ArrayLike,
+        wo: ArrayLike,
+        joints: Mapping[str, float],
+        present: Mapping[str, int] | None = None,
     ) -> dict[int, int]:
         """Goal pulses near ``joints`` whose directions are closest to (wi, wo).
 
         Each joint can round down or up; of the 16 combinations the one with the smallest
         worst direction error wins (plain rounding can add the half-pulse errors of three
-        joints along one direction).
+        joints along one direction).  On an as-built rig each combination is judged with
+        the approach signs its move from ``present`` (joint -> pulses) would leave.
 
         Raises
         ------
@@ -468,7 +563,14 @@ class Rig:
             j: np.array([self.servos[j].to_joint(c) for c in combos[:, k]])
             for k, j in enumerate(JOINT_NAMES)
         }
-        ai, ao = self.kinematics.forward(q)
+        appr = None
+        if not self.kinematics.nominal and present is not None:
+            appr = {}
+            for k, j in enumerate(JOINT_NAMES):
+                d = combos[:, k] - present[j]
+                keep = self._approach[j] or 1  # unknown: the pre-move comes from below
+                appr[j] = np.where(d != 0, self.servos[j].config.direction * np.sign(d), keep)
+        ai, ao = self.kinematics.forward(q, appr)
         err = np.maximum(angle_between(ai, np.asarray(wi)), angle_between(ao, np.asarray(wo)))
         best = combos[int(np.argmin(err))]
         goals = {}
@@ -531,15 +633,16 @@ class Rig:
         states = self.read_states()
         current = {j: st.position for j, st in states.items()}
         if joints is None:
-            q = self.kinematics.inverse(wi, wo, current=current)
+            q = self.kinematics.inverse(wi, wo, current=current, approach=self._approach)
         else:
             q = self._hinted(wi, wo, joints, current)
         wi_u, wo_u = wi / np.linalg.norm(wi), wo / np.linalg.norm(wo)
-        goals = self.quantised_goals(wi_u, wo_u, q)
+        present = {j: st.position_pulses for j, st in states.items()}
+        goals = self.quantised_goals(wi_u, wo_u, q, present)
         target = {j: self.servos[j].to_joint(goals[self.servos[j].id]) for j in JOINT_NAMES}
         self._check_target(target, current)
         achieved = self._move_pulses(goals, timeout, states)
-        ai, ao = self.kinematics.forward(achieved)
+        ai, ao = self.kinematics.forward(achieved, self._approach)
         return MoveResult(
             wi=wi_u,
             wo=wo_u,
@@ -570,11 +673,22 @@ class Rig:
         self._refuse_if(
             self.kinematics.joints_refusal(q) or self.kinematics.path_refusal(current, q)
         )
-        hi, ho = self.kinematics.forward(q)
+        appr = self._implied_approach(current, q)
+        hi, ho = self.kinematics.forward(q, appr)
         off = max(
             float(angle_between(hi, wi / np.linalg.norm(wi))),
             float(angle_between(ho, wo / np.linalg.norm(wo))),
         )
+        if not off <= _HINT_TOLERANCE_RAD and not self.kinematics.nominal:
+            # As built, the hint was planned with approach signs this move may not give
+            # (the rig started elsewhere than the dry run): refine it on this move.
+            refined = self.kinematics.refine(wi, wo, q, current, self._approach)[0]
+            if refined is not None and max(abs(refined[j] - q[j]) for j in q) < 0.05:
+                self._refuse_if(
+                    self.kinematics.joints_refusal(refined)
+                    or self.kinematics.path_refusal(current, refined)
+                )
+                return refined
         if not off <= _HINT_TOLERANCE_RAD:
             raise RigError(
                 f"joints {q} put the devices {math.degrees(off):.4f} deg from the requested "
@@ -582,6 +696,13 @@ class Rig:
                 "solution of this pose (plan made with another rig configuration?)"
             )
         return q
+
+    def _implied_approach(
+        self, current: Mapping[str, float], q: Mapping[str, float]
+    ) -> dict[str, int]:
+        # The signs the move current -> q leaves (unknown and unmoved: from below).
+        appr = approach_of_move(self.config, current, q, self._approach)
+        return {j: v or 1 for j, v in appr.items()}
 
     def home(self, timeout: float | None = None) -> dict[str, float]:
         """Move to the configured home pose; returns the read-back joints (rad)."""

@@ -29,6 +29,19 @@ condition (angular separation of light and camera seen from the sample below
 clearance, and -- when the arms cannot pass each other -- that the move keeps the arms'
 order and clearance along the servos' trapezoid profiles.  The survivor with the
 shortest move time wins.
+
+As built.  A calibrated configuration (backlash, compliance, camera mount, holder tilt
+and offset, stage offset, a tilt axis a little off horizontal) is modelled by
+:func:`gonio.rig.asbuilt.rig_poses`; ``forward`` and ``poses`` then use it (directions
+from the sample centre, the joints' approach signs taken into account).  A nominal
+configuration (every as-built term zero, tilt axis horizontal) keeps the closed form
+above, bit for bit.  The inverse of an as-built rig solves the closed form of its
+nominal part (tilt axis made horizontal, no offsets) and refines every candidate with
+Gauss-Newton steps on the full model (4 joints, 4 constraints) until ``wi`` and ``wo``
+are met to ``1e-9`` rad, with the approach signs the move from ``current`` implies: a
+joint that moves at least one pulse approaches from the side it comes from, one that
+does not keeps its sign (``approach``; unknown counts as +1, the side the rig's first
+move takes the backlash up from, see :class:`gonio.rig.device.Rig`).
 """
 
 from __future__ import annotations
@@ -43,6 +56,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from gonio.errors import ConfigError, PoseRefused, RefusalReason, RigError
 from gonio.radiometry.frames import angle_between, look_along_rotation, normalize, rotation_about
+from gonio.rig import asbuilt
 from gonio.rig.config import JOINT_NAMES, RigConfig
 from gonio.rig.control_table import (
     MODELS,
@@ -56,6 +70,47 @@ Joints = Mapping[str, float]
 
 _Z = np.array([0.0, 0.0, 1.0])
 _EPS = 1e-12
+#: How closely the as-built inverse meets the requested directions, rad.
+_REFINE_TOL = 1e-9
+_REFINE_STEPS = 12
+#: Central-difference step of the refinement's Jacobian, rad (error ~ h^2 ~ 1e-12).
+_JAC_STEP = 1e-6
+
+
+def is_nominal(config: RigConfig) -> bool:
+    """Whether every as-built term of ``config`` is zero and its tilt axis horizontal
+    (the closed-form kinematics is then exact)."""
+    g = config.geometry
+    return (
+        g.tilt_axis[2] == 0.0
+        and not any(g.camera_mount_deg)
+        and not any(g.holder_tilt_deg)
+        and not any(g.holder_offset_m)
+        and not any(g.stage_offset_m)
+        and all(s.backlash_deg == 0.0 and not any(s.compliance_deg) for s in config.servos)
+    )
+
+
+def approach_of_move(
+    config: RigConfig,
+    joints_from: Joints,
+    joints_to: Joints,
+    approach: Mapping[str, int] | None = None,
+) -> dict[str, int]:
+    """Approach signs after moving from ``joints_from`` to ``joints_to`` (rad).
+
+    A joint whose goal changes by at least one pulse takes the sign of its change in
+    joint angle; one that does not keeps ``approach`` (0 unknown when None or absent).
+    """
+    out = {}
+    for s in config.servos:
+        j = s.joint
+        d = round(s.pulses(float(joints_to[j]))) - round(s.pulses(float(joints_from[j])))
+        if d:
+            out[j] = int(s.direction) * (1 if d > 0 else -1)
+        else:
+            out[j] = int((approach or {}).get(j, 0))
+    return out
 
 
 def _wrap(a: ArrayLike) -> Array:
@@ -169,7 +224,17 @@ class Kinematics:
         x_s = normalize(g.rest_reference)
         z_s = normalize(g.rest_normal)
         self._B = np.stack([x_s, np.cross(z_s, x_s), z_s], axis=1)  # columns: sample axes
-        self._k = normalize(g.tilt_axis)
+        self.nominal = is_nominal(config)
+        # Constant factors of the as-built stage transform (rig.asbuilt.stage_transform).
+        k = normalize(np.asarray(g.tilt_axis, float))
+        self._K_true = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        self._B_true = asbuilt.rest_orientation(g)
+        hx, hy = np.radians(g.holder_tilt_deg)
+        self._H = asbuilt.elementary_rotation(1, hy) @ asbuilt.elementary_rotation(0, hx)
+        self._o = np.asarray(g.holder_offset_m, float)
+        self._t = np.asarray(g.stage_offset_m, float)
+        # The closed form works on the nominal part: an as-built tilt axis made horizontal.
+        self._k = normalize(np.array([g.tilt_axis[0], g.tilt_axis[1], 0.0]))
         # Up seen from the rest stage: v(t) = p cos t - q sin t with p = B^T z, q = B^T (k x z).
         self._p = self._B.T @ _Z
         self._q = self._B.T @ np.cross(self._k, _Z)
@@ -204,7 +269,16 @@ class Kinematics:
 
     # ------------------------------------------------------------------ forward
     def sample_to_world(self, tilt: ArrayLike, spin: ArrayLike) -> Array:
-        """Stage rotation ``A(tilt) @ B @ Rz(spin)`` (sample -> world), shape (..., 3, 3)."""
+        """Stage rotation (sample -> world), shape (..., 3, 3), for joint angles (rad).
+
+        ``A(tilt) @ B @ Rz(spin)`` on a nominal rig; on an as-built one ``M`` of
+        :func:`gonio.rig.asbuilt.stage_transform` at the given (true) joint angles.
+        """
+        if not self.nominal:
+            return asbuilt.stage_transform(self.geometry, tilt, spin)[0]
+        return self._closed_M(tilt, spin)
+
+    def _closed_M(self, tilt: ArrayLike, spin: ArrayLike) -> Array:
         return rotation_about(self._k, tilt) @ self._B @ rotation_about(_Z, spin)
 
     @staticmethod
@@ -215,13 +289,18 @@ class Kinematics:
             np.broadcast_arrays(ce * np.cos(a), ce * np.sin(a), math.sin(elevation) + 0 * a), -1
         )
 
-    def forward(self, joints: Joints) -> tuple[Array, Array]:
+    def forward(
+        self, joints: Joints, approach: Mapping[str, ArrayLike] | None = None
+    ) -> tuple[Array, Array]:
         """Light and camera directions in the sample frame.
 
         Parameters
         ----------
         joints
-            Joint name -> angle (rad); floats or broadcastable arrays.
+            Joint name -> angle from the encoders (rad); floats or broadcastable arrays.
+        approach
+            Joint name -> sign of its last move (+1, -1, 0 unknown; None: unknown).  Only
+            an as-built rig's backlash depends on it.
 
         Returns
         -------
@@ -229,20 +308,63 @@ class Kinematics:
             Unit vectors from the sample centre towards the light and the camera.
         """
         self._require(joints)
-        M = self.sample_to_world(joints["stage_tilt"], joints["stage_spin"])
+        if not self.nominal:
+            return self._asbuilt_directions(joints, approach)
+        M = self._closed_M(joints["stage_tilt"], joints["stage_spin"])
         l = self._device(joints["light_azimuth"], self._eL)
         c = self._device(joints["camera_azimuth"], self._eC)
         Mt = np.swapaxes(M, -1, -2)
         return np.einsum("...ij,...j->...i", Mt, l), np.einsum("...ij,...j->...i", Mt, c)
 
-    def poses(self, joints: Joints) -> RigPoses:
+    def _asbuilt_directions(
+        self, joints: Mapping[str, ArrayLike], approach: Mapping[str, ArrayLike] | None
+    ) -> tuple[Array, Array]:
+        # rig_poses' directions, with the constant factors of the stage transform made
+        # once (the refinement calls this in its loop); tests hold it to rig_poses.
+        g = self.geometry
+        q = asbuilt.true_joints(self.config, joints, approach)
+        tilt, spin = np.asarray(q["stage_tilt"], float), np.asarray(q["stage_spin"], float)
+        st, ct = np.sin(tilt)[..., None, None], np.cos(tilt)[..., None, None]
+        A = np.eye(3) + st * self._K_true + (1.0 - ct) * (self._K_true @ self._K_true)
+        ss, cs = np.sin(spin), np.cos(spin)
+        zero, one = np.zeros_like(ss), np.ones_like(ss)
+        S = np.stack(
+            [
+                np.stack([cs, -ss, zero], -1),
+                np.stack([ss, cs, zero], -1),
+                np.stack([zero, zero, one], -1),
+            ],
+            -2,
+        )
+        ABS = A @ self._B_true @ S
+        M = ABS @ self._H
+        T = ABS @ self._o + self._t
+        P_L = self._device(q["light_azimuth"], self._eL) * g.light_radius_m
+        P_C = self._device(q["camera_azimuth"], self._eC) * g.camera_radius_m
+        Mt = np.swapaxes(M, -1, -2)
+        wi = normalize(np.einsum("...ij,...j->...i", Mt, P_L - T))
+        wo = normalize(np.einsum("...ij,...j->...i", Mt, P_C - T))
+        return wi, wo
+
+    def poses(self, joints: Joints, approach: Mapping[str, int] | None = None) -> RigPoses:
         """Positions and orientations of light and camera in the sample frame (metres).
 
         See :class:`RigPoses` for the conventions (camera axes: OpenCV, x right, y down,
-        z forward towards the sample centre).
+        z forward towards the sample centre).  ``approach``: as :meth:`forward`.
         """
         self._require(joints)
-        M = self.sample_to_world(float(joints["stage_tilt"]), float(joints["stage_spin"]))
+        if not self.nominal:
+            rp = asbuilt.rig_poses(self.config, {k: float(v) for k, v in joints.items()}, approach)
+            return RigPoses(
+                wi=rp.wi,
+                wo=rp.wo,
+                light_position=rp.light_position,
+                light_normal=rp.light_normal,
+                camera_position=rp.camera_position,
+                camera_rotation=rp.camera_rotation,
+                sample_to_world=rp.sample_to_world,
+            )
+        M = self._closed_M(float(joints["stage_tilt"]), float(joints["stage_spin"]))
         wi, wo = self.forward({k: float(v) for k, v in joints.items()})
         g = self.geometry
         # Looking at the sample centre with world up (in the sample frame) as image up.
@@ -402,7 +524,7 @@ class Kinematics:
             for t in {self._tilt_phase + half, self._tilt_phase - half}:
                 v = self._p * math.cos(t) - self._q * math.sin(t)
                 s = math.atan2(v[1], v[0]) - math.atan2(u[1], u[0])
-                M = self.sample_to_world(t, s)
+                M = self._closed_M(t, s)
                 l, cam = M @ wi, M @ wo
                 aL, aC = math.atan2(l[1], l[0]), math.atan2(cam[1], cam[0])
                 base = {"light_azimuth": aL, "camera_azimuth": aC, "stage_tilt": t, "stage_spin": s}
@@ -421,8 +543,76 @@ class Kinematics:
                     out.append(dict(zip(JOINT_NAMES, combo, strict=True)))
         return out, reason
 
+    def _move_signs(self, Q: Array, ref: Joints, approach: Mapping[str, int] | None) -> Array:
+        """Approach signs (n, 4) of moves from ``ref`` to each row of ``Q`` (rad, (n, 4)):
+        :func:`approach_of_move`, with an unknown sign of a joint that does not move
+        counted as +1 (the rig takes its backlash up from below)."""
+        out = np.empty_like(Q)
+        for k, j in enumerate(JOINT_NAMES):
+            s = self._servo[j]
+            zero = s.zero_deg * 4096.0 / 360.0
+            scale = s.direction * s.gear_ratio * 4096.0 / (2 * math.pi)
+            d = np.round(zero + scale * Q[:, k]) - round(s.pulses(float(ref[j])))
+            keep = int((approach or {}).get(j, 0)) or 1
+            out[:, k] = np.where(d != 0, s.direction * np.sign(d), keep)
+        return out
+
+    def _residual(self, Q: Array, signs: Array, target: Array) -> Array:
+        joints = {j: Q[..., k] for k, j in enumerate(JOINT_NAMES)}
+        appr = {j: signs[..., k] for k, j in enumerate(JOINT_NAMES)}
+        wi, wo = self._asbuilt_directions(joints, appr)
+        return np.concatenate([wi, wo], axis=-1) - target
+
+    def refine(
+        self,
+        wi: ArrayLike,
+        wo: ArrayLike,
+        start: Joints | list[Joints],
+        current: Joints | None = None,
+        approach: Mapping[str, int] | None = None,
+    ) -> list[dict[str, float] | None]:
+        """Gauss-Newton steps on the as-built model from each of ``start`` (rad) until
+        (wi, wo) are met to 1e-9 rad; None for a start that does not get there.
+
+        The approach signs are those of the move from ``current`` (home when None)
+        with ``approach`` kept by joints that do not move (see the module docstring).
+        """
+        starts = [start] if isinstance(start, Mapping) else list(start)
+        if not starts:
+            return []
+        wi = normalize(np.asarray(wi, dtype=np.float64).reshape(3))
+        wo = normalize(np.asarray(wo, dtype=np.float64).reshape(3))
+        target = np.concatenate([wi, wo])
+        ref = dict(current) if current is not None else self.config.home_rad
+        Q = np.array([[float(q[j]) for j in JOINT_NAMES] for q in starts])
+        steps = np.zeros((9, 4))
+        for k in range(4):
+            steps[1 + 2 * k, k], steps[2 + 2 * k, k] = _JAC_STEP, -_JAC_STEP
+        err = np.full(len(Q), np.inf)
+        for _ in range(_REFINE_STEPS):
+            signs = self._move_signs(Q, ref, approach)
+            F = self._residual(Q[:, None, :] + steps, signs[:, None, :], target)  # (n, 9, 6)
+            err = np.max(np.abs(F[:, 0]), axis=-1)
+            if np.all(err < 0.1 * _REFINE_TOL):
+                break
+            J = (F[:, 1::2] - F[:, 2::2]) / (2 * _JAC_STEP)  # (n, 4, 6): d residual / d q_k
+            for n in range(len(Q)):
+                if np.isfinite(err[n]) and err[n] >= 0.1 * _REFINE_TOL:
+                    dq = np.linalg.lstsq(J[n].T, -F[n, 0], rcond=None)[0]
+                    Q[n] += np.clip(dq, -0.5, 0.5)  # a far start must not jump branches
+        signs = self._move_signs(Q, ref, approach)
+        err = np.max(np.abs(self._residual(Q, signs, target)), axis=-1)
+        return [
+            dict(zip(JOINT_NAMES, map(float, Q[n]), strict=True)) if err[n] < _REFINE_TOL else None
+            for n in range(len(Q))
+        ]
+
     def _solve(
-        self, wi: ArrayLike, wo: ArrayLike, current: Joints | None
+        self,
+        wi: ArrayLike,
+        wo: ArrayLike,
+        current: Joints | None,
+        approach: Mapping[str, int] | None = None,
     ) -> tuple[dict | None, PoseRefused | None]:
         wi = np.asarray(wi, dtype=np.float64).reshape(3)
         wo = np.asarray(wo, dtype=np.float64).reshape(3)
@@ -434,6 +624,28 @@ class Kinematics:
         ref = dict(current) if current is not None else self.config.home_rad
         best, best_cost = None, math.inf
         reasons = [reason] if reason else []
+        if not self.nominal and cands:
+            # A joint the backlash alone would move may stay where it is (keeping its
+            # side) or cross the backlash: refine from both, the shorter move wins.
+            near = []
+            for q in cands:
+                snap = dict(q)
+                for j in JOINT_NAMES:
+                    sv = self._servo[j]
+                    reach = math.radians(sv.backlash_deg) + 2 * math.pi / 4096 / sv.gear_ratio
+                    if abs(q[j] - ref[j]) <= reach:
+                        snap[j] = float(ref[j])
+                if snap != q:
+                    near.append(snap)
+            refined = self.refine(wi, wo, cands + near, current, approach)
+            if any(q is None for q in refined):
+                reasons.append(
+                    PoseRefused(
+                        RefusalReason.NO_SOLUTION,
+                        "the as-built model has no solution near the nominal one",
+                    )
+                )
+            cands = [q for q in refined if q is not None]
         for q in cands:
             r = self._pose_reason(q, wi, wo)
             if r is None and current is not None:
@@ -461,7 +673,11 @@ class Kinematics:
         return best, None
 
     def inverse(
-        self, wi: ArrayLike, wo: ArrayLike, current: Joints | None = None
+        self,
+        wi: ArrayLike,
+        wo: ArrayLike,
+        current: Joints | None = None,
+        approach: Mapping[str, int] | None = None,
     ) -> dict[str, float]:
         """Joint angles (rad) that put the light along ``wi`` and the camera along ``wo``.
 
@@ -472,6 +688,9 @@ class Kinematics:
         current
             Present joint angles (rad); the solution with the shortest move from there
             (from the home pose if None) is chosen among the reachable, collision-free ones.
+        approach
+            The joints' present approach signs (+1, -1, 0 unknown): on an as-built rig,
+            a joint the move leaves in place keeps its sign (unknown counts as +1).
 
         Raises
         ------
@@ -479,7 +698,7 @@ class Kinematics:
             If no solution is reachable; ``reason`` says which rule and the message why
             (limits, camera shadow, arm collision, holder rim, parallel directions).
         """
-        q, refusal = self._solve(wi, wo, current)
+        q, refusal = self._solve(wi, wo, current, approach)
         if q is None:
             raise PoseRefused(
                 refusal.reason,
@@ -489,7 +708,11 @@ class Kinematics:
         return q
 
     def refusal(
-        self, wi: ArrayLike, wo: ArrayLike, current: Joints | None = None
+        self,
+        wi: ArrayLike,
+        wo: ArrayLike,
+        current: Joints | None = None,
+        approach: Mapping[str, int] | None = None,
     ) -> PoseRefused | None:
         """Why ``(wi, wo)`` cannot be reached, or None when it can.
 
@@ -499,23 +722,29 @@ class Kinematics:
             Directions in the sample frame (shape (3,)).
         current
             Present joint angles (rad): the path from there is checked too.
+        approach
+            Present approach signs (as :meth:`inverse`).
 
         Returns
         -------
         PoseRefused or None
             The refusal (not raised): ``reason`` is the rule, ``str()`` the sentence.
         """
-        return self._solve(wi, wo, current)[1]
+        return self._solve(wi, wo, current, approach)[1]
 
     def check(self, wi: ArrayLike, wo: ArrayLike, current: Joints | None = None) -> str | None:
         """Why ``(wi, wo)`` cannot be reached (a sentence), or None when it can."""
         r = self.refusal(wi, wo, current)
         return None if r is None else str(r)
 
-    def joints_refusal(self, joints: Joints) -> PoseRefused | None:
-        """Why a joint pose (rad) is not allowed (rim, limits, shadow, clearance), or None."""
+    def joints_refusal(
+        self, joints: Joints, approach: Mapping[str, int] | None = None
+    ) -> PoseRefused | None:
+        """Why a joint pose (rad) is not allowed (rim, limits, shadow, clearance), or None.
+
+        ``approach``: the joints' approach signs there (as :meth:`forward`)."""
         self._require(joints)
-        wi, wo = self.forward(joints)
+        wi, wo = self.forward(joints, approach)
         return self._direction_reason(wi, wo) or self._pose_reason(joints, wi, wo)
 
     def check_joints(self, joints: Joints) -> str | None:
