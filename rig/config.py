@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from gonio.config import read_toml, validate
 from gonio.errors import ConfigError
+from gonio.rig.calibration_record import CalibrationRecord
 
 #: The joints the ``arms_tilt_spin`` geometry knows.  A servo drives exactly one of them.
 JOINT_NAMES: tuple[str, ...] = ("light_azimuth", "camera_azimuth", "stage_tilt", "stage_spin")
@@ -240,6 +241,8 @@ class RigConfig(_Strict):
     servos: tuple[ServoConfig, ...]
     geometry: GeometryConfig = GeometryConfig()
     motion: MotionConfig = MotionConfig()
+    #: Set on a calibrated rig (``gonio calibrate rig``): provenance, uncertainties.
+    calibration: CalibrationRecord | None = None
 
     @model_validator(mode="after")
     def _servos_consistent(self) -> RigConfig:
