@@ -129,15 +129,19 @@ def sides(poses, home_deg):
     return out
 
 
-def simulate(nominal, v, poses, intr, rng, sigma_board=0.2, sigma_spot=0.15):
-    """(boards, spots) observed at the plan's poses by the rig of values ``v``."""
+def simulate(nominal, v, poses, intr, rng, sigma_board=0.2, sigma_spot=0.15, force_side=None):
+    """(boards, spots) observed at the plan's poses by the rig of values ``v``;
+    ``force_side`` (joint -> +1/-1) pretends every pose approached that joint from one side."""
     truth = truth_config(nominal, v)
     K = np.array([[intr[0], 0, intr[2]], [0, intr[1], intr[3]], [0, 0, 1.0]])
     dist = np.asarray(intr[4:], float)
     pts = board_points()
     boards, spots = [], []
     for p, side in zip(poses, sides(poses, nominal.motion.home_deg), strict=True):
-        reading = {j: math.radians(getattr(p, f)) for j, f in zip(JOINT_NAMES, JOINT_FIELDS, strict=True)}
+        side = {**side, **(force_side or {})}
+        reading = {
+            j: math.radians(getattr(p, f)) for j, f in zip(JOINT_NAMES, JOINT_FIELDS, strict=True)
+        }
         true_reading = {j: reading[j] + math.radians(v[f"{j}.offset"]) for j in JOINT_NAMES}
         pose = rig_poses(truth, true_reading, side)
         R_sc = pose.camera_rotation.T
@@ -151,5 +155,7 @@ def simulate(nominal, v, poses, intr, rng, sigma_board=0.2, sigma_spot=0.15):
         else:
             L = pose.light_position * np.array([1, 1, -1.0])
             uv = cv2.projectPoints(L[None], rvec, tvec, K, dist)[0].reshape(2)
-            spots.append(SpotObservation(p.label, reading, side, uv + sigma_spot * rng.standard_normal(2)))
+            spots.append(
+                SpotObservation(p.label, reading, side, uv + sigma_spot * rng.standard_normal(2))
+            )
     return boards, spots
