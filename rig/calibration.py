@@ -321,7 +321,7 @@ class CameraPrior:
     rms_px
         The camera calibration's reprojection RMS (the first guess of the corner noise).
     digest
-        The camera's identity digest (``gonio.rig.calibration_record.camera_digest``).
+        The camera calibration's digest of the camera's identity.
     width, height
         Image size, px (for the plan's visibility checks).
     """
@@ -748,7 +748,9 @@ def _view_residuals(problem: _Problem, x: Array) -> list[ViewResidual]:
     return out
 
 
-def _outliers(views: list[ViewResidual]) -> dict[str, str]:
+def _outliers(views: list[ViewResidual]) -> dict[tuple[str, str], str]:
+    """(kind, label) -> why, for the views whose RMS exceeds REJECT_FACTOR x their kind's
+    median (a board and a spot of the same pose are judged apart)."""
     out = {}
     for kind in ("board", "spot"):
         vs = [v for v in views if v.kind == kind]
@@ -757,7 +759,7 @@ def _outliers(views: list[ViewResidual]) -> dict[str, str]:
         med = float(np.median([v.rms_px for v in vs]))
         for v in vs:
             if v.rms_px > REJECT_FACTOR * med:
-                out[v.label] = (
+                out[(kind, v.label)] = (
                     f"{kind} residual RMS {v.rms_px:.3g} px > {REJECT_FACTOR:g} x the median "
                     f"{med:.3g} px"
                 )
@@ -824,9 +826,9 @@ def calibrate_rig(
         bad = _outliers(_view_residuals(problem, x))
         if not bad:
             break
-        rejected.update(bad)
-        boards = [b for b in boards if b.label not in bad]
-        spots = [s for s in spots if s.label not in bad]
+        rejected.update({f"{kind} {label}": why for (kind, label), why in bad.items()})
+        boards = [b for b in boards if ("board", b.label) not in bad]
+        spots = [s for s in spots if ("spot", s.label) not in bad]
         if len(boards) < MIN_BOARD_VIEWS:
             raise CalibrationError(
                 f"after rejecting {len(rejected)} view(s) only {len(boards)} board views remain "

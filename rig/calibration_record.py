@@ -7,9 +7,11 @@ observations it used, every parameter's estimate with its standard deviation and
 (canonical names of ``gonio.rig.calibration``), and the terms it cannot observe (why).
 
 Digests.  A rig's identity is what does not change when it is calibrated: its servos'
-ids, models, joints, directions and gear ratios, and its geometry kind.  A camera's is
-``{backend, model, serial, resolution}``.  Both are ``"sha256:<hex>"`` of canonical JSON
-(``json.dumps(..., sort_keys=True)``), so a calibration made on another rig or camera is
+ids, models, joints, directions and gear ratios, and its geometry kind;
+:func:`rig_digest` is ``"sha256:<hex>"`` of its canonical JSON (``json.dumps(...,
+sort_keys=True)``).  A camera's digest is the camera calibration's
+(``gonio.capture.camera_calibration.camera_digest`` of ``{backend, model, serial,
+resolution}``), recorded here as given.  A calibration made on another rig or camera is
 refused with both digests named (:func:`check_rig_digest`, :func:`check_camera_digest`).
 """
 
@@ -17,7 +19,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -31,7 +32,6 @@ __all__ = [
     "CalibrationError",
     "CalibrationRecord",
     "ParameterEstimate",
-    "camera_digest",
     "check_camera_digest",
     "check_rig_digest",
     "rig_digest",
@@ -67,7 +67,7 @@ class CalibrationRecord(_Strict):
     nominal_digest
         :func:`rig_digest` of the nominal rig the calibration started from.
     camera_digest
-        :func:`camera_digest` of the camera the observations were made with (None when
+        The camera calibration's digest of the camera the observations were made with (None when
         unknown).
     rms_px
         Residual RMS per observation kind (``"board"``, ``"spot"``), px.
@@ -122,22 +122,6 @@ def rig_identity(config: RigConfig) -> dict[str, Any]:
 def rig_digest(config: RigConfig) -> str:
     """``"sha256:<hex>"`` of :func:`rig_identity` (unchanged by a calibration)."""
     return _digest(rig_identity(config))
-
-
-def camera_digest(identity: Mapping[str, Any]) -> str:
-    """``"sha256:<hex>"`` of a camera's ``{backend, model, serial, resolution}``.
-
-    Parameters
-    ----------
-    identity
-        A mapping with those four keys (others are ignored; a missing one counts as
-        None); ``resolution`` as ``[width, height]`` px.
-    """
-    keys = ("backend", "model", "serial", "resolution")
-    data = {k: identity.get(k) for k in keys}
-    if data["resolution"] is not None:
-        data["resolution"] = [int(v) for v in data["resolution"]]
-    return _digest(data)
 
 
 def check_rig_digest(expected: str, actual: str, *, what: str = "the rig") -> None:
