@@ -121,6 +121,26 @@ def _magnitude(name: str) -> float:
     return PARAMETERS[name].magnitude
 
 
+def _as_nominal_readings(boards, spots, session_rig, nominal):
+    """The observations' joints as the nominal rig reads them: a session captured with
+    another ``zero_deg`` (e.g. an earlier calibration) journals its own readings."""
+    import dataclasses
+    import math
+
+    shift = {}
+    for s in session_rig.servos:
+        n = nominal.servo_for(s.joint)
+        shift[s.joint] = math.radians(s.direction * (s.zero_deg - n.zero_deg) / s.gear_ratio)
+    if not any(shift.values()):
+        return boards, spots
+
+    def moved(o):
+        joints = {j: float(q) + shift.get(j, 0.0) for j, q in o.joints.items()}
+        return dataclasses.replace(o, joints=joints)
+
+    return [moved(b) for b in boards], [moved(s) for s in spots]
+
+
 def _plot_residuals(path: Path, cal) -> None:
     import matplotlib
 
@@ -210,6 +230,7 @@ def rig_cmd(
     board, board_source = _board_from(board_config, session_dir)
     console.print(f"board: {board_source}")
     boards, spots, problems = calibration_observations(session_dir, board)
+    boards, spots = _as_nominal_readings(boards, spots, session_rig, nominal)
     for p in problems:
         console.print(f"[yellow]note[/]: {p.label}: no {p.what}: {p.reason}")
     if not boards:
