@@ -387,6 +387,32 @@ def _to_camera(rotation: Array, position: Array, points: Array) -> Array:
 
 
 # ------------------------------------------------------------------ the problem
+def _validate(boards: Sequence[BoardObservation], spots: Sequence[SpotObservation]) -> None:
+    """Refuse observations the model cannot use, naming the view and the field."""
+    for o in [*boards, *spots]:
+        missing = [j for j in JOINT_NAMES if j not in o.joints]
+        if missing:
+            raise CalibrationError(
+                f"{o.label}: joints lack {missing}; expected all of {JOINT_NAMES}"
+            )
+        if not all(math.isfinite(float(o.joints[j])) for j in JOINT_NAMES):
+            raise CalibrationError(f"{o.label}: joints {dict(o.joints)} are not all finite")
+    for b in boards:
+        op = np.asarray(b.object_points, float)
+        ip = np.asarray(b.image_points, float)
+        if op.ndim != 2 or op.shape[1] != 3 or ip.shape != (len(op), 2) or len(op) == 0:
+            raise CalibrationError(
+                f"{b.label}: object_points {op.shape} and image_points {ip.shape} must be "
+                "(n, 3) and (n, 2) with n > 0"
+            )
+        if not (np.all(np.isfinite(op)) and np.all(np.isfinite(ip))):
+            raise CalibrationError(f"{b.label}: corner coordinates are not all finite")
+    for s in spots:
+        ip = np.asarray(s.image_point, float)
+        if ip.shape != (2,) or not np.all(np.isfinite(ip)):
+            raise CalibrationError(f"{s.label}: image_point {ip.tolist()} is not 2 finite px")
+
+
 class _Problem:
     """Observations as arrays, and the model's prediction of them for a parameter vector."""
 
@@ -402,6 +428,7 @@ class _Problem:
         self.boards = list(boards)
         self.spots = list(spots)
         obs = [*self.boards, *self.spots]
+        _validate(self.boards, self.spots)
         self.joints = {j: np.array([o.joints[j] for o in obs], float) for j in JOINT_NAMES}
         self.approach = {
             j: np.array([float(o.approach.get(j, 0)) for o in obs]) for j in JOINT_NAMES

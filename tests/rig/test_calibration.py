@@ -202,6 +202,19 @@ def test_too_few_board_views_are_refused():
         calibrate_rig(NOMINAL, boards[:4], spots, camera)
 
 
+def test_unusable_observations_are_refused_naming_the_view():
+    truth, boards, spots, camera = _case(9)
+    b = boards[3]
+    bad = b.image_points.copy()
+    bad[0, 0] = np.nan
+    nan_view = type(b)(b.label, b.joints, b.approach, b.object_points, bad)
+    with pytest.raises(CalibrationError, match=f"{b.label}: corner coordinates"):
+        calibrate_rig(NOMINAL, [*boards[:3], nan_view, *boards[4:]], spots, camera)
+    lacking = type(b)(b.label, {"stage_tilt": 0.0}, b.approach, b.object_points, b.image_points)
+    with pytest.raises(CalibrationError, match="joints lack"):
+        calibrate_rig(NOMINAL, [lacking, *boards[1:]], spots, camera)
+
+
 def test_digests():
     d = rig_digest(NOMINAL)
     assert d.startswith("sha256:") and len(d) == 7 + 64
