@@ -64,7 +64,6 @@ __all__ = [
     "calibrate_rig",
     "observability",
     "parameters_of",
-    "predict_observations",
     "project_points",
     "write_calibrated_rig",
 ]
@@ -925,26 +924,6 @@ def calibrate_rig(
         record=record,
         estimates={n: (float(x[i]), float(std[i])) for i, n in enumerate(problem.names)},
     )
-
-
-def predict_observations(
-    config: RigConfig,
-    joints: Mapping[str, ArrayLike],
-    approach: Mapping[str, ArrayLike],
-    object_points: ArrayLike,
-    intrinsics: ArrayLike,
-) -> Array:
-    """Where sample-frame points appear in the image at one pose of ``config``, px.
-
-    ``joints`` are the configuration's own readings (rad; for a calibrated config, its
-    zero offsets included).  Used by the plan's visibility check and by tests.
-    """
-    poses = rig_poses(config, joints, approach)
-    R = np.asarray(poses.camera_rotation)
-    C = np.asarray(poses.camera_position)
-    p = np.asarray(object_points, float).reshape(-1, 3)
-    pc = (p - C) @ R
-    return project_points(pc, intrinsics)
 
 
 # ------------------------------------------------------------------ the file

@@ -18,6 +18,7 @@ anything moves.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -175,6 +176,15 @@ def _order(
     return out
 
 
+def _home(config: RigConfig) -> JointPose:
+    h = config.motion.home_deg
+    return JointPose(*(float(h[j]) for j in JOINT_NAMES), "sample", "home")
+
+
+def _labelled(poses: list[JointPose], what: str) -> list[JointPose]:
+    return [dataclasses.replace(p, label=f"{what} {i}") for i, p in enumerate(poses)]
+
+
 def camera_calibration_poses(config: RigConfig) -> list[JointPose]:
     """Board views for the camera intrinsics: frontal, 20 deg and 45 deg rings of
     obliquity in eight directions (tilt and camera azimuth), each at two spins."""
@@ -187,10 +197,10 @@ def camera_calibration_poses(config: RigConfig) -> list[JointPose]:
     out = []
     for n, (tilt, cam) in enumerate(rings):
         for spin in (0.0, 35.0 + 10 * n):
-            p = _board_pose(kin, round(tilt, 3), spin, round(cam, 3), f"camera view {len(out)}")
+            p = _board_pose(kin, round(tilt, 3), spin, round(cam, 3), "")
             if p is not None:
                 out.append(p)
-    return _order(kin, out, np.random.default_rng(1), None)
+    return _labelled(_order(kin, out, np.random.default_rng(1), _home(config)), "camera view")
 
 
 def rig_calibration_poses(config: RigConfig, *, seed: int = 0) -> list[JointPose]:
@@ -212,18 +222,7 @@ def rig_calibration_poses(config: RigConfig, *, seed: int = 0) -> list[JointPose
                 p = _board_pose(kin, tilt, float(spin), cam, "")
                 if p is not None:
                     boards.append(p)
-    boards = _order(kin, boards, rng, None)
-    boards = [
-        JointPose(
-            p.light_azimuth_deg,
-            p.camera_azimuth_deg,
-            p.stage_tilt_deg,
-            p.stage_spin_deg,
-            "sample",
-            f"board {i}",
-        )
-        for i, p in enumerate(boards)
-    ]
+    boards = _labelled(_order(kin, boards, rng, _home(config)), "board")
     mirrors = []
     lights = [-60.0, -50.0, -40.0, -30.0, -20.0, -10.0]
     sweeps = [(0.0, 0.0), (2.0, 90.0), (-2.0, 180.0), (0.0, -90.0)]
@@ -234,18 +233,7 @@ def rig_calibration_poses(config: RigConfig, *, seed: int = 0) -> list[JointPose
             prev = mirrors[-1] if mirrors else (boards[-1] if boards else None)
             if _reachable(kin, p, prev):
                 mirrors.append(p)
-    mirrors = [
-        JointPose(
-            p.light_azimuth_deg,
-            p.camera_azimuth_deg,
-            p.stage_tilt_deg,
-            p.stage_spin_deg,
-            "mirror",
-            f"mirror {i}",
-        )
-        for i, p in enumerate(mirrors)
-    ]
-    return boards + mirrors
+    return boards + _labelled(mirrors, "mirror")
 
 
 def predicted_observations(

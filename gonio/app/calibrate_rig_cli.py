@@ -222,8 +222,14 @@ def rig_cmd(
     session_rig = rig_config_from_dict(manifest["rig"], f"{session_dir}/manifest.json: rig")
     check_rig_digest(rig_digest(nominal), rig_digest(session_rig), what=f"session {session_dir}")
     camera = camera_prior(camera_calibration)
+    # The session's image size: a simulated session records it; a real camera's identity
+    # carries its resolution setting, else the calibration's size stands in for it.
     sim = manifest.get("simulation") or {}
-    size = (sim["width"], sim["height"]) if sim.get("width") and sim.get("height") else None
+    size = (
+        (sim["width"], sim["height"])
+        if sim.get("width") and sim.get("height")
+        else (camera.width, camera.height)
+    )
     session_digest = camera_digest(camera_identity(manifest["camera"], size))
     check_camera_digest(camera.digest, session_digest, source=str(camera_calibration))
 

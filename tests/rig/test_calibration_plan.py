@@ -49,7 +49,8 @@ def _obliquity_deg(p: JointPose) -> float:
 
 
 def _check_reachable(poses):
-    prev = None
+    h = NOMINAL.motion.home_deg
+    prev = JointPose(*(h[j] for j in JOINT_NAMES))  # the session starts from home
     for p in poses:
         assert KIN.joints_refusal(_q(p)) is None, p
         if prev is not None:
