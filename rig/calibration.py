@@ -114,7 +114,7 @@ _INTRINSIC_UNITS = ("px", "px", "px", "px", "1", "1", "1", "1", "1")
 
 #: A parameter is refused when its standard deviation exceeds this fraction of its
 #: expected magnitude: beyond it the estimate says little more than "about the nominal".
-OBSERVABLE_FRACTION = 0.5
+OBSERVABLE_FRACTION = 1.0
 #: A view whose residual RMS exceeds this many times its kind's median is rejected.
 REJECT_FACTOR = 5.0
 #: Fewer mirror views than this cannot pin the light's azimuth offset, backlash (both
