@@ -262,3 +262,13 @@ def test_calibrated_rig_file(tmp_path):
     with pytest.raises(CalibrationError, match="holder_offset_z"):
         write_calibrated_rig(tmp_path / "other.toml", cal, force=True)
     assert not (tmp_path / "other.toml").exists()
+
+
+def test_a_nominal_rig_dumps_as_before_the_calibration_field():
+    # manifests and rig digests of nominal rigs are unchanged; a calibrated one carries it
+    assert "calibration" not in NOMINAL.model_dump(mode="json")
+    truth, boards, spots, camera = _case(13)
+    cal = calibrate_rig(NOMINAL, boards, spots, camera)
+    assert cal.config.model_dump(mode="json")["calibration"]["nominal_digest"] == rig_digest(
+        NOMINAL
+    )
