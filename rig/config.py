@@ -14,13 +14,21 @@ import math
 import tomllib
 from importlib import resources
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import tomli_w
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from gonio.config import read_toml, validate
 from gonio.errors import ConfigError
+from gonio.rig.calibration_record import CalibrationRecord
 
 #: The joints the ``arms_tilt_spin`` geometry knows.  A servo drives exactly one of them.
 JOINT_NAMES: tuple[str, ...] = ("light_azimuth", "camera_azimuth", "stage_tilt", "stage_spin")
@@ -240,6 +248,16 @@ class RigConfig(_Strict):
     servos: tuple[ServoConfig, ...]
     geometry: GeometryConfig = GeometryConfig()
     motion: MotionConfig = MotionConfig()
+    #: Set on a calibrated rig (``gonio calibrate rig``): provenance, uncertainties.
+    calibration: CalibrationRecord | None = None
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: Any) -> dict[str, Any]:
+        # A nominal rig dumps (and digests) as it did before the field existed.
+        data = handler(self)
+        if self.calibration is None and isinstance(data, dict):
+            data.pop("calibration", None)
+        return data
 
     @model_validator(mode="after")
     def _servos_consistent(self) -> RigConfig:

@@ -1,0 +1,274 @@
+"""``gonio calibrate plan`` and ``gonio calibrate rig``: calibration plans and the rig
+calibration.
+
+``plan`` writes the joint poses of a camera or rig calibration (``[[joint_poses]]``, run
+with ``gonio capture run``); for a rig plan it first shows that every parameter is
+observable.  ``rig`` reads a calibration session's board views and mirror spots
+(:func:`gonio.capture.rig_views.calibration_observations`), solves the as-built
+parameters (:func:`gonio.rig.calibration.calibrate_rig`) with the camera calibration as
+prior, prints them with their uncertainties, and writes the calibrated rig
+configuration; it refuses a camera calibration of another camera, a session of another
+rig, and an ill-conditioned fit, naming them, and never overwrites without ``--force``.
+
+The commands are registered in the ``calibrate`` group (``gonio.app.calibrate_cli``) as
+``plan_cmd`` and ``rig_cmd``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import click
+import numpy as np
+
+__all__ = ["camera_prior", "plan_cmd", "rig_cmd"]
+
+
+def _load_rig(path: Path | None):
+    from gonio.rig.config import default_rig_config, load_rig_config
+
+    return load_rig_config(path) if path else default_rig_config()
+
+
+def camera_prior(path: Path):
+    """The camera calibration file (``gonio calibrate camera --out``, read by
+    ``gonio.capture.camera_calibration.load_camera_calibration``) as the rig
+    calibration's :class:`gonio.rig.calibration.CameraPrior`."""
+    from gonio.capture.camera_calibration import load_camera_calibration
+    from gonio.rig.calibration import CameraPrior
+
+    cam = load_camera_calibration(path)
+    rec = cam.calibration
+    return CameraPrior(
+        K=np.asarray(cam.K, float),
+        dist=np.asarray(cam.dist, float),
+        K_std=np.asarray(rec.K_std, float),
+        dist_std=np.asarray(rec.dist_std, float),
+        rms_px=float(rec.rms_px),
+        digest=rec.digest,
+        width=cam.width,
+        height=cam.height,
+    )
+
+
+@click.command("plan")
+@click.option(
+    "--rig",
+    "rig_path",
+    type=click.Path(dir_okay=False, exists=True, path_type=Path),
+    help="The nominal rig configuration (default: the built-in preset).",
+)
+@click.option(
+    "--kind",
+    type=click.Choice(["camera", "rig"]),
+    required=True,
+    help="camera: board views for the intrinsics; rig: board and mirror views for the rig.",
+)
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True)
+@click.option(
+    "--camera-calibration",
+    type=click.Path(dir_okay=False, exists=True, path_type=Path),
+    help="Camera calibration for the observability check (default: a 640 x 480 guess).",
+)
+@click.option("--seed", type=int, default=0, show_default=True, help="Order of the board views.")
+@click.option("--force", is_flag=True, help="Overwrite an existing --out file.")
+def plan_cmd(
+    rig_path: Path | None,
+    kind: str,
+    out: Path,
+    camera_calibration: Path | None,
+    seed: int,
+    force: bool,
+) -> None:
+    """Write a calibration plan of joint poses (run it with `gonio capture run`)."""
+    from rich.console import Console
+
+    from gonio.rig.calibration_plan import (
+        camera_calibration_poses,
+        check_observable,
+        default_camera,
+        rig_calibration_poses,
+        write_plan,
+    )
+    from gonio.rig.calibration_record import CalibrationError
+
+    console = Console()
+    if out.exists() and not force:
+        raise CalibrationError(f"{out} exists; not overwritten (use --force to replace it)")
+    config = _load_rig(rig_path)
+    if kind == "camera":
+        poses = camera_calibration_poses(config)
+    else:
+        poses = rig_calibration_poses(config, seed=seed)
+        camera = camera_prior(camera_calibration) if camera_calibration else default_camera()
+        obs = check_observable(config, poses, camera)
+        worst = max(obs.std, key=lambda n: obs.std[n] / _magnitude(n))
+        console.print(
+            f"every parameter observable; the least determined: {worst} "
+            f"(predicted std {obs.std[worst]:.3g})"
+        )
+    n_mirror = sum(p.target == "mirror" for p in poses)
+    write_plan(out, poses, kind=kind, force=force)
+    console.print(
+        f"wrote {out}: {len(poses)} poses ({len(poses) - n_mirror} board, {n_mirror} mirror)"
+    )
+
+
+def _magnitude(name: str) -> float:
+    from gonio.rig.calibration import PARAMETERS
+
+    return PARAMETERS[name].magnitude
+
+
+def _as_nominal_readings(boards, spots, session_rig, nominal):
+    """The observations' joints as the nominal rig reads them: a session captured with
+    another ``zero_deg`` (e.g. an earlier calibration) journals its own readings."""
+    import dataclasses
+    import math
+
+    shift = {}
+    for s in session_rig.servos:
+        n = nominal.servo_for(s.joint)
+        shift[s.joint] = math.radians(s.direction * (s.zero_deg - n.zero_deg) / s.gear_ratio)
+    if not any(shift.values()):
+        return boards, spots
+
+    def moved(o):
+        joints = {j: float(q) + shift.get(j, 0.0) for j, q in o.joints.items()}
+        return dataclasses.replace(o, joints=joints)
+
+    return [moved(b) for b in boards], [moved(s) for s in spots]
+
+
+def _plot_residuals(path: Path, cal) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from gonio.atomic import atomic_path
+
+    fig, ax = plt.subplots(figsize=(10, 4))
+    for kind, colour in (("board", "tab:blue"), ("spot", "tab:orange")):
+        vs = [(i, v) for i, v in enumerate(cal.views) if v.kind == kind]
+        if vs:
+            ax.bar([i for i, _ in vs], [v.rms_px for _, v in vs], color=colour, label=kind)
+    ax.set_xlabel("view")
+    ax.set_ylabel("residual RMS (px)")
+    ax.legend()
+    ax.set_title("rig calibration residuals per view")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+
+
+@click.command("rig")
+@click.argument("session_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.option(
+    "--rig",
+    "rig_path",
+    type=click.Path(dir_okay=False, exists=True, path_type=Path),
+    required=True,
+    help="The nominal rig configuration the session was captured with.",
+)
+@click.option(
+    "--camera-calibration",
+    type=click.Path(dir_okay=False, exists=True, path_type=Path),
+    required=True,
+    help="The camera calibration (`gonio calibrate camera --out`).",
+)
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True)
+@click.option(
+    "--board-config",
+    type=click.Path(dir_okay=False, exists=True, path_type=Path),
+    help="A TOML with the holder's [board] (default: the session's scene or reduction.toml, "
+    "else the default board).",
+)
+@click.option("--plot", type=click.Path(dir_okay=False, path_type=Path), help="Residual plot PNG.")
+@click.option("--force", is_flag=True, help="Overwrite existing --out / --plot files.")
+def rig_cmd(
+    session_dir: Path,
+    rig_path: Path,
+    camera_calibration: Path,
+    out: Path,
+    board_config: Path | None,
+    plot: Path | None,
+    force: bool,
+) -> None:
+    """Calibrate the rig from a calibration session; write the calibrated configuration."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from gonio.app.calibrate_cli import _board_from
+    from gonio.capture.camera_calibration import camera_digest, camera_identity
+    from gonio.capture.manifest import load_manifest
+    from gonio.capture.rig_views import calibration_observations
+    from gonio.rig.calibration import NOT_OBSERVABLE, calibrate_rig, write_calibrated_rig
+    from gonio.rig.calibration_record import (
+        CalibrationError,
+        check_camera_digest,
+        check_rig_digest,
+        rig_digest,
+    )
+    from gonio.rig.config import load_rig_config, rig_config_from_dict
+
+    console = Console()
+    for p in (out, plot):
+        if p is not None and p.exists() and not force:
+            raise CalibrationError(f"{p} exists; not overwritten (use --force to replace it)")
+    nominal = load_rig_config(rig_path)
+    manifest = load_manifest(session_dir)
+    session_rig = rig_config_from_dict(manifest["rig"], f"{session_dir}/manifest.json: rig")
+    check_rig_digest(rig_digest(nominal), rig_digest(session_rig), what=f"session {session_dir}")
+    camera = camera_prior(camera_calibration)
+    # The session's image size: a simulated session records it; a real camera's identity
+    # carries its resolution setting, else the calibration's size stands in for it.
+    sim = manifest.get("simulation") or {}
+    size = (
+        (sim["width"], sim["height"])
+        if sim.get("width") and sim.get("height")
+        else (camera.width, camera.height)
+    )
+    session_digest = camera_digest(camera_identity(manifest["camera"], size))
+    check_camera_digest(camera.digest, session_digest, source=str(camera_calibration))
+
+    board, board_source = _board_from(board_config, session_dir)
+    console.print(f"board: {board_source}")
+    boards, spots, problems = calibration_observations(session_dir, board)
+    boards, spots = _as_nominal_readings(boards, spots, session_rig, nominal)
+    for p in problems:
+        console.print(f"[yellow]note[/]: {p.label}: no {p.what}: {p.reason}")
+    if not boards:
+        raise CalibrationError(f"{session_dir}: the board was not found in any frame")
+    cal = calibrate_rig(nominal, boards, spots, camera, camera_digest=session_digest)
+
+    table = Table(title=f"rig calibration ({cal.solve_time_s:.1f} s)")
+    for col in ("parameter", "value", "std", "unit"):
+        table.add_column(col, justify="left" if col == "parameter" else "right")
+    for i, name in enumerate(cal.names):
+        unit = cal.record.parameters.get(name) or cal.record.intrinsics.get(name)
+        std = cal.std[i]
+        table.add_row(
+            name,
+            f"{cal.values[i]:.6g}",
+            f"{std:.3g}" if math.isfinite(std) else "inf",
+            unit.unit if unit else "",
+        )
+    console.print(table)
+    for kind, rms in cal.rms_px.items():
+        views = [v for v in cal.views if v.kind == kind]
+        worst = max(views, key=lambda v: v.max_px)
+        console.print(
+            f"{kind}: {len(views)} views, RMS {rms:.3f} px (sigma {cal.sigma_px[kind]:.3f} px), "
+            f"largest {worst.max_px:.3f} px in {worst.label}"
+        )
+    for label, why in cal.rejected.items():
+        console.print(f"[yellow]rejected[/] {label}: {why}")
+    console.print("not observable (kept nominal):")
+    for name, why in NOT_OBSERVABLE.items():
+        console.print(f"  {name}: {why}")
+    if plot is not None:
+        _plot_residuals(plot, cal)
+    write_calibrated_rig(out, cal, force=force)
+    console.print(f"wrote {out}")
