@@ -83,6 +83,9 @@ class CalibrationRecord(_Strict):
         View label -> why it was left out.
     not_observable
         Term -> why no calibration can measure it.
+    nominal
+        The nominal rig configuration itself (a rig TOML's tables): what was calibrated,
+        so a calibration can be redone from it and a simulated rig knows its drawing.
     """
 
     created: str
@@ -94,6 +97,7 @@ class CalibrationRecord(_Strict):
     intrinsics: dict[str, ParameterEstimate] = {}
     rejected: dict[str, str] = {}
     not_observable: dict[str, str] = {}
+    nominal: dict[str, Any] | None = None
 
 
 def _digest(data: Any) -> str:

@@ -17,15 +17,28 @@ from gonio.cli import LazyGroup
 __all__ = ["calibrate", "camera_cmd"]
 
 
-@click.group(cls=LazyGroup, lazy_commands={})
+@click.group(
+    cls=LazyGroup,
+    lazy_commands={
+        "plan": "gonio.app.calibrate_rig_cli:plan_cmd",
+        "rig": "gonio.app.calibrate_rig_cli:rig_cmd",
+    },
+)
 def calibrate() -> None:
     """Calibrations: the camera (intrinsics, distortion) and the rig as built.
 
     \b
-    The lab path, in order:
-      gonio calibrate camera --plan camera_plan.toml --rig rig.toml --camera gphoto2 \\
-          --out CAM/ --calibration camera.toml
-      gonio capture reduce ...   (reduction.toml: [camera] file = "camera.toml")
+    The lab path, in order (README, "The lab path"):
+      gonio calibrate plan --rig rig.toml --kind camera --out cal/camera_plan.toml
+      gonio calibrate camera --plan cal/camera_plan.toml --rig rig.toml \\
+          --camera gphoto2 --out cal/camera_session --calibration cal/camera.toml
+      gonio calibrate plan --rig rig.toml --kind rig --out cal/rig_plan.toml
+      gonio capture run cal/rig_plan.toml --rig rig.toml --camera gphoto2 \\
+          --out cal/rig_session
+      gonio calibrate rig cal/rig_session --rig rig.toml \\
+          --camera-calibration cal/camera.toml --out cal/rig_calibrated.toml
+      gonio capture run plan.toml --rig cal/rig_calibrated.toml ... --out S/
+      gonio capture reduce S/ --camera-calibration cal/camera.toml
     """
 
 
@@ -185,6 +198,18 @@ def plot_calibration(cal: Any, path: Path) -> None:
     help="With --plan: the new session directory the views are shot into.",
 )
 @click.option("--scene", "scene_file", type=click.Path(dir_okay=False), default=None)
+@click.option(
+    "--world",
+    default=None,
+    metavar="perfect|realistic|FILE",
+    help="With --plan and --camera simulated: the as-built world (as gonio capture run).",
+)
+@click.option(
+    "--world-seed",
+    type=click.IntRange(0),
+    default=None,
+    help="Seed the world's errors are drawn from (as gonio capture run).",
+)
 @click.option("--camera-port", default=None, help="gphoto2 port (e.g. usb:001,004).")
 @click.option("--camera-model", default=None, help="Image folder: the camera's model.")
 @click.option("--camera-serial", default=None, help="Image folder: the camera's serial.")
@@ -204,6 +229,8 @@ def camera_cmd(
     camera_backend: str,
     session_out: Path | None,
     scene_file: str | None,
+    world: str | None,
+    world_seed: int | None,
     camera_port: str | None,
     camera_model: str | None,
     camera_serial: str | None,
@@ -267,6 +294,8 @@ def camera_cmd(
             rig_file=rig_file,
             out=session_out,
             scene_file=scene_file,
+            world=world,
+            world_seed=world_seed,
             camera_backend=camera_backend,
             camera_port=camera_port,
             sim_speed=None,

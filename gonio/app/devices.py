@@ -100,7 +100,9 @@ def open_session_devices(
     from gonio.rig.kinematics import Kinematics
 
     cfg = request.rig_config
-    nominal_cfg = cfg
+    # The world's errors are relative to the rig as drawn: a calibrated configuration
+    # carries the nominal one it was calibrated from.
+    nominal_cfg = _nominal_of(cfg)
     sim = dict(request.simulation or {})
     # The as-built world: recorded in the simulation record (a new run writes it there,
     # resume rebuilds the same one); none recorded: perfect (sessions from before).
@@ -192,6 +194,16 @@ def open_session_devices(
         )
         stack.callback(camera.close)
         yield SessionDevices(rig, camera, kinematics=kin, sleep=sleep)
+
+
+def _nominal_of(cfg: Any) -> Any:
+    """The nominal rig a configuration describes (itself, unless it is a calibrated one)."""
+    record = getattr(cfg, "calibration", None)
+    if record is None or record.nominal is None:
+        return cfg
+    from gonio.rig.config import rig_config_from_dict
+
+    return rig_config_from_dict(dict(record.nominal), "rig configuration: calibration.nominal")
 
 
 def device_opener(
