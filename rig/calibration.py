@@ -898,7 +898,7 @@ def calibrate_rig(
         intrinsics=intr,
         rejected=rejected,
         not_observable=dict(NOT_OBSERVABLE),
-        nominal=nominal.model_dump(mode="json", exclude={"calibration"}),
+        nominal=nominal.model_dump(mode="json", exclude={"calibration"}, exclude_none=True),
     )
     # The configuration cannot hold a negative backlash: an estimate below 0 is one
     # consistent with none (its raw value stays in the record).

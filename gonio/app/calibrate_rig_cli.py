@@ -72,6 +72,31 @@ def camera_prior(path: Path):
     help="Camera calibration for the observability check (default: a 640 x 480 guess).",
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Order of the board views.")
+@click.option(
+    "--spot-exposure",
+    type=click.FloatRange(min=0, min_open=True),
+    default=2e-5,
+    show_default=True,
+    help="Short exposure of each pose, s: the light's image in the mirror must not clip "
+    "(a bright source needs it short; gonio calibrate rig says when it clipped).",
+)
+@click.option(
+    "--board-exposure",
+    type=click.FloatRange(min=0, min_open=True),
+    default=0.02,
+    show_default=True,
+    help="Long exposure of each pose, s: the board's corners.",
+)
+@click.option(
+    "--size",
+    nargs=2,
+    type=click.IntRange(16),
+    default=(640, 480),
+    show_default=True,
+    metavar="W H",
+    help="Simulated camera resolution written in [simulation] (a real camera ignores it); "
+    "the camera and rig calibrations must be shot at the same size.",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing --out file.")
 def plan_cmd(
     rig_path: Path | None,
@@ -79,9 +104,20 @@ def plan_cmd(
     out: Path,
     camera_calibration: Path | None,
     seed: int,
+    spot_exposure: float,
+    board_exposure: float,
+    size: tuple[int, int],
     force: bool,
 ) -> None:
-    """Write a calibration plan of joint poses (run it with `gonio capture run`)."""
+    """Write a calibration plan of joint poses (run it with `gonio capture run`).
+
+    \b
+    --kind camera: board views for `gonio calibrate camera` (tilted 0-45 deg, different
+    parts of the image); --kind rig: board views at many tilts, spins and camera
+    azimuths, each joint approached from both sides, then mirror views (a flat mirror
+    in the sample's place: the light's image in it gives the light arm).  The plan is
+    checked before it is written: every kinematic parameter must be observable.
+    """
     from rich.console import Console
 
     from gonio.rig.calibration_plan import (
@@ -109,7 +145,15 @@ def plan_cmd(
             f"(predicted std {obs.std[worst]:.3g})"
         )
     n_mirror = sum(p.target == "mirror" for p in poses)
-    write_plan(out, poses, kind=kind, force=force)
+    write_plan(
+        out,
+        poses,
+        kind=kind,
+        force=force,
+        exposures_s=(spot_exposure, board_exposure),
+        width=size[0],
+        height=size[1],
+    )
     console.print(
         f"wrote {out}: {len(poses)} poses ({len(poses) - n_mirror} board, {n_mirror} mirror)"
     )
