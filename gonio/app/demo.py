@@ -216,6 +216,9 @@ class DemoResult:
     seconds: dict[str, float]
     report: Path
     material: str
+    world: str = "perfect"
+    world_seed: int | None = None
+    calibration: Any = None
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -233,6 +236,9 @@ class DemoResult:
             "brdf_rel_error_median": self.brdf_rel_error_median,
             "seconds": self.seconds,
             "report": str(self.report),
+            "world": self.world,
+            "world_seed": self.world_seed,
+            "calibration": None if self.calibration is None else self.calibration.to_json(),
         }
 
 
@@ -252,12 +258,18 @@ def run_demo(
     quiet: bool = False,
     say: Callable[[str], None] = print,
     time_scale: float | str = "virtual",
+    world: str = "perfect",
+    world_seed: int = 0,
 ) -> DemoResult:
     """Run capture, reduction and fit of a simulated session into ``out``.
 
     ``quiet`` hides the capture's progress bar; ``say`` receives one line per stage.
     ``time_scale`` is the virtual bus's speed: ``"virtual"`` (servo time advanced by the
     commanded motion: no waiting) or a speed-up factor over the wall clock (to watch).
+    ``world`` is the simulator's as-built world: ``"perfect"`` (the rig exactly as
+    configured: no calibration needed) or ``"realistic"`` (errors drawn from
+    ``world_seed``): then the camera and the rig are calibrated first, the session runs
+    on the calibrated rig and the reduction uses the calibrated camera.
     """
     from gonio.app.simulation import simulated_run
     from gonio.capture.manifest import load_manifest
@@ -291,14 +303,39 @@ def run_demo(
     )
     seconds["setup"] = time.perf_counter() - t
 
+    rig_path = out / "rig.toml"
+    calibration = None
+    if world != "perfect":
+        from gonio.app.demo_calibrations import calibrate_simulated_rig
+
+        calibration = calibrate_simulated_rig(
+            out,
+            out / "rig.toml",
+            out / "scene.toml",
+            world=world,
+            world_seed=world_seed,
+            size=(width, height),
+            time_scale=time_scale,
+            quiet=quiet,
+            say=say,
+        )
+        seconds.update({f"calibrate_{k}": v for k, v in calibration.seconds.items()})
+        rig_path = calibration.rig_file
+
     session = out / "session"
     say(f"capturing into {session} (virtual servo bus on a pty, simulated camera)")
     t = time.perf_counter()
     # What 'gonio capture run plan.toml --rig rig.toml --camera simulated' does, through
     # the library: the API prints nothing, the demo says what it does through ``say``.
     plan = load_plan(out / "plan.toml")
-    cfg = load_rig_config(out / "rig.toml")
-    sim = simulated_run(plan, out / "plan.toml", None, time_scale)
+    cfg = load_rig_config(rig_path)
+    sim = simulated_run(
+        plan,
+        out / "plan.toml",
+        None,
+        time_scale,
+        **({"world": world, "world_seed": world_seed} if world != "perfect" else {}),
+    )
     from gonio.app.progress import SessionProgress
 
     with SessionProgress(quiet) as progress:
@@ -321,11 +358,19 @@ def run_demo(
     # read-back through its kinematics; the board checks it (flagging disagreements).
     # From the board alone, a ~0.04 deg pose error per view at this resolution is a
     # percent of BRDF on a lobe's flank, shared by the pose's regions.
-    setup = resolve_setup(session, load_manifest(session))
     # Regions of ~5 mm: a region's mean over its spread of directions flattens a lobe's
     # peak in proportion to (region size / lobe width)^2; 6 x 6 regions keep that below
     # the noise for alpha >= 0.1 while each region still has ~100 pixels.
-    setup = dataclasses.replace(setup, geometry="rig", grid=6)  # = --geometry rig --grid 6
+    if calibration is None:
+        setup = resolve_setup(session, load_manifest(session))
+        setup = dataclasses.replace(setup, geometry="rig", grid=6)  # = --geometry rig --grid 6
+    else:
+        # = --camera-calibration camera.toml --grid 6: the calibrated camera; each view's
+        # pose from the board, the calibrated rig checking it (and giving the light).
+        setup = resolve_setup(
+            session, load_manifest(session), camera_calibration=calibration.camera_file
+        )
+        setup = dataclasses.replace(setup, grid=6)
     red = reduce_session(session, setup=setup, plot=True)
     seconds["reduce"] = time.perf_counter() - t
 
@@ -378,6 +423,7 @@ def run_demo(
         brdf_err,
         seconds,
         frames,
+        calibration,
     )
     seconds["report"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - t_all
@@ -396,6 +442,9 @@ def run_demo(
         seconds={k: round(v, 3) for k, v in seconds.items()},
         report=report,
         material=material.spec,
+        world=world,
+        world_seed=None if world == "perfect" else world_seed,
+        calibration=calibration,
     )
 
 
@@ -412,6 +461,11 @@ def _count_frames(session: Path) -> int:
 def _count_poses(session: Path) -> int:
     manifest = json.loads((session / "manifest.json").read_text())
     return sum(1 for s in manifest["schedule"] if s.get("kind") == "sample")
+
+
+#: The camera size of ``--world realistic`` unless ``--resolution`` says: the rig
+#: calibration needs the board corners' precision.
+REALISTIC_RESOLUTION = (480, 360)
 
 
 # --------------------------------------------------------------------------------------
@@ -455,7 +509,7 @@ def _count_poses(session: Path) -> int:
     type=(click.IntRange(8, 8192), click.IntRange(8, 8192)),
     default=(320, 240),
     show_default=True,
-    help="Simulated camera resolution, pixels (width height).",
+    help="Simulated camera resolution, pixels (width height) [--world realistic: 480 360].",
 )
 @click.option(
     "--sim-speed",
@@ -467,6 +521,21 @@ def _count_poses(session: Path) -> int:
     "(no waiting for it); a number runs servo time that many times faster than the wall "
     "clock, to watch the arms (e.g. 20). Same journal and results either way.",
 )
+@click.option(
+    "--world",
+    type=click.Choice(["perfect", "realistic"]),
+    default="perfect",
+    show_default=True,
+    help="The simulated rig as built: perfect (exactly its configuration) or realistic "
+    "(servo offsets, backlash, misaligned axes, lens distortion...): then the camera and "
+    "the rig are calibrated first, as in the README's lab path.",
+)
+@click.option(
+    "--world-seed",
+    type=click.IntRange(0),
+    default=None,
+    help="Seed of a realistic world's errors [default: drawn at random and printed].",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
 def demo(
     out: Path | None,
@@ -476,6 +545,8 @@ def demo(
     model: str,
     resolution: tuple[int, int],
     sim_speed: float | str,
+    world: str,
+    world_seed: int | None,
     as_json: bool,
 ) -> None:
     """Run a whole simulated measurement session: no hardware, no network.
@@ -490,8 +561,15 @@ def demo(
     5. writes report.md with plots, and prints a summary.
 
     \b
+    With --world realistic the simulated rig is not its own drawing: the camera and
+    the rig are calibrated first (two calibration sessions), the session runs on the
+    calibrated rig, the reduction uses the calibrated camera, and the report shows the
+    calibrations' residuals and estimates beside the fit.
+
+    \b
     Examples:
       gonio demo
+      gonio demo --world realistic --world-seed 7
       gonio demo --material "lambert albedo=0.7" --poses 100
       gonio demo --material rgl:vch_golden_yellow --json
     Ctrl-C stops it with the servos parked and torque off; continue the capture with
@@ -508,6 +586,20 @@ def demo(
 
         get_model(model)
     say = (lambda s: None) if as_json else (lambda s: console.print(f"[bold cyan]>[/] {s}"))
+    if world != "perfect" and world_seed is None:
+        import secrets
+
+        world_seed = secrets.randbelow(2**31)
+    if world != "perfect":
+        if resolution == (320, 240):
+            # The calibrations need the corners' precision: at 320 x 240 the rig plan
+            # cannot tell the tilt's gravity compliance from its zero offset (and the
+            # rig calibration refuses, naming it).
+            resolution = REALISTIC_RESOLUTION
+        say(
+            f"as-built world: {world}, seed {world_seed} (replay with --world-seed "
+            f"{world_seed}); camera {resolution[0]} x {resolution[1]}"
+        )
     try:
         res = run_demo(
             out,
@@ -520,6 +612,8 @@ def demo(
             quiet=as_json,
             say=say,
             time_scale=sim_speed,
+            world=world,
+            world_seed=world_seed or 0,
         )
     except KeyboardInterrupt:
         console.print(

@@ -46,6 +46,31 @@ def _sample_images(session: Path, out: Path, n: int = 3) -> list[tuple[Path, str
     return images
 
 
+def _calibration_lines(cal: Any, out: Path) -> list[str]:
+    """The calibrations beside the fit: residuals, and each estimate against the truth."""
+    rms = ", ".join(f"{k} {v:.3f} px" for k, v in cal.rig_rms_px.items())
+    lines = [
+        "## Calibrations (the simulated rig as built)",
+        "",
+        f"Camera (`{Path(cal.camera_file).name}`): reprojection RMS {cal.camera_rms_px:.3f} px "
+        f"over {cal.camera_views} views ({cal.camera_rejected} rejected). "
+        f"Rig (`{Path(cal.rig_file).name}`): residual RMS {rms}. "
+        "The session was captured with the calibrated rig and reduced with the calibrated "
+        "camera. The truth is the simulator's as-built world, which the controller and the "
+        "reduction never read; z = (estimate - truth) / sigma.",
+        "",
+        "| parameter | estimate | sigma | truth | unit | z |",
+        "|---|---|---|---|---|---|",
+    ]
+    z = cal.z()
+    for name, v, s, t, unit in cal.rows:
+        lines.append(
+            f"| {name} | {v:.6g} | {s:.2g} | {'-' if t is None else f'{t:.6g}'} | {unit} | "
+            f"{f'{z[name]:+.2f}' if name in z else '-'} |"
+        )
+    return [*lines, ""]
+
+
 def write_report(
     out: Path,
     session: Path,
@@ -61,8 +86,12 @@ def write_report(
     brdf_err: float,
     seconds: dict,
     frames: int,
+    calibration: Any = None,
 ) -> Path:
-    """Write ``out/report.md`` and its plots; return the report's path."""
+    """Write ``out/report.md`` and its plots; return the report's path.
+
+    ``calibration`` (a :class:`gonio.app.demo_calibrations.CalibrationSummary`) adds the
+    calibrations' residuals and estimates beside the fit (``--world realistic``)."""
     from gonio.fitting.export import save_json
     from gonio.fitting.plots import plot_residual_map, plot_slices
 
@@ -99,9 +128,10 @@ def write_report(
         f"Median relative difference between the fitted and the true BRDF at the measured "
         f"directions: **{brdf_err:.2%}**.",
         "",
-        "## Rejected samples",
-        "",
     ]
+    if calibration is not None:
+        lines += _calibration_lines(calibration, out)
+    lines += ["## Rejected samples", ""]
     if red.rejected:
         lines += ["| reason | count |", "|---|---|"]
         lines += [f"| {k} | {v} |" for k, v in red.rejected.items()]
