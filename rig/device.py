@@ -405,10 +405,13 @@ class Rig:
         return achieved
 
     def _track_approach(self, goals: Mapping[int, int], states: Mapping[str, ServoState]) -> None:
-        # The sign of the commanded change in joint angle; a zero move keeps the sign.
+        # The sign of the commanded change in joint angle.  A goal within the position
+        # tolerance of where the servo stands (its deadband: the joint it had to stay
+        # at, after landing a pulse off) does not move it, so it keeps its side.
+        tol = self.config.motion.position_tolerance_pulses
         for st in states.values():
             d = goals[st.dxl_id] - st.position_pulses
-            if d:
+            if abs(d) > tol:
                 direction = self._by_id[st.dxl_id].config.direction
                 self._approach[st.joint] = direction * (1 if d > 0 else -1)
 

@@ -65,7 +65,7 @@ def test_reported_std_matches_the_spread_over_seeds():
     sigma = 0.3
     z, rms_ratio = [], []
     for seed in range(40):
-        c = calibrate_camera(synthetic_views(np.random.default_rng(seed), sigma))
+        c = calibrate_camera(synthetic_views(np.random.default_rng(seed), sigma), flags=0)
         assert not c.rejected
         z.append((_estimates(c) - TRUTH) / np.r_[c.K_std, c.dist_std])
         p = 9 + 6 * len(c.used)  # intrinsics + a pose per view
@@ -83,7 +83,7 @@ def test_an_outlier_view_is_rejected_with_its_reason():
     bad = views[4]
     shifted = bad.image_points + np.random.default_rng(9).normal(0, 6.0, bad.image_points.shape)
     views[4] = CalibrationView(bad.label, bad.ids, shifted, bad.object_points, bad.image_size)
-    c = calibrate_camera(views)
+    c = calibrate_camera(views, flags=0)
     assert [r.label for r in c.rejected] == ["view 4"]
     assert "more than 3x the median" in c.rejected[0].reason
     assert "view 4" not in c.used and len(c.used) == 9
@@ -106,7 +106,7 @@ def test_a_board_never_found_is_refused():
 
 
 def test_calibration_file_round_trip_refusal_and_digest(tmp_path):
-    c = calibrate_camera(synthetic_views(np.random.default_rng(3), 0.2, n=8))
+    c = calibrate_camera(synthetic_views(np.random.default_rng(3), 0.2, n=8), flags=0)
     path = tmp_path / "camera.toml"
     write_camera_calibration(path, c, IDENT, cfa_pattern="RGGB")
     before = path.read_bytes()
@@ -139,7 +139,7 @@ def test_calibration_file_round_trip_refusal_and_digest(tmp_path):
 
 
 def test_a_damaged_calibration_file_is_refused(tmp_path):
-    c = calibrate_camera(synthetic_views(np.random.default_rng(4), 0.2, n=8))
+    c = calibrate_camera(synthetic_views(np.random.default_rng(4), 0.2, n=8), flags=0)
     path = tmp_path / "camera.toml"
     write_camera_calibration(path, c, IDENT)
     text = path.read_text()

@@ -210,14 +210,20 @@ def test_session_journals_approach_signs_of_its_moves(tmp_path, backlash):
         "sample.raw", "mirror.raw", "mirror.raw", "sample.raw",
     ]  # fmt: skip
     # Reference: the sign of each joint's change between successive journaled poses
-    # (from park), kept where it did not change; the first move's unmoved joint is +1
-    # after the pre-move when it has backlash, unknown (0) otherwise.
-    prev = {j: round(math.degrees(v), 3) for j, v in cfg.park_rad.items()}
+    # (from park), kept where it changed by no more than the position tolerance (the
+    # servo's deadband: it does not move); the first move's unmoved joint is +1 after
+    # the pre-move when it has backlash, unknown (0) otherwise.
+    tol = cfg.motion.position_tolerance_pulses
+
+    def pulses(joints):
+        return {s.joint: s.pulses(float(joints[s.joint])) for s in cfg.servos}
+
+    prev = pulses(cfg.park_rad)
     expected = dict.fromkeys(JOINT_NAMES, 0)
     for k, r in enumerate(shots):
-        now = {j: round(math.degrees(v), 3) for j, v in r["joints"].items()}
+        now = pulses(r["joints"])
         for j in JOINT_NAMES:
-            if now[j] != prev[j]:
+            if abs(now[j] - prev[j]) > tol + 1e-6:
                 expected[j] = 1 if now[j] > prev[j] else -1
             elif k == 0 and backlash > 0:
                 expected[j] = 1
