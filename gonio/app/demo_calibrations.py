@@ -95,9 +95,10 @@ def _shoot(
     from gonio.rig.config import load_rig_config
 
     plan_path = out / f"{name}_plan.toml"
-    # The spot exposure `gonio calibrate plan` writes by default: the 2 mm source's image
-    # in the mirror clips at ~1e-4 s at these sizes.
-    write_plan(plan_path, poses, kind=kind, exposures_s=(2e-5, 0.02), width=size[0], height=size[1])
+    # The spot exposure `gonio calibrate plan` writes by default (the 2 mm source's image
+    # in the mirror clips at ~1e-4 s at these sizes), and a long one for the board: that
+    # small source leaves the board at ~25 DN in 0.02 s, and views are lost.
+    write_plan(plan_path, poses, kind=kind, exposures_s=(2e-5, 2.0), width=size[0], height=size[1])
     plan = load_plan(plan_path)
     cfg = load_rig_config(cfg_path)
     sim = simulated_run(plan, plan_path, scene_path, time_scale, world=world, world_seed=world_seed)
