@@ -405,10 +405,15 @@ class Rig:
         return achieved
 
     def _track_approach(self, goals: Mapping[int, int], states: Mapping[str, ServoState]) -> None:
-        # The sign of the commanded change in joint angle; a zero move keeps the sign.
+        # The sign of the commanded change in joint angle.  A goal within the position
+        # tolerance of where the servo stands does not move it (a servo's deadband: it
+        # lands within a pulse of its goal and stays there), so it keeps the sign: else
+        # re-sending a pose's goal to a servo that landed a pulse short flips the recorded
+        # side while the gears stay where they are.
+        tol = self.config.motion.position_tolerance_pulses
         for st in states.values():
             d = goals[st.dxl_id] - st.position_pulses
-            if d:
+            if abs(d) > tol:
                 direction = self._by_id[st.dxl_id].config.direction
                 self._approach[st.joint] = direction * (1 if d > 0 else -1)
 

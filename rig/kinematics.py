@@ -99,14 +99,17 @@ def approach_of_move(
 ) -> dict[str, int]:
     """Approach signs after moving from ``joints_from`` to ``joints_to`` (rad).
 
-    A joint whose goal changes by at least one pulse takes the sign of its change in
-    joint angle; one that does not keeps ``approach`` (0 unknown when None or absent).
+    A joint whose goal changes by more than ``motion.position_tolerance_pulses`` takes
+    the sign of its change in joint angle; one that does not keeps ``approach`` (0
+    unknown when None or absent): a servo does not move to a goal within its deadband
+    (:meth:`gonio.rig.device.Rig` tracks the signs by the same rule).
     """
     out = {}
+    tol = config.motion.position_tolerance_pulses
     for s in config.servos:
         j = s.joint
         d = round(s.pulses(float(joints_to[j]))) - round(s.pulses(float(joints_from[j])))
-        if d:
+        if abs(d) > tol:
             out[j] = int(s.direction) * (1 if d > 0 else -1)
         else:
             out[j] = int((approach or {}).get(j, 0))

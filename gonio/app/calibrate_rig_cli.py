@@ -49,6 +49,7 @@ def camera_prior(path: Path):
         digest=rec.digest,
         width=cam.width,
         height=cam.height,
+        covariance=None if rec.covariance is None else np.asarray(rec.covariance, float),
     )
 
 

@@ -65,7 +65,9 @@ def test_reported_std_matches_the_spread_over_seeds():
     sigma = 0.3
     z, rms_ratio = [], []
     for seed in range(40):
-        c = calibrate_camera(synthetic_views(np.random.default_rng(seed), sigma))
+        # flags=0: all five terms (these free-standing views of a wide-angle lens, with a
+        # k3, pin it; the default holds k3 at 0 for the rig's ring of corners)
+        c = calibrate_camera(synthetic_views(np.random.default_rng(seed), sigma), flags=0)
         assert not c.rejected
         z.append((_estimates(c) - TRUTH) / np.r_[c.K_std, c.dist_std])
         p = 9 + 6 * len(c.used)  # intrinsics + a pose per view
@@ -83,7 +85,7 @@ def test_an_outlier_view_is_rejected_with_its_reason():
     bad = views[4]
     shifted = bad.image_points + np.random.default_rng(9).normal(0, 6.0, bad.image_points.shape)
     views[4] = CalibrationView(bad.label, bad.ids, shifted, bad.object_points, bad.image_size)
-    c = calibrate_camera(views)
+    c = calibrate_camera(views, flags=0)  # these views' lens has a k3
     assert [r.label for r in c.rejected] == ["view 4"]
     assert "more than 3x the median" in c.rejected[0].reason
     assert "view 4" not in c.used and len(c.used) == 9
@@ -206,3 +208,19 @@ def test_all_views_degenerate_is_refused_with_the_reason():
     with pytest.raises(CameraCalibrationError, match="0 views with a board, need at least 6") as e:
         calibrate_camera(line)
     assert "view 0: its corners lie on one line (degenerate)" in str(e.value)
+
+
+def test_covariance_diagonal_is_opencvs_std_and_is_written(tmp_path):
+    """The intrinsics' covariance (our Jacobian, the views' poses eliminated) has
+    OpenCV's standard deviations on its diagonal, k3 held (row 0) by default, and the
+    camera file keeps it; the correlations are what a prior needs (k1-k2 strong)."""
+    c = calibrate_camera(synthetic_views(np.random.default_rng(6), 0.3))
+    std = np.sqrt(np.diag(c.covariance))
+    np.testing.assert_allclose(std, np.r_[c.K_std, c.dist_std], rtol=1e-3, atol=1e-12)
+    assert c.dist_std[4] == 0 and c.dist[4] == 0 and not c.covariance[8].any()
+    corr = c.covariance[4, 5] / (std[4] * std[5])
+    assert abs(corr) > 0.5
+    ident = {"backend": "simulated", "model": "m", "serial": "S", "resolution": [W, H]}
+    write_camera_calibration(tmp_path / "c.toml", c, ident)
+    back = load_camera_calibration(tmp_path / "c.toml").calibration.covariance
+    np.testing.assert_allclose(np.asarray(back), c.covariance, rtol=1e-12)

@@ -212,12 +212,14 @@ def test_session_journals_approach_signs_of_its_moves(tmp_path, backlash):
     # Reference: the sign of each joint's change between successive journaled poses
     # (from park), kept where it did not change; the first move's unmoved joint is +1
     # after the pre-move when it has backlash, unknown (0) otherwise.
-    prev = {j: round(math.degrees(v), 3) for j, v in cfg.park_rad.items()}
+    # A change within the position tolerance (a pulse) does not move a servo: kept.
+    tol = math.radians(0.088) * (cfg.motion.position_tolerance_pulses + 0.5)
+    prev = dict(cfg.park_rad)
     expected = dict.fromkeys(JOINT_NAMES, 0)
     for k, r in enumerate(shots):
-        now = {j: round(math.degrees(v), 3) for j, v in r["joints"].items()}
+        now = dict(r["joints"])
         for j in JOINT_NAMES:
-            if now[j] != prev[j]:
+            if abs(now[j] - prev[j]) > tol / cfg.servo_for(j).gear_ratio:
                 expected[j] = 1 if now[j] > prev[j] else -1
             elif k == 0 and backlash > 0:
                 expected[j] = 1
