@@ -136,7 +136,7 @@ def _corner_case(seed: int) -> dict:
     return {
         "z": {**z_cam, **z_rig},
         "camera_rms_ratio": cam.rms_px / expected_rms,
-        "rig_rms": rig.rms_px,
+        "rig_board_sigma": rig.sigma_px["board"],
         "held": {n: v for n, (v, s) in cam.parameters.items() if s == 0},
         "names": rig.names,
         "rejected": (cam.rejected, rig.rejected),
@@ -170,21 +170,27 @@ def test_one_world_is_recovered_within_its_uncertainty():
 
 @pytest.mark.slow
 def test_reported_uncertainties_are_honest_over_drawn_worlds():
-    """Over 24 worlds drawn for this run: for every calibrated parameter (the rig's
+    """Over 60 worlds drawn for this run: for every calibrated parameter (the rig's
     canonical names, the intrinsics of both calibrations) the z-score (estimate -
     truth) / reported std has a standard deviation in [0.7, 1.4]; the camera's
     reprojection RMS is within 20 % of the corner noise (with the degrees of freedom),
-    and the rig's residual RMS per kind within 20 % of its noise."""
-    seeds = _seeds(24)
+    and so is the rig's board noise estimate (its degrees of freedom counted).
+
+    Why 60: the sample std of n honest z-scores has a relative spread of about
+    1 / sqrt(2 (n - 1)); with 41 parameters, 24 worlds would fail an honest calibration
+    about every other run (one parameter outside [0.7, 1.4] by chance), 60 in under 1 %
+    of runs.  The mirror spots' RMS is not checked: 20-odd spots carry too few degrees
+    of freedom for a 20 % band."""
+    seeds = _seeds(60)
     print(_replay(seeds))
     zs: dict[str, list[float]] = {}
-    ratios, rig_rms = [], []
+    ratios, board_sigma = [], []
     for seed in seeds:
         case = _corner_case(seed)
         for n, z in case["z"].items():
             zs.setdefault(n, []).append(z)
         ratios.append(case["camera_rms_ratio"])
-        rig_rms.append((case["rig_rms"]["board"], case["rig_rms"]["spot"]))
+        board_sigma.append(case["rig_board_sigma"])
     table = _table(zs)
     print(table)
     assert len(seeds) >= 20 or os.environ.get(SEEDS_ENV), "at least 20 worlds"
@@ -195,8 +201,8 @@ def test_reported_uncertainties_are_honest_over_drawn_worlds():
     assert not bad, f"{_replay(seeds)}: z-score std outside [0.7, 1.4] for {bad}\n{table}"
     ratios = np.asarray(ratios)
     assert np.all(np.abs(ratios - 1) < 0.2), f"{_replay(seeds)}: camera RMS / noise {ratios}"
-    rig_rms = np.asarray(rig_rms) / [SIGMA_BOARD, SIGMA_SPOT]
-    assert np.all(np.abs(rig_rms - 1) < 0.2), f"{_replay(seeds)}: rig RMS / noise {rig_rms}"
+    board = np.asarray(board_sigma) / SIGMA_BOARD
+    assert np.all(np.abs(board - 1) < 0.2), f"{_replay(seeds)}: rig board sigma / noise {board}"
 
 
 # ------------------------------------------------------------------ rendered frames
