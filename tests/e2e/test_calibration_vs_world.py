@@ -279,7 +279,8 @@ def _rendered_case(seed: int, root: Path) -> tuple[dict[str, float], dict]:
 @pytest.mark.slow
 def test_rendered_calibration_sessions_recover_the_world(tmp_path, capsys):
     """One drawn world, rendered: both calibration plans shot, detected and solved by
-    the commands a lab types; every parameter within 5 reported std of the truth."""
+    the commands a lab types; every parameter within 5 reported std of the truth, and
+    the residuals those of clean detections (no spot cut by the mirror's edge)."""
     seeds = _seeds(1)[:1]
     print(_replay(seeds))
     zs: dict[str, list[float]] = {}
@@ -298,4 +299,7 @@ def test_rendered_calibration_sessions_recover_the_world(tmp_path, capsys):
     bad = {n: v for n, v in zs.items() if not np.all(np.abs(v) < 5)}
     assert not bad, f"{_replay(seeds)}: |z| >= 5 for {bad}; {infos}"
     for info in infos:
-        assert info["counts"]["spots"] >= 20 and info["counts"]["rejected"] == 0, infos
+        # spots the mirror's edge cuts are left out (their centroid moves by pixels): the
+        # rest are centroids of a noise-free render, far below 0.1 px
+        assert info["counts"]["spots"] >= 6 and info["counts"]["rejected"] == 0, infos
+        assert info["rms_px"]["spot"] < 0.1 and info["rms_px"]["board"] < 0.5, infos
