@@ -303,3 +303,44 @@ def test_rendered_calibration_sessions_recover_the_world(tmp_path, capsys):
         # rest are centroids of a noise-free render, far below 0.1 px
         assert info["counts"]["spots"] >= 6 and info["counts"]["rejected"] == 0, infos
         assert info["rms_px"]["spot"] < 0.1 and info["rms_px"]["board"] < 0.5, infos
+
+
+def test_reflection_points_are_where_the_world_reflects_the_light():
+    """``calibrate rig`` leaves out spots near the mirror's edge by their reflection
+    point (the spot's ray met with the mirror, the camera posed by the board around the
+    mirror): it matches the world's own, the camera-to-mirrored-light line met with z = 0."""
+    from gonio.app.calibrate_rig_cli import reflection_points
+    from gonio.simulator.world_kinematics import NominalRig, true_poses
+
+    seeds = _seeds(1)[:1]
+    world = draw_world("realistic", seeds[0])
+    rng = np.random.default_rng([seeds[0], 17])
+    mirror = [p for p in RIG_POSES if p.target == "mirror"]
+    sides = approaches(RIG_POSES, NOMINAL.home_rad)[-len(mirror) :]
+    reached = [
+        simulated_pose(world, DOC, p.joints_rad(), s, rng, p.label)
+        for p, s in zip(mirror, sides, strict=True)
+    ]
+    boards = [
+        BoardObservation(v["label"], v["joints"], v["approach"], v["object_points"],
+                         v["image_points"])
+        for v in board_views(world, DOC, CAMERA, BOARD, reached, SIGMA_BOARD, rng, hidden=SAMPLE)
+    ]  # fmt: skip
+    big_mirror = (0.2, 0.2)  # every spot, the edge's too
+    spots = [
+        SpotObservation(v["label"], v["joints"], v["approach"], v["image_point"])
+        for v in spot_views(world, DOC, CAMERA, big_mirror, reached, SIGMA_SPOT, rng)
+    ]
+    K, dist = world.intrinsics(CAMERA)
+    hits = reflection_points(boards, spots, CameraPrior(K, dist, np.ones(4), np.ones(5)))
+    assert len(hits) >= 20, _replay(seeds)
+    rig = NominalRig.of(DOC)
+    for r in reached:
+        if r["label"] not in hits:
+            continue
+        t = true_poses(world, rig, r["servo_states"])
+        light = np.asarray(t.light_position) * [1.0, 1.0, -1.0]
+        cam = np.asarray(t.camera_position)
+        truth = cam + cam[2] / (cam[2] - light[2]) * (light - cam)
+        err = np.abs(hits[r["label"]] - truth[:2]).max()
+        assert err < 3e-4, f"{_replay(seeds)}: {r['label']} off by {err * 1e3:.2f} mm"
