@@ -30,7 +30,7 @@ from typing import Annotated, Any
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gonio.capture.fiducials import (
     BoardSpec,
@@ -69,11 +69,11 @@ __all__ = [
 RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2", ".pef")
 IMAGE_SUFFIXES = (*RAW_SUFFIXES, ".png", ".jpg", ".jpeg", ".tif", ".tiff")
 
-#: k1 k2 p1 p2 with k3 held at 0 (OpenCV's advice for lenses that are not wide-angle),
-#: free aspect ratio and principal point.  The rig's camera always looks at the holder,
-#: so its board corners form a ring around the sample and never reach the frame's edge:
-#: k3 there is pinned by nothing (it came out at -700 +- 0.1 on rendered views) and its
-#: wild value bends the rays even inside the ring.  ``flags=0`` solves all five.
+#: Four distortion terms (k1 k2 p1 p2; k3 held at 0), free aspect ratio and principal
+#: point.  The rig's camera always aims at the holder, so the board's corners form a ring
+#: around the image centre: k3 is then barely separable from k1 and k2 (over 30 simulated
+#: rigs its error was 10^3 times its reported std, and it spoiled k1, k2), so it is fixed
+#: as usual for a non-wide lens (``cv2.CALIB_FIX_K3``; pass ``flags=0`` to solve it).
 DEFAULT_FLAGS = cv2.CALIB_FIX_K3
 
 #: ``stdDeviationsIntrinsics`` order (OpenCV): fx fy cx cy k1 k2 p1 p2 k3 ...
@@ -154,6 +154,12 @@ class CameraCalibration:
         Views left out, with the reason.
     n_points
         Corners in the final solve.
+    covariance
+        (9, 9) covariance of ``fx fy cx cy k1 k2 p1 p2 k3`` (the views' poses eliminated;
+        rows and columns of held parameters 0), from the solution's Jacobian with
+        OpenCV's residual variance: its diagonal is ``K_std``, ``dist_std`` squared.  The
+        terms are strongly correlated (k1 with k2, f with k1), so a later solve that
+        takes this calibration as a prior needs the whole matrix, not the diagonal.
     image_points
         Label -> (n, 2) corners of each view used (for coverage plots).
     """
@@ -169,6 +175,7 @@ class CameraCalibration:
     rejected: tuple[RejectedView, ...]
     n_points: int
     image_points: dict[str, NDArray[np.float64]] = field(default_factory=dict, repr=False)
+    covariance: NDArray[np.float64] | None = field(default=None, repr=False)
 
     @property
     def parameters(self) -> dict[str, tuple[float, float]]:
@@ -382,6 +389,33 @@ def _solve(views: list[CalibrationView], image_size: tuple[int, int], flags: int
     )
 
 
+def _intrinsics_covariance(
+    views: list[CalibrationView], K: Any, dist: Any, rvecs: Any, tvecs: Any, free: NDArray
+) -> NDArray[np.float64]:
+    """(9, 9) covariance of fx fy cx cy k1 k2 p1 p2 k3: ``s^2`` times the intrinsics'
+    block of ``(J^T J)^-1`` (Schur complement over the views' poses), ``s^2`` OpenCV's
+    ``sum e^2 / (2 N - p)``; ``free`` is the mask of the solved intrinsics."""
+    K = np.asarray(K, float)
+    d = np.asarray(dist, float).ravel()[:5]
+    nfree = int(free.sum())
+    normal = np.zeros((nfree, nfree))
+    sse, n = 0.0, 0
+    for v, rv, tv in zip(views, rvecs, tvecs, strict=True):
+        obj = v.object_points.reshape(-1, 1, 3).astype(np.float64)
+        uv, jac = cv2.projectPoints(obj, rv, tv, K, d)
+        e = uv.reshape(-1, 2) - v.image_points
+        sse += float(np.sum(e**2))
+        n += len(e)
+        # projectPoints' columns: rvec 3, tvec 3, fx fy, cx cy, the five distortion terms
+        ext, intr = jac[:, :6], jac[:, 6:15][:, free]
+        a, b, c = intr.T @ intr, intr.T @ ext, ext.T @ ext
+        normal += a - b @ np.linalg.solve(c, b.T)
+    s2 = sse / max(2 * n - nfree - 6 * len(views), 1)
+    cov = np.zeros((9, 9))
+    cov[np.ix_(free, free)] = s2 * np.linalg.inv(normal)
+    return cov
+
+
 def _collinear(v: CalibrationView) -> bool:
     # corners on one line (one row of the board) give no homography
     p = v.object_points[:, :2] - v.object_points[:, :2].mean(0)
@@ -413,8 +447,7 @@ def calibrate_camera(
     min_corners
         Views with fewer corners are rejected (a homography needs 4; 8 keep it stable).
     flags
-        ``cv2.CALIB_*`` flags; the default (:data:`DEFAULT_FLAGS`) solves fx, fy, cx, cy
-        and k1 k2 p1 p2 with k3 = 0 (its standard deviation is then 0); 0 frees k3.
+        ``cv2.CALIB_*`` flags; the default solves fx, fy, cx, cy and k1 k2 p1 p2 k3.
     outlier_factor, outlier_floor_px
         A view whose reprojection RMS exceeds both ``outlier_factor`` x the median view's
         and ``outlier_floor_px`` is rejected and the solve repeated.
@@ -469,7 +502,9 @@ def calibrate_camera(
                    if rejected else "")
             )  # fmt: skip
         try:
-            rms, K, dist, _r, _t, std_in, _std_ex, per_view = _solve(usable, image_size, flags)
+            rms, K, dist, rvecs, tvecs, std_in, _std_ex, per_view = _solve(
+                usable, image_size, flags
+            )
         except cv2.error as exc:
             raise CameraCalibrationError(
                 f"{where}OpenCV could not calibrate from {len(usable)} views (degenerate views: "
@@ -513,6 +548,7 @@ def calibrate_camera(
         rejected=tuple(rejected),
         n_points=int(sum(v.n_corners for v in usable)),
         image_points={v.label: v.image_points for v in usable},
+        covariance=_intrinsics_covariance(usable, K, dist, rvecs, tvecs, std_in[:9] > 0),
     )
 
 
@@ -578,6 +614,15 @@ class CalibrationRecord(_Strict):
     views_used: list[str]
     view_errors_px: dict[str, _Finite] = Field(default_factory=dict)
     views_rejected: list[_Rejected] = Field(default_factory=list)
+    #: (9, 9) covariance of fx fy cx cy k1 k2 p1 p2 k3 (files written before it: None).
+    covariance: tuple[tuple[_Finite, ...], ...] | None = None
+
+    @field_validator("covariance")
+    @classmethod
+    def _nine_by_nine(cls, v: Any) -> Any:
+        if v is not None and (len(v) != 9 or any(len(row) != 9 for row in v)):
+            raise ValueError("expected a 9 x 9 matrix (fx fy cx cy k1 k2 p1 p2 k3)")
+        return v
 
 
 _Row = tuple[_Finite, _Finite, _Finite]
@@ -625,6 +670,10 @@ def calibration_document(
         "view_errors_px": {k: float(v) for k, v in calibration.view_errors.items()},
         "views_rejected": [{"label": r.label, "reason": r.reason} for r in calibration.rejected],
     }
+    if calibration.covariance is not None:
+        cam["calibration"]["covariance"] = [
+            [float(x) for x in row] for row in np.asarray(calibration.covariance, float)
+        ]
     return {"camera": cam}
 
 

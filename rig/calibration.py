@@ -323,6 +323,11 @@ class CameraPrior:
         The camera calibration's digest of the camera's identity.
     width, height
         Image size, px (for the plan's visibility checks).
+    covariance
+        (9, 9) covariance of :meth:`vector` (the camera calibration's); None: the
+        standard deviations alone, uncorrelated.  The intrinsics of a camera calibration
+        are strongly correlated (fx with fy, k1 with k2, cx with p2), so a prior from
+        the diagonal alone would hold some combinations far tighter than measured.
     """
 
     K: Array
@@ -333,6 +338,18 @@ class CameraPrior:
     digest: str | None = None
     width: int | None = None
     height: int | None = None
+    covariance: Array | None = None
+
+    def prior_whitener(self) -> Array:
+        """W with ``W (p - p_cal)`` the prior's residuals over the free intrinsics
+        (std > 0): the inverse Cholesky factor of their covariance (``diag(1 / std)``
+        without one)."""
+        std = self.std_vector()
+        free = np.flatnonzero(std > 0)
+        if self.covariance is None:
+            return np.diag(1.0 / std[free])
+        cov = np.asarray(self.covariance, float)[np.ix_(free, free)]
+        return np.linalg.inv(np.linalg.cholesky(cov))
 
     def vector(self) -> Array:
         """``fx, fy, cx, cy, k1, k2, p1, p2, k3``."""
@@ -452,6 +469,7 @@ class _Problem:
         self.free_intrinsics = np.flatnonzero(prior_std > 0)
         self.prior = prior
         self.prior_std = prior_std
+        self.prior_whitener = camera.prior_whitener()
         self.names += [INTRINSIC_NAMES[i] for i in self.free_intrinsics]
         self.x0 = np.concatenate([self.x0_rig, prior[self.free_intrinsics]])
         self.scale = np.concatenate(
@@ -498,7 +516,7 @@ class _Problem:
     def weighted(self, x: Array, sigma_board: float, sigma_spot: float) -> Array:
         r = self.project(self.poses(x), self.intrinsics(x))
         free = self.free_intrinsics
-        prior = (x[self.n_rig :] - self.prior[free]) / self.prior_std[free]
+        prior = self.prior_whitener @ (x[self.n_rig :] - self.prior[free])
         return np.concatenate([r * self.row_weights(sigma_board, sigma_spot), prior])
 
     def raw_jacobian(self, x: Array) -> Array:
@@ -524,9 +542,7 @@ class _Problem:
     def weight_jacobian(self, raw: Array, sigma_board: float, sigma_spot: float) -> Array:
         nfree = len(self.free_intrinsics)
         prior = np.zeros((nfree, raw.shape[1]))
-        prior[np.arange(nfree), self.n_rig + np.arange(nfree)] = (
-            1 / self.prior_std[self.free_intrinsics]
-        )
+        prior[:, self.n_rig :] = self.prior_whitener
         return np.vstack([raw * self.row_weights(sigma_board, sigma_spot)[:, None], prior])
 
     def kind_rows(self) -> tuple[slice, slice, slice]:
@@ -898,6 +914,7 @@ def calibrate_rig(
         intrinsics=intr,
         rejected=rejected,
         not_observable=dict(NOT_OBSERVABLE),
+        # exclude_none: the record is written into the rig TOML, which has no null
         nominal=nominal.model_dump(mode="json", exclude={"calibration"}, exclude_none=True),
     )
     # The configuration cannot hold a negative backlash: an estimate below 0 is one

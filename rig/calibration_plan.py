@@ -209,7 +209,11 @@ def rig_calibration_poses(config: RigConfig, *, seed: int = 0) -> list[JointPose
     Board views: tilts -50..50 deg, camera azimuths -40..40 deg (obliquity at most
     :data:`MAX_OBLIQUITY_DEG`), spins over the whole turn, in a seeded random order.
     Mirror views: light azimuths -60..-10 deg with the camera at the mirror azimuth, tilts
-    -2, 0, 2 deg and four spins, the light swept up and down.
+    -1, 0, 1 deg and four spins, the light swept up and down.  The tilt stays small
+    because each degree moves the light's reflection ~7.7 mm off the mirror's centre:
+    with 2 deg, the as-built errors (arm and tilt offsets of up to 2 deg) and the light's
+    own image (~4.5 mm wide on the mirror) pushed the spot over the edge of a 50 mm
+    mirror, where the edge cuts it and its centroid moves by several pixels.
     """
     kin = Kinematics(config)
     rng = np.random.default_rng(seed)
@@ -225,7 +229,7 @@ def rig_calibration_poses(config: RigConfig, *, seed: int = 0) -> list[JointPose
     boards = _labelled(_order(kin, boards, rng, _home(config)), "board")
     mirrors = []
     lights = [-60.0, -50.0, -40.0, -30.0, -20.0, -10.0]
-    sweeps = [(0.0, 0.0), (2.0, 90.0), (-2.0, 180.0), (0.0, -90.0)]
+    sweeps = [(0.0, 0.0), (1.0, 90.0), (-1.0, 180.0), (0.0, -90.0)]
     for k, (tilt, spin) in enumerate(sweeps):
         for a in lights if k % 2 == 0 else lights[::-1]:
             # the camera at the mirror direction of the light (both arms level, tilt ~ 0)
@@ -308,13 +312,18 @@ def write_plan(
     *,
     kind: str = "rig",
     name: str | None = None,
-    exposures_s: tuple[float, float] = (0.0005, 0.02),
+    exposures_s: tuple[float, float] = (0.0001, 0.02),
     settle_s: float = 0.5,
     width: int = 640,
     height: int = 480,
     force: bool = False,
 ) -> Path:
     """Write a plan TOML of ``[[joint_poses]]`` (the capture session's plan format).
+
+    ``exposures_s``: the short one images the light in the mirror, the long one the
+    board.  The light seen in a mirror is the light's own radiance (x 0.9), thousands of
+    times the lit board's: with the simulator's default scene 0.0005 s saturated every
+    spot, 0.0001 s puts its peak near half of full scale.
 
     Raises
     ------

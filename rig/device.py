@@ -406,8 +406,10 @@ class Rig:
 
     def _track_approach(self, goals: Mapping[int, int], states: Mapping[str, ServoState]) -> None:
         # The sign of the commanded change in joint angle.  A goal within the position
-        # tolerance of where the servo stands (its deadband: the joint it had to stay
-        # at, after landing a pulse off) does not move it, so it keeps its side.
+        # tolerance of where the servo stands does not move it (a servo's deadband: it
+        # lands within a pulse of its goal and stays there), so it keeps the sign: else
+        # re-sending a pose's goal to a servo that landed a pulse short flips the recorded
+        # side while the gears stay where they are.
         tol = self.config.motion.position_tolerance_pulses
         for st in states.values():
             d = goals[st.dxl_id] - st.position_pulses

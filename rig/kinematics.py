@@ -99,9 +99,10 @@ def approach_of_move(
 ) -> dict[str, int]:
     """Approach signs after moving from ``joints_from`` to ``joints_to`` (rad).
 
-    A joint whose goal changes by more than the position tolerance (the servo's
-    deadband, ``motion.position_tolerance_pulses``) takes the sign of its change in joint
-    angle; one that does not keeps ``approach`` (0 unknown when None or absent).
+    A joint whose goal changes by more than ``motion.position_tolerance_pulses`` takes
+    the sign of its change in joint angle; one that does not keeps ``approach`` (0
+    unknown when None or absent): a servo does not move to a goal within its deadband
+    (:meth:`gonio.rig.device.Rig` tracks the signs by the same rule).
     """
     out = {}
     tol = config.motion.position_tolerance_pulses

@@ -39,8 +39,11 @@ Presets
     ``fx_scale``                +-1.5 %             ISO 517 allows +-5 % on the focal length
     ``fy_scale``                = fx_scale          square pixels (the renderer's model)
     ``principal_offset``        +-1 % of the frame  lens and sensor centring
-    ``dist`` k1, k2, p1, p2, k3 +-0.1, +-0.05,      a typical 35 mm lens (Brown-Conrady)
-                                +-1e-3, +-1e-3, 0
+    ``dist`` k1, k2, p1, p2, k3 +-0.1, +-0.05,      a typical 35 mm lens (Brown-Conrady);
+                                +-1e-3, +-1e-3, 0   k3 = 0 because ``gonio calibrate
+                                                    camera`` holds it at 0 (the rig's
+                                                    board views cannot separate it from
+                                                    k1, k2: ``cv2.CALIB_FIX_K3``)
     ``landing_pulses``          1                   servos stop within +-1 pulse of the goal
     ==========================  ==================  =============================================
 

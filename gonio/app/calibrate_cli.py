@@ -252,10 +252,12 @@ def camera_cmd(
 
     \b
     The board is found in the best-exposed frame of every pose, OpenCV's
-    calibrateCameraExtended solves fx, fy, cx, cy and k1 k2 p1 p2 k3 with a standard
-    deviation each; views with fewer than --min-corners corners or an outlying error
-    (over 3x the median view's and over 1 px) are left out, with the reason, and the
-    solve repeated. Pixel coordinates: OpenCV's (pixel centres at integers).
+    calibrateCameraExtended solves fx, fy, cx, cy and k1 k2 p1 p2 (k3 held at 0, as
+    usual for a non-wide lens) with a standard deviation each and their covariance
+    (kept for the rig calibration's prior); views with fewer than --min-corners
+    corners or an outlying error (over 3x the median view's and over 1 px) are left
+    out, with the reason, and the solve repeated. Pixel coordinates: OpenCV's (pixel
+    centres at integers).
 
     \b
     camera.toml holds a [camera] table that reduction.toml takes as is (K, dist,

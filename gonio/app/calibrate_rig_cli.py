@@ -49,6 +49,7 @@ def camera_prior(path: Path):
         digest=rec.digest,
         width=cam.width,
         height=cam.height,
+        covariance=None if rec.covariance is None else np.asarray(rec.covariance, float),
     )
 
 
@@ -185,6 +186,51 @@ def _as_nominal_readings(boards, spots, session_rig, nominal):
     return [moved(b) for b in boards], [moved(s) for s in spots]
 
 
+#: Default half-size of the calibration mirror (a 50 mm square, the sample's size), m.
+MIRROR_HALF_SIZE_M = 0.025
+#: A spot whose reflection point is closer than this to the mirror's edge is not used, m:
+#: the light's image on the mirror is ~5 mm wide (twice that at 60 deg incidence), and
+#: where the edge cuts it the centroid moves by pixels.
+MIRROR_MARGIN_M = 0.007
+
+
+def reflection_points(boards, spots, camera) -> dict[str, np.ndarray]:
+    """Where each spot's light is reflected: the spot's pixel ray met with the mirror
+    plane (z = 0 of the sample frame), the camera's pose from the board seen around the
+    mirror in the same view (``cv2.solvePnP`` with the camera calibration), m.  Spots
+    without a board view of the same label are left out."""
+    import cv2
+
+    K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float)
+    by_label = {b.label: b for b in boards}
+    out = {}
+    for s in spots:
+        b = by_label.get(s.label)
+        if b is None or len(b.object_points) < 6:
+            continue
+        ok, rvec, tvec = cv2.solvePnP(
+            np.asarray(b.object_points, float), np.asarray(b.image_points, float), K, dist
+        )
+        if not ok:
+            continue
+        R = cv2.Rodrigues(rvec)[0]
+        centre = -R.T @ tvec.ravel()
+        x, y = cv2.undistortPoints(np.asarray(s.image_point, float).reshape(1, 1, 2), K, dist)[0, 0]
+        ray = R.T @ np.array([x, y, 1.0])
+        if abs(ray[2]) > 1e-12:
+            out[s.label] = (centre - centre[2] / ray[2] * ray)[:2]
+    return out
+
+
+def _mirror_half_size(manifest) -> tuple[float, float]:
+    """A simulated session's mirror is its scene's sample rectangle; else the default."""
+    sample = (((manifest.get("simulation") or {}).get("scene")) or {}).get("sample") or {}
+    try:
+        return float(sample["width"]) / 2, float(sample["height"]) / 2
+    except (KeyError, TypeError, ValueError):
+        return MIRROR_HALF_SIZE_M, MIRROR_HALF_SIZE_M
+
+
 def _plot_residuals(path: Path, cal) -> None:
     import matplotlib
 
@@ -283,6 +329,20 @@ def rig_cmd(
     boards, spots = _as_nominal_readings(boards, spots, session_rig, nominal)
     for p in problems:
         console.print(f"[yellow]note[/]: {p.label}: no {p.what}: {p.reason}")
+    hx, hy = _mirror_half_size(manifest)
+    hits = reflection_points(boards, spots, camera)
+    near_edge = {
+        label: h
+        for label, h in hits.items()
+        if abs(h[0]) > hx - MIRROR_MARGIN_M or abs(h[1]) > hy - MIRROR_MARGIN_M
+    }
+    for label, h in near_edge.items():
+        console.print(
+            f"[yellow]note[/]: {label}: spot not used: reflected at ({h[0] * 1e3:.1f}, "
+            f"{h[1] * 1e3:.1f}) mm, within {MIRROR_MARGIN_M * 1e3:.0f} mm of the mirror's edge "
+            f"(half-size {hx * 1e3:.0f} x {hy * 1e3:.0f} mm), which may cut the light's image"
+        )
+    spots = [s for s in spots if s.label not in near_edge]
     if not boards:
         raise CalibrationError(f"{session_dir}: the board was not found in any frame")
     cal = calibrate_rig(nominal, boards, spots, camera, camera_digest=session_digest)

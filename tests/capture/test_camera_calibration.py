@@ -65,6 +65,8 @@ def test_reported_std_matches_the_spread_over_seeds():
     sigma = 0.3
     z, rms_ratio = [], []
     for seed in range(40):
+        # flags=0: all five terms (these free-standing views of a wide-angle lens, with a
+        # k3, pin it; the default holds k3 at 0 for the rig's ring of corners)
         c = calibrate_camera(synthetic_views(np.random.default_rng(seed), sigma), flags=0)
         assert not c.rejected
         z.append((_estimates(c) - TRUTH) / np.r_[c.K_std, c.dist_std])
@@ -83,7 +85,7 @@ def test_an_outlier_view_is_rejected_with_its_reason():
     bad = views[4]
     shifted = bad.image_points + np.random.default_rng(9).normal(0, 6.0, bad.image_points.shape)
     views[4] = CalibrationView(bad.label, bad.ids, shifted, bad.object_points, bad.image_size)
-    c = calibrate_camera(views, flags=0)
+    c = calibrate_camera(views, flags=0)  # these views' lens has a k3
     assert [r.label for r in c.rejected] == ["view 4"]
     assert "more than 3x the median" in c.rejected[0].reason
     assert "view 4" not in c.used and len(c.used) == 9
@@ -106,7 +108,7 @@ def test_a_board_never_found_is_refused():
 
 
 def test_calibration_file_round_trip_refusal_and_digest(tmp_path):
-    c = calibrate_camera(synthetic_views(np.random.default_rng(3), 0.2, n=8), flags=0)
+    c = calibrate_camera(synthetic_views(np.random.default_rng(3), 0.2, n=8))
     path = tmp_path / "camera.toml"
     write_camera_calibration(path, c, IDENT, cfa_pattern="RGGB")
     before = path.read_bytes()
@@ -139,7 +141,7 @@ def test_calibration_file_round_trip_refusal_and_digest(tmp_path):
 
 
 def test_a_damaged_calibration_file_is_refused(tmp_path):
-    c = calibrate_camera(synthetic_views(np.random.default_rng(4), 0.2, n=8), flags=0)
+    c = calibrate_camera(synthetic_views(np.random.default_rng(4), 0.2, n=8))
     path = tmp_path / "camera.toml"
     write_camera_calibration(path, c, IDENT)
     text = path.read_text()
@@ -206,3 +208,19 @@ def test_all_views_degenerate_is_refused_with_the_reason():
     with pytest.raises(CameraCalibrationError, match="0 views with a board, need at least 6") as e:
         calibrate_camera(line)
     assert "view 0: its corners lie on one line (degenerate)" in str(e.value)
+
+
+def test_covariance_diagonal_is_opencvs_std_and_is_written(tmp_path):
+    """The intrinsics' covariance (our Jacobian, the views' poses eliminated) has
+    OpenCV's standard deviations on its diagonal, k3 held (row 0) by default, and the
+    camera file keeps it; the correlations are what a prior needs (k1-k2 strong)."""
+    c = calibrate_camera(synthetic_views(np.random.default_rng(6), 0.3))
+    std = np.sqrt(np.diag(c.covariance))
+    np.testing.assert_allclose(std, np.r_[c.K_std, c.dist_std], rtol=1e-3, atol=1e-12)
+    assert c.dist_std[4] == 0 and c.dist[4] == 0 and not c.covariance[8].any()
+    corr = c.covariance[4, 5] / (std[4] * std[5])
+    assert abs(corr) > 0.5
+    ident = {"backend": "simulated", "model": "m", "serial": "S", "resolution": [W, H]}
+    write_camera_calibration(tmp_path / "c.toml", c, ident)
+    back = load_camera_calibration(tmp_path / "c.toml").calibration.covariance
+    np.testing.assert_allclose(np.asarray(back), c.covariance, rtol=1e-12)

@@ -210,20 +210,16 @@ def test_session_journals_approach_signs_of_its_moves(tmp_path, backlash):
         "sample.raw", "mirror.raw", "mirror.raw", "sample.raw",
     ]  # fmt: skip
     # Reference: the sign of each joint's change between successive journaled poses
-    # (from park), kept where it changed by no more than the position tolerance (the
-    # servo's deadband: it does not move); the first move's unmoved joint is +1 after
-    # the pre-move when it has backlash, unknown (0) otherwise.
-    tol = cfg.motion.position_tolerance_pulses
-
-    def pulses(joints):
-        return {s.joint: s.pulses(float(joints[s.joint])) for s in cfg.servos}
-
-    prev = pulses(cfg.park_rad)
+    # (from park), kept where it did not change; the first move's unmoved joint is +1
+    # after the pre-move when it has backlash, unknown (0) otherwise.
+    # A change within the position tolerance (a pulse) does not move a servo: kept.
+    tol = math.radians(0.088) * (cfg.motion.position_tolerance_pulses + 0.5)
+    prev = dict(cfg.park_rad)
     expected = dict.fromkeys(JOINT_NAMES, 0)
     for k, r in enumerate(shots):
-        now = pulses(r["joints"])
+        now = dict(r["joints"])
         for j in JOINT_NAMES:
-            if abs(now[j] - prev[j]) > tol + 1e-6:
+            if abs(now[j] - prev[j]) > tol / cfg.servo_for(j).gear_ratio:
                 expected[j] = 1 if now[j] > prev[j] else -1
             elif k == 0 and backlash > 0:
                 expected[j] = 1
