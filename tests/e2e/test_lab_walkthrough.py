@@ -106,17 +106,19 @@ def test_the_example_session_plans_runs_inspects_reduces_and_fits(tmp_path):
 # "The lab path": camera and rig calibration, then sessions through them, on a simulated
 # as-built rig whose errors are drawn from a new seed each run.
 
+#: at 320 x 240 the rig calibration refuses stage_tilt.compliance_a for some seeds (its std
+#: over its expected magnitude, correlation -0.99 with stage_tilt.offset; seed 1689067085)
 LAB_SIZE = (480, 360)
-#: the measurement grid: 36 poses (isotropic, reciprocity-reduced), 2 reference poses
+#: the measurement grid: 23 poses (isotropic, reciprocity-reduced), 2 reference poses
 LAB_PLAN = {
     "name": "lab walkthrough",
     "seed": 0,
     "settle_s": 0.0,
     "grid": {
         "kind": "spherical",
-        "theta_i_deg": [0.0, 15.0, 30.0, 45.0, 60.0],
+        "theta_i_deg": [0.0, 20.0, 40.0, 60.0],
         "phi_i_deg": [0.0],
-        "theta_o_deg": [0.0, 17.5, 35.0, 52.5, 70.0],
+        "theta_o_deg": [0.0, 23.3, 46.7, 70.0],
         "phi_o_deg": [0.0, 180.0],
     },
     "reductions": {"isotropic": True, "reciprocity": True},
@@ -243,7 +245,9 @@ def median_rel_error(model, truth) -> float:
 def lab(tmp_path_factory):
     """Runs the README's lab path once: calibrations, then four measurement sessions (GGX
     alpha 0.1 and 0.3 and a measured RGL material through the calibrations; alpha 0.3
-    again with the nominal rig and camera, as an uncalibrated lab would)."""
+    again with the nominal rig and camera, as an uncalibrated lab would).  The RGL
+    material is paper white: all three channels well above zero (vch_golden_yellow's blue
+    is ~0.003/sr, where a relative error says nothing about the measurement)."""
     from gonio.rig.config import virtual_rig_document
 
     seed = lab_seed()
@@ -257,15 +261,27 @@ def lab(tmp_path_factory):
     (root / "rig.toml").write_text(virtual_rig_document())
     ggx = {"model": "lambert+ggx", "params": {**GGX, "alpha": 0.2}}
     (root / "scene.toml").write_text(scene_text(ggx))
+    # The camera's steps and the rig session's do not use each other's files: two at a
+    # time, as two cores allow; `calibrate rig` needs both.
+    i_rig = [c[:2] for c in calibration].index(["calibrate", "rig"])
+    camera = [c for c in calibration[:i_rig] if any("camera" in a for a in c)]
+    rig_steps = [c for c in calibration[:i_rig] if c not in camera]
+
+    def steps(cs: list[list[str]]) -> None:
+        for c in cs:
+            run_in(root, simulated(c, seed), seed)
+
     t0 = time.perf_counter()
-    for c in calibration:
-        run_in(root, simulated(c, seed), seed)
+    with ThreadPoolExecutor(2) as pool:
+        for f in [pool.submit(steps, camera), pool.submit(steps, rig_steps)]:
+            f.result()
+    steps(calibration[i_rig:])
     t_cal = time.perf_counter() - t0
 
     import tomli_w
 
     refdata = Path(os.environ.get("GONIO_REFDATA", REPO.parent / "shared" / "data"))
-    rgl = refdata / "rgl" / "vch_golden_yellow_rgb.bsdf"
+    rgl = refdata / "rgl" / "paper_white_rgb.bsdf"
     sessions = {
         "ggx_0.1": {"model": "lambert+ggx", "params": {**GGX, "alpha": 0.1}},
         "ggx_0.3": {"model": "lambert+ggx", "params": {**GGX, "alpha": 0.3}},
