@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import json
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -178,7 +179,7 @@ def test_calibrate_rig_refuses_observations_approaching_a_joint_from_one_side(
     monkeypatch.setattr(rig_views, "calibration_observations", lambda d, b: (boards, spots, []))
     monkeypatch.setattr(calibrate_cli, "_board_from", lambda p, d: (None, "the test's board"))
     cam = camera_file(tmp_path / "camera.toml", identity)
-    cam_doc = json.loads(json.dumps(__import__("tomllib").loads(cam.read_text())))
+    cam_doc = tomllib.loads(cam.read_text())
     cam_doc["camera"]["K"] = K.tolist()
     cam_doc["camera"]["dist"] = [float(x) for x in dist]
     cam_doc["camera"]["calibration"]["K_std"] = [float(x) for x in K_std]
