@@ -1,0 +1,196 @@
+"""Bad input to the lab path's calibration steps, through the top-level CLI: exit code 1,
+an ``error:`` line naming the thing, no traceback, and no output file changed.
+
+Covered elsewhere (not repeated here): too few views and a board found in no image
+(``tests/app/test_calibrate_camera_cli.py``), a camera calibration with another serial
+(``tests/rig/test_calibrate_rig_cli.py``, ``tests/capture/test_reduce.py``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tomli_w
+
+from gonio.capture.camera_calibration import camera_digest, camera_identity
+from gonio.capture.manifest import load_manifest
+from gonio.cli import run
+from gonio.rig.calibration_plan import rig_calibration_poses
+from gonio.rig.config import default_rig_config, virtual_rig_document
+
+TINY_PLAN = {
+    "name": "tiny",
+    "seed": 0,
+    "settle_s": 0.0,
+    "grid": {
+        "kind": "spherical",
+        "theta_i_deg": [30.0],
+        "phi_i_deg": [0.0],
+        "theta_o_deg": [30.0],
+        "phi_o_deg": [180.0],
+    },  # fmt: skip
+    "bracket": {"policy": "adaptive", "exposure_time_s": 0.02, "max_frames": 2},
+    "darks": {"count": 0},
+    "reference": {
+        "when": "start",
+        "reflectance": 0.99,
+        "poses": [{"theta_i_deg": 0, "theta_o_deg": 40, "phi_o_deg": 180}],
+    },  # fmt: skip
+    "simulation": {"width": 160, "height": 120},
+}
+
+
+def cli(capsys, *argv: str) -> tuple[int, str]:
+    code = run(*argv)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    return code, err
+
+
+def digests(*paths: Path) -> dict[str, str | None]:
+    return {
+        str(p): hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None for p in paths
+    }
+
+
+def camera_file(path: Path, identity: dict) -> Path:
+    """A camera calibration file of ``identity`` (gonio.capture.camera_calibration's
+    schema), the K of a 640 x 480 camera."""
+    w, h = identity["resolution"]
+    cam = {
+        "K": [[600.0, 0.0, w / 2 - 0.5], [0.0, 600.0, h / 2 - 0.5], [0.0, 0.0, 1.0]],
+        "dist": [0.0] * 5,
+        "width": w,
+        "height": h,
+        "calibration": {
+            "created": "2026-12-01T00:00:00+00:00",
+            "digest": camera_digest(identity),
+            "camera": identity,
+            "K_std": [0.5, 0.5, 0.5, 0.5],
+            "dist_std": [1e-3] * 5,
+            "rms_px": 0.2,
+            "n_points": 1000,
+            "views_used": ["v0"],
+        },
+    }
+    path.write_text(tomli_w.dumps({"camera": cam}))
+    return path
+
+
+@pytest.fixture(scope="module")
+def reduced(tmp_path_factory):
+    """A tiny simulated session at 160 x 120 with an earlier reduction's outputs."""
+    d = tmp_path_factory.mktemp("tiny")
+    (d / "rig.toml").write_text(virtual_rig_document())
+    (d / "plan.toml").write_text(tomli_w.dumps(TINY_PLAN))
+    s = d / "S"
+    cap = ["capture", "run", str(d / "plan.toml"), "--rig", str(d / "rig.toml")]
+    # an as-built world, so that the simulated camera has a serial like a real one
+    sim = ["--camera", "simulated", "--world", "realistic", "--world-seed", "3"]
+    assert run(*cap, *sim, "--out", str(s), "--quiet") == 0
+    # stand-ins for an earlier reduction's outputs, which a refused one must leave alone
+    (s / "samples.h5").write_bytes(b"an earlier reduction")
+    (s / "reduction.json").write_text("{}")
+    return d, s
+
+
+def other_resolution_camera(tmp_path: Path, session: Path) -> tuple[Path, dict, dict]:
+    ours = camera_identity(load_manifest(session)["camera"])
+    assert ours is not None and list(ours["resolution"]) == [160, 120], ours
+    other = {**ours, "resolution": [640, 480]}
+    return camera_file(tmp_path / "camera.toml", other), ours, other
+
+
+def test_reduce_refuses_a_camera_calibration_of_another_resolution(reduced, tmp_path, capsys):
+    _, s = reduced
+    cal, ours, other = other_resolution_camera(tmp_path, s)
+    outputs = [s / "samples.h5", s / "reduction.json", s / "reduction.toml"]
+    before = digests(*outputs)
+    code, err = cli(capsys, "capture", "reduce", str(s), "--quiet", "--camera-calibration",
+                    str(cal))  # fmt: skip
+    assert code == 1, err
+    assert err.startswith("error: ") and str(cal) in err, err
+    assert camera_digest(other) in err and camera_digest(ours) in err, err
+    assert digests(*outputs) == before
+
+
+def test_calibrate_rig_refuses_a_camera_calibration_of_another_resolution(
+    reduced, tmp_path, capsys
+):
+    d, s = reduced
+    cal, ours, other = other_resolution_camera(tmp_path, s)
+    out = tmp_path / "rig_calibrated.toml"
+    out.write_text("# an earlier calibration, kept\n")
+    plot = tmp_path / "res.png"
+    before = digests(out, plot)
+    code, err = cli(capsys, "calibrate", "rig", str(s), "--rig", str(d / "rig.toml"),
+                    "--camera-calibration", str(cal), "--out", str(out), "--plot", str(plot),
+                    "--force")  # fmt: skip
+    assert code == 1, err
+    assert err.startswith("error: ") and camera_digest(other) in err, err
+    assert camera_digest(ours) in err, err
+    assert digests(out, plot) == before
+
+
+def _calibration_truth():
+    path = Path(__file__).parents[1] / "rig" / "calibration_truth.py"
+    spec = importlib.util.spec_from_file_location("gonio_tests_calibration_truth_e2", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_calibrate_rig_refuses_observations_approaching_a_joint_from_one_side(
+    tmp_path, monkeypatch, capsys
+):
+    """A rig plan edited so that every pose approaches the tilt from the same side: its
+    backlash is undetermined, and the calibration says so before writing anything.  The
+    observations come from tests/rig/calibration_truth.py's independent simulation
+    (the frames' detection is tested elsewhere)."""
+    import gonio.app.calibrate_cli as calibrate_cli
+    import gonio.capture.manifest as manifest
+    import gonio.capture.rig_views as rig_views
+
+    ct = _calibration_truth()
+    nominal = default_rig_config()
+    rng = np.random.default_rng(11)
+    values = ct.draw_values(rng, nominal)
+    intr, K, dist, K_std, dist_std = ct.draw_camera(rng)
+    poses = rig_calibration_poses(nominal)
+    boards, spots = ct.simulate(nominal, values, poses, intr, rng,
+                                force_side={"stage_tilt": 1})  # fmt: skip
+    assert {b.approach["stage_tilt"] for b in boards} == {1}
+    identity = {"backend": "simulated", "model": "gonio-sim", "serial": "A1",
+                "resolution": [640, 480]}  # fmt: skip
+    doc = {
+        "rig": json.loads(nominal.model_dump_json(exclude_none=True)),
+        "camera": {"backend": "simulated", "model": "gonio-sim", "settings": {"serial": "A1"}},
+        "simulation": {"width": 640, "height": 480},
+    }
+    s = tmp_path / "S"
+    s.mkdir()
+    monkeypatch.setattr(manifest, "load_manifest", lambda d: doc)
+    monkeypatch.setattr(rig_views, "calibration_observations", lambda d, b: (boards, spots, []))
+    monkeypatch.setattr(calibrate_cli, "_board_from", lambda p, d: (None, "the test's board"))
+    cam = camera_file(tmp_path / "camera.toml", identity)
+    cam_doc = tomllib.loads(cam.read_text())
+    cam_doc["camera"]["K"] = K.tolist()
+    cam_doc["camera"]["dist"] = [float(x) for x in dist]
+    cam_doc["camera"]["calibration"]["K_std"] = [float(x) for x in K_std]
+    cam_doc["camera"]["calibration"]["dist_std"] = [float(x) for x in dist_std]
+    cam.write_text(tomli_w.dumps(cam_doc))
+    rig = tmp_path / "rig.toml"
+    rig.write_text(tomli_w.dumps(doc["rig"]))
+    out = tmp_path / "rig_calibrated.toml"
+    code, err = cli(capsys, "calibrate", "rig", str(s), "--rig", str(rig),
+                    "--camera-calibration", str(cam), "--out", str(out))  # fmt: skip
+    assert code == 1, err
+    assert err.startswith("error: "), err
+    assert "stage_tilt.backlash" in err and "same side" in err, err
+    assert not out.exists()
