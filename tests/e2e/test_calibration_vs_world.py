@@ -19,7 +19,6 @@ import math
 import os
 import secrets
 import tomllib
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,7 +30,6 @@ from gonio.rig.calibration_plan import (
     approaches,
     camera_calibration_poses,
     rig_calibration_poses,
-    write_plan,
 )
 from gonio.rig.config import default_rig_config, default_rig_document
 from gonio.simulator.calibration_views import (
@@ -125,7 +123,9 @@ def _corner_case(seed: int) -> dict:
         SpotObservation(v["label"], v["joints"], v["approach"], v["image_point"])
         for v in spot_views(world, DOC, CAMERA, SAMPLE, on_mirror, SIGMA_SPOT, rng)
     ]
-    rig = calibrate_rig(NOMINAL, boards, spots, prior)
+    # the observability check before the solve is not what this test measures (and is
+    # tested with the plans): skipped, a fifth of the time per world
+    rig = calibrate_rig(NOMINAL, boards, spots, prior, check=False)
     truth = {**world.truth_parameters(DOC), **_true_intrinsics(world)}
     z_cam = {f"camera {n}": (v - truth[n]) / s for n, (v, s) in cam.parameters.items() if s > 0}
     z_rig = {n: (rig.estimate(n)[0] - truth[n]) / rig.estimate(n)[1] for n in rig.names}
@@ -207,104 +207,6 @@ def test_reported_uncertainties_are_honest_over_drawn_worlds():
 
 # ------------------------------------------------------------------ rendered frames
 RENDER_SIZE = (480, 360)
-
-
-def _rendered_case(seed: int, root: Path) -> tuple[dict[str, float], dict]:
-    """Both plans shot through the session API (``gonio capture run`` on the simulated
-    camera, the realistic world of ``seed``), detected and solved by ``gonio calibrate
-    camera`` and ``gonio calibrate rig``; the z-score of every parameter."""
-    from gonio.capture.camera_calibration import load_camera_calibration
-    from gonio.cli import run
-    from gonio.rig.config import load_rig_config, virtual_rig_document
-
-    root.mkdir(parents=True)
-    rig = root / "rig.toml"
-    rig.write_text(virtual_rig_document())
-    w, h = RENDER_SIZE
-    write_plan(root / "camera_plan.toml", CAMERA_POSES, kind="camera", width=w, height=h)
-    write_plan(root / "rig_plan.toml", RIG_POSES, kind="rig", width=w, height=h)
-    world = ["--camera", "simulated", "--world", "realistic", "--world-seed", str(seed)]
-    for plan, session in (("camera_plan.toml", "CS"), ("rig_plan.toml", "RS")):
-        code = run(
-            "capture",
-            "run",
-            str(root / plan),
-            "--rig",
-            str(rig),
-            *world,
-            "--out",
-            str(root / session),
-            "--quiet",
-        )
-        assert code == 0, f"seed {seed}: capture run {plan}"
-    assert (
-        run("calibrate", "camera", str(root / "CS"), "--calibration", str(root / "camera.toml"))
-        == 0
-    )
-    assert (
-        run(
-            "calibrate",
-            "rig",
-            str(root / "RS"),
-            "--rig",
-            str(rig),
-            "--camera-calibration",
-            str(root / "camera.toml"),
-            "--out",
-            str(root / "rig_calibrated.toml"),
-        )
-        == 0
-    )
-    truth_world = draw_world("realistic", seed)
-    camera = Camera(resolution=RENDER_SIZE, focal_length=0.035, fov_deg=26.0)
-    truth = {**truth_world.truth_parameters(DOC), **_true_intrinsics(truth_world, camera)}
-    record = load_rig_config(root / "rig_calibrated.toml").calibration
-    z = {
-        n: (e.value - truth[n]) / e.std
-        for n, e in {**record.parameters, **record.intrinsics}.items()
-    }
-    cam = load_camera_calibration(root / "camera.toml")
-    est = [cam.K[0][0], cam.K[1][1], cam.K[0][2], cam.K[1][2], *cam.dist]
-    std = [*cam.calibration.K_std, *cam.calibration.dist_std]
-    for n, v, s in zip(INTRINSIC_NAMES, est, std, strict=True):
-        if s > 0:
-            z[f"camera {n}"] = (v - truth[n]) / s
-    return z, {
-        "rms_px": record.rms_px,
-        "counts": record.counts,
-        "camera_rms": cam.calibration.rms_px,
-    }
-
-
-@pytest.mark.slow
-def test_rendered_calibration_sessions_recover_the_world(tmp_path, capsys):
-    """One drawn world, rendered: both calibration plans shot, detected and solved by
-    the commands a lab types; every parameter within 5 reported std of the truth, and
-    the residuals those of clean detections (no spot cut by the mirror's edge)."""
-    seeds = _seeds(1)[:1]
-    print(_replay(seeds))
-    zs: dict[str, list[float]] = {}
-    infos = []
-    for seed in seeds:
-        z, info = _rendered_case(seed, tmp_path / f"w{seed}")
-        infos.append(info)
-        for n, v in z.items():
-            zs.setdefault(n, []).append(v)
-    capsys.readouterr()  # the commands' own tables
-    with capsys.disabled():
-        print(f"\n{_replay(seeds)}; {infos}")
-        for n, v in zs.items():
-            print(f"  {n:30s} z {' '.join(f'{x:+6.2f}' for x in v)}")
-    assert set(PARAMETER_NAMES) <= set(zs), _replay(seeds)
-    bad = {n: v for n, v in zs.items() if not np.all(np.abs(v) < 5)}
-    assert not bad, f"{_replay(seeds)}: |z| >= 5 for {bad}; {infos}"
-    for info in infos:
-        # spots the mirror's edge cuts are left out (their centroid moves by pixels): the
-        # rest are centroids of a noise-free render, far below 0.1 px
-        # The solve's outlier rule may drop a view (a corner misdetected on a grazing
-        # board); more than two would mean the rendered data themselves are off.
-        assert info["counts"]["spots"] >= 6 and info["counts"]["rejected"] <= 2, infos
-        assert info["rms_px"]["spot"] < 0.1 and info["rms_px"]["board"] < 0.5, infos
 
 
 def test_reflection_points_are_where_the_world_reflects_the_light():

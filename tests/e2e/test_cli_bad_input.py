@@ -837,4 +837,3 @@ def test_calibrate_noise_checks_its_plot_path_first(plot, expect, flats, tmp_pat
     assert code in (1, 2) and "Traceback" not in err
     assert all(s in err for s in expect), err
     assert _snapshot(tmp_path) == before
-

@@ -150,7 +150,8 @@ def test_reported_uncertainty_is_honest_over_seeds():
     zs, rms = [], []
     for seed in range(30):
         truth, boards, spots, camera = _case(seed)
-        cal = calibrate_rig(NOMINAL, boards, spots, camera)
+        # the observability check is not what this test measures (tested below)
+        cal = calibrate_rig(NOMINAL, boards, spots, camera, check=False)
         zs.append([_z(cal, truth)[n] for n in cal.names])
         rms.append((cal.rms_px["board"], cal.rms_px["spot"]))
     zs = np.array(zs)
