@@ -269,15 +269,10 @@ def fault_record(exc: BaseException, source: str) -> dict[str, Any]:
 
 
 def finalize(devices: SessionDevices) -> dict[str, Any]:
-    """Light on, sample in place, park, torque off, whatever happened; report failures."""
+    """Park, torque off, then light on and sample in place, whatever happened; report
+    failures."""
     out: dict[str, Any] = {"parked": False, "torque_off": False}
     errors = []
-    if devices.light is not None:
-        with contextlib.suppress(Exception):
-            devices.light.set_light(True)
-    if devices.target is not None:
-        with contextlib.suppress(Exception):
-            devices.target.set_target("sample")
     try:
         devices.rig.park()
         out["parked"] = True
@@ -293,6 +288,14 @@ def finalize(devices: SessionDevices) -> dict[str, Any]:
             errors.append(f"torque off not confirmed by servo(s) {list(unconfirmed)}")
     except Exception as exc:  # noqa: BLE001
         errors.append(f"torque off: {exc}")
+    # Light and target after the rig is safe: a target changer may be an operator asked
+    # to swap the mirror back, who must not hold up the torque off.
+    if devices.light is not None:
+        with contextlib.suppress(Exception):
+            devices.light.set_light(True)
+    if devices.target is not None:
+        with contextlib.suppress(Exception):
+            devices.target.set_target("sample")
     if errors:
         out["finalizer_errors"] = errors
     return out

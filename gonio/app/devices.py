@@ -107,6 +107,15 @@ def open_session_devices(
     # The as-built world: recorded in the simulation record (a new run writes it there,
     # resume rebuilds the same one); none recorded: perfect (sessions from before).
     world = resolve_world(recorded=sim.get("world"))
+    # A real camera's rig cannot swap the calibration mirror in: the operator does.
+    # Whether someone is there to answer is asked before the rig is even opened.
+    target = None
+    if request.camera_backend != "simulated" and any(
+        p.target == "mirror" for p in request.plan.joint_poses
+    ):
+        from gonio.app.operator import OperatorTargetChanger
+
+        target = OperatorTargetChanger()
     kin = Kinematics(cfg)
     bus = None
     with contextlib.ExitStack() as stack:
@@ -193,7 +202,7 @@ def open_session_devices(
             request.camera_backend, **({"port": camera_port} if camera_port else {})
         )
         stack.callback(camera.close)
-        yield SessionDevices(rig, camera, kinematics=kin, sleep=sleep)
+        yield SessionDevices(rig, camera, target=target, kinematics=kin, sleep=sleep)
 
 
 def _nominal_of(cfg: Any) -> Any:
