@@ -70,9 +70,31 @@ class BoardSpec:
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any]) -> BoardSpec:
-        """From a mapping with the fields of the simulator's ``[holder.board]`` table."""
+        """From a mapping with the fields of the simulator's ``[holder.board]`` table.
+
+        Raises
+        ------
+        ValueError
+            A field of the wrong type or out of range (named), before OpenCV sees it.
+        """
+        import cv2
+
         keys = ("squares_x", "squares_y", "square_length", "marker_length", "dictionary")
-        return cls(**{k: m[k] for k in keys if k in m})
+        fields = {k: m[k] for k in keys if k in m}
+        for k in ("squares_x", "squares_y"):
+            v = fields.get(k, 7)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 2:
+                raise ValueError(f"{k} = {v!r}: expected a whole number of squares >= 2")
+        for k in ("square_length", "marker_length"):
+            v = fields.get(k, 0.02 if k == "square_length" else 0.015)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not 0 < v < 10:
+                raise ValueError(f"{k} = {v!r}: expected a positive length in metres")
+        if fields.get("marker_length", 0.015) >= fields.get("square_length", 0.02):
+            raise ValueError("marker_length must be smaller than square_length")
+        d = fields.get("dictionary", "DICT_4X4_50")
+        if not isinstance(d, str) or not d.startswith("DICT_") or not hasattr(cv2.aruco, d):
+            raise ValueError(f"dictionary = {d!r}: expected a cv2.aruco dictionary name")
+        return cls(**fields)
 
     def cv_board(self) -> Any:
         """The OpenCV board (object points in metres, board frame)."""

@@ -424,6 +424,12 @@ def check_camera_identity(setup: ReductionSetup, manifest: Mapping[str, Any]) ->
     session = camera_identity(manifest.get("camera") or {})
     if digest is None or session is None:
         return
+    if session["resolution"] is None and setup.signature is not None:
+        # A camera that does not report its size (gphoto2): the calibration was made at
+        # the size of its frames, as `gonio calibrate camera` records, and every frame
+        # of this session is checked against the calibration's size anyway.
+        h, w = setup.signature.shape
+        session = {**session, "resolution": [int(w), int(h)]}
     ours = identity_digest(session)
     if digest == ours:
         return

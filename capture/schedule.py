@@ -67,8 +67,8 @@ class DryRunRig:
     the last move it accepted (the park pose at first), so the path check sees the same
     previous pose as the run; a refused move leaves the joints where they were.  With
     ``joints`` (a joint-pose plan's step) it moves there, checked as the rig checks them.
-    It tracks the approach signs as :class:`gonio.rig.device.Rig` does (a move of at
-    least one pulse sets a joint's sign, a smaller one keeps it; the first move takes up
+    It tracks the approach signs as :class:`gonio.rig.device.Rig` does (a move beyond
+    the position tolerance sets a joint's sign, a smaller one keeps it; the first move takes up
     the backlash of an unmoved joint from below), so the schedule's joints and
     directions are those of the run.
     """

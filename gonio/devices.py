@@ -63,8 +63,9 @@ class RigState:
         Whether any servo reports that it is still moving.
     approach
         Sign of each joint's last commanded move in joint angle, joint name -> +1 (its
-        angle increased), -1 (decreased) or 0 (unknown); a move of less than one pulse
-        keeps it.  Which side of its backlash a joint sits on (``gonio.rig.asbuilt``).
+        angle increased), -1 (decreased) or 0 (unknown); a move within the position
+        tolerance (the servo's deadband) keeps it.  Which side of its backlash a joint
+        sits on (``gonio.rig.asbuilt``).
     """
 
     joints: dict[str, float]

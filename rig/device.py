@@ -429,7 +429,9 @@ class Rig:
             for st in states.values()
             if self._approach[st.joint] == 0
             and self._by_id[st.dxl_id].config.backlash_deg > 0
-            and goals[st.dxl_id] == st.position_pulses
+            # a goal within the deadband does not move it either (the side stays unknown)
+            and abs(goals[st.dxl_id] - st.position_pulses)
+            <= self.config.motion.position_tolerance_pulses
         ]
         if not need:
             return None
@@ -574,7 +576,9 @@ class Rig:
             for k, j in enumerate(JOINT_NAMES):
                 d = combos[:, k] - present[j]
                 keep = self._approach[j] or 1  # unknown: the pre-move comes from below
-                appr[j] = np.where(d != 0, self.servos[j].config.direction * np.sign(d), keep)
+                # within the deadband the servo does not move: it keeps its side
+                moved = np.abs(d) > self.config.motion.position_tolerance_pulses
+                appr[j] = np.where(moved, self.servos[j].config.direction * np.sign(d), keep)
         ai, ao = self.kinematics.forward(q, appr)
         err = np.maximum(angle_between(ai, np.asarray(wi)), angle_between(ao, np.asarray(wo)))
         best = combos[int(np.argmin(err))]

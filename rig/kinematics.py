@@ -39,9 +39,10 @@ above, bit for bit.  The inverse of an as-built rig solves the closed form of it
 nominal part (tilt axis made horizontal, no offsets) and refines every candidate with
 Gauss-Newton steps on the full model (4 joints, 4 constraints) until ``wi`` and ``wo``
 are met to ``1e-9`` rad, with the approach signs the move from ``current`` implies: a
-joint that moves at least one pulse approaches from the side it comes from, one that
-does not keeps its sign (``approach``; unknown counts as +1, the side the rig's first
-move takes the backlash up from, see :class:`gonio.rig.device.Rig`).
+joint that moves by more than the position tolerance (the servo's deadband) approaches
+from the side it comes from, one that does not keeps its sign (``approach``; unknown
+counts as +1, the side the rig's first move takes the backlash up from, see
+:class:`gonio.rig.device.Rig`).
 """
 
 from __future__ import annotations
@@ -557,7 +558,8 @@ class Kinematics:
             scale = s.direction * s.gear_ratio * 4096.0 / (2 * math.pi)
             d = np.round(zero + scale * Q[:, k]) - round(s.pulses(float(ref[j])))
             keep = int((approach or {}).get(j, 0)) or 1
-            out[:, k] = np.where(d != 0, s.direction * np.sign(d), keep)
+            moved = np.abs(d) > self.config.motion.position_tolerance_pulses
+            out[:, k] = np.where(moved, s.direction * np.sign(d), keep)
         return out
 
     def _residual(self, Q: Array, signs: Array, target: Array) -> Array:

@@ -35,6 +35,7 @@ TABLE_SIZE = 662  # XM430 control table incl. indirect address/data (plain RAM h
 _AMBIENT_C = 30.0
 _HEAT_MOVING_C = 12.0  # steady rise above ambient of a motor that never stops, degC
 _HEAT_TAU_S = 60.0  # heating time constant, s of motion
+_BACKLASH_TAKE_UP_PULSES = 1  # a longer move puts the joint on its side of the backlash
 
 
 def _heated(heat: float, moving_s: float) -> float:
@@ -201,7 +202,10 @@ class VirtualServo:
     def _end_segment(self, t: float, pos: float) -> None:
         """Stop the present segment at servo time ``t`` at ``pos``, its heat accounted."""
         self._heat = self._heat_at(t)
-        if self._seg is not None and pos != self._seg.p0:
+        # A move of one pulse (0.09 deg) cannot carry a joint across a backlash of a
+        # quarter degree: only a longer one puts it on the other side (a landing error
+        # never asks for such a move: a goal within the landing band does not move).
+        if self._seg is not None and abs(pos - self._seg.p0) > _BACKLASH_TAKE_UP_PULSES:
             self._last_direction = 1 if pos > self._seg.p0 else -1
         self._pos, self._seg = pos, None
 

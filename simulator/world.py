@@ -399,8 +399,8 @@ def draw_world(
         )
     except ValidationError as exc:
         raise ConfigError(f"[world]: {_messages(exc)}") from None
-    except TypeError as exc:
-        raise ConfigError(f"[world]: {exc}") from None
+    except (TypeError, ValueError) as exc:  # e.g. rig = "x": not a table
+        raise ConfigError(f"[world]: {exc} (rig, camera and servos are tables)") from None
 
 
 def _number(name: str, v: Any) -> float:

@@ -56,7 +56,7 @@ def _board_from(path: Path | None, session: Path | None) -> tuple[Any, str]:
             return None
         try:
             return BoardSpec.from_mapping(table)
-        except TypeError as exc:
+        except (TypeError, ValueError) as exc:
             raise ConfigError(f"{where}: [board]: {exc}") from None
 
     if path is not None:
@@ -242,7 +242,7 @@ def camera_cmd(
 
     \b
     Show the holder's ChArUco board to the camera from many directions (the board
-    tilted 20-60 deg, filling different parts of the image: corners near the image
+    tilted 0-45 deg, filling different parts of the image: corners near the image
     edges are what pin the distortion down), then either
       gonio calibrate camera SESSION/ --calibration camera.toml
       gonio calibrate camera FOLDER/  --calibration camera.toml   (RAW/DNG/PNG/JPEG)

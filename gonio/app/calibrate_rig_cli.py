@@ -372,7 +372,8 @@ def rig_cmd(
     console.print("not observable (kept nominal):")
     for name, why in NOT_OBSERVABLE.items():
         console.print(f"  {name}: {why}")
-    if plot is not None:
-        _plot_residuals(plot, cal)
+    # the calibration first: a refused (ill-conditioned) one writes nothing, plot included
     write_calibrated_rig(out, cal, force=force)
     console.print(f"wrote {out}")
+    if plot is not None:
+        _plot_residuals(plot, cal)

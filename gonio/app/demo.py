@@ -507,9 +507,9 @@ REALISTIC_RESOLUTION = (480, 360)
 @click.option(
     "--resolution",
     type=(click.IntRange(8, 8192), click.IntRange(8, 8192)),
-    default=(320, 240),
-    show_default=True,
-    help="Simulated camera resolution, pixels (width height) [--world realistic: 480 360].",
+    default=None,
+    help="Simulated camera resolution, pixels (width height) [default: 320 240; "
+    "--world realistic: 480 360].",
 )
 @click.option(
     "--sim-speed",
@@ -543,7 +543,7 @@ def demo(
     seed: int,
     n_poses: int,
     model: str,
-    resolution: tuple[int, int],
+    resolution: tuple[int, int] | None,
     sim_speed: float | str,
     world: str,
     world_seed: int | None,
@@ -591,7 +591,7 @@ def demo(
 
         world_seed = secrets.randbelow(2**31)
     if world != "perfect":
-        if resolution == (320, 240):
+        if resolution is None:
             # The calibrations need the corners' precision: at 320 x 240 the rig plan
             # cannot tell the tilt's gravity compliance from its zero offset (and the
             # rig calibration refuses, naming it).
@@ -600,6 +600,8 @@ def demo(
             f"as-built world: {world}, seed {world_seed} (replay with --world-seed "
             f"{world_seed}); camera {resolution[0]} x {resolution[1]}"
         )
+    if resolution is None:
+        resolution = (320, 240)
     try:
         res = run_demo(
             out,

@@ -194,3 +194,33 @@ def test_calibrate_rig_refuses_observations_approaching_a_joint_from_one_side(
     assert err.startswith("error: "), err
     assert "stage_tilt.backlash" in err and "same side" in err, err
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "table, named",
+    [
+        ("squares_x = 7.5", "squares_x"),
+        ('squares_y = "7"', "squares_y"),
+        ("marker_length = 0.03", "marker_length must be smaller"),
+        ("dictionary = 5", "dictionary"),
+    ],
+)
+def test_a_bad_board_table_is_named_not_a_traceback(tmp_path, capsys, table, named):
+    board = tmp_path / "board.toml"
+    board.write_text(f"[board]\nsquare_length = 0.02\n{table}\n")
+    (tmp_path / "imgs").mkdir()
+    out = tmp_path / "camera.toml"
+    code, err = cli(
+        capsys, "calibrate", "camera", str(tmp_path / "imgs"), "--board", str(board),
+        "--calibration", str(out),
+    )  # fmt: skip
+    assert code == 1 and "error:" in err and named in err, err
+    assert not out.exists()
+
+
+def test_a_world_table_that_is_not_a_table_is_named(tmp_path):
+    from gonio.errors import ConfigError
+    from gonio.simulator.world import load_world
+
+    with pytest.raises(ConfigError, match="tables"):
+        load_world({"preset": "realistic", "rig": "x"})

@@ -478,9 +478,7 @@ def test_a_second_reduction_into_the_same_output_refuses(session, tmp_path):
     assert load_samples(s / "samples.h5").valid.all()
 
 
-def test_a_broken_config_file_is_refused_naming_it_and_keeps_the_samples(
-    session, tmp_path, capsys
-):
+def test_a_broken_config_file_is_refused_naming_it_and_keeps_the_samples(session, tmp_path, capsys):
     """``--config`` with a file that is not TOML, or a field out of its model: exit 1
     naming the file (and field), and the previous samples.h5 is left as it was."""
     s = copy_session(session, tmp_path / "S")

@@ -195,3 +195,21 @@ def test_a_bad_camera_file_is_named(tmp_path, text, named):
         setup_from_config(config, s / "reduction.toml")
     msg = str(exc.value)
     assert str(s / "camera.toml") in msg and named in msg
+
+
+def test_a_camera_that_reports_no_size_matches_its_calibration(tmp_path):
+    """gphoto2 reports neither serial nor resolution: `gonio calibrate camera` records the
+    frames' size in the identity, and the reduction checks against that size."""
+    from gonio.capture.camera_calibration import camera_digest, camera_identity
+
+    record = {"backend": "simulated", "model": "gonio-sim", "serial": "SIM-0007"}
+    digest = camera_digest(camera_identity(record, (400, 300)))  # the calibration's side
+    s = session(tmp_path, camera_toml(digest=digest))
+    assert resolve_setup(s, {"camera": record, "reference": {"reflectance": 0.99}}).K[0, 0] == 812.5
+    other = camera_digest(camera_identity(record, (640, 480)))  # made at another size
+    s2 = session(
+        tmp_path / "b",
+        camera_toml(digest=other).replace("resolution = [400, 300]", "resolution = [640, 480]"),
+    )
+    with pytest.raises(ReductionError, match="another camera"):
+        resolve_setup(s2, {"camera": record, "reference": {"reflectance": 0.99}})

@@ -120,20 +120,24 @@ def test_parallel_rectangle_corner_form_factor(W, H, h):
         a / np.sqrt(1 + a**2) * np.arctan(b / np.sqrt(1 + a**2))
         + b / np.sqrt(1 + b**2) * np.arctan(a / np.sqrt(1 + b**2))
     ) / (2 * np.pi)
-    e = irradiance_rectangle([0, 0, 0], [0, 0, 1], [W / 2, H / 2, h], [0, 0, -1], [1, 0, 0],
-                             [W, H], 1.0)
+    e = irradiance_rectangle(
+        [0, 0, 0], [0, 0, 1], [W / 2, H / 2, h], [0, 0, -1], [1, 0, 0], [W, H], 1.0
+    )
     assert e == pytest.approx(np.pi * F, rel=1e-13)
 
 
 def test_rectangle_crossing_horizon_and_back_side():
     # A vertical square straddling the receiver plane: only the upper half counts.
     full = irradiance_rectangle([0, 0, 0], [0, 0, 1], [0, 1, 0], [0, -1, 0], [1, 0, 0], [1, 1], 1)
-    upper = irradiance_rectangle([0, 0, 0], [0, 0, 1], [0, 1, 0.25], [0, -1, 0], [1, 0, 0],
-                                 [1, 0.5], 1)
+    upper = irradiance_rectangle(
+        [0, 0, 0], [0, 0, 1], [0, 1, 0.25], [0, -1, 0], [1, 0, 0], [1, 0.5], 1
+    )
     assert full == pytest.approx(upper, rel=1e-13) and full > 0
     # Seen from behind, a one-sided emitter gives nothing.
-    assert irradiance_rectangle([0, 0, 0], [0, 0, 1], [0, 0, 1], [0, 0, 1], [1, 0, 0],
-                                [1, 1], 1) == 0.0
+    assert (
+        irradiance_rectangle([0, 0, 0], [0, 0, 1], [0, 0, 1], [0, 0, 1], [1, 0, 0], [1, 1], 1)
+        == 0.0
+    )
 
 
 def test_point_source_inverse_square_and_cosine_laws():
@@ -179,6 +183,7 @@ def test_adaptive_rim_quadrature_matches_a_fine_rule_near_and_far():
         pts = rng.normal(size=(200, 3)) * scale
         pts[:, 2] = 0.0
         auto = irradiance_disk(pts, [0, 0, 1], [0, 0.1, 0.3], [0, -0.3, -1], 0.05, 1.0)
-        fine = irradiance_disk(pts, [0, 0, 1], [0, 0.1, 0.3], [0, -0.3, -1], 0.05, 1.0,
-                               n_nodes=4096)
+        fine = irradiance_disk(
+            pts, [0, 0, 1], [0, 0.1, 0.3], [0, -0.3, -1], 0.05, 1.0, n_nodes=4096
+        )
         np.testing.assert_allclose(auto, fine, rtol=1e-11, atol=1e-300)

@@ -29,14 +29,20 @@ def test_every_package_folder_is_listed_in_pyproject():
 @pytest.mark.slow
 def test_wheel_contains_every_subpackage(tmp_path):
     subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q",
-         "-w", str(tmp_path), str(REPO)],
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path), str(REPO)],
         check=True,
     )
     (wheel,) = tmp_path.glob("gonio-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
-    for pkg in ("gonio", "gonio/radiometry", "gonio/brdf", "gonio/rig", "gonio/capture",
-                "gonio/fitting", "gonio/simulator"):
+    for pkg in (
+        "gonio",
+        "gonio/radiometry",
+        "gonio/brdf",
+        "gonio/rig",
+        "gonio/capture",
+        "gonio/fitting",
+        "gonio/simulator",
+    ):
         assert f"{pkg}/__init__.py" in names, pkg
     assert any(n.endswith("entry_points.txt") for n in names)
 

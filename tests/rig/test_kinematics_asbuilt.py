@@ -155,3 +155,26 @@ def test_asbuilt_poses_match_the_reference_model():
     np.testing.assert_allclose(got.camera_rotation, ref.camera_rotation, atol=1e-14)
     # the light's normal is not -wi once the sample is off the rotation centre
     assert angle(got.light_normal, -got.wi) > 1e-5
+
+
+def test_inverse_and_rig_judge_a_deadband_move_as_the_session_journals_it():
+    """The inverse's approach signs (``_move_signs``) are :func:`approach_of_move`'s for
+    moves of 0, 1 and more pulses: within the position tolerance the side is kept."""
+    import math
+
+    from gonio.rig.config import JOINT_NAMES, default_rig_config
+    from gonio.rig.kinematics import Kinematics, approach_of_move
+
+    cfg = default_rig_config()
+    kin = Kinematics(cfg)
+    ref = {j: 0.1 for j in JOINT_NAMES}
+    pulse = 2 * math.pi / 4096
+    for steps in (-3, -1, 0, 1, 2):
+        q = {j: ref[j] + steps * pulse for j in JOINT_NAMES}
+        for keep in (-1, 1):
+            appr = dict.fromkeys(JOINT_NAMES, keep)
+            want = approach_of_move(cfg, ref, q, appr)
+            got = kin._move_signs(np.array([[q[j] for j in JOINT_NAMES]]), ref, appr)[0]
+            assert dict(zip(JOINT_NAMES, got.astype(int).tolist(), strict=True)) == want, steps
+            if abs(steps) <= cfg.motion.position_tolerance_pulses:
+                assert set(want.values()) == {keep}

@@ -108,3 +108,13 @@ def test_rig_moves_with_landing_error_pass_the_one_pulse_check():
                 landed.append(states[s.id][0] - goal)
     assert max(abs(e) for e in landed) <= 1
     assert any(e != 0 for e in landed)
+
+
+def test_a_one_pulse_move_keeps_the_joint_on_its_side_of_the_backlash():
+    """The controller counts a change within its 1-pulse tolerance as no move (the
+    servo's deadband); a perfect servo (no landing band) moves that pulse but cannot
+    carry the joint across a quarter-degree backlash, so its side stays."""
+    s = _servo(last_direction=-1)
+    assert _goto(s, 1001) == 1001 and s.last_direction == -1  # moved, side kept
+    assert _goto(s, 1010) == 1010 and s.last_direction == 1  # a real move takes it up
+    assert _goto(s, 1009) == 1009 and s.last_direction == 1
