@@ -561,16 +561,10 @@ def camera_identity(info: Any, image_size: tuple[int, int] | None = None) -> dic
     ``serial`` setting (None when it reports none); the resolution its ``resolution``
     setting, else ``image_size``.
     """
-    m = info.to_json() if hasattr(info, "to_json") else dict(info)
-    settings = m.get("settings") or {}
-    serial = m.get("serial", settings.get("serial"))
-    res = m.get("resolution", settings.get("resolution", image_size))
-    return {
-        "backend": str(m.get("backend", "")),
-        "model": str(m.get("model", "")),
-        "serial": None if serial is None else str(serial),
-        "resolution": None if res is None else [int(res[0]), int(res[1])],
-    }
+    from gonio.capture.reduction_config import identity_of
+
+    # one identity for the file written here and the check the reduction makes
+    return identity_of(info.to_json() if hasattr(info, "to_json") else dict(info), image_size)
 
 
 def camera_digest(identity: Mapping[str, Any]) -> str:

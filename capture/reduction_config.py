@@ -369,13 +369,14 @@ def load_camera_file(path: str | os.PathLike) -> CameraSection:
     return cam
 
 
-def camera_identity(record: Mapping[str, Any]) -> dict[str, Any] | None:
-    """The identity ``{backend, model, serial, resolution}`` of a manifest's camera record
-    (:meth:`gonio.devices.CameraInfo.to_json`), or None when it records no backend and
-    model.  ``serial`` and ``resolution`` are read from the record or its ``settings``
-    (None when absent); ``resolution`` is ``[width, height]``, pixels."""
-    if not isinstance(record, Mapping) or not record.get("backend") or not record.get("model"):
-        return None
+def identity_of(
+    record: Mapping[str, Any], image_size: tuple[int, int] | None = None
+) -> dict[str, Any]:
+    """The identity ``{backend, model, serial, resolution}`` of a camera record
+    (:meth:`gonio.devices.CameraInfo.to_json`, a session manifest's ``camera``, or a
+    mapping already in this form).  ``serial`` and ``resolution`` are read from the
+    record or its ``settings``; a camera that reports no resolution (gphoto2) takes
+    ``image_size`` (width, height) -- the size of its frames -- else None."""
     settings = record.get("settings") or {}
 
     def pick(key: str) -> Any:
@@ -383,12 +384,24 @@ def camera_identity(record: Mapping[str, Any]) -> dict[str, Any] | None:
         return settings.get(key) if v is None and isinstance(settings, Mapping) else v
 
     res = pick("resolution")
+    if res is None:
+        res = image_size
     return {
-        "backend": str(record["backend"]),
-        "model": str(record["model"]),
+        "backend": str(record.get("backend", "")),
+        "model": str(record.get("model", "")),
         "serial": None if pick("serial") is None else str(pick("serial")),
         "resolution": None if res is None else [int(x) for x in res],
     }
+
+
+def camera_identity(
+    record: Mapping[str, Any], image_size: tuple[int, int] | None = None
+) -> dict[str, Any] | None:
+    """:func:`identity_of` a manifest's camera record, or None when it records no
+    backend and model (nothing to check a calibration against)."""
+    if not isinstance(record, Mapping) or not record.get("backend") or not record.get("model"):
+        return None
+    return identity_of(record, image_size)
 
 
 def identity_digest(identity: Mapping[str, Any]) -> str:
@@ -421,15 +434,13 @@ def check_camera_identity(setup: ReductionSetup, manifest: Mapping[str, Any]) ->
     """
     cal = setup.camera_calibration or {}
     digest = cal.get("digest")
-    session = camera_identity(manifest.get("camera") or {})
+    # A camera that does not report its size (gphoto2) is taken at the size of the
+    # calibration's frames, as `gonio calibrate camera` records it: every frame of this
+    # session is checked against that size anyway.
+    size = None if setup.signature is None else tuple(reversed(setup.signature.shape))
+    session = camera_identity(manifest.get("camera") or {}, size)
     if digest is None or session is None:
         return
-    if session["resolution"] is None and setup.signature is not None:
-        # A camera that does not report its size (gphoto2): the calibration was made at
-        # the size of its frames, as `gonio calibrate camera` records, and every frame
-        # of this session is checked against the calibration's size anyway.
-        h, w = setup.signature.shape
-        session = {**session, "resolution": [int(w), int(h)]}
     ours = identity_digest(session)
     if digest == ours:
         return
