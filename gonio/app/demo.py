@@ -271,14 +271,12 @@ def run_demo(
     ``world_seed``): then the camera and the rig are calibrated first, the session runs
     on the calibrated rig and the reduction uses the calibrated camera.
     """
-    from gonio.app.simulation import simulated_run
+    from gonio.app.simulation import run_simulated_session
     from gonio.capture.manifest import load_manifest
-    from gonio.capture.plan import load_plan
     from gonio.capture.reduce import reduce_session, resolve_setup
-    from gonio.capture.sessions import plan_session, run_session
     from gonio.dataset import load_samples
     from gonio.fitting import fit
-    from gonio.rig.config import load_rig_config, virtual_rig_document
+    from gonio.rig.config import virtual_rig_document
 
     out = Path(out)
     if out.exists() and any(out.iterdir()):
@@ -327,29 +325,15 @@ def run_demo(
     t = time.perf_counter()
     # What 'gonio capture run plan.toml --rig rig.toml --camera simulated' does, through
     # the library: the API prints nothing, the demo says what it does through ``say``.
-    plan = load_plan(out / "plan.toml")
-    cfg = load_rig_config(rig_path)
-    sim = simulated_run(
-        plan,
+    run_simulated_session(
+        session,
         out / "plan.toml",
-        None,
+        rig_path,
         time_scale,
-        **({"world": world, "world_seed": world_seed} if world != "perfect" else {}),
+        world=None if world == "perfect" else world,
+        world_seed=None if world == "perfect" else world_seed,
+        quiet=quiet,
     )
-    from gonio.app.progress import SessionProgress
-
-    with SessionProgress(quiet) as progress:
-        run_session(
-            session,
-            plan,
-            cfg,
-            sim.opener,
-            camera_backend="simulated",
-            dry_run=plan_session(plan, cfg),
-            simulation=sim.simulation,
-            attachments=sim.attachments,
-            subscribers=[progress],
-        )
     say(f"session {session} completed")
     seconds["capture"] = time.perf_counter() - t
     say("reducing RAW brackets to BRDF samples")

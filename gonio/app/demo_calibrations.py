@@ -87,34 +87,25 @@ def _shoot(
     quiet: bool,
 ) -> Path:
     """Write a calibration plan and shoot it into ``out/name``: the session directory."""
-    from gonio.app.progress import SessionProgress
-    from gonio.app.simulation import simulated_run
-    from gonio.capture.plan import load_plan
-    from gonio.capture.sessions import plan_session, run_session
+    from gonio.app.simulation import run_simulated_session
     from gonio.rig.calibration_plan import write_plan
-    from gonio.rig.config import load_rig_config
 
     plan_path = out / f"{name}_plan.toml"
     # The spot exposure `gonio calibrate plan` writes by default (the 2 mm source's image
     # in the mirror clips at ~1e-4 s at these sizes), and a long one for the board: that
     # small source leaves the board at ~25 DN in 0.02 s, and views are lost.
     write_plan(plan_path, poses, kind=kind, exposures_s=(2e-5, 2.0), width=size[0], height=size[1])
-    plan = load_plan(plan_path)
-    cfg = load_rig_config(cfg_path)
-    sim = simulated_run(plan, plan_path, scene_path, time_scale, world=world, world_seed=world_seed)
     session = out / f"{name}_session"
-    with SessionProgress(quiet) as progress:
-        run_session(
-            session,
-            plan,
-            cfg,
-            sim.opener,
-            camera_backend="simulated",
-            dry_run=plan_session(plan, cfg),
-            simulation=sim.simulation,
-            attachments=sim.attachments,
-            subscribers=[progress],
-        )
+    run_simulated_session(
+        session,
+        plan_path,
+        cfg_path,
+        time_scale,
+        scene_path=scene_path,
+        world=world,
+        world_seed=world_seed,
+        quiet=quiet,
+    )
     return session
 
 

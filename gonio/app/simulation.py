@@ -22,6 +22,7 @@ __all__ = [
     "SceneSource",
     "SimulatedRun",
     "relocatable",
+    "run_simulated_session",
     "scene_source",
     "simulated_run",
 ]
@@ -194,3 +195,42 @@ def simulated_run(
     }
     opener = device_opener(scene=source.document, scene_base=source.base_dir, time_scale=time_scale)
     return SimulatedRun(simulation, attachments, opener)
+
+
+def run_simulated_session(
+    session: Path,
+    plan_path: Path,
+    rig_path: Path,
+    time_scale: Any = "virtual",
+    *,
+    scene_path: str | Path | None = None,
+    world: str | None = None,
+    world_seed: int | None = None,
+    quiet: bool = False,
+) -> None:
+    """Capture ``plan_path`` on the simulated rig of ``rig_path`` into ``session``.
+
+    What ``gonio capture run PLAN --rig RIG --camera simulated`` does, through the
+    library (for the demo): the API prints nothing, a progress bar shows unless
+    ``quiet``.  ``scene_path``, ``world``, ``world_seed``: as :func:`simulated_run`.
+    """
+    from gonio.app.progress import SessionProgress
+    from gonio.capture.plan import load_plan
+    from gonio.capture.sessions import plan_session, run_session
+    from gonio.rig.config import load_rig_config
+
+    plan = load_plan(plan_path)
+    cfg = load_rig_config(rig_path)
+    sim = simulated_run(plan, plan_path, scene_path, time_scale, world, world_seed)
+    with SessionProgress(quiet) as progress:
+        run_session(
+            session,
+            plan,
+            cfg,
+            sim.opener,
+            camera_backend="simulated",
+            dry_run=plan_session(plan, cfg),
+            simulation=sim.simulation,
+            attachments=sim.attachments,
+            subscribers=[progress],
+        )
