@@ -9,6 +9,10 @@ Every area light maps the unit square (a, b) onto its surface with a constant Ja
   Gauss-Legendre converges fast too;
 - rectangle: tensor Gauss-Legendre in (a, b);
 - point approximation: the centre with the whole area (level 0).
+
+An area light's emitted radiance is ``rgb * cos^profile_n(psi) * face(y)``: psi the angle
+off its emitting normal, ``face`` its linear non-uniformity (:meth:`PreparedLight.face`);
+both are 1 for a Lambertian, uniform light (and then cost nothing).
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import numpy as np
 
 from gonio.simulator.scene import DiskLight, PointLight, RectangleLight, Scene, _unit
 
-__all__ = ["PreparedLight", "prepare_lights", "LEVELS"]
+__all__ = ["LEVELS", "PreparedLight", "nominal_irradiance", "prepare_lights"]
 
 # Quadrature ladder: level k >= 1 has ``k`` Gauss-Legendre nodes in a and 4k midpoint
 # nodes in phi on a disk (the phi integrand's Fourier modes decay like (R/d)^m and the
@@ -29,7 +33,8 @@ LEVELS: tuple[int, ...] = (0, 1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 24, 32)
 
 @dataclass
 class PreparedLight:
-    """A light as arrays: kind, colour (3,), centre, emitting normal, tangent axes, size."""
+    """A light as arrays: kind, colour (3,), centre, emitting normal, tangent axes, size,
+    and its emission profile ``profile_n``, face ``gradient`` and its angle (rad)."""
 
     kind: str
     rgb: np.ndarray
@@ -39,6 +44,48 @@ class PreparedLight:
     e2: np.ndarray
     size: tuple[float, float]  # disk: (radius, radius); rectangle: (width, height)
     area: float
+    profile_n: float = 0.0
+    gradient: float = 0.0
+    gradient_angle: float = 0.0
+
+    def face(self, y: np.ndarray) -> np.ndarray | None:
+        """The face non-uniformity factor (...) at emitter points y (..., 3), or None for
+        a uniform face: ``1 + g (rho/R) cos(phi - phi_g)`` on a disk, ``1 + g ((2x/w)
+        cos(phi_g) + (2y/h) sin(phi_g))`` on a rectangle ((x, y) along (e1, e2))."""
+        if self.gradient == 0.0 or self.is_point:
+            return None
+        rel = y - self.center
+        p1, p2 = rel @ self.e1, rel @ self.e2
+        c, s = np.cos(self.gradient_angle), np.sin(self.gradient_angle)
+        if self.kind == "disk":
+            u = (p1 * c + p2 * s) / self.size[0]
+        else:
+            u = (2 * p1 / self.size[0]) * c + (2 * p2 / self.size[1]) * s
+        return 1.0 + self.gradient * u
+
+    def profile(self, cos_psi: np.ndarray) -> np.ndarray | None:
+        """The emission profile ``cos^n(psi)`` for cosines off the normal, or None for a
+        Lambertian emitter."""
+        if self.profile_n == 0.0 or self.is_point:
+            return None
+        return np.maximum(cos_psi, 0.0) ** self.profile_n
+
+    def on_axis_irradiance(self, distance: float, level: int = 16) -> np.ndarray:
+        """Irradiance (3,) W/m^2 on a surface facing the light at ``distance`` m on its
+        axis, by the light's own quadrature (the face gradient averages out there).
+
+        ``int L cos^n(psi) cos(theta) cos(psi) / r^2 dA`` with ``cos(theta) = cos(psi) =
+        d / r`` (a point light: ``I / d^2``).
+        """
+        d = float(distance)
+        if self.is_point:
+            return self.rgb / d**2
+        nodes, w = self.quadrature(level)
+        rel = nodes - self.center
+        rho2 = (rel @ self.e1) ** 2 + (rel @ self.e2) ** 2
+        r2 = d * d + rho2
+        cos = d / np.sqrt(r2)
+        return self.rgb * float(np.sum(w * cos ** (self.profile_n + 2.0) / r2))
 
     @property
     def is_point(self) -> bool:
@@ -151,9 +198,31 @@ def _prepare(light, scene: Scene) -> PreparedLight:
         size = (light.radius, light.radius)
         area = np.pi * light.radius**2
         kind = "disk"
-    return PreparedLight(kind, scene.light_rgb(light.radiance), c, n, e1, e2, size, area)
+    return PreparedLight(
+        kind,
+        scene.light_rgb(light.radiance),
+        c,
+        n,
+        e1,
+        e2,
+        size,
+        area,
+        float(light.profile_n),
+        float(light.gradient),
+        float(np.radians(light.gradient_angle_deg)),
+    )
 
 
 def prepare_lights(scene: Scene) -> list[PreparedLight]:
     """The scene's lights as :class:`PreparedLight` objects."""
     return [_prepare(light, scene) for light in scene.lights]
+
+
+def nominal_irradiance(scene: Scene) -> np.ndarray:
+    """``E0`` (3,), W/m^2: the irradiance the scene's lights (at output factor 1) put on
+    the sample centre at normal incidence, each from its present distance to the sample
+    origin (the light arm's radius): the unit of ambient and stray light."""
+    total = np.zeros(3)
+    for light in prepare_lights(scene):
+        total = total + light.on_axis_irradiance(float(np.linalg.norm(light.center)))
+    return total

@@ -5,7 +5,8 @@ plane z = 0) to measure the light's direction: the camera sees the light's image
 bright spot.  A camera ray that meets the mirror at x continues along its reflection
 about +z; the pixel's radiance is ``reflectance * L_e`` of the area light that the
 reflected ray hits on its emitting side (unless an occluder is in the way), else 0.
-Point lights have no area and cannot be seen in a mirror.
+Point lights have no area and cannot be seen in a mirror.  The light's emission profile
+and face gradient shape the spot's brightness (not its outline).
 
 By the law of reflection the spot is exactly the camera's image of the *mirrored* light
 (the light reflected through z = 0), so the projection of the mirrored light centre
@@ -45,9 +46,20 @@ def light_hits(
     -------
     (M,) bool
     """
+    return _hits(light, occluders, camera, x)[0]
+
+
+def _hits(
+    light: PreparedLight,
+    occluders: list[PreparedOccluder],
+    camera: np.ndarray,
+    x: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(hit (M,), the reflected rays' points on the emitter (M, 3), their unnormalised
+    directions (M, 3))."""
     m = x.shape[0]
     if light.is_point or m == 0:
-        return np.zeros(m, bool)
+        return np.zeros(m, bool), np.zeros((m, 3)), np.zeros((m, 3))
     d = (x - camera) * np.array([1.0, 1.0, -1.0])  # reflected about the mirror's +z normal
     denom = d @ light.normal
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -65,7 +77,7 @@ def light_hits(
     if occluders and hit.any():
         idx = np.flatnonzero(hit)
         hit[idx] = ~segments_blocked(occluders, x[idx], p[idx])
-    return hit
+    return hit, p, d
 
 
 def mirror_radiance(
@@ -78,10 +90,23 @@ def mirror_radiance(
     """Radiance (M, 3) towards the camera of mirror points x (M, 3), W/(sr m^2).
 
     ``reflectance * L_e`` summed over the area lights the reflected rays hit (lights do
-    not overlap in a gonio scene; where they would, both count).
+    not overlap in a gonio scene; where they would, both count); ``L_e`` is the light's
+    radiance towards the mirror point: its ``cos^n`` profile at the reflected ray's angle
+    off the light's normal and its face gradient where the ray meets it.
     """
     out = np.zeros((x.shape[0], 3))
     for light, occ in zip(lights, light_occluders, strict=True):
-        hit = light_hits(light, occ, camera, x)
-        out[hit] += reflectance * light.rgb
+        hit, p, d = _hits(light, occ, camera, x)
+        if light.profile_n == 0.0 and light.gradient == 0.0:
+            out[hit] += reflectance * light.rgb
+            continue
+        factor = np.ones(int(hit.sum()))
+        dh = d[hit]
+        prof = light.profile(-(dh @ light.normal) / np.linalg.norm(dh, axis=-1))
+        if prof is not None:
+            factor = factor * prof
+        face = light.face(p[hit])
+        if face is not None:
+            factor = factor * face
+        out[hit] += reflectance * factor[:, None] * light.rgb
     return out

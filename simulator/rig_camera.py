@@ -11,7 +11,10 @@ its noise is drawn from :func:`shot_seed` -- a session is reproducible bit for b
 shot redone after a crash renders the same bytes.
 
 The camera knows nothing of the rig's kinematics: the composition root wires
-``pose_provider = lambda: Kinematics(cfg).poses(rig.read().joints)``.
+``pose_provider = lambda: Kinematics(cfg).poses(rig.read().joints)``, and the rig's time
+``clock`` (the virtual bus's servo clock): the as-built ``world``'s light drifts with it
+(``world.light_output(clock())`` at each lit shot), so the drift is a function of exactly
+the ``rig_time`` the engine journals.
 """
 
 from __future__ import annotations
@@ -93,6 +96,13 @@ class SimulatedRigCamera:
     serial
         The camera unit's serial number, reported by :meth:`describe` (calibrations
         name the camera they belong to by it); the as-built world gives one.
+    clock
+        Rig time, s (``Devices.clock``: the servo clock of a simulated rig), read when a
+        frame is shot; None: t = 0 (no drift).
+    world
+        The as-built :class:`~gonio.simulator.world.World` whose radiometry the camera
+        sees (light profile and drift, ambient and stray light, sensor defects; its
+        geometry is the caller's: pose provider and as-built scene camera); None: none.
     """
 
     def __init__(
@@ -106,6 +116,8 @@ class SimulatedRigCamera:
         reference_albedo: float | tuple[float, float, float] = 0.99,
         base_dir: str | Path | None = None,
         serial: str | None = None,
+        clock: Callable[[], float] | None = None,
+        world: Any = None,
     ) -> None:
         if pose_provider is None:
             raise CameraError("the simulated camera needs a pose provider (the rig's pose)")
@@ -126,9 +138,15 @@ class SimulatedRigCamera:
         self.scene = scene
         self.seed = int(seed)
         self.serial = None if serial is None else str(serial)
+        if clock is not None and not callable(clock):
+            raise CameraError(
+                f"clock must be a callable returning the rig time in s, got {clock!r}"
+            )
+        self.clock = clock
         self._cam = SimulatedCamera(
-            scene, pose_provider=pose_provider, reference_albedo=reference_albedo
+            scene, pose_provider=pose_provider, reference_albedo=reference_albedo, world=world
         )
+        self.world = world
         self._light_on = True
         self._target = "sample"
         self._closed = False
@@ -191,7 +209,19 @@ class SimulatedRigCamera:
             if not (math.isfinite(v) and v > 0):
                 raise CameraError(f"simulated camera does not support {name} = {v!r}")
         seed = self._shot_seed()
-        if self._light_on:
+        if self._cam.radiometry is not None:
+            data = self._cam.capture(
+                exposure_time,
+                iso_v,
+                f_v,
+                seed,
+                target=self._target,
+                rig_time=self.rig_time(),
+                light_on=self._light_on,
+            )
+        elif self._target == "flat":
+            data = self._cam.capture(exposure_time, iso_v, f_v, seed, target="flat")
+        elif self._light_on:
             data = self._cam.capture(exposure_time, iso_v, f_v, seed, target=self._target)
         else:
             data = self._dark(exposure_time, iso_v, f_v, seed)
@@ -203,6 +233,15 @@ class SimulatedRigCamera:
             f_number=f_v,
             extra={"target": self._target, "light": self._light_on},
         )
+
+    def rig_time(self) -> float:
+        """The rig time now, s (0 without a clock)."""
+        if self.clock is None:
+            return 0.0
+        t = float(self.clock())
+        if not math.isfinite(t):
+            raise CameraError(f"the rig clock returned {t!r}: expected a finite time in s")
+        return t
 
     def _dark(self, exposure_time: float, iso: float, f_number: float, seed: int) -> bytes:
         from gonio.simulator.dng import dng_bytes
@@ -229,9 +268,21 @@ class SimulatedRigCamera:
         self._light_on = bool(on)
 
     def set_target(self, kind: str) -> None:
-        """``"sample"``, ``"reference"`` (the Lambertian target in the sample's place) or
+        """``"sample"``, ``"reference"`` (the Lambertian target in the sample's place),
         ``"mirror"`` (a flat first-surface mirror there, reflectance 0.9: the light's
-        image in it is the rig calibration's spot)."""
+        image in it is the rig calibration's spot) or ``"flat"`` (a uniform diffuse light
+        panel over the lens: every pixel sees the world's ``flat_radiance``, with
+        vignetting and the sensor's fixed patterns and noise; the light, its drift and
+        the room's light do not reach it).
+
+        Raises
+        ------
+        CameraError
+            Any other kind (the accepted ones are named).
+        """
         if kind not in TARGETS:
-            raise CameraError(f"target must be one of {', '.join(TARGETS)}; got {kind!r}")
+            raise CameraError(
+                f"set_target({kind!r}): unknown target; target must be one of "
+                f"{', '.join(repr(t) for t in TARGETS)}"
+            )
         self._target = kind

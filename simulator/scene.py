@@ -40,6 +40,9 @@ TOML schema (every length in metres, angles in degrees where the name says ``_de
     radius = 0.01                # disk
     # width, height, up: rectangle; intensity (W/sr) for point lights
     radiance = [1.0e4, 1.0e4, 1.0e4]        # camera-space RGB, W/(sr m^2)
+    # profile_n = 0.0            # emission cos^n off the normal (0: Lambertian)
+    # gradient = 0.0             # face non-uniformity, relative, at the rim
+    # gradient_angle_deg = 0.0   # its direction in the light's (e1, e2) frame
     # radiance = { illuminant = "D65", scale = 100.0 }   # or a spectrum (see Spectrum)
 
     [[occluders]]
@@ -345,10 +348,19 @@ class PointLight(_Model):
 
 
 class _AreaLight(_Model):
+    """An area light.  ``radiance`` is its emitted radiance along its normal; off the
+    normal it falls as ``cos^profile_n(psi)`` (0: a Lambertian emitter), and over its face
+    it varies linearly, ``1 + gradient (rho / R) cos(phi - gradient_angle_deg)`` on a disk
+    (``1 + gradient ((2x/w) cos + (2y/h) sin)`` on a rectangle), phi in the light's own
+    tangent frame (:class:`gonio.simulator.lights.PreparedLight` ``e1``, ``e2``)."""
+
     position: Vec3
     normal: Vec3 | None = None
     look_at: Vec3 | None = None
     radiance: Colour
+    profile_n: Annotated[float, Field(ge=0, le=50, allow_inf_nan=False)] = 0.0
+    gradient: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = 0.0
+    gradient_angle_deg: Annotated[float, Field(allow_inf_nan=False)] = 0.0
 
     @model_validator(mode="after")
     def _orientation(self) -> _AreaLight:
@@ -366,15 +378,16 @@ class _AreaLight(_Model):
 
 
 class DiskLight(_AreaLight):
-    """A one-sided Lambertian disk emitter; ``radiance`` in W/(sr m^2) per channel."""
+    """A one-sided disk emitter (Lambertian unless ``profile_n``); ``radiance`` in
+    W/(sr m^2) per channel."""
 
     type: Literal["disk"] = "disk"
     radius: Positive
 
 
 class RectangleLight(_AreaLight):
-    """A one-sided Lambertian rectangle; ``width`` along ``up x normal``, ``height``
-    along ``up`` (projected perpendicular to the normal)."""
+    """A one-sided rectangle emitter (Lambertian unless ``profile_n``); ``width`` along
+    ``up x normal``, ``height`` along ``up`` (projected perpendicular to the normal)."""
 
     type: Literal["rectangle"] = "rectangle"
     width: Positive

@@ -6,9 +6,11 @@ Per pixel, for the channel its colour filter passes (camera RGB):
    ``cos^4`` is natural vignetting at field angle theta);
 2. mean photo-electrons ``mu = QE_c E A t lambda_c / (h c) + dark_current t`` with pixel
    area A, exposure time t and the channel's effective wavelength lambda_c;
-3. shot noise (Poisson in mu, which covers dark-current shot noise), Gaussian read noise,
+3. with a camera's fixed patterns (:mod:`gonio.simulator.sensor_defects`): PRNU gain,
+   DSNU offset and hot pixels' dark charge applied to mu;
+4. shot noise (Poisson in mu, which covers dark-current shot noise), Gaussian read noise,
    clipping at the full well;
-4. gain ``g = gain_at_base_iso * ISO / base_iso`` DN per electron, black-level offset,
+5. gain ``g = gain_at_base_iso * ISO / base_iso`` DN per electron, black-level offset,
    rounding to integers, clipping to [0, 2^bits - 1].
 
 Only the channel the colour filter passes is simulated at each site (selecting the
@@ -25,11 +27,14 @@ import numpy as np
 from gonio.errors import ParameterError
 from gonio.simulator.geometry import pixel_grid
 from gonio.simulator.scene import MAX_EXPOSURE_S, Camera
+from gonio.simulator.sensor_defects import FixedPattern
 
 __all__ = [
     "RawFrame",
     "cfa_indices",
     "colour_metadata",
+    "default_flat_radiance",
+    "electrons_per_radiance",
     "mean_electrons",
     "simulate_raw",
 ]
@@ -136,6 +141,23 @@ def mean_electrons(
     return energy * photons_per_joule * qe
 
 
+def electrons_per_radiance(camera: Camera, exposure_time: float, f_number: float) -> np.ndarray:
+    """Mean photo-electrons (3,) per unit radiance (W/(sr m^2)) at the image centre
+    (no vignetting there), per channel."""
+    s = camera.sensor
+    qe = np.broadcast_to(np.asarray(s.quantum_efficiency, float), (3,))
+    lam = np.asarray(s.wavelength_nm, float) * 1e-9
+    return np.pi / (4.0 * f_number**2) * camera.pitch**2 * exposure_time * lam / (_H * _C) * qe
+
+
+def default_flat_radiance(camera: Camera) -> np.ndarray:
+    """The flat panel's default radiance (3,), W/(sr m^2), the same in every channel:
+    half the full well at the image centre in the channel with most signal, at 10 ms,
+    f/8 (ISO does not change the electrons)."""
+    k = electrons_per_radiance(camera, 0.01, 8.0)
+    return np.full(3, 0.5 * camera.sensor.full_well / float(k.max()))
+
+
 def colour_metadata(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """(ColorMatrix1, AsShotNeutral) for camera RGB taken as linear sRGB primaries.
 
@@ -163,6 +185,7 @@ def simulate_raw(
     iso: float | None = None,
     f_number: float | None = None,
     seed: int | np.random.Generator = 0,
+    fixed_pattern: FixedPattern | None = None,
 ) -> RawFrame:
     """Turn a radiance image into a noisy Bayer RAW frame.
 
@@ -178,6 +201,10 @@ def simulate_raw(
         :data:`~gonio.simulator.scene.MAX_EXPOSURE_S`.
     seed
         Seed or generator for every random draw: equal seeds give equal frames.
+    fixed_pattern
+        The camera's PRNU, DSNU and hot-pixel maps for this frame size
+        (:func:`gonio.simulator.sensor_defects.fixed_pattern`), applied to the mean
+        electrons before the noise draw; None: a sensor without them.
 
     Returns
     -------
@@ -203,7 +230,16 @@ def simulate_raw(
     with np.errstate(over="ignore"):  # an overflow is a saturated pixel (below)
         mu3 = mean_electrons(np.nan_to_num(np.maximum(radiance, 0.0)), camera, t, n)
     idx = cfa_indices(s.cfa_pattern, mu3.shape[:2])
-    mu = np.take_along_axis(mu3, idx[..., None], axis=2)[..., 0] + s.dark_current * t
+    mu = np.take_along_axis(mu3, idx[..., None], axis=2)[..., 0]
+    if fixed_pattern is None:
+        mu = mu + s.dark_current * t
+    else:
+        if fixed_pattern.shape != mu.shape:
+            raise ParameterError(
+                f"fixed pattern of a {fixed_pattern.shape} frame given for a {mu.shape} frame"
+            )
+        with np.errstate(invalid="ignore"):  # inf * gain: saturated below
+            mu = fixed_pattern.apply(mu, t, s.dark_current * t)
     # A mean beyond numpy's range (a huge radiance or exposure) is a saturated pixel.
     over = ~(mu <= _POISSON_MAX)
     if over.any():

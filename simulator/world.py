@@ -47,6 +47,9 @@ Presets
     ``landing_pulses``          1                   servos stop within +-1 pulse of the goal
     ==========================  ==================  =============================================
 
+The light, the room and the sensor's fixed patterns (``[world.radiometry]``) are drawn
+from a stream of their own: see :mod:`gonio.simulator.world_radiometry`.
+
 Values given explicitly in a ``[world]`` table override the drawn ones.  ``[world.rig]``
 values are ERRORS from the nominal rig (for the elevations and radii: deg / m added to the
 nominal value; the other parameters have nominal value 0); :meth:`World.truth_parameters`
@@ -68,12 +71,14 @@ import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from gonio.errors import ConfigError
+from gonio.simulator.world_radiometry import Radiometry, draw_radiometry
 
 __all__ = [
     "JOINTS",
     "PARAMETER_UNITS",
     "RIG_PARAMETERS",
     "CameraErrors",
+    "Radiometry",
     "ServoErrors",
     "World",
     "draw_world",
@@ -208,6 +213,9 @@ class World(_Strict):
         name of :data:`RIG_PARAMETERS` is present.
     camera, servos
         Camera and servo errors.
+    radiometry
+        The light's emission and drift, ambient and stray light, the sensor's fixed
+        patterns (:class:`~gonio.simulator.world_radiometry.Radiometry`).
     """
 
     preset: Literal["perfect", "realistic"] = "perfect"
@@ -215,6 +223,7 @@ class World(_Strict):
     rig: dict[str, float] = Field(default_factory=lambda: dict.fromkeys(RIG_PARAMETERS, 0.0))
     camera: CameraErrors = CameraErrors()
     servos: ServoErrors = ServoErrors()
+    radiometry: Radiometry = Radiometry()
 
     @field_validator("rig")
     @classmethod
@@ -233,12 +242,19 @@ class World(_Strict):
 
     @property
     def perfect(self) -> bool:
-        """As built = nominal: no rig, camera or landing error (today's behaviour)."""
+        """As built = nominal: no rig, camera, landing or radiometric error (today's
+        behaviour)."""
         return (
             all(x == 0.0 for x in self.rig.values())
             and self.camera.perfect
             and self.servos.landing_pulses == 0
+            and self.radiometry.off
         )
+
+    def light_output(self, t: float) -> np.ndarray:
+        """The light's output factor (3,) (R, G, B) at rig time ``t`` (s): ``1 + A_c
+        exp(-t / tau) + r t / 3600`` (the truth the reduction's drift tracking meets)."""
+        return self.radiometry.light_output(t)
 
     def approach0(self, joint: str) -> int:
         """Sign of ``joint``'s last move before the session (0: unknown)."""
@@ -362,6 +378,7 @@ def draw_world(
     rig = dict.fromkeys(RIG_PARAMETERS, 0.0)
     camera: dict[str, Any] = {}
     servos: dict[str, Any] = {}
+    radiometry: dict[str, Any] = {}
     if preset == "realistic":
         rng = np.random.default_rng([int(seed), 0x57071D])
         for name in RIG_PARAMETERS:
@@ -380,11 +397,14 @@ def draw_world(
             "landing_pulses": 1,
             "initial_approach": {j: int(rng.choice([-1, 1])) for j in JOINTS},
         }
+        # its own stream: the draws above are those of a world without radiometry
+        radiometry = draw_radiometry(seed)
     over = dict(overrides or {})
-    unknown = sorted(set(over) - {"rig", "camera", "servos", "preset", "seed"})
+    unknown = sorted(set(over) - {"rig", "camera", "servos", "radiometry", "preset", "seed"})
     if unknown:
         raise ConfigError(
-            f"[world]: unknown key(s) {unknown}; expected preset, seed, rig, camera, servos"
+            f"[world]: unknown key(s) {unknown}; expected preset, seed, rig, camera, servos, "
+            "radiometry"
         )
     try:
         rig.update({k: _number(f"rig.{k}", v) for k, v in dict(over.get("rig", {})).items()})
@@ -393,14 +413,24 @@ def draw_world(
             cam_over["fy_scale"] = cam_over["fx_scale"]  # square pixels unless told
         camera.update(cam_over)
         servos.update(over.get("servos", {}))
+        radiometry.update(over.get("radiometry", {}))
         return World.model_validate(
-            {"preset": preset, "seed": seed, "rig": rig, "camera": camera, "servos": servos},
+            {
+                "preset": preset,
+                "seed": seed,
+                "rig": rig,
+                "camera": camera,
+                "servos": servos,
+                "radiometry": radiometry,
+            },
             strict=False,
         )
     except ValidationError as exc:
         raise ConfigError(f"[world]: {_messages(exc)}") from None
     except (TypeError, ValueError) as exc:  # e.g. rig = "x": not a table
-        raise ConfigError(f"[world]: {exc} (rig, camera and servos are tables)") from None
+        raise ConfigError(
+            f"[world]: {exc} (rig, camera, servos and radiometry are tables)"
+        ) from None
 
 
 def _number(name: str, v: Any) -> float:
@@ -470,5 +500,11 @@ def world_document(world: World) -> dict[str, Any]:
     doc = world.model_dump(mode="json")
     doc["camera"]["principal_offset"] = list(doc["camera"]["principal_offset"])
     doc["camera"]["dist"] = list(doc["camera"]["dist"])
+    rad = doc["radiometry"]
+    rad["drift_amplitude"] = list(rad["drift_amplitude"])
+    if rad["flat_radiance"] is None:  # TOML has no null: absent = the sensor's default
+        del rad["flat_radiance"]
+    else:
+        rad["flat_radiance"] = list(rad["flat_radiance"])
     tomli_w.dumps(doc)  # fails here, not in a manifest writer, if a value is not TOML
     return doc

@@ -9,7 +9,10 @@ configuration) and the simulator's world.  Here the world decides:
   controller's read-back;
 * the camera the renderer uses: the scene's camera as built (focal scale, principal point,
   distortion), while the session's ``reduction.toml`` keeps the NOMINAL camera -- what a
-  lab knows before it calibrates.
+  lab knows before it calibrates;
+* the radiometry the camera sees (light profile, drift over rig time, ambient and stray
+  light, the sensor's fixed patterns): the world is handed to the camera
+  (:func:`simulated_camera_kwargs`), which reads the rig time from ``clock``.
 
 A ``perfect`` world changes nothing: the session is today's, bit for bit.
 """
@@ -148,10 +151,16 @@ def as_built_scene(world: Any, scene: Any) -> Any:
 
 def simulated_camera_kwargs(world: Any) -> dict[str, Any]:
     """Extra constructor arguments of the simulated camera: its ``serial`` from the world
-    (when the camera accepts one and the world's camera is not the nominal one)."""
+    (when the camera accepts one and the world's camera is not the nominal one), and the
+    ``world`` itself when its radiometry is not off (the light's profile and drift, the
+    room's light, the sensor's fixed patterns: the camera renders them)."""
     from gonio.simulator.rig_camera import SimulatedRigCamera
 
+    accepts = inspect.signature(SimulatedRigCamera).parameters
+    out: dict[str, Any] = {}
     serial = world.camera_serial()
-    if serial is None or "serial" not in inspect.signature(SimulatedRigCamera).parameters:
-        return {}
-    return {"serial": serial}
+    if serial is not None and "serial" in accepts:
+        out["serial"] = serial
+    if not world.radiometry.off and "world" in accepts:
+        out["world"] = world
+    return out
