@@ -4,8 +4,9 @@ It implements the core's device interfaces (:mod:`gonio.devices`): :class:`Camer
 (each capture asks ``pose_provider()`` where the light and camera are now, renders the
 scene there with :class:`gonio.simulator.camera.SimulatedCamera` and returns its DNG),
 and the abilities a real rig gets from extra hardware, :class:`Light` (dark frames are
-exposures with the light off) and :class:`TargetChanger` (the reference target in the
-sample's place), plus :class:`SeededShots`: the session seed is given at construction and
+exposures with the light off; the room's light still reaches them) and
+:class:`TargetChanger` (the reference target or the mirror in the sample's place, or a
+flat light panel over the lens), plus :class:`SeededShots`: the session seed is given at construction and
 the engine names each shot's (step, frame) with :meth:`next_shot` before capturing it, so
 its noise is drawn from :func:`shot_seed` -- a session is reproducible bit for bit, and a
 shot redone after a crash renders the same bytes.

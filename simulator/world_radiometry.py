@@ -107,10 +107,9 @@ class Radiometry(BaseModel):
 
     @property
     def off(self) -> bool:
-        """No radiometric effect at all (a perfect world's light, room and sensor)."""
-        return self.model_dump(exclude={"drift_tau_s", "flat_radiance"}) == Radiometry().model_dump(
-            exclude={"drift_tau_s", "flat_radiance"}
-        )
+        """No radiometric effect at all (a perfect world's light, room and sensor; a
+        ``flat_radiance`` of its own counts as an effect).  ``drift_tau_s`` alone is none."""
+        return self.model_dump(exclude={"drift_tau_s"}) == _OFF
 
     @property
     def drifts(self) -> bool:
@@ -130,6 +129,9 @@ class Radiometry(BaseModel):
         a = np.asarray(self.drift_amplitude, dtype=np.float64)
         t = float(t)
         return 1.0 + a * math.exp(-t / self.drift_tau_s) + self.drift_rate_per_h * t / 3600.0
+
+
+_OFF = Radiometry().model_dump(exclude={"drift_tau_s"})
 
 
 def draw_radiometry(seed: int) -> dict[str, Any]:

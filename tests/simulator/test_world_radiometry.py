@@ -167,3 +167,11 @@ def test_the_wiring_hands_a_radiometric_world_to_the_camera():
     cam = SimulatedRigCamera(None, _poses, seed=1, width=32, height=24, **kw)
     assert cam._cam.radiometry == real.radiometry
     assert cam._cam.scene.lights[0].profile_n == real.radiometry.light_profile_n
+
+
+def test_a_flat_radiance_of_its_own_reaches_the_camera():
+    w = draw_world("perfect", 0, {"radiometry": {"flat_radiance": [2.0, 3.0, 4.0]}})
+    assert not w.radiometry.off and not w.perfect
+    cam = SimulatedRigCamera(None, _poses, width=8, height=6, **simulated_camera_kwargs(w))
+    assert np.array_equal(cam._cam.flat_radiance(), [2.0, 3.0, 4.0])
+    assert draw_world("perfect", 0, {"radiometry": {"drift_tau_s": 100.0}}).radiometry.off
