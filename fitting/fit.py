@@ -25,12 +25,18 @@ channel:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from gonio.errors import FitError, UnknownNameError
+from gonio.fitting.geometric_uncertainty import (
+    GeometricModes,
+    geometric_modes_of,
+    sandwich_covariance,
+)
 from gonio.fitting.losses import LOSSES, get_loss
 from gonio.fitting.objective import Problem, prepare_problem
 from gonio.fitting.optimize import (
@@ -278,6 +284,8 @@ def fit_model(
                 f"unknown robust penalty {robust!r}; expected one of {', '.join(ROBUST)}"
             )
     prob = prepare_problem(m, samples, loss_obj, robust, f_scale)
+    # read (and checked) before the search: a malformed mode table fails fast
+    modes = geometric_modes_of(samples)
     if absolute_sigma is None:
         absolute_sigma = loss_name == "weighted_l2"
     path: list[str] = []
@@ -342,7 +350,9 @@ def fit_model(
             x_best, status, message = _energy_stage(prob, x_best, maxeval, path)
             max_alb = _max_albedo(prob, x_best)
 
-    return _finish(prob, x_best, status, message, path, absolute_sigma, max_alb, model_name, opts)
+    return _finish(
+        prob, x_best, status, message, path, absolute_sigma, max_alb, model_name, opts, modes
+    )
 
 
 def _varpro_stage(
@@ -546,6 +556,28 @@ def _energy_stage(prob: Problem, x: np.ndarray, maxeval: int, path: list[str]):
     return r.x, r.status, r.message + " (albedo <= 1 enforced)"
 
 
+def _add_geometry(prob: Problem, x: np.ndarray, unc: Any, modes: GeometricModes, absolute_sigma):
+    """The covariance with the correlated geometric errors (sandwich), and the variance
+    split per parameter for the diagnostics."""
+    noise, geometry, info = sandwich_covariance(
+        prob, x, unc.h_inverse, unc.covariance, modes, absolute_sigma
+    )
+    cov = noise + geometry
+    # an undetermined parameter (std inf) stays undetermined; one at a bound stays at 0
+    std = np.where(np.isfinite(unc.std), np.sqrt(np.clip(np.diag(cov), 0.0, None)), unc.std)
+    std = np.where(unc.free, std, 0.0)
+    split = {
+        "variance_split": {
+            "labels": list(prob.labels),
+            "noise": np.diag(noise).tolist(),
+            "geometry": np.diag(geometry).tolist(),
+            "calibration": [0.0] * prob.n_params,
+        },
+        "geometry_modes": info,
+    }
+    return dataclasses.replace(unc, covariance=cov, std=std), split
+
+
 def _finish(
     prob: Problem,
     x: np.ndarray,
@@ -556,6 +588,7 @@ def _finish(
     max_alb,
     model_name: str,
     opts: dict[str, Any],
+    modes: GeometricModes | None = None,
 ) -> FitResult:
     if not np.all(np.isfinite(x)):
         raise FitError(
@@ -571,6 +604,9 @@ def _finish(
             f"x={x.tolist()}"
         )
     C = prob.n_channels
+    split = None
+    if modes is not None:
+        unc, split = _add_geometry(prob, x, unc, modes.subset(prob.used), absolute_sigma)
     params: dict[str, np.ndarray] = {}
     std: dict[str, np.ndarray] = {}
     S = prob.n_shape
@@ -606,6 +642,8 @@ def _finish(
         "n_residuals": m,
         "rms_residual": float(np.sqrt(2.0 * cost / m)),
     }
+    if split is not None:
+        diag.update(split)
     return FitResult(
         model=model_name,
         model_options=dict(opts),
