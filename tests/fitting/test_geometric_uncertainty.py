@@ -284,3 +284,30 @@ def test_malformed_modes_are_named(change, words):
     bad = dataclasses.replace(s, **change)
     with pytest.raises(FitError, match=words.replace("[", r"\[").replace("]", r"\]")):
         fit(bad, Tilted())
+
+
+def test_lambert_albedo_has_no_geometric_share_and_the_uncorrelated_noise_variance():
+    """f = albedo / pi does not depend on the directions: the modes add nothing, and the
+    noise part comes from brdf_std^2 - budget["geometry"]^2 (closed form of the weighted
+    mean: Var(a) = pi^2 sum(w^2 s_u^2) / (sum w)^2, w = 1 / brdf_std^2)."""
+    wi, wo, pose, modes = tilted_layout()
+    rng = np.random.default_rng(6)
+    n = len(wi)
+    s_u = 1e-3 * (1 + rng.random((n, 3)))
+    geo = 2e-3 * rng.random((n, 3))  # what a reduction put in brdf_std for the modes
+    std = np.hypot(s_u, geo)
+    y = ALBEDO / np.pi + s_u * rng.standard_normal((n, 3))
+    s = WithModes(
+        wi=wi, wo=wo, brdf=y, brdf_std=std, geometry_modes=modes,
+        geometry_mode_scope=np.array(["session", "pose"]), pose=pose,
+        budget={"noise": s_u, "geometry": geo},
+    )  # fmt: skip
+    r = fit(s, "lambert")
+    w = 1.0 / std**2
+    expected = np.pi * np.sqrt(np.sum(w * w * s_u**2, axis=0)) / np.sum(w, axis=0)
+    np.testing.assert_allclose(r.std["albedo"], expected, rtol=1e-9)
+    assert r.diagnostics["variance_split"]["geometry"] == [0.0, 0.0, 0.0]
+    # without the budget's geometric term, brdf_std is taken as uncorrelated: the old std
+    plain = fit(BRDFSamples(wi=wi, wo=wo, brdf=y, brdf_std=std), "lambert")
+    assert np.all(r.std["albedo"] < plain.std["albedo"])
+    np.testing.assert_allclose(plain.std["albedo"], np.pi / np.sqrt(np.sum(w, axis=0)), rtol=1e-9)
