@@ -78,6 +78,7 @@ def main() -> None:
         judge,
         run_world,
     )
+    from gonio.simulator.world import draw_world, world_document
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default="1602,1603,1604", help="realistic-world seeds")
@@ -155,6 +156,10 @@ def main() -> None:
         "seeds": seeds,
         "grid": args.grid,
         "capabilities": capabilities(),
+        # drift, stray, flats... of each world (None: the world model has no radiometry)
+        "world_radiometry": {
+            str(s): world_document(draw_world("realistic", s)).get("radiometry") for s in seeds
+        },
         "materials": per_material,
         "calibration_z_abs_max": {
             str(r.seed): round(r.calibration.to_json()["z_abs_max"], 2) for r in runs
