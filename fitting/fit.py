@@ -188,8 +188,11 @@ def fit(
                 "'lambert+ggx[fresnel=schlick]')"
             )
 
+        # The candidates are fitted without the geometric modes (their covariance is not
+        # what ranks them); the chosen one gets them afterwards, at its optimum.
+        modes = geometric_modes_of(samples)
         result = select_model(
-            samples,
+            samples if modes is None else _WithoutModes(samples),
             candidates=candidates,
             criterion=criterion,
             loss=loss,
@@ -202,6 +205,8 @@ def fit(
             seed=seed,
             progress=progress,
         )
+        if modes is not None:
+            _geometry_after_selection(result, samples, modes, f_scale)
     else:
         result = fit_model(
             samples,
@@ -224,6 +229,50 @@ def fit(
     if rel is not None:
         add_calibration_uncertainty(result, rel)
     return result
+
+
+class _WithoutModes:
+    """The samples as model selection sees them: every attribute but the geometric modes."""
+
+    def __init__(self, samples: Any) -> None:
+        self._samples = samples
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "geometry_modes":
+            return None
+        return getattr(self._samples, name)
+
+
+def _geometry_after_selection(
+    result: FitResult, samples: Any, modes: GeometricModes, f_scale: float
+) -> None:
+    """Give the selected fit the covariance with the geometric modes (in place)."""
+    from gonio.brdf import get_model
+
+    m = get_model(result.model, **result.model_options)
+    prob = prepare_problem(m, samples, get_loss(result.loss), result.robust, f_scale)
+    theta = np.array([result.params[n][0] for n in prob.shape_names])
+    a = np.array([result.params[n] for n in prob.linear_names]).reshape(
+        prob.n_linear, prob.n_channels
+    )
+    x = prob.pack(theta, a)
+    absolute_sigma = bool(result.diagnostics["absolute_sigma"])
+    unc = covariance_at(prob, x, absolute_sigma)
+    unc, split = _add_geometry(prob, x, unc, modes.subset(prob.used), absolute_sigma)
+    result.covariance = unc.covariance
+    result.std = _std_by_name(prob, unc.std)
+    result.diagnostics.update(split)
+
+
+def _std_by_name(prob: Problem, std_x: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-parameter std (C,) in the model's parameter order from the std of ``x``."""
+    C, S = prob.n_channels, prob.n_shape
+    std: dict[str, np.ndarray] = {}
+    for s, n in enumerate(prob.shape_names):
+        std[n] = np.full(C, float(std_x[s]))
+    for j, n in enumerate(prob.linear_names):
+        std[n] = std_x[S + j * C : S + (j + 1) * C].copy()
+    return {n: std[n] for n in prob.model.param_names}
 
 
 def _check_algorithm(name: str) -> None:

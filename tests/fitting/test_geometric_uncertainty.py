@@ -311,3 +311,25 @@ def test_lambert_albedo_has_no_geometric_share_and_the_uncorrelated_noise_varian
     plain = fit(BRDFSamples(wi=wi, wo=wo, brdf=y, brdf_std=std), "lambert")
     assert np.all(r.std["albedo"] < plain.std["albedo"])
     np.testing.assert_allclose(plain.std["albedo"], np.pi / np.sqrt(np.sum(w, axis=0)), rtol=1e-9)
+
+
+def test_model_selection_gives_the_chosen_model_the_same_sandwich(make_samples):
+    """model='auto' ranks the candidates without the modes, then the chosen fit gets the
+    covariance a direct fit of that model with the modes reports."""
+    base = make_samples("lambert+ggx", {"albedo": [0.3, 0.4, 0.5], "ks": [0.2] * 3,
+                        "alpha": [0.15] * 3}, n=240, seed=9, noise=1e-5, read=1e-3)  # fmt: skip
+    n = len(base)
+    modes = np.zeros((n, 2, 6))
+    modes[:, 0, 3:] = tangent_y(base.wo, np.radians(0.3))
+    modes[:, 1, :3] = tangent_y(base.wi, np.radians(0.3))
+    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(BRDFSamples)}
+    s = WithModes(**fields, geometry_modes=modes, geometry_mode_scope=np.array(["session",
+                  "pose"]), pose=(np.arange(n) % 8).astype(np.int32))  # fmt: skip
+    auto = fit(s, "auto")
+    assert auto.model == "lambert+ggx" and auto.diagnostics["selection"]
+    direct = fit(s, "lambert+ggx")
+    np.testing.assert_allclose(auto.covariance, direct.covariance, rtol=1e-6, atol=1e-15)
+    for k in direct.params:
+        np.testing.assert_allclose(auto.std[k], direct.std[k], rtol=1e-6)
+    assert auto.diagnostics["variance_split"]["labels"] == list(direct.param_labels)
+    assert np.all(np.asarray(auto.diagnostics["variance_split"]["geometry"]) > 0)
