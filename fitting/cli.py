@@ -274,6 +274,22 @@ def _fit_and_write(
     return r, written
 
 
+def variance_split_rows(r) -> list[tuple[str, float, tuple[float, float, float]]]:
+    """``(label, std, (noise, geometry, calibration) shares)`` per free parameter of a fit
+    whose samples carried geometric modes (``diagnostics["variance_split"]``), else []."""
+    split = r.diagnostics.get("variance_split")
+    if not split:
+        return []
+    rows = []
+    for i, label in enumerate(split["labels"]):
+        parts = tuple(float(split[k][i]) for k in ("noise", "geometry", "calibration"))
+        total = sum(parts)
+        if not (math.isfinite(total) and total > 0):
+            continue  # at a bound (0) or undetermined (inf): no split to show
+        rows.append((label, math.sqrt(total), tuple(x / total for x in parts)))
+    return rows
+
+
 def _report(console, r, source: Path, kind: str, written: list[Path]) -> None:
     from rich.table import Table
 
@@ -288,6 +304,17 @@ def _report(console, r, source: Path, kind: str, written: list[Path]) -> None:
         s = r.std[name]
         table.add_row(name, *[f"{x:.5g} ± {e:.2g}" for x, e in zip(v, s, strict=True)])
     console.print(table)
+    split = variance_split_rows(r)
+    if split:
+        vt = Table(
+            title="share of each parameter's variance (correlated errors: geometry modes, "
+            "calibration scale)"
+        )
+        for col in ("parameter", "std", "noise", "geometry", "calibration"):
+            vt.add_column(col, justify="left" if col == "parameter" else "right")
+        for label, std, shares in split:
+            vt.add_row(label, f"{std:.2g}", *[f"{x:.0%}" for x in shares])
+        console.print(vt)
     sel = r.diagnostics.get("selection")
     if sel:
         st = Table(title=f"model selection ({r.diagnostics.get('criterion', 'bic')})")

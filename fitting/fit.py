@@ -25,12 +25,18 @@ channel:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from gonio.errors import FitError, UnknownNameError
+from gonio.fitting.geometric_uncertainty import (
+    GeometricModes,
+    geometric_modes_of,
+    sandwich_covariance,
+)
 from gonio.fitting.losses import LOSSES, get_loss
 from gonio.fitting.objective import Problem, prepare_problem
 from gonio.fitting.optimize import (
@@ -182,8 +188,11 @@ def fit(
                 "'lambert+ggx[fresnel=schlick]')"
             )
 
+        # The candidates are fitted without the geometric modes (their covariance is not
+        # what ranks them); the chosen one gets them afterwards, at its optimum.
+        modes = geometric_modes_of(samples)
         result = select_model(
-            samples,
+            samples if modes is None else _WithoutModes(samples),
             candidates=candidates,
             criterion=criterion,
             loss=loss,
@@ -196,6 +205,8 @@ def fit(
             seed=seed,
             progress=progress,
         )
+        if modes is not None:
+            _geometry_after_selection(result, samples, modes, f_scale)
     else:
         result = fit_model(
             samples,
@@ -218,6 +229,50 @@ def fit(
     if rel is not None:
         add_calibration_uncertainty(result, rel)
     return result
+
+
+class _WithoutModes:
+    """The samples as model selection sees them: every attribute but the geometric modes."""
+
+    def __init__(self, samples: Any) -> None:
+        self._samples = samples
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "geometry_modes":
+            return None
+        return getattr(self._samples, name)
+
+
+def _geometry_after_selection(
+    result: FitResult, samples: Any, modes: GeometricModes, f_scale: float
+) -> None:
+    """Give the selected fit the covariance with the geometric modes (in place)."""
+    from gonio.brdf import get_model
+
+    m = get_model(result.model, **result.model_options)
+    prob = prepare_problem(m, samples, get_loss(result.loss), result.robust, f_scale)
+    theta = np.array([result.params[n][0] for n in prob.shape_names])
+    a = np.array([result.params[n] for n in prob.linear_names]).reshape(
+        prob.n_linear, prob.n_channels
+    )
+    x = prob.pack(theta, a)
+    absolute_sigma = bool(result.diagnostics["absolute_sigma"])
+    unc = covariance_at(prob, x, absolute_sigma)
+    unc, split = _add_geometry(prob, x, unc, modes.subset(prob.used), absolute_sigma)
+    result.covariance = unc.covariance
+    result.std = _std_by_name(prob, unc.std)
+    result.diagnostics.update(split)
+
+
+def _std_by_name(prob: Problem, std_x: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-parameter std (C,) in the model's parameter order from the std of ``x``."""
+    C, S = prob.n_channels, prob.n_shape
+    std: dict[str, np.ndarray] = {}
+    for s, n in enumerate(prob.shape_names):
+        std[n] = np.full(C, float(std_x[s]))
+    for j, n in enumerate(prob.linear_names):
+        std[n] = std_x[S + j * C : S + (j + 1) * C].copy()
+    return {n: std[n] for n in prob.model.param_names}
 
 
 def _check_algorithm(name: str) -> None:
@@ -278,6 +333,8 @@ def fit_model(
                 f"unknown robust penalty {robust!r}; expected one of {', '.join(ROBUST)}"
             )
     prob = prepare_problem(m, samples, loss_obj, robust, f_scale)
+    # read (and checked) before the search: a malformed mode table fails fast
+    modes = geometric_modes_of(samples)
     if absolute_sigma is None:
         absolute_sigma = loss_name == "weighted_l2"
     path: list[str] = []
@@ -342,7 +399,9 @@ def fit_model(
             x_best, status, message = _energy_stage(prob, x_best, maxeval, path)
             max_alb = _max_albedo(prob, x_best)
 
-    return _finish(prob, x_best, status, message, path, absolute_sigma, max_alb, model_name, opts)
+    return _finish(
+        prob, x_best, status, message, path, absolute_sigma, max_alb, model_name, opts, modes
+    )
 
 
 def _varpro_stage(
@@ -546,6 +605,28 @@ def _energy_stage(prob: Problem, x: np.ndarray, maxeval: int, path: list[str]):
     return r.x, r.status, r.message + " (albedo <= 1 enforced)"
 
 
+def _add_geometry(prob: Problem, x: np.ndarray, unc: Any, modes: GeometricModes, absolute_sigma):
+    """The covariance with the correlated geometric errors (sandwich), and the variance
+    split per parameter for the diagnostics."""
+    noise, geometry, info = sandwich_covariance(
+        prob, x, unc.h_inverse, unc.covariance, modes, absolute_sigma
+    )
+    cov = noise + geometry
+    # an undetermined parameter (std inf) stays undetermined; one at a bound stays at 0
+    std = np.where(np.isfinite(unc.std), np.sqrt(np.clip(np.diag(cov), 0.0, None)), unc.std)
+    std = np.where(unc.free, std, 0.0)
+    split = {
+        "variance_split": {
+            "labels": list(prob.labels),
+            "noise": np.diag(noise).tolist(),
+            "geometry": np.diag(geometry).tolist(),
+            "calibration": [0.0] * prob.n_params,
+        },
+        "geometry_modes": info,
+    }
+    return dataclasses.replace(unc, covariance=cov, std=std), split
+
+
 def _finish(
     prob: Problem,
     x: np.ndarray,
@@ -556,6 +637,7 @@ def _finish(
     max_alb,
     model_name: str,
     opts: dict[str, Any],
+    modes: GeometricModes | None = None,
 ) -> FitResult:
     if not np.all(np.isfinite(x)):
         raise FitError(
@@ -571,6 +653,9 @@ def _finish(
             f"x={x.tolist()}"
         )
     C = prob.n_channels
+    split = None
+    if modes is not None:
+        unc, split = _add_geometry(prob, x, unc, modes.subset(prob.used), absolute_sigma)
     params: dict[str, np.ndarray] = {}
     std: dict[str, np.ndarray] = {}
     S = prob.n_shape
@@ -606,6 +691,8 @@ def _finish(
         "n_residuals": m,
         "rms_residual": float(np.sqrt(2.0 * cost / m)),
     }
+    if split is not None:
+        diag.update(split)
     return FitResult(
         model=model_name,
         model_options=dict(opts),

@@ -72,6 +72,12 @@ class FitResult:
         bound), ``max_albedo`` (per channel, over theta_i), ``aic``, ``bic``,
         ``dropped`` (counts of samples left out and why), ``sigma_scale`` (residual
         standard deviation used to scale the covariance, 1 for known sigmas) and more.
+        When the samples carry geometric modes (correlated direction errors, see
+        :mod:`gonio.fitting.geometric_uncertainty`): ``variance_split`` (``labels`` as
+        ``param_labels``; ``noise``, ``geometry``, ``calibration``: each parameter's
+        variance by source, natural units, adding up to ``std**2``) and
+        ``geometry_modes`` (mode names, session/pose counts, covariance columns).  With a
+        shared calibration scale: ``calibration_rel_std`` (C,).
     """
 
     model: str

@@ -44,6 +44,9 @@ class Uncertainty:
     free: np.ndarray
     residuals: np.ndarray  # (N, C) at x
     cost: float  # 0.5 * sum(rho(r^2)) at x
+    #: pseudo-inverse of the (unscaled) Gauss-Newton matrix J^T J, zero outside ``free``;
+    #: the "bread" of a sandwich covariance
+    h_inverse: np.ndarray | None = None
 
 
 def _at_bounds(prob: Problem, x: np.ndarray) -> np.ndarray:
@@ -99,6 +102,7 @@ def covariance_at(prob: Problem, x: np.ndarray, absolute_sigma: bool) -> Uncerta
     else:
         s2 = 2.0 * cost / max(m - pf, 1)
     cov = np.zeros((P, P))
+    hinv = np.zeros((P, P))
     std = np.zeros(P)
     cond = 1.0
     if pf:
@@ -119,6 +123,7 @@ def covariance_at(prob: Problem, x: np.ndarray, absolute_sigma: bool) -> Uncerta
         null = np.any(np.abs(V[:, sing]) > 1e-3, axis=1) if sing.any() else np.zeros(pf, bool)
         stdf = np.where(null | ~dz, np.inf, stdf)
         cov[np.ix_(free, free)] = covf
+        hinv[np.ix_(free, free)] = covs / np.outer(dd, dd)
         std[free] = stdf
     labels = prob.labels
     return Uncertainty(
@@ -130,6 +135,7 @@ def covariance_at(prob: Problem, x: np.ndarray, absolute_sigma: bool) -> Uncerta
         free=free,
         residuals=r,
         cost=cost,
+        h_inverse=hinv,
     )
 
 
@@ -163,6 +169,11 @@ def add_calibration_uncertainty(result: Any, rel_std: Any) -> Any:
         for n, i in zip(names, idx, strict=True):
             if np.isfinite(result.std[n][c]):
                 result.std[n][c] = float(np.sqrt(max(cov[i, i], 0.0)))
+    split = result.diagnostics.get("variance_split")
+    if split is not None:
+        split["calibration"] = (
+            np.diag(cov) - np.diag(np.asarray(result.covariance, dtype=np.float64))
+        ).tolist()
     result.covariance = cov
     result.diagnostics["calibration_rel_std"] = rel.tolist()
     return result

@@ -180,3 +180,54 @@ def test_the_refusal_message_names_the_holder(tmp_path, make_samples, capsys):
         holder.communicate("done\n")
     assert f"error: output {out}/ is in use by process {holder.pid}" in err
     assert sorted(p.name for p in out.iterdir()) == [".gonio.lock"]
+
+
+def test_fit_prints_the_variance_split_of_samples_with_geometric_modes(
+    tmp_path, make_samples, monkeypatch
+):
+    """Samples with geometric modes (as a reduction with the full budget writes them):
+    the summary shows each parameter's share of noise, geometry and calibration, which
+    add up to its whole variance; samples without modes print no such table."""
+    import dataclasses
+
+    import gonio.fitting.cli as fit_cli
+    from gonio.dataset import BRDFSamples
+
+    @dataclasses.dataclass
+    class WithModes(BRDFSamples):
+        geometry_modes: np.ndarray | None = None
+        geometry_mode_scope: np.ndarray | None = None
+        pose: np.ndarray | None = None
+
+    s = make_samples("lambert+ggx", {"albedo": [0.2, 0.4, 0.6], "ks": [0.1, 0.2, 0.3],
+                     "alpha": 0.2}, n=200, seed=1, noise=1e-4, read=1e-3)  # fmt: skip
+    s.attrs["calibration_rel_std"] = [0.01, 0.01, 0.01]
+    n = len(s)
+    modes = np.zeros((n, 1, 6))
+    modes[:, 0, 3] = 0.005 * s.wo[:, 2]  # the camera arm tilted (x), 1 sigma
+    modes[:, 0, 5] = -0.005 * s.wo[:, 0]
+    fields = {f.name: getattr(s, f.name) for f in dataclasses.fields(BRDFSamples)}
+    src = save_samples(tmp_path / "samples.h5", s)
+    for with_modes in (True, False):
+        m = WithModes(**fields, geometry_modes=modes, geometry_mode_scope=np.array(["session"]),
+                      pose=np.zeros(n, np.int32)) if with_modes else s  # fmt: skip
+        monkeypatch.setattr(fit_cli, "_load_input", lambda path, m=m: (m, "samples"))
+        out = tmp_path / f"fit{with_modes}"
+        res = CliRunner().invoke(
+            cli, ["fit", str(src), "-m", "lambert+ggx", "--out", str(out), "--no-plots"]
+        )
+        assert res.exit_code == 0, res.output
+        d = json.loads((out / "fit.json").read_text())
+        if not with_modes:
+            assert "variance_split" not in d["diagnostics"]
+            assert "share of each parameter" not in res.output
+            continue
+        split = d["diagnostics"]["variance_split"]
+        i = split["labels"].index("albedo[G]")
+        parts = [split[k][i] for k in ("noise", "geometry", "calibration")]
+        assert all(p > 0 for p in parts)
+        np.testing.assert_allclose(sum(parts), d["std"]["albedo"][1] ** 2, rtol=1e-9)
+        assert "share of each parameter" in res.output
+        line = next(x for x in res.output.splitlines() if "albedo[G]" in x)
+        shares = [f"{p / sum(parts):.0%}" for p in parts]
+        assert all(sh in line for sh in shares), (line, shares)

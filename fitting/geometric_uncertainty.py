@@ -1,0 +1,275 @@
+"""Correlated geometric errors in a fit's parameter covariance (a sandwich estimator).
+
+A reduced session's directions are not exact: the rig calibration, the camera intrinsics
+(scope ``"session"``: one error shared by every sample) and each pose's board fit (scope
+``"pose"``: one error shared by the regions of that pose) move ``(wi, wo)`` of many
+samples together.  ``samples.h5`` describes them as modes: ``geometry_modes (N, M, 6)``,
+the 1-sigma perturbation of ``(wi, wo)`` of each sample along mode ``j``, with
+``geometry_mode_scope (M,)``, ``geometry_mode_names (M,)`` and ``pose (N,)``.  The
+samples' ``brdf_std`` holds the geometric term only as a marginal std
+(``budget["geometry"]``): correct for one sample, wrong for a fit, whose errors average
+down as ``1/sqrt(N)`` only for independent errors.
+
+With the fit's estimator linearised at the optimum, ``dp = A dr`` with
+``A = H^-1 Q^T`` (``H`` the Gauss-Newton matrix, ``Q = rho' J`` the weighted Jacobian of
+the residuals, :mod:`gonio.fitting.uncertainty`), the covariance of the parameters is
+
+``cov = A diag(var_u) A^T + (A B)(A B)^T``
+
+- ``var_u``: the uncorrelated residual variance, from ``brdf_std^2 - budget["geometry"]^2``
+  (weighted L2 with absolute sigmas; otherwise the fit's own noise covariance is kept);
+- ``B``: one column per correlated error: ``dr/df * df_j`` with
+  ``df_j = (f(w + m_j) - f(w - m_j)) / 2`` through the fitted model (central difference
+  along the mode, directions renormalised; one-sided where a perturbed direction leaves
+  the upper hemisphere), a mode of scope ``"pose"`` giving one column per pose.
+
+The fit itself (its weights, hence its parameters) does not change: only its covariance.
+Samples without modes (older files, no budget) skip all of this.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gonio.errors import FitError
+from gonio.fitting.losses import robust_rho
+from gonio.fitting.objective import Problem
+
+__all__ = ["GeometricModes", "geometric_modes_of", "sandwich_covariance"]
+
+SCOPES = ("session", "pose")
+
+
+@dataclass(frozen=True)
+class GeometricModes:
+    """The correlated geometric errors of the samples used by a fit.
+
+    Attributes
+    ----------
+    modes : ndarray, shape (N, M, 6)
+        1-sigma perturbation of ``(wi, wo)`` (sample frame) of each sample along mode j.
+    scope : ndarray of str, shape (M,)
+        ``"session"`` (one error shared by all samples) or ``"pose"`` (one per pose).
+    names : tuple of str
+        Mode names (for diagnostics).
+    pose : ndarray of int, shape (N,) or None
+        Pose index of each sample (needed when a mode has scope ``"pose"``).
+    geometry_std : ndarray, shape (N, C) or None
+        ``budget["geometry"]``: the marginal std of the modes that ``brdf_std`` holds, 1/sr.
+    """
+
+    modes: np.ndarray
+    scope: np.ndarray
+    names: tuple[str, ...]
+    pose: np.ndarray | None
+    geometry_std: np.ndarray | None
+
+    def subset(self, keep: np.ndarray) -> GeometricModes:
+        """The modes of the samples selected by the boolean mask ``keep``."""
+        return GeometricModes(
+            modes=self.modes[keep],
+            scope=self.scope,
+            names=self.names,
+            pose=None if self.pose is None else self.pose[keep],
+            geometry_std=None if self.geometry_std is None else self.geometry_std[keep],
+        )
+
+
+def geometric_modes_of(samples: Any) -> GeometricModes | None:
+    """The samples' geometric modes, or None when they carry none (M = 0 or absent).
+
+    Reads ``geometry_modes``, ``geometry_mode_scope``, ``geometry_mode_names``, ``pose``
+    and ``budget["geometry"]`` of a :class:`gonio.dataset.BRDFSamples` (any object with
+    those attributes).
+
+    Raises
+    ------
+    FitError
+        A field with the wrong shape, an unknown scope, non-finite modes, or modes of
+        scope ``"pose"`` without ``pose`` (the field and what was expected named).
+    """
+    raw = getattr(samples, "geometry_modes", None)
+    if raw is None:
+        return None
+    n = np.asarray(samples.wi).shape[0]
+    c = np.asarray(samples.brdf).reshape(n, -1).shape[1]
+    modes = np.asarray(raw, dtype=np.float64)
+    if modes.ndim != 3 or modes.shape[0] != n or modes.shape[2] != 6:
+        raise FitError(
+            f"samples.geometry_modes has shape {modes.shape}, expected (N, M, 6) with N = {n}"
+        )
+    m = modes.shape[1]
+    if m == 0:
+        return None
+    scope_raw = getattr(samples, "geometry_mode_scope", None)
+    if scope_raw is None:
+        raise FitError("samples.geometry_modes given without geometry_mode_scope (M,)")
+    scope = np.asarray(scope_raw).astype(str).reshape(-1)
+    if scope.shape != (m,):
+        raise FitError(f"samples.geometry_mode_scope has shape {scope.shape}, expected ({m},)")
+    bad = sorted(set(scope.tolist()) - set(SCOPES))
+    if bad:
+        raise FitError(f"samples.geometry_mode_scope: unknown scope(s) {bad}; expected {SCOPES}")
+    names_raw = getattr(samples, "geometry_mode_names", None)
+    names = (
+        tuple(f"mode{j}" for j in range(m))
+        if names_raw is None
+        else tuple(np.asarray(names_raw).astype(str).reshape(-1).tolist())
+    )
+    if len(names) != m:
+        raise FitError(f"samples.geometry_mode_names has {len(names)} names for {m} modes")
+    pose_raw = getattr(samples, "pose", None)
+    pose = None
+    if pose_raw is not None:
+        pose = np.asarray(pose_raw).reshape(-1)
+        if pose.shape != (n,) or not np.issubdtype(pose.dtype, np.integer):
+            raise FitError(
+                f"samples.pose has shape {pose.shape} and dtype {pose.dtype}, expected "
+                f"({n},) integers"
+            )
+    if pose is None and np.any(scope == "pose"):
+        raise FitError("samples.geometry_mode_scope has 'pose' modes but samples.pose is missing")
+    budget = getattr(samples, "budget", None) or {}
+    geo = budget.get("geometry") if isinstance(budget, dict) else None
+    if geo is not None:
+        geo = np.asarray(geo, dtype=np.float64)
+        if geo.shape != (n, c):
+            raise FitError(f"samples.budget['geometry'] has shape {geo.shape}, expected {(n, c)}")
+    return GeometricModes(modes=modes, scope=scope, names=names, pose=pose, geometry_std=geo)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def mode_effects(prob: Problem, x: np.ndarray, modes: np.ndarray) -> np.ndarray:
+    """``df_j`` (N, C, M): the fitted model's change along each 1-sigma mode, 1/sr.
+
+    Central difference ``(f(w + m) - f(w - m)) / 2`` with renormalised directions; one
+    side only where the other leaves the upper hemisphere (or is not finite), 0 where both
+    do.
+    """
+    theta, a = prob.unpack(x)
+    p = prob.params_dict(theta, a)
+    f0 = np.asarray(prob.model.eval(prob._wi_c, prob._wo_c, p))  # (N, C)
+    m = np.moveaxis(modes, 1, 0)  # (M, N, 6)
+    out = []
+    for sign in (1.0, -1.0):
+        wi = _unit(prob.wi[None] + sign * m[..., :3])
+        wo = _unit(prob.wo[None] + sign * m[..., 3:])
+        up = (wi[..., 2] > 0) & (wo[..., 2] > 0)
+        wi = np.where(up[..., None], wi, prob.wi[None])  # keep the model away from z <= 0
+        wo = np.where(up[..., None], wo, prob.wo[None])
+        f = np.asarray(prob.model.eval(wi[..., None, :], wo[..., None, :], p))  # (M, N, C)
+        ok = up[..., None] & np.isfinite(f)
+        out.append((f, ok))
+    (fp, okp), (fm, okm) = out
+    df = np.where(
+        okp & okm,
+        0.5 * (fp - fm),
+        np.where(okp, fp - f0, np.where(okm, f0 - fm, 0.0)),
+    )
+    prob.nfev += 3
+    return np.moveaxis(df, 0, 2)  # (N, C, M)
+
+
+def _columns(t: np.ndarray, modes: GeometricModes) -> np.ndarray:
+    """Sum per-sample contributions ``t`` (N, P, M) into the correlated columns (P, M')."""
+    cols = []
+    sess = modes.scope == "session"
+    if sess.any():
+        cols.append(t[:, :, sess].sum(axis=0))
+    if (~sess).any():
+        assert modes.pose is not None
+        _, group = np.unique(modes.pose, return_inverse=True)
+        tp = t[:, :, ~sess]
+        g = np.zeros((group.max() + 1,) + tp.shape[1:])
+        np.add.at(g, group, tp)
+        cols.append(np.moveaxis(g, 0, -1).reshape(tp.shape[1], -1))  # (P, M_pose * Q)
+    return np.concatenate(cols, axis=1)
+
+
+def sandwich_covariance(
+    prob: Problem,
+    x: np.ndarray,
+    h_inverse: np.ndarray,
+    noise_covariance: np.ndarray,
+    modes: GeometricModes,
+    absolute_sigma: bool,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Noise and geometric parts of the parameter covariance, in natural units (P, P).
+
+    Parameters
+    ----------
+    prob, x
+        The fitted problem and its optimum (search variables).
+    h_inverse
+        Pseudo-inverse of the Gauss-Newton matrix (``Uncertainty.h_inverse``).
+    noise_covariance
+        The fit's covariance from its residuals' own sigmas (``Uncertainty.covariance``):
+        kept as the noise part unless the loss is weighted L2 with absolute sigmas and
+        ``budget["geometry"]`` says how much of ``brdf_std`` is geometric.
+    modes
+        The used samples' modes (:meth:`GeometricModes.subset` with ``prob.used``).
+    absolute_sigma
+        The fit trusts the sigmas as absolute.
+
+    Returns
+    -------
+    noise, geometry, info
+        The two covariance parts and a summary (mode counts, columns).
+    """
+    r, js, jl = prob.jacobian_blocks(x, natural=True)
+    theta, a = prob.unpack(x)
+    f, _ = prob.model_eval(theta, a, grad=False)
+    _, drdf = prob.loss.residual(f, prob.y, prob.weights, prob.cos_i)
+    _, drho = robust_rho(r * r, prob.robust, prob.f_scale)
+    S, K, C = prob.n_shape, prob.n_linear, prob.n_channels
+    P = prob.n_params
+    # Q = rho' J: the estimating equations' weights (J^T r = 0 without a robust penalty)
+    qs = js * drho[..., None]
+    ql = jl * drho[..., None]
+
+    def per_sample(e: np.ndarray) -> np.ndarray:
+        """sum_c Q[n, c, :] e[n, c, m] -> (N, P, M)."""
+        t = np.zeros((e.shape[0], P, e.shape[2]))
+        t[:, :S] = np.einsum("ncs,ncm->nsm", qs, e)
+        for j in range(K):
+            t[:, S + j * C : S + (j + 1) * C] = ql[:, :, j, None] * e
+        return t
+
+    df = mode_effects(prob, x, modes.modes)
+    e = drdf[..., None] * df  # (N, C, M) residual change along each mode
+    G = _columns(per_sample(e), modes)
+    AG = h_inverse @ G
+    geometry = AG @ AG.T
+    noise = noise_covariance
+    use_uncorrelated = (
+        prob.loss.name == "weighted_l2" and absolute_sigma and modes.geometry_std is not None
+    )
+    if use_uncorrelated:
+        var_u = np.clip(prob.sigma**2 - modes.geometry_std**2, 0.0, None)
+        v = (drho * drdf) ** 2 * var_u  # variance of rho' r per residual
+        meat = np.zeros((P, P))
+        meat[:S, :S] = np.einsum("ncs,nct,nc->st", js, js, v)
+        sl = np.einsum("ncs,ncj,nc->sjc", js, jl, v).reshape(S, K * C)
+        meat[:S, S:] = sl
+        meat[S:, :S] = sl.T
+        ll = np.einsum("ncj,nck,nc->cjk", jl, jl, v)
+        for c in range(C):
+            idx = S + np.arange(K) * C + c
+            meat[np.ix_(idx, idx)] = ll[c]
+        noise = h_inverse @ meat @ h_inverse
+    n_sess = int(np.count_nonzero(modes.scope == "session"))
+    info = {
+        "modes": list(modes.names),
+        "session_modes": n_sess,
+        "pose_modes": int(modes.scope.size - n_sess),
+        "columns": int(G.shape[1]),
+        "noise_from_uncorrelated_variance": bool(use_uncorrelated),
+    }
+    return noise, geometry, info

@@ -1,0 +1,462 @@
+"""Does the uncertainty budget hold against the world? The accuracy harness of issue 16.
+
+A lab measures a material; the simulator knows the material's BRDF, so every reduced
+sample and every fitted parameter can be compared with the truth in its own reported
+sigma.  The harness runs the lab path on the simulated as-built rig (a ``realistic``
+world drawn from a seed): camera calibration and rig calibration once per world
+(:func:`gonio.app.demo_calibrations.calibrate_simulated_rig`), then one measurement
+session per material on the calibrated rig, reduced with the calibrated camera, and
+fitted.
+
+What it measures, per material:
+
+- **samples**: ``z = (brdf - f_true(wi, wo)) / sigma`` for every usable sample and
+  channel, ``f_true`` the material's own BRDF (closed-form model, or the measured file)
+  at the *reported* directions.  ``sigma`` is the full budget (``brdf_std`` with the
+  shared calibration scale ``calibration_rel_std`` added in quadrature) or noise only
+  (``budget["noise"]``; ``brdf_std`` when the samples carry no budget).  The spread is
+  the RMS of z about 0 (a bias the budget does not cover counts), per channel and per
+  band of ``max(theta_i, theta_o)``: 0-10, ..., 70-80 (and 80-90) deg;
+- **fit**: the material's model fitted (weighted L2, absolute sigmas, the samples'
+  geometric modes when present), each parameter's z against the truth (for a measured
+  file: against the same model fitted to the noise-free truth at the same directions,
+  as a measured material is no model exactly), the fraction within 3 sigma, and the
+  median relative error of the fitted BRDF against the reference (the truth; for a
+  measured file the model fitted to the noise-free truth, whose own distance from the
+  truth, the model's inadequacy, is reported apart) at the samples' directions.
+
+It uses what the branch has: a world with radiometry (``[world.radiometry]``) when the
+world model has it, flats and repeated reference groups in the plan when the plan model
+accepts them, the budget's terms when the samples carry them; :func:`capabilities` says
+which.  Targets (issue 16): z RMS in [0.8, 1.25] with the full budget, median relative
+BRDF error <= 1 %, fitted parameters within 3 sigma.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "BANDS_DEG",
+    "HarnessMaterial",
+    "capabilities",
+    "default_materials",
+    "fit_statistics",
+    "harness_plan",
+    "run_world",
+    "sample_statistics",
+]
+
+#: theta bands (deg) of max(theta_i, theta_o)
+BANDS_DEG = tuple((lo, lo + 10) for lo in range(0, 90, 10))
+#: bands with fewer samples are reported, not judged (a std from n samples is ~1/sqrt(2n))
+MIN_BAND_SAMPLES = 30
+Z_RANGE = (0.8, 1.25)
+SIZE = (480, 360)  # the rig calibration needs the corners' precision (see gonio demo)
+
+
+@dataclass(frozen=True)
+class HarnessMaterial:
+    """A material of the harness: the scene's BRDF, the truth and how to fit it.
+
+    Attributes
+    ----------
+    name
+        Short name (``"lambert+ggx"``, ``"lambert+ggx[fresnel=schlick]"``, ``"rgl:..."``).
+    scene_brdf
+        The scene's ``[sample.brdf]`` table.
+    model
+        The model spec fitted to the samples (``"auto"`` for a measured file).
+    params
+        The true parameters (per channel lists); None for a measured file.
+    file
+        The measured file, or None.
+    """
+
+    name: str
+    scene_brdf: dict[str, Any]
+    model: str
+    params: dict[str, list[float]] | None = None
+    file: Path | None = None
+
+    def truth(self) -> Any:
+        """The material's BRDF: an object with ``eval(wi, wo) -> (..., 3)`` (1/sr)."""
+        import gonio.brdf
+
+        if self.file is not None:
+            return gonio.brdf.load(self.file)
+        from gonio.fitting.select import parse_model_spec
+
+        name, opts = parse_model_spec(self.model)
+        return gonio.brdf.get_model(name, **opts).bind(
+            {k: np.asarray(v, dtype=np.float64) for k, v in self.params.items()}
+        )
+
+
+def default_materials(rgl_file: Path | None) -> list[HarnessMaterial]:
+    """``lambert+ggx``, ``lambert+ggx[fresnel=schlick]`` and, when given, a measured RGL
+    file (fitted with model selection)."""
+    ggx = {"albedo": [0.5, 0.4, 0.3], "ks": [0.2] * 3, "alpha": [0.2] * 3}
+    schlick = {"albedo": [0.3, 0.35, 0.4], "ks": [0.6] * 3, "alpha": [0.25] * 3, "f0": [0.05] * 3}
+    out = [
+        HarnessMaterial("lambert+ggx", {"model": "lambert+ggx", "params": ggx}, "lambert+ggx", ggx),
+        HarnessMaterial(
+            "lambert+ggx[fresnel=schlick]",
+            {"model": "lambert+ggx", "options": {"fresnel": "schlick"}, "params": schlick},
+            "lambert+ggx[fresnel=schlick]",
+            schlick,
+        ),
+    ]
+    if rgl_file is not None:
+        name = Path(rgl_file).name.removesuffix("_rgb.bsdf").removesuffix(".bsdf")
+        out.append(
+            HarnessMaterial(f"rgl:{name}", {"file": str(rgl_file)}, "auto", None, Path(rgl_file))
+        )
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# What the branch can do (the other engineers' parts of issue 16)
+def _plan_accepts(plan: dict[str, Any]) -> bool:
+    from gonio.capture.plan import plan_from_dict
+    from gonio.errors import ConfigError
+
+    try:
+        plan_from_dict(plan)
+    except ConfigError:
+        return False
+    return True
+
+
+def capabilities() -> dict[str, bool]:
+    """Which parts of the issue-16 world and budget this installation has.
+
+    ``radiometry``: the world model has ``[world.radiometry]`` (drift, stray, flats...);
+    ``flats``, ``reference_every_poses``: the plan accepts ``[flats]`` and
+    ``[reference] every_poses``.  (Whether the samples carry a budget is seen on them.)
+    """
+    from gonio.simulator.world import World
+
+    base = harness_plan(((0.0,), (0.0, 40.0), (180.0,)), extras=False)
+    with_flats = {**base, "flats": {"count": 2}}
+    with_every = {**base, "reference": {**base["reference"], "every_poses": 8}}
+    return {
+        "radiometry": "radiometry" in World.model_fields,
+        "flats": _plan_accepts(with_flats),
+        "reference_every_poses": _plan_accepts(with_every),
+    }
+
+
+#: the test's grid (~20 poses) and the benchmark's (~40): theta_i, theta_o, phi_o (deg)
+SMALL_GRID = ((0.0, 35.0, 70.0), (0.0, 20.0, 40.0, 60.0, 80.0), (0.0, 90.0, 180.0))
+LARGE_GRID = ((0.0, 25.0, 50.0, 75.0), (0.0, 20.0, 40.0, 60.0, 80.0), (0.0, 90.0, 180.0))
+
+
+def harness_plan(
+    grid: tuple[tuple[float, ...], ...],
+    seed: int = 0,
+    size: tuple[int, int] = SIZE,
+    extras: bool = True,
+) -> dict[str, Any]:
+    """The measurement plan: an isotropic grid out to theta 80 deg, adaptive brackets,
+    darks, flats and a reference group every 8 poses when the plan model has them."""
+    ti, to, po = grid
+    plan: dict[str, Any] = {
+        "name": "budget harness",
+        "seed": seed,
+        "settle_s": 0.0,
+        "grid": {
+            "kind": "spherical",
+            "theta_i_deg": list(ti),
+            "phi_i_deg": [0.0],
+            "theta_o_deg": list(to),
+            "phi_o_deg": list(po),
+        },
+        "reductions": {"isotropic": True, "reciprocity": True},
+        "exclusions": {"grazing_limit_deg": 80, "min_separation_deg": 12, "check_rig": True},
+        "bracket": {
+            "policy": "adaptive",
+            "exposure_time_s": 0.02,
+            "iso": 100,
+            "f_number": 8.0,
+            "max_frames": 4,
+        },
+        "darks": {"count": 2},
+        "reference": {
+            "when": "start",
+            "reflectance": 0.99,
+            "poses": [
+                {"theta_i_deg": 0, "theta_o_deg": 40, "phi_o_deg": 180},
+                {"theta_i_deg": 40, "theta_o_deg": 0},
+            ],
+        },
+        "simulation": {"scene": "scene.toml", "width": size[0], "height": size[1]},
+    }
+    if extras:
+        with_flats = {**plan, "flats": {"count": 4}}
+        if _plan_accepts(with_flats):
+            plan = with_flats
+        with_every = {**plan, "reference": {**plan["reference"], "every_poses": 8}}
+        if _plan_accepts(with_every):
+            plan = with_every
+    return plan
+
+
+# --------------------------------------------------------------------------------------
+# Statistics (the truth is the material's, never the code under test)
+def _band_of(samples: Any) -> np.ndarray:
+    a = samples.angles()
+    return np.degrees(np.maximum(a["theta_i"], a["theta_o"]))
+
+
+def _z_table(z: np.ndarray, theta: np.ndarray, channels: tuple[str, ...]) -> dict[str, Any]:
+    def rms(v: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(v * v))) if v.size else math.nan
+
+    out: dict[str, Any] = {
+        "all": {"n": int(z.shape[0]), **{c: rms(z[:, k]) for k, c in enumerate(channels)}},
+        "mean": {
+            c: float(np.mean(z[:, k])) if z.size else math.nan for k, c in enumerate(channels)
+        },
+        "bands": {},
+    }
+    for lo, hi in BANDS_DEG:
+        m = (theta >= lo) & (theta < hi)
+        if m.any():
+            out["bands"][f"{lo}-{hi}"] = {
+                "n": int(m.sum()),
+                **{c: rms(z[m, k]) for k, c in enumerate(channels)},
+            }
+    return out
+
+
+def sample_statistics(samples: Any, truth: Any) -> dict[str, Any]:
+    """z-scores of the usable samples against ``truth`` at their reported directions.
+
+    Returns
+    -------
+    dict
+        ``full`` and ``noise_only``: z RMS per channel over all samples (``all``) and per
+        theta band (``bands``, with counts ``n``), the mean z per channel; ``budget``:
+        whether the samples carry budget terms; ``median_rel_error``: median over samples
+        and channels of |brdf - f_true| / f_true.
+    """
+    ok = np.asarray(samples.valid)
+    wi, wo = samples.wi[ok], samples.wo[ok]
+    y = np.asarray(samples.brdf)[ok]
+    f = np.broadcast_to(np.asarray(truth.eval(wi, wo), dtype=np.float64), y.shape)
+    budget = getattr(samples, "budget", None)
+    std = np.asarray(samples.brdf_std)[ok]
+    rel = np.asarray(samples.attrs.get("calibration_rel_std", 0.0), dtype=np.float64)
+    full = np.sqrt(std**2 + (np.abs(f) * rel) ** 2)
+    noise = np.asarray(budget["noise"])[ok] if budget and "noise" in budget else std
+    theta = _band_of(samples)[ok]
+    ch = tuple(samples.channels)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel_err = np.abs(y - f) / np.abs(f)
+    return {
+        "n_samples": int(len(samples)),
+        "n_usable": int(ok.sum()),
+        "budget": budget is not None,
+        "budget_terms": sorted(budget) if budget else [],
+        "full": _z_table((y - f) / full, theta, ch),
+        "noise_only": _z_table((y - f) / noise, theta, ch),
+        "median_rel_error": float(np.nanmedian(rel_err)) if rel_err.size else math.nan,
+    }
+
+
+def fit_statistics(samples: Any, material: HarnessMaterial) -> dict[str, Any]:
+    """Fit the material's model and compare the parameters and the BRDF with the truth."""
+    import gonio.brdf
+    from gonio.fitting import fit
+
+    truth = material.truth()
+    r = fit(samples, model=material.model)
+    ok = np.asarray(samples.valid)
+    wi, wo = samples.wi[ok], samples.wo[ok]
+    f_true = truth.eval(wi, wo)
+    model_error = None
+    if material.params is not None and r.model == material.model.split("[")[0]:
+        ref = {k: np.asarray(v, dtype=np.float64) for k, v in material.params.items()}
+        ref_of = "truth"
+        f_ref = f_true
+    else:
+        # a measured material is no model exactly: the reference is the same model fitted
+        # to the noise-free truth at the same directions (what is left is the measurement's)
+        exact = dataclasses.replace(samples.subset(ok), brdf=f_true)
+        ref_fit = fit(exact, model=gonio.brdf.get_model(r.model, **r.model_options))
+        ref, ref_of = ref_fit.params, "the same model fitted to the noise-free truth"
+        f_ref = ref_fit.bind().eval(wi, wo)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            model_error = float(np.nanmedian(np.abs(f_ref - f_true) / np.abs(f_true)))
+    z = {}
+    for k, v in r.params.items():
+        s = np.asarray(r.std[k])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zk = np.where(s > 0, (np.asarray(v) - ref[k]) / s, np.nan)
+        # shape parameters are repeated per channel: count them once
+        z[k] = [float(zk[0])] if k in r.shape_params else [float(x) for x in zk]
+    zs = np.array([x for v in z.values() for x in v if math.isfinite(x)])
+    f_fit = r.bind().eval(wi, wo)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.abs(f_fit - f_ref) / np.abs(f_ref)
+    return {
+        "model": r.model,
+        "model_options": r.model_options,
+        "success": bool(r.success),
+        "reference": ref_of,
+        "params": {k: np.asarray(v).tolist() for k, v in r.params.items()},
+        "std": {k: np.asarray(v).tolist() for k, v in r.std.items()},
+        "truth": {k: np.asarray(v).tolist() for k, v in ref.items()},
+        "z": z,
+        "within_3_sigma": float(np.mean(np.abs(zs) < 3.0)) if zs.size else math.nan,
+        "max_abs_z": float(np.max(np.abs(zs))) if zs.size else math.nan,
+        "median_rel_brdf_error": float(np.nanmedian(rel)),
+        "model_error_of_reference": model_error,
+        "variance_split": r.diagnostics.get("variance_split"),
+    }
+
+
+# --------------------------------------------------------------------------------------
+# The sessions
+@dataclass
+class WorldRun:
+    """One world: its calibration and a report per material."""
+
+    seed: int
+    calibration: Any
+    materials: dict[str, dict[str, Any]] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def _scene(material: HarnessMaterial, size: tuple[int, int]) -> dict[str, Any]:
+    from gonio.app.demo import Material, scene_document
+
+    scene = scene_document(Material(material.name, model="lambert"), *size)
+    scene["sample"]["brdf"] = dict(material.scene_brdf)
+    return scene
+
+
+def calibrate_world(root: Path, seed: int, size: tuple[int, int] = SIZE, world: str = "realistic"):
+    """Camera and rig calibration of the world ``seed`` into ``root`` (shared by the
+    materials: a lab calibrates once, then measures)."""
+    import tomli_w
+
+    from gonio.app.demo_calibrations import calibrate_simulated_rig
+    from gonio.rig.config import virtual_rig_document
+
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "rig.toml").write_text(virtual_rig_document())
+    ggx = default_materials(None)[0]
+    (root / "scene.toml").write_text(tomli_w.dumps(_scene(ggx, size)))
+    return calibrate_simulated_rig(
+        root, root / "rig.toml", root / "scene.toml", world=world, world_seed=seed,
+        size=size, quiet=True, say=lambda s: None,
+    )  # fmt: skip
+
+
+def measure(
+    root: Path,
+    material: HarnessMaterial,
+    calibration: Any,
+    seed: int,
+    plan: dict[str, Any],
+    world: str = "realistic",
+) -> Any:
+    """Capture, reduce (calibrated camera, 6 x 6 regions as the demo) and load the
+    samples of ``material`` in the world ``seed``."""
+    import tomli_w
+
+    from gonio.app.simulation import run_simulated_session
+    from gonio.capture.manifest import load_manifest
+    from gonio.capture.reduce import reduce_session, resolve_setup
+    from gonio.dataset import load_samples
+
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "scene.toml").write_text(
+        tomli_w.dumps(_scene(material, (plan["simulation"]["width"], plan["simulation"]["height"])))
+    )
+    (root / "plan.toml").write_text(tomli_w.dumps(plan))
+    session = root / "session"
+    run_simulated_session(
+        session, root / "plan.toml", calibration.rig_file, "virtual",
+        world=world, world_seed=seed, quiet=True,
+    )  # fmt: skip
+    setup = resolve_setup(
+        session, load_manifest(session), camera_calibration=calibration.camera_file
+    )
+    setup = dataclasses.replace(setup, grid=6)
+    red = reduce_session(session, setup=setup, plot=False)
+    return load_samples(red.path), list(getattr(red, "warnings", []) or [])
+
+
+def run_world(
+    root: Path,
+    seed: int,
+    materials: list[HarnessMaterial],
+    grid: tuple[tuple[float, ...], ...] = SMALL_GRID,
+    size: tuple[int, int] = SIZE,
+    say: Callable[[str], None] = lambda s: None,
+) -> WorldRun:
+    """Calibrate the world ``seed`` once, then measure, reduce and fit every material."""
+    t = time.perf_counter()
+    say(f"world {seed}: calibrating the camera and the rig")
+    cal = calibrate_world(root / "calibration", seed, size)
+    run = WorldRun(seed=seed, calibration=cal, seconds={"calibration": time.perf_counter() - t})
+    plan = harness_plan(grid, seed=seed, size=size)
+    for m in materials:
+        t = time.perf_counter()
+        say(f"world {seed}: measuring {m.name}")
+        samples, warnings = measure(root / m.name.replace(":", "_"), m, cal, seed, plan)
+        rep = {"samples": sample_statistics(samples, m.truth()), "warnings": warnings}
+        rep["fit"] = fit_statistics(samples, m)
+        run.materials[m.name] = rep
+        run.seconds[m.name] = time.perf_counter() - t
+    return run
+
+
+def judge(rep: dict[str, Any]) -> dict[str, Any]:
+    """The issue's targets on one material's report: the failures, by name (empty: met).
+
+    ``z_full``: bands (>= :data:`MIN_BAND_SAMPLES` samples) and channels whose full-budget
+    z RMS is outside :data:`Z_RANGE`; ``rel_error``: median relative BRDF error of the
+    fit above 1 %; ``params``: parameters more than 3 reported sigma off.
+    """
+    s, f = rep["samples"], rep["fit"]
+    bad_z = {}
+    for band, row in s["full"]["bands"].items():
+        if row["n"] < MIN_BAND_SAMPLES:
+            continue
+        for c, v in row.items():
+            if c != "n" and not (Z_RANGE[0] <= v <= Z_RANGE[1]):
+                bad_z[f"{band} {c}"] = round(v, 3)
+    out: dict[str, Any] = {}
+    if bad_z:
+        out["z_full"] = bad_z
+    if not f["median_rel_brdf_error"] <= 0.01:
+        out["rel_error"] = f["median_rel_brdf_error"]
+    far = {k: v for k, v in f["z"].items() if any(abs(x) >= 3 or not math.isfinite(x) for x in v)}
+    if far:
+        out["params"] = far
+    return out
+
+
+def noise_only_outside(rep: dict[str, Any]) -> dict[str, float]:
+    """Bands and channels whose noise-only z RMS is outside :data:`Z_RANGE` (what a
+    budget of noise alone gets wrong)."""
+    bad = {}
+    for band, row in rep["samples"]["noise_only"]["bands"].items():
+        if row["n"] < MIN_BAND_SAMPLES:
+            continue
+        for c, v in row.items():
+            if c != "n" and not (Z_RANGE[0] <= v <= Z_RANGE[1]):
+                bad[f"{band} {c}"] = round(v, 3)
+    return bad
