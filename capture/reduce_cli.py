@@ -63,11 +63,13 @@ from gonio.errors import ReductionError
 )
 @click.option(
     "--geometry",
-    type=click.Choice(["board", "rig"]),
+    type=click.Choice(["auto", "board", "rig"]),
     default=None,
-    help="Camera pose from the ChArUco board in each pose, or from the rig's read-back "
-    "pose through its kinematics (a calibrated rig, or the exact simulated one); the "
-    "board checks the rig either way.  [default: reduction.toml's, else board]",
+    help="Camera pose from the ChArUco board in each pose (board), from the rig's "
+    "read-back pose through its kinematics (rig: a calibrated rig, or the exact simulated "
+    "one), or from the board where it shows enough corners and is not too oblique and "
+    "the rig elsewhere (auto); the board checks the rig wherever it is used.  "
+    "[default: reduction.toml's, else auto]",
 )
 @click.option(
     "--threads",
