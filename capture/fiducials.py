@@ -473,6 +473,9 @@ class RoiGeometry:
         Half width and half height, metres, of the part of the ROI whose pixels are used:
         the ROI less what lies within ``margin_px`` image pixels of the sample's edge
         (:func:`edge_margins`); all of it unless the view is near grazing.
+    inner_margin
+        Margin kept inside every cell along x and along y, metres
+        (:func:`spread_margins`: it bounds the spread of directions within a region).
     grid
         Regions per side.
     centers
@@ -485,6 +488,7 @@ class RoiGeometry:
     limit: tuple[float, float]
     grid: int
     centers: NDArray[np.float64]
+    inner_margin: tuple[float, float] = (0.0, 0.0)
 
 
 def roi_geometry(
@@ -497,6 +501,7 @@ def roi_geometry(
     grid: int = 3,
     margin_px: float = 2.0,
     dist: ArrayLike | None = None,
+    inner_margin: tuple[float, float] = (0.0, 0.0),
 ) -> RoiGeometry:
     """The ROI's crop and grid in one camera pose (see :func:`map_regions`).
 
@@ -539,6 +544,7 @@ def roi_geometry(
         limit,
         grid,
         np.stack([cx.ravel(), cy.ravel()], axis=1),
+        (float(inner_margin[0]), float(inner_margin[1])),
     )
 
 
@@ -606,6 +612,60 @@ def edge_margins(
             grad = np.hypot(J[:, 0, col], J[:, 1, col]) / np.abs(det)
         m = float(np.max(grad)) if np.all(np.isfinite(grad)) else math.inf
         out.append(margin_px * m)
+    return out[0], out[1]
+
+
+def spread_margins(
+    positions: list[ArrayLike],
+    cell: tuple[float, float],
+    half_size: tuple[float, float],
+    max_spread_deg: float,
+) -> tuple[float, float]:
+    """Margins inside each grid cell (metres, along x and along y) that keep the spread
+    of directions within a region below ``max_spread_deg`` as seen from every position
+    (the camera's and the light's centres).
+
+    A region reports the mean of its pixels' directions while its value is the mean of
+    the BRDF over them: on a lobe that flattens the peak by about (spread / lobe
+    width)^2, a bias shared by every region at that place of the lobe.  Moving a point
+    on the sample by ``dx`` along axis ``a`` turns the unit direction from it towards a
+    position P by ``sqrt(1 - (w . e_a)^2) dx / |P - x|``, so along an axis the sample is
+    seen foreshortened from P (at grazing views, along the tilt) a whole cell stays
+    within the spread and nothing is trimmed, where a fixed margin in pixels or metres
+    (the former rule) left oblique regions without pixels.  The rate is taken at the
+    ROI's corners and centre (its largest), the margin is what the cell has beyond the
+    allowed extent, split between its two sides.
+
+    Parameters
+    ----------
+    positions
+        (3,) points in the sample frame, metres (camera centre, light centre).
+    cell
+        Cell width and height, metres.
+    half_size
+        The ROI's half width and half height, metres.
+    max_spread_deg
+        Largest extent of a region's directions, degrees (full width).
+
+    Returns
+    -------
+    (mx, my)
+        Metres, each in ``[0, cell / 2)``.
+    """
+    hw, hh = half_size
+    q = np.array([[0.0, 0.0, 0.0], *[[a * hw, b * hh, 0.0] for a in (-1, 1) for b in (-1, 1)]])
+    rate = np.zeros(2)
+    for pos in positions:
+        v = np.asarray(pos, float)[None, :] - q
+        d = np.linalg.norm(v, axis=1)
+        u = v / d[:, None]
+        for a in range(2):
+            rate[a] = max(rate[a], float(np.max(np.sqrt(1.0 - u[:, a] ** 2) / d)))
+    spread = math.radians(max_spread_deg)
+    out = []
+    for a in range(2):
+        allowed = spread / rate[a] if rate[a] > 0 else math.inf
+        out.append(max(0.0, 0.5 * (cell[a] - allowed)))
     return out[0], out[1]
 
 
@@ -840,6 +900,7 @@ def map_regions(
     grid: int = 3,
     margin_px: float = 2.0,
     dist: ArrayLike | None = None,
+    inner_margin: tuple[float, float] = (0.0, 0.0),
 ) -> RegionMap:
     """Split the sample's central area into ``grid x grid`` regions and find their pixels.
 
@@ -860,15 +921,20 @@ def map_regions(
     margin_px
         Pixels whose centre lies closer than this (in the image) to the sample's edge are
         left out, so that no pixel mixes the holder in (:func:`edge_margins`; with the
-        ROI inside the sample this removes pixels only near grazing).  Pixels near a
-        boundary between two regions are kept: such a pixel measures the mean radiance
-        of its footprint at its centre's directions in whichever region it is counted,
-        and at oblique views a region is only a few pixels across its tilt (at theta_o
-        80 deg a 5 mm region is 1.3 pixels high at 320 x 240), so that a margin there
-        left regions without any pixel.
+        ROI inside the sample this removes pixels only near grazing).  It is not a
+        margin between regions: a pixel there measures the mean radiance of its
+        footprint at its centre's directions in whichever region it is counted, and at
+        oblique views a region is only a few pixels across its tilt (at theta_o 80 deg
+        a 5 mm region is 1.3 pixels high at 320 x 240), so that a pixel margin there
+        left regions without any pixel; ``inner_margin`` trims regions for another
+        reason (their spread of directions).
     dist
         Lens distortion (OpenCV coefficients): every pixel's ray is then the undistorted
         one (:func:`pixel_rays`); None or zeros keep the pinhole camera.
+    inner_margin
+        Metres kept free inside each cell along x and along y (:func:`spread_margins`,
+        which bounds the spread of a region's directions): pixels closer to a cell's
+        boundary are left out.
 
     Raises
     ------
@@ -885,15 +951,20 @@ def map_regions(
         grid=grid,
         margin_px=margin_px,
         dist=dist,
+        inner_margin=inner_margin,
     )
     dist = np.asarray(dist, float) if has_distortion(dist) else None
     xyz, vign = rays = pixel_rays(pose, K, roi.box, dist)
     (hw, hh), (cell_x, cell_y), (lx, ly) = roi.half_size, roi.cell, roi.limit
+    mx, my = roi.inner_margin
     ux, uy = xyz[0] + hw, xyz[1] + hh
     ix = np.floor(ux / cell_x)
     iy = np.floor(uy / cell_y)
+    fx = ux - ix * cell_x
+    fy = uy - iy * cell_y
     inside = (ix >= 0) & (ix < grid) & (iy >= 0) & (iy < grid)
     inside &= (np.abs(xyz[0]) < lx) & (np.abs(xyz[1]) < ly)
+    inside &= (fx >= mx) & (fx <= cell_x - mx) & (fy >= my) & (fy <= cell_y - my)
     label = np.where(inside, iy * grid + ix, -1).astype(np.int64)
     return RegionMap(roi.box, label, grid * grid, roi.centers, pose, K, {"_rays": rays}, dist)
 

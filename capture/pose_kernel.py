@@ -86,8 +86,8 @@ class View(NamedTuple):
     cpos: NDArray[np.float64]  # (3,) camera centre, sample frame, metres
     r0: int  # crop origin in the image, pixels
     c0: int
-    roi: NDArray[np.float64]  # (6,) half width, half height, cell width, cell height, used
-    # half width, used half height (m: RoiGeometry.limit)
+    roi: NDArray[np.float64]  # (8,) half width, half height, cell width, cell height, used
+    # half width, used half height (RoiGeometry.limit), margin in a cell along x, along y (m)
     grid: int  # regions per side
     light: NDArray[np.float64]  # (3,) light position, metres
     light_normal: NDArray[np.float64]  # (3,) emitting normal (ignored unless has_normal)
@@ -128,6 +128,7 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     dirs = np.zeros((n, 7))
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     hw, hh, cell_x, cell_y, lim_x, lim_y = roi[0], roi[1], roi[2], roi[3], roi[4], roi[5]
+    mx, my = roi[6], roi[7]
     # pass 1: which region each pixel sees (map_regions), and the mean directions
     for i in range(h):
         y = (r0 + i - cy) / fy
@@ -150,6 +151,10 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
             if not (ix >= 0 and ix < grid and iy >= 0 and iy < grid):
                 continue
             if not (abs(p0) < lim_x and abs(p1) < lim_y):
+                continue
+            ex = ux - ix * cell_x
+            ey = uy - iy * cell_y
+            if not (ex >= mx and ex <= cell_x - mx and ey >= my and ey <= cell_y - my):
                 continue
             r = int(iy * grid + ix)
             label[i, j] = r

@@ -29,6 +29,7 @@ from gonio.capture.fiducials import (
     has_distortion,
     map_regions,
     roi_geometry,
+    spread_margins,
     undistorted_coordinates,
 )
 from gonio.capture.hdr import check_bracket, merge_bracket
@@ -42,6 +43,7 @@ __all__ = [
     "board_obliquity_deg",
     "invalid_pose",
     "measure_pose",
+    "region_margins",
 ]
 
 #: Where a pose's camera geometry came from (:attr:`PoseMeasurement.geometry_source`).
@@ -189,6 +191,7 @@ def measure_pose(
     with np.errstate(invalid="ignore", divide="ignore"):  # empty regions: NaN, flagged
         wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
         wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+    _horizon_flags(wi, lp, setup, npx, flags, reasons)
     names = tuple(f.name for f in frames)
     return PoseMeasurement(
         pose, kind, wi, wo, L, Lv, G, Q, Qv, flags, reasons, names, cam, regions, kernel, source
@@ -297,6 +300,56 @@ def _board_vs_rig(
     return flags, reasons
 
 
+def region_margins(
+    cam: CameraPose, light_position: NDArray[np.float64], setup: ReductionSetup
+) -> tuple[float, float]:
+    """The margins inside each region (metres along x, y) that keep its spread of
+    directions, from the camera and from the light, within
+    ``setup.max_region_spread_deg`` (:func:`gonio.capture.fiducials.spread_margins`;
+    none when it is None)."""
+    if setup.max_region_spread_deg is None:
+        return (0.0, 0.0)
+    hw = 0.5 * setup.roi_fraction * setup.sample_size[0]
+    hh = 0.5 * setup.roi_fraction * setup.sample_size[1]
+    cell = (2 * hw / setup.grid, 2 * hh / setup.grid)
+    return spread_margins(
+        [cam.position, light_position], cell, (hw, hh), setup.max_region_spread_deg
+    )
+
+
+def _horizon_flags(
+    wi: NDArray[np.float64],
+    lp: NDArray[np.float64],
+    setup: ReductionSetup,
+    npx: NDArray[np.float64],
+    flags: NDArray[np.uint32],
+    reasons: list[list[str]],
+) -> None:
+    """Flag SHADOWED (in place, with the reason) the regions whose light is not wholly
+    above their horizon.
+
+    ``G(x)`` clips the light at the horizon by its centre only (``max(cos theta_i, 0)``:
+    a light below it gives nothing, a disk across it is counted whole), so a region
+    whose light's centre is less than the disk's angular radius above its horizon
+    (theta_i within ``asin(r / d)`` of 90 deg: 0.23 deg for a 2 mm disk at 0.5 m) would
+    get an irradiance that is silently wrong, and one below it none at all (an
+    infinite BRDF).  ``d`` is taken as the light's distance from the sample's nearest
+    point (the radius' largest angle).
+    """
+    r = float(setup.light_radius or 0.0)
+    d = float(np.linalg.norm(lp)) - 0.5 * math.hypot(*setup.sample_size)
+    ang = math.asin(min(1.0, r / d)) if d > 0 else 0.5 * math.pi
+    with np.errstate(invalid="ignore"):
+        elev = np.degrees(np.arcsin(np.clip(wi[:, 2], -1.0, 1.0)))
+    for j in np.flatnonzero((npx > 0) & ~(elev > math.degrees(ang))):
+        flags[j] |= _flag("SHADOWED")
+        reasons[j].append(
+            f"the light is {elev[j]:.3f} deg above the region's horizon, within its "
+            f"angular radius {math.degrees(ang):.3f} deg: part of it (or all) is below "
+            "the horizon, where the irradiance model does not hold"
+        )
+
+
 def _region_flags(
     npx: NDArray[np.float64],
     any_sat: NDArray[np.bool_],
@@ -353,6 +406,7 @@ def _pose_sums_numpy(
         roi_fraction=setup.roi_fraction,
         grid=setup.grid,
         dist=setup.dist,
+        inner_margin=region_margins(cam, lp, setup),
     )
     merged = merge_bracket(frames, setup.noise, dark_variance, region=regions.box)
     n, nc = regions.n_regions, len(CHANNELS)
@@ -459,6 +513,7 @@ def _pose_sums_fused(
         roi_fraction=setup.roi_fraction,
         grid=setup.grid,
         dist=setup.dist,
+        inner_margin=region_margins(cam, lp, setup),
     )
     box = roi.box
     r0, c0 = box[0].start, box[1].start
@@ -522,7 +577,7 @@ def _pose_sums_fused(
         cpos=np.asarray(cam.position, float),
         r0=int(r0),
         c0=int(c0),
-        roi=np.array([hw, hh, *roi.cell, *roi.limit]),
+        roi=np.array([hw, hh, *roi.cell, *roi.limit, *roi.inner_margin]),
         grid=int(roi.grid),
         light=lp,
         light_normal=np.zeros(3) if light_normal is None else light_normal,

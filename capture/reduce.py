@@ -522,12 +522,14 @@ def _reason_key(reason: str) -> str:
         "no decodable frame",
         "pose could not be reduced",
         "no pixels",
+        "region's horizon",
     ):
         if key in reason:
             return {
                 "signal-to-noise": "underexposed",
                 "camera direction": "geometry mismatch",
                 "camera position": "geometry mismatch",
+                "region's horizon": "light at the horizon",
             }.get(key, key)
     return reason.split(":")[0][:60]
 

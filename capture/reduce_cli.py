@@ -72,6 +72,15 @@ from gonio.errors import ReductionError
     "[default: reduction.toml's, else auto]",
 )
 @click.option(
+    "--max-region-spread-deg",
+    "max_spread",
+    type=click.FloatRange(0.0, 90.0, min_open=True),
+    default=None,
+    help="Trim each region to a spread of directions of at most this many degrees, seen "
+    "from the camera and from the light (never along a grazing view's tilt).  "
+    "[default: reduction.toml's, else whole regions]",
+)
+@click.option(
     "--threads",
     type=click.IntRange(1, 64),
     default=None,
@@ -94,6 +103,7 @@ def reduce_cmd(
     roi_fraction: float | None,
     tolerance_deg: float | None,
     geometry: str | None,
+    max_spread: float | None,
     threads: int | None,
     no_plot: bool,
     force: bool,
@@ -148,6 +158,7 @@ def reduce_cmd(
             roi_fraction=roi_fraction,
             geometry_tolerance_deg=tolerance_deg,
             geometry=geometry,
+            max_region_spread_deg=max_spread,
         ).items()
         if v is not None
     }

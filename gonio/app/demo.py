@@ -34,6 +34,8 @@ DEFAULT_MATERIAL = "lambert+ggx albedo=0.50,0.40,0.30 ks=0.2 alpha=0.2"
 DEFAULT_POSES = 240
 #: The demo's grid reaches theta_i and theta_o of this many degrees (and no further).
 MAX_THETA_DEG = 80.0
+#: The demo's regions: their directions' spread (deg) seen from camera and light.
+REGION_SPREAD_DEG = 0.3
 
 
 # --------------------------------------------------------------------------------------
@@ -358,18 +360,24 @@ def run_demo(
     # From the board alone, a ~0.04 deg pose error per view at this resolution is a
     # percent of BRDF on a lobe's flank, shared by the pose's regions.
     # Regions of ~5 mm: a region's mean over its spread of directions flattens a lobe's
-    # peak in proportion to (region size / lobe width)^2; 6 x 6 regions keep that below
-    # the noise for alpha >= 0.1 while each region still has ~100 pixels.
+    # peak in proportion to (spread / lobe width)^2; 6 x 6 regions, each trimmed to a
+    # spread of 0.3 deg from the camera and the light (~2.1 mm at normal view, the whole
+    # cell along the tilt of a grazing view), keep that below the noise for alpha >= 0.1.
     if calibration is None:
         setup = resolve_setup(session, load_manifest(session))
-        setup = dataclasses.replace(setup, geometry="rig", grid=6)  # = --geometry rig --grid 6
+        # = --geometry rig --grid 6 --max-region-spread-deg 0.3
+        setup = dataclasses.replace(
+            setup, geometry="rig", grid=6, max_region_spread_deg=REGION_SPREAD_DEG
+        )
     else:
-        # = --camera-calibration camera.toml --grid 6: the calibrated camera; each view's
-        # pose from the board, the calibrated rig checking it (and giving the light).
+        # = --camera-calibration camera.toml --grid 6 --max-region-spread-deg 0.3: the
+        # calibrated camera; each view's pose from the board where it shows enough of it
+        # (geometry "auto"), else from the calibrated rig, which checks the board and
+        # gives the light.
         setup = resolve_setup(
             session, load_manifest(session), camera_calibration=calibration.camera_file
         )
-        setup = dataclasses.replace(setup, grid=6)
+        setup = dataclasses.replace(setup, grid=6, max_region_spread_deg=REGION_SPREAD_DEG)
     red = reduce_session(session, setup=setup, plot=True)
     seconds["reduce"] = time.perf_counter() - t
 
