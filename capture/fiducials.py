@@ -20,6 +20,7 @@ Pixel coordinates follow OpenCV: the centre of pixel (row r, column c) is at u =
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -151,12 +152,26 @@ def _cell_scales(frame: RawFrame) -> tuple[NDArray[np.float64], NDArray[np.float
     # ~2500 samples per CFA position: the median is then good to ~2 %, plenty to
     # equalise the channels for corner refinement
     step = 2 * max(1, int(np.sqrt(src.size / 1e4)) // 2 * 2 + 1)
+    h, w = (src.shape[0] // 2) * 2, (src.shape[1] // 2) * 2
+    sub = [
+        [src[i:h:step, j:w:step].astype(np.float64) - black[i, j] for j in range(2)]
+        for i in range(2)
+    ]
+    # The medians are taken over the same 2x2 cells, the ones with signal: a plain
+    # median over the whole frame falls on the cliff between the unlit background (~0)
+    # and the board when each covers about half of the frame, and then came out ~0 for
+    # one channel and ~100 DN for another (a Bayer checker over the whole grey image:
+    # no marker was found in a plainly visible board).  On the neutral print the cells'
+    # channel values are one level times the cell's brightness, so the medians over any
+    # set of cells keep the channels' ratios.
+    total = sub[0][0] + sub[0][1] + sub[1][0] + sub[1][1]
+    lit = total > 0.2 * float(np.percentile(total, 99))
     level = np.empty((2, 2))
     for i in range(2):
         for j in range(2):
-            sub = src[i::step, j::step].astype(np.float64) - black[i, j]
-            med = float(np.median(sub))
-            level[i, j] = med if med > 0 else max(float(sub.max()), 1.0)
+            vals = sub[i][j][lit] if np.count_nonzero(lit) >= 16 else sub[i][j].ravel()
+            med = float(np.median(vals))
+            level[i, j] = med if med > 0 else max(float(sub[i][j].max()), 1.0)
     return np.asarray(black, float), level
 
 
@@ -454,8 +469,13 @@ class RoiGeometry:
         Half width and half height of the ROI on the sample, metres.
     cell
         Width and height of one grid cell, metres.
-    margin
-        Margin kept from every cell boundary, metres (``margin_px`` on the sample).
+    limit
+        Half width and half height, metres, of the part of the ROI whose pixels are used:
+        the ROI less what lies within ``margin_px`` image pixels of the sample's edge
+        (:func:`edge_margins`); all of it unless the view is near grazing.
+    inner_margin
+        Margin kept inside every cell along x and along y, metres
+        (:func:`spread_margins`: it bounds the spread of directions within a region).
     grid
         Regions per side.
     centers
@@ -465,9 +485,10 @@ class RoiGeometry:
     box: tuple[slice, slice]
     half_size: tuple[float, float]
     cell: tuple[float, float]
-    margin: float
+    limit: tuple[float, float]
     grid: int
     centers: NDArray[np.float64]
+    inner_margin: tuple[float, float] = (0.0, 0.0)
 
 
 def roi_geometry(
@@ -480,6 +501,7 @@ def roi_geometry(
     grid: int = 3,
     margin_px: float = 2.0,
     dist: ArrayLike | None = None,
+    inner_margin: tuple[float, float] = (0.0, 0.0),
 ) -> RoiGeometry:
     """The ROI's crop and grid in one camera pose (see :func:`map_regions`).
 
@@ -510,10 +532,8 @@ def roi_geometry(
             f"the sample's ROI (columns {c0}..{c1}, rows {r0}..{r1}) is not inside the "
             f"{W}x{H} image"
         )
-    # a metre on the sample near the ROI is this many pixels: turns the pixel margin into
-    # a margin on the sample plane
-    dist = float(np.linalg.norm(pose.translation))
-    m = margin_px * dist / K[0, 0] / max(float(pose.position[2]) / dist, 0.2)
+    mx, my = edge_margins(pose, K, sample_size, (hw, hh), margin_px)
+    limit = (min(hw, 0.5 * sample_size[0] - mx), min(hh, 0.5 * sample_size[1] - my))
     cell_x, cell_y = 2 * hw / grid, 2 * hh / grid
     g = np.arange(grid) + 0.5
     cx, cy = np.meshgrid(-hw + g * cell_x, -hh + g * cell_y)
@@ -521,10 +541,132 @@ def roi_geometry(
         (slice(r0, r1), slice(c0, c1)),
         (hw, hh),
         (cell_x, cell_y),
-        m,
+        limit,
         grid,
         np.stack([cx.ravel(), cy.ravel()], axis=1),
+        (float(inner_margin[0]), float(inner_margin[1])),
     )
+
+
+def edge_margins(
+    pose: CameraPose,
+    K: ArrayLike,
+    sample_size: tuple[float, float],
+    half_size: tuple[float, float],
+    margin_px: float,
+) -> tuple[float, float]:
+    """How far (metres, along x and along y on the sample) ``margin_px`` image pixels
+    reach across the sample's edges next to the ROI.
+
+    A pixel whose centre is ``d`` metres (along x) from the edge ``x = const`` is
+    ``d / |grad x|`` pixels from that edge's image, ``grad x`` the gradient of the
+    sample-plane ``x`` over the image ``(u, v)`` (a row of the inverse Jacobian of the
+    plane's projection): the margin along x is ``margin_px |grad x|``, evaluated where
+    the edges meet the ROI's extent and the largest taken.  Along the view's tilt a
+    pixel covers ``1 / cos(theta_o)`` times more of the sample than across it, which a
+    single margin for both axes (the former rule) cannot say: it blanked every region of
+    a 6 x 6 grid at theta_o 60 deg at 320 x 240.
+
+    Parameters
+    ----------
+    pose
+        Camera pose (sample frame).
+    K
+        Camera matrix, pixels.
+    sample_size
+        Sample width (x) and height (y), metres, centred on the origin.
+    half_size
+        The ROI's half width and half height, metres.
+    margin_px
+        The margin, image pixels.
+
+    Returns
+    -------
+    (mx, my)
+        Metres; inf when an edge point is behind the camera.
+    """
+    K = np.asarray(K, float)
+    sx, sy = 0.5 * sample_size[0], 0.5 * sample_size[1]
+    hw, hh = half_size
+    R, t = np.asarray(pose.rotation, float), np.asarray(pose.translation, float)
+    out = []
+    for pts, axis in (
+        (np.array([[a * sx, b * hh] for a in (-1, 1) for b in (-1, 0, 1)]), 0),
+        (np.array([[a * hw, b * sy] for a in (-1, 0, 1) for b in (-1, 1)]), 1),
+    ):
+        pc = pts @ R[:, :2].T + t  # (n, 3) camera coordinates of plane points
+        z = pc[:, 2]
+        if not np.all(z > 0):
+            out.append(math.inf)
+            continue
+        # d(u, v)/d(x, y) of u = fx X/Z + cx, v = fy Y/Z + cy, (X, Y, Z) = R[:, :2] p + t
+        J = np.empty((len(pts), 2, 2))
+        for r, f in ((0, K[0, 0]), (1, K[1, 1])):
+            for c in range(2):
+                J[:, r, c] = f * (R[r, c] * z - pc[:, r] * R[2, c]) / z**2
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+        # |row `axis` of J^-1| = |d(axis)/d(u, v)|, metres per pixel: J^-1 is
+        # [[J11, -J01], [-J10, J00]] / det
+        col = 1 - axis
+        with np.errstate(divide="ignore", invalid="ignore"):
+            grad = np.hypot(J[:, 0, col], J[:, 1, col]) / np.abs(det)
+        m = float(np.max(grad)) if np.all(np.isfinite(grad)) else math.inf
+        out.append(margin_px * m)
+    return out[0], out[1]
+
+
+def spread_margins(
+    positions: list[ArrayLike],
+    cell: tuple[float, float],
+    half_size: tuple[float, float],
+    max_spread_deg: float,
+) -> tuple[float, float]:
+    """Margins inside each grid cell (metres, along x and along y) that keep the spread
+    of directions within a region below ``max_spread_deg`` as seen from every position
+    (the camera's and the light's centres).
+
+    A region reports the mean of its pixels' directions while its value is the mean of
+    the BRDF over them: on a lobe that flattens the peak by about (spread / lobe
+    width)^2, a bias shared by every region at that place of the lobe.  Moving a point
+    on the sample by ``dx`` along axis ``a`` turns the unit direction from it towards a
+    position P by ``sqrt(1 - (w . e_a)^2) dx / |P - x|``, so along an axis the sample is
+    seen foreshortened from P (at grazing views, along the tilt) a whole cell stays
+    within the spread and nothing is trimmed, where a fixed margin in pixels or metres
+    (the former rule) left oblique regions without pixels.  The rate is taken at the
+    ROI's corners and centre (its largest), the margin is what the cell has beyond the
+    allowed extent, split between its two sides.
+
+    Parameters
+    ----------
+    positions
+        (3,) points in the sample frame, metres (camera centre, light centre).
+    cell
+        Cell width and height, metres.
+    half_size
+        The ROI's half width and half height, metres.
+    max_spread_deg
+        Largest extent of a region's directions, degrees (full width).
+
+    Returns
+    -------
+    (mx, my)
+        Metres, each in ``[0, cell / 2)``.
+    """
+    hw, hh = half_size
+    q = np.array([[0.0, 0.0, 0.0], *[[a * hw, b * hh, 0.0] for a in (-1, 1) for b in (-1, 1)]])
+    rate = np.zeros(2)
+    for pos in positions:
+        v = np.asarray(pos, float)[None, :] - q
+        d = np.linalg.norm(v, axis=1)
+        u = v / d[:, None]
+        for a in range(2):
+            rate[a] = max(rate[a], float(np.max(np.sqrt(1.0 - u[:, a] ** 2) / d)))
+    spread = math.radians(max_spread_deg)
+    out = []
+    for a in range(2):
+        allowed = spread / rate[a] if rate[a] > 0 else math.inf
+        out.append(max(0.0, 0.5 * (cell[a] - allowed)))
+    return out[0], out[1]
 
 
 #: Round trip (undistort, then distort with ``cv2.projectPoints``) that
@@ -758,6 +900,7 @@ def map_regions(
     grid: int = 3,
     margin_px: float = 2.0,
     dist: ArrayLike | None = None,
+    inner_margin: tuple[float, float] = (0.0, 0.0),
 ) -> RegionMap:
     """Split the sample's central area into ``grid x grid`` regions and find their pixels.
 
@@ -776,11 +919,22 @@ def map_regions(
     grid
         Regions per side; small regions keep the spread of directions in each small.
     margin_px
-        Pixels whose centre lies closer than this to a region boundary (in the image) are
-        left out, so no pixel mixes two regions or the holder.
+        Pixels whose centre lies closer than this (in the image) to the sample's edge are
+        left out, so that no pixel mixes the holder in (:func:`edge_margins`; with the
+        ROI inside the sample this removes pixels only near grazing).  It is not a
+        margin between regions: a pixel there measures the mean radiance of its
+        footprint at its centre's directions in whichever region it is counted, and at
+        oblique views a region is only a few pixels across its tilt (at theta_o 80 deg
+        a 5 mm region is 1.3 pixels high at 320 x 240), so that a pixel margin there
+        left regions without any pixel; ``inner_margin`` trims regions for another
+        reason (their spread of directions).
     dist
         Lens distortion (OpenCV coefficients): every pixel's ray is then the undistorted
         one (:func:`pixel_rays`); None or zeros keep the pinhole camera.
+    inner_margin
+        Metres kept free inside each cell along x and along y (:func:`spread_margins`,
+        which bounds the spread of a region's directions): pixels closer to a cell's
+        boundary are left out.
 
     Raises
     ------
@@ -797,17 +951,20 @@ def map_regions(
         grid=grid,
         margin_px=margin_px,
         dist=dist,
+        inner_margin=inner_margin,
     )
     dist = np.asarray(dist, float) if has_distortion(dist) else None
     xyz, vign = rays = pixel_rays(pose, K, roi.box, dist)
-    (hw, hh), (cell_x, cell_y), m = roi.half_size, roi.cell, roi.margin
+    (hw, hh), (cell_x, cell_y), (lx, ly) = roi.half_size, roi.cell, roi.limit
+    mx, my = roi.inner_margin
     ux, uy = xyz[0] + hw, xyz[1] + hh
     ix = np.floor(ux / cell_x)
     iy = np.floor(uy / cell_y)
     fx = ux - ix * cell_x
     fy = uy - iy * cell_y
     inside = (ix >= 0) & (ix < grid) & (iy >= 0) & (iy < grid)
-    inside &= (fx > m) & (fx < cell_x - m) & (fy > m) & (fy < cell_y - m)
+    inside &= (np.abs(xyz[0]) < lx) & (np.abs(xyz[1]) < ly)
+    inside &= (fx >= mx) & (fx <= cell_x - mx) & (fy >= my) & (fy <= cell_y - my)
     label = np.where(inside, iy * grid + ix, -1).astype(np.int64)
     return RegionMap(roi.box, label, grid * grid, roi.centers, pose, K, {"_rays": rays}, dist)
 

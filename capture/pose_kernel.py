@@ -86,7 +86,8 @@ class View(NamedTuple):
     cpos: NDArray[np.float64]  # (3,) camera centre, sample frame, metres
     r0: int  # crop origin in the image, pixels
     c0: int
-    roi: NDArray[np.float64]  # (5,) half width, half height, cell width, cell height, margin (m)
+    roi: NDArray[np.float64]  # (8,) half width, half height, cell width, cell height, used
+    # half width, used half height (RoiGeometry.limit), margin in a cell along x, along y (m)
     grid: int  # regions per side
     light: NDArray[np.float64]  # (3,) light position, metres
     light_normal: NDArray[np.float64]  # (3,) emitting normal (ignored unless has_normal)
@@ -126,7 +127,8 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     sums = np.zeros((n, n_channels, 7))
     dirs = np.zeros((n, 7))
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
-    hw, hh, cell_x, cell_y, m = roi[0], roi[1], roi[2], roi[3], roi[4]
+    hw, hh, cell_x, cell_y, lim_x, lim_y = roi[0], roi[1], roi[2], roi[3], roi[4], roi[5]
+    mx, my = roi[6], roi[7]
     # pass 1: which region each pixel sees (map_regions), and the mean directions
     for i in range(h):
         y = (r0 + i - cy) / fy
@@ -146,11 +148,13 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
             uy = p1 + hh
             ix = math.floor(ux / cell_x)
             iy = math.floor(uy / cell_y)
-            ex = ux - ix * cell_x
-            ey = uy - iy * cell_y
             if not (ix >= 0 and ix < grid and iy >= 0 and iy < grid):
                 continue
-            if not (ex > m and ex < cell_x - m and ey > m and ey < cell_y - m):
+            if not (abs(p0) < lim_x and abs(p1) < lim_y):
+                continue
+            ex = ux - ix * cell_x
+            ey = uy - iy * cell_y
+            if not (ex >= mx and ex <= cell_x - mx and ey >= my and ey <= cell_y - my):
                 continue
             r = int(iy * grid + ix)
             label[i, j] = r

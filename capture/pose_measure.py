@@ -1,7 +1,8 @@
 """One pose's measurement: camera pose, regions, merged radiance per region, flags.
 
-:func:`measure_pose` finds the holder's ChArUco board in the best-exposed frame (or takes
-the rig's reported camera pose, flagging the pose), maps the sample's central area onto
+:func:`measure_pose` finds the holder's ChArUco board in the best-exposed frame and takes
+the camera pose from it or from the rig's report (``[reduction] geometry``: board, rig, or
+auto, the board where it is trustworthy, else the rig), maps the sample's central area onto
 ``grid x grid`` regions, merges the bracket with inverse-variance weights, and sums each
 region per CFA channel with Bayer-centred weights (:mod:`gonio.capture.bayer`).  The sums
 come from the fused numba kernel (:mod:`gonio.capture.pose_kernel`) when it can run, else
@@ -28,6 +29,7 @@ from gonio.capture.fiducials import (
     has_distortion,
     map_regions,
     roi_geometry,
+    spread_margins,
     undistorted_coordinates,
 )
 from gonio.capture.hdr import check_bracket, merge_bracket
@@ -35,7 +37,17 @@ from gonio.capture.raw import CHANNELS, RawFrame
 from gonio.capture.reduction_config import ReductionSetup
 from gonio.errors import ReductionError
 
-__all__ = ["PoseMeasurement", "invalid_pose", "measure_pose"]
+__all__ = [
+    "GeometrySource",
+    "PoseMeasurement",
+    "board_obliquity_deg",
+    "invalid_pose",
+    "measure_pose",
+    "region_margins",
+]
+
+#: Where a pose's camera geometry came from (:attr:`PoseMeasurement.geometry_source`).
+GeometrySource = Literal["board", "rig", "none"]
 
 
 @dataclass
@@ -61,13 +73,19 @@ class PoseMeasurement:
     frames
         Files of the bracket.
     camera
-        Camera pose from the board (None when not found).
+        The camera pose the regions were mapped with (the board's or the rig's: see
+        ``geometry_source``), None for no measurement.
     regions
         The :class:`RegionMap` (pixel sets), for inspection and tests.
     kernel
         Which path computed the region sums: ``"numba"`` (the fused kernel,
         :mod:`gonio.capture.pose_kernel`), ``"numpy"`` (its reference,
         :func:`_pose_sums_numpy`), or ``"none"`` (no measurement: :func:`invalid_pose`).
+    geometry_source
+        Where the camera pose of the regions came from: ``"board"`` (the holder's
+        ChArUco board in this pose's frames), ``"rig"`` (the rig's read-back pose through
+        its kinematics, calibrated when the session's rig is) or ``"none"`` (no
+        measurement: :func:`invalid_pose`); see ``[reduction] geometry``.
     """
 
     pose: int
@@ -85,6 +103,7 @@ class PoseMeasurement:
     camera: CameraPose | None = None
     regions: RegionMap | None = None
     kernel: Literal["numba", "numpy", "none"] = "none"
+    geometry_source: GeometrySource = "none"
 
 
 def _flag(name: str) -> int:
@@ -133,8 +152,10 @@ def measure_pose(
     reported_wo
         The rig's reported direction to the camera (sample frame), for the geometry check.
     reported_camera
-        The rig's reported camera ``(position, world-to-camera rotation)``: used when the
-        board cannot be seen (the samples are then flagged GEOMETRY_MISMATCH).
+        The rig's reported camera ``(position, world-to-camera rotation)``: the geometry
+        with ``setup.geometry = "rig"``, and with ``"auto"`` where the board is not found,
+        shows too few corners or is seen too obliquely; with ``"board"`` the fallback
+        when the board cannot be seen (the samples are then flagged GEOMETRY_MISMATCH).
     dark_variance
         Variance (DN^2) added by the subtracted master dark.
 
@@ -143,7 +164,9 @@ def measure_pose(
     ReductionError
         When neither the board nor a reported camera pose gives the geometry.
     """
-    cam, pose_flags, pose_reasons = _camera_pose(frames, setup, reported_wo, reported_camera)
+    cam, pose_flags, pose_reasons, source = _camera_pose(
+        frames, setup, reported_wo, reported_camera
+    )
     lp = np.asarray(light_position, float)
     ln = None if light_normal is None else np.asarray(light_normal, float)
     fused = _fused_kernel() if all(f.raw is not None for f in frames) else None
@@ -168,9 +191,10 @@ def measure_pose(
     with np.errstate(invalid="ignore", divide="ignore"):  # empty regions: NaN, flagged
         wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
         wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+    _horizon_flags(wi, lp, setup, npx, flags, reasons)
     names = tuple(f.name for f in frames)
     return PoseMeasurement(
-        pose, kind, wi, wo, L, Lv, G, Q, Qv, flags, reasons, names, cam, regions, kernel
+        pose, kind, wi, wo, L, Lv, G, Q, Qv, flags, reasons, names, cam, regions, kernel, source
     )
 
 
@@ -179,47 +203,151 @@ def _camera_pose(
     setup: ReductionSetup,
     reported_wo: NDArray[np.float64] | None,
     reported_camera: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
-) -> tuple[CameraPose, int, list[str]]:
-    """The pose's camera from the board, checked against the rig's report: ``(camera,
-    flags, reasons)``, the flags and reasons shared by every region of the pose."""
-    pose_flags = 0
-    pose_reasons: list[str] = []
+) -> tuple[CameraPose, int, list[str], GeometrySource]:
+    """The pose's camera by ``setup.geometry``: ``(camera, flags, reasons, source)``, the
+    flags and reasons shared by every region of the pose, ``source`` ``"board"`` or
+    ``"rig"``.
+
+    - ``"board"``: the board's pose, checked against the rig's report; without a board
+      the rig's pose, flagged GEOMETRY_MISMATCH.
+    - ``"rig"``: the rig's pose, checked by the board when one is found.
+    - ``"auto"``: the board's pose (checked against the rig's) when the board is
+      trustworthy -- found with at least ``min_board_corners`` corners and seen at most
+      ``max_board_obliquity_deg`` off its normal -- else the rig's pose, not flagged: a
+      view that shows too little of the board says nothing against the rig.
+
+    Without a reported camera pose the board is the only source (refused without one).
+    """
     det = _detection_frame(frames)
     expected = None if reported_camera is None else _reported_pose(reported_camera, math.nan, 0)
     try:
-        cam = detect_pose_in_frame(det, setup.board, setup.K, setup.dist, expected=expected)
+        cam: CameraPose | None = detect_pose_in_frame(
+            det, setup.board, setup.K, setup.dist, expected=expected
+        )
+        lost = ""
     except ReductionError as exc:
         if reported_camera is None:
             raise
-        cam = _reported_pose(reported_camera, math.nan, 0)
-        pose_flags |= _flag("GEOMETRY_MISMATCH")
-        pose_reasons.append(f"board not found ({exc}); the rig's camera pose was used")
-    else:
-        if reported_wo is not None:
-            ang = math.degrees(
-                float(
-                    angle_between(
-                        cam.position / np.linalg.norm(cam.position), np.asarray(reported_wo, float)
-                    )
+        cam, lost = None, str(exc)
+    if reported_camera is None:
+        assert cam is not None
+        return cam, 0, [], "board"
+    rig = _reported_pose(
+        reported_camera,
+        math.nan if cam is None else cam.reprojection_rms,
+        0 if cam is None else cam.n_corners,
+    )
+    mode = setup.geometry
+    if mode == "auto" and cam is not None and not _board_trusted(cam, setup):
+        cam = None
+    if cam is None:
+        if mode == "board":
+            why = f"board not found ({lost}); the rig's camera pose was used"
+            return rig, _flag("GEOMETRY_MISMATCH"), [why], "rig"
+        return rig, 0, [], "rig"
+    flags, reasons = _board_vs_rig(cam, setup, reported_wo, reported_camera)
+    if mode == "rig":
+        return rig, flags, reasons, "rig"
+    return cam, flags, reasons, "board"
+
+
+def board_obliquity_deg(cam: CameraPose) -> float:
+    """Angle (deg) between the board's normal (the sample's +z) and the direction from
+    the sample's centre to the camera, by the board's own pose: its theta_o."""
+    p = np.asarray(cam.position, float)
+    return math.degrees(math.atan2(math.hypot(p[0], p[1]), p[2]))
+
+
+def _board_trusted(cam: CameraPose, setup: ReductionSetup) -> bool:
+    """Whether ``geometry = "auto"`` takes this board pose over the rig's."""
+    return (
+        cam.n_corners >= setup.min_board_corners
+        and board_obliquity_deg(cam) <= setup.max_board_obliquity_deg
+    )
+
+
+def _board_vs_rig(
+    cam: CameraPose,
+    setup: ReductionSetup,
+    reported_wo: NDArray[np.float64] | None,
+    reported_camera: tuple[NDArray[np.float64], NDArray[np.float64]],
+) -> tuple[int, list[str]]:
+    """GEOMETRY_MISMATCH and its reasons when the board's camera and the rig's disagree
+    by more than the tolerances (direction, position)."""
+    flags = 0
+    reasons: list[str] = []
+    if reported_wo is not None:
+        ang = math.degrees(
+            float(
+                angle_between(
+                    cam.position / np.linalg.norm(cam.position), np.asarray(reported_wo, float)
                 )
             )
-            if ang > setup.geometry_tolerance_deg:
-                pose_flags |= _flag("GEOMETRY_MISMATCH")
-                pose_reasons.append(
-                    f"camera direction from the board is {ang:.2f} deg from the rig's report "
-                    f"(tolerance {setup.geometry_tolerance_deg} deg)"
-                )
-        if reported_camera is not None:
-            dpos = float(np.linalg.norm(cam.position - np.asarray(reported_camera[0], float)))
-            if dpos > setup.position_tolerance_m:
-                pose_flags |= _flag("GEOMETRY_MISMATCH")
-                pose_reasons.append(
-                    f"camera position from the board is {dpos * 1e3:.1f} mm from the rig's "
-                    f"report (tolerance {setup.position_tolerance_m * 1e3:g} mm)"
-                )
-    if setup.geometry == "rig" and reported_camera is not None and not pose_flags:
-        cam = _reported_pose(reported_camera, cam.reprojection_rms, cam.n_corners)
-    return cam, pose_flags, pose_reasons
+        )
+        if ang > setup.geometry_tolerance_deg:
+            flags |= _flag("GEOMETRY_MISMATCH")
+            reasons.append(
+                f"camera direction from the board is {ang:.2f} deg from the rig's report "
+                f"(tolerance {setup.geometry_tolerance_deg} deg)"
+            )
+    dpos = float(np.linalg.norm(cam.position - np.asarray(reported_camera[0], float)))
+    if dpos > setup.position_tolerance_m:
+        flags |= _flag("GEOMETRY_MISMATCH")
+        reasons.append(
+            f"camera position from the board is {dpos * 1e3:.1f} mm from the rig's "
+            f"report (tolerance {setup.position_tolerance_m * 1e3:g} mm)"
+        )
+    return flags, reasons
+
+
+def region_margins(
+    cam: CameraPose, light_position: NDArray[np.float64], setup: ReductionSetup
+) -> tuple[float, float]:
+    """The margins inside each region (metres along x, y) that keep its spread of
+    directions, from the camera and from the light, within
+    ``setup.max_region_spread_deg`` (:func:`gonio.capture.fiducials.spread_margins`;
+    none when it is None)."""
+    if setup.max_region_spread_deg is None:
+        return (0.0, 0.0)
+    hw = 0.5 * setup.roi_fraction * setup.sample_size[0]
+    hh = 0.5 * setup.roi_fraction * setup.sample_size[1]
+    cell = (2 * hw / setup.grid, 2 * hh / setup.grid)
+    return spread_margins(
+        [cam.position, light_position], cell, (hw, hh), setup.max_region_spread_deg
+    )
+
+
+def _horizon_flags(
+    wi: NDArray[np.float64],
+    lp: NDArray[np.float64],
+    setup: ReductionSetup,
+    npx: NDArray[np.float64],
+    flags: NDArray[np.uint32],
+    reasons: list[list[str]],
+) -> None:
+    """Flag SHADOWED (in place, with the reason) the regions whose light is not wholly
+    above their horizon.
+
+    ``G(x)`` clips the light at the horizon by its centre only (``max(cos theta_i, 0)``:
+    a light below it gives nothing, a disk across it is counted whole), so a region
+    whose light's centre is less than the disk's angular radius above its horizon
+    (theta_i within ``asin(r / d)`` of 90 deg: 0.23 deg for a 2 mm disk at 0.5 m) would
+    get an irradiance that is silently wrong, and one below it none at all (an
+    infinite BRDF).  ``d`` is taken as the light's distance from the sample's nearest
+    point (the radius' largest angle).
+    """
+    r = float(setup.light_radius or 0.0)
+    d = float(np.linalg.norm(lp)) - 0.5 * math.hypot(*setup.sample_size)
+    ang = math.asin(min(1.0, r / d)) if d > 0 else 0.5 * math.pi
+    with np.errstate(invalid="ignore"):
+        elev = np.degrees(np.arcsin(np.clip(wi[:, 2], -1.0, 1.0)))
+    for j in np.flatnonzero((npx > 0) & ~(elev > math.degrees(ang))):
+        flags[j] |= _flag("SHADOWED")
+        reasons[j].append(
+            f"the light is {elev[j]:.3f} deg above the region's horizon, within its "
+            f"angular radius {math.degrees(ang):.3f} deg: part of it (or all) is below "
+            "the horizon, where the irradiance model does not hold"
+        )
 
 
 def _region_flags(
@@ -278,6 +406,7 @@ def _pose_sums_numpy(
         roi_fraction=setup.roi_fraction,
         grid=setup.grid,
         dist=setup.dist,
+        inner_margin=region_margins(cam, lp, setup),
     )
     merged = merge_bracket(frames, setup.noise, dark_variance, region=regions.box)
     n, nc = regions.n_regions, len(CHANNELS)
@@ -384,6 +513,7 @@ def _pose_sums_fused(
         roi_fraction=setup.roi_fraction,
         grid=setup.grid,
         dist=setup.dist,
+        inner_margin=region_margins(cam, lp, setup),
     )
     box = roi.box
     r0, c0 = box[0].start, box[1].start
@@ -447,7 +577,7 @@ def _pose_sums_fused(
         cpos=np.asarray(cam.position, float),
         r0=int(r0),
         c0=int(c0),
-        roi=np.array([hw, hh, *roi.cell, roi.margin]),
+        roi=np.array([hw, hh, *roi.cell, *roi.limit, *roi.inner_margin]),
         grid=int(roi.grid),
         light=lp,
         light_normal=np.zeros(3) if light_normal is None else light_normal,

@@ -66,9 +66,11 @@ __all__ = [
     "ReductionResult",
     "ReductionSetup",
     "default_threads",
+    "RETENTION_UP_TO_DEG",
     "output_lock",
     "reduce_session",
     "resolve_setup",
+    "retention",
 ]
 
 SAMPLES_FILE = "samples.h5"
@@ -183,6 +185,7 @@ def reduce_session(
         samples = run.samples(manifest)
         n_kept = int(samples.valid.sum())
         summary = run.summary(len(samples), n_kept, path)
+        summary["retention"] = retention(manifest, run.measurements, run.setup.grid)
         # One set: a kill leaves the old samples, summary and plot, or the new ones.
         with output_set(path, (path.name, SUMMARY_FILE, PLOT_FILE)) as stage:
             save_samples(stage / path.name, samples)
@@ -393,6 +396,94 @@ class _PoseRun:
         }
 
 
+#: The most grazing theta (deg) the retention's headline figure counts.
+RETENTION_UP_TO_DEG = 80.0
+
+
+def retention(
+    manifest: Mapping[str, Any],
+    measurements: list[PoseMeasurement],
+    grid: int,
+    *,
+    up_to_deg: float = RETENTION_UP_TO_DEG,
+    band_deg: float = 10.0,
+) -> dict[str, Any]:
+    """How many of the planned region samples the reduction kept (``reduction.json``
+    ``"retention"``), in all and by theta band.
+
+    Every sample pose of the plan (the manifest's ``schedule``; one pose per schedule
+    entry, in journal numbering) plans ``grid**2`` region samples, whether or not it was
+    shot; a sample is kept when it has no flag.  A pose's band is that of the larger of
+    its planned theta_i and theta_o (the more grazing direction): band ``[lo, lo +
+    band_deg]`` holds the poses with ``lo < theta <= lo + band_deg`` (the first band
+    also theta = 0).  The headline ``planned``, ``kept`` and ``fraction`` count the poses
+    up to ``up_to_deg``; bands beyond it are listed but not counted there.
+
+    Parameters
+    ----------
+    manifest
+        The session's manifest (its ``schedule``).
+    measurements
+        The measured poses (:class:`gonio.capture.pose_measure.PoseMeasurement`); a
+        planned pose without one kept nothing.
+    grid
+        Regions per side of each pose.
+    up_to_deg, band_deg
+        The headline's largest theta and the bands' width, degrees.
+
+    Returns
+    -------
+    dict
+        ``{"up_to_deg", "band_by", "planned", "kept", "fraction", "bands": [{"theta_deg":
+        [lo, hi], "planned", "kept", "fraction"}, ...], "geometry_source": {source:
+        kept samples}}``; a fraction is None where nothing was planned.
+    """
+    per_pose = grid * grid
+    kept_by_pose: dict[int, int] = {}
+    sources: Counter[str] = Counter()
+    for m in measurements:
+        if m.kind == "sample":
+            k = int(np.count_nonzero(m.flags == 0))
+            kept_by_pose[m.pose] = kept_by_pose.get(m.pose, 0) + k
+            if k:
+                sources[m.geometry_source] += k
+    n_bands = max(1, int(np.ceil(90.0 / band_deg)))
+    planned = np.zeros(n_bands, int)
+    kept = np.zeros(n_bands, int)
+    for p, entry in enumerate(manifest.get("schedule") or []):
+        if entry.get("kind") != "sample":
+            continue
+        theta = max(float(entry["theta_i_deg"]), float(entry["theta_o_deg"]))
+        band = min(max(int(np.ceil(theta / band_deg - 1e-9)) - 1, 0), n_bands - 1)
+        planned[band] += per_pose
+        kept[band] += min(kept_by_pose.get(p, 0), per_pose)
+
+    def frac(k: int, n: int) -> float | None:
+        return None if n == 0 else round(k / n, 6)
+
+    inside = np.arange(n_bands) * band_deg < up_to_deg - 1e-9
+    bands = [
+        {
+            "theta_deg": [round(b * band_deg, 6), round(min((b + 1) * band_deg, 90.0), 6)],
+            "planned": int(planned[b]),
+            "kept": int(kept[b]),
+            "fraction": frac(int(kept[b]), int(planned[b])),
+        }
+        for b in range(n_bands)
+        if planned[b] or inside[b]
+    ]
+    n, k = int(planned[inside].sum()), int(kept[inside].sum())
+    return {
+        "up_to_deg": up_to_deg,
+        "band_by": "max(theta_i, theta_o) of the pose as planned",
+        "planned": n,
+        "kept": k,
+        "fraction": frac(k, n),
+        "bands": bands,
+        "geometry_source": dict(sorted(sources.items())),
+    }
+
+
 def _write_json(path: Path, doc: Mapping[str, Any]) -> None:
     path.write_text(json.dumps(doc, indent=2, default=str) + "\n", encoding="utf-8")
 
@@ -431,12 +522,14 @@ def _reason_key(reason: str) -> str:
         "no decodable frame",
         "pose could not be reduced",
         "no pixels",
+        "region's horizon",
     ):
         if key in reason:
             return {
                 "signal-to-noise": "underexposed",
                 "camera direction": "geometry mismatch",
                 "camera position": "geometry mismatch",
+                "region's horizon": "light at the horizon",
             }.get(key, key)
     return reason.split(":")[0][:60]
 

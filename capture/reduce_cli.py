@@ -63,11 +63,22 @@ from gonio.errors import ReductionError
 )
 @click.option(
     "--geometry",
-    type=click.Choice(["board", "rig"]),
+    type=click.Choice(["auto", "board", "rig"]),
     default=None,
-    help="Camera pose from the ChArUco board in each pose, or from the rig's read-back "
-    "pose through its kinematics (a calibrated rig, or the exact simulated one); the "
-    "board checks the rig either way.  [default: reduction.toml's, else board]",
+    help="Camera pose from the ChArUco board in each pose (board), from the rig's "
+    "read-back pose through its kinematics (rig: a calibrated rig, or the exact simulated "
+    "one), or from the board where it shows enough corners and is not too oblique and "
+    "the rig elsewhere (auto); the board checks the rig wherever it is used.  "
+    "[default: reduction.toml's, else auto]",
+)
+@click.option(
+    "--max-region-spread-deg",
+    "max_spread",
+    type=click.FloatRange(0.0, 90.0, min_open=True),
+    default=None,
+    help="Trim each region to a spread of directions of at most this many degrees, seen "
+    "from the camera and from the light (never along a grazing view's tilt).  "
+    "[default: reduction.toml's, else whole regions]",
 )
 @click.option(
     "--threads",
@@ -92,6 +103,7 @@ def reduce_cmd(
     roi_fraction: float | None,
     tolerance_deg: float | None,
     geometry: str | None,
+    max_spread: float | None,
     threads: int | None,
     no_plot: bool,
     force: bool,
@@ -146,6 +158,7 @@ def reduce_cmd(
             roi_fraction=roi_fraction,
             geometry_tolerance_deg=tolerance_deg,
             geometry=geometry,
+            max_region_spread_deg=max_spread,
         ).items()
         if v is not None
     }

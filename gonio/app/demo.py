@@ -32,6 +32,10 @@ from gonio.errors import ConfigError, GonioError, SessionError
 #: The default ground truth: a glossy plastic-like material.
 DEFAULT_MATERIAL = "lambert+ggx albedo=0.50,0.40,0.30 ks=0.2 alpha=0.2"
 DEFAULT_POSES = 240
+#: The demo's grid reaches theta_i and theta_o of this many degrees (and no further).
+MAX_THETA_DEG = 80.0
+#: The demo's regions: their directions' spread (deg) seen from camera and light.
+REGION_SPREAD_DEG = 0.3
 
 
 # --------------------------------------------------------------------------------------
@@ -130,9 +134,9 @@ def _grid_for(n_poses: int) -> dict[str, Any]:
             for phis in ([0, 180], [0, 90, 180], [0, 45, 90, 135, 180]):
                 grid = {
                     "kind": "spherical",
-                    "theta_i_deg": [float(round(v, 3)) for v in np.linspace(0, 60, n_i)],
+                    "theta_i_deg": [float(round(v, 3)) for v in np.linspace(0, MAX_THETA_DEG, n_i)],
                     "phi_i_deg": [0.0],
-                    "theta_o_deg": [float(round(v, 3)) for v in np.linspace(0, 70, n_o)],
+                    "theta_o_deg": [float(round(v, 3)) for v in np.linspace(0, MAX_THETA_DEG, n_o)],
                     "phi_o_deg": [float(p) for p in phis],
                 }
                 # About 3/4 of such a grid survives the reductions and exclusions.
@@ -155,7 +159,11 @@ def _plan_dict(grid: dict[str, Any], seed: int, width: int, height: int) -> dict
         "settle_s": 0.0,
         "grid": grid,
         "reductions": {"isotropic": True, "reciprocity": True},
-        "exclusions": {"grazing_limit_deg": 75, "min_separation_deg": 12, "check_rig": True},
+        "exclusions": {
+            "grazing_limit_deg": MAX_THETA_DEG,
+            "min_separation_deg": 12,
+            "check_rig": True,
+        },
         "bracket": {
             "policy": "adaptive",
             "exposure_time_s": 0.02,
@@ -195,6 +203,13 @@ def scene_document(material: Material, width: int, height: int) -> dict[str, Any
     # A small source: a 1 cm disk at 0.5 m blurs a GGX alpha = 0.1 lobe by ~2 % in alpha,
     # which the fitted point-source model would report as a (real) bias.
     scene["lights"][0]["radius"] = 0.002
+    # Edge pixels anti-aliased (3 x 3 sub-rays): with one ray per pixel the board's
+    # squares have stair-step edges, its corners come out 0.3-0.4 px off (RMS) and the
+    # board's camera direction 0.6-0.9 deg off the (exact) rig's near normal views, so
+    # a quarter of the poses were flagged as geometry mismatches.  With 3 x 3: RMS
+    # ~0.11 px, within 0.26 deg; capture ~15 % slower (4 x 4 gains little more and costs
+    # ~50 %).
+    scene["render"]["antialias"] = 3
     return scene
 
 
@@ -219,6 +234,7 @@ class DemoResult:
     world: str = "perfect"
     world_seed: int | None = None
     calibration: Any = None
+    retention: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -239,6 +255,7 @@ class DemoResult:
             "world": self.world,
             "world_seed": self.world_seed,
             "calibration": None if self.calibration is None else self.calibration.to_json(),
+            "retention": self.retention,
         }
 
 
@@ -343,18 +360,24 @@ def run_demo(
     # From the board alone, a ~0.04 deg pose error per view at this resolution is a
     # percent of BRDF on a lobe's flank, shared by the pose's regions.
     # Regions of ~5 mm: a region's mean over its spread of directions flattens a lobe's
-    # peak in proportion to (region size / lobe width)^2; 6 x 6 regions keep that below
-    # the noise for alpha >= 0.1 while each region still has ~100 pixels.
+    # peak in proportion to (spread / lobe width)^2; 6 x 6 regions, each trimmed to a
+    # spread of 0.3 deg from the camera and the light (~2.1 mm at normal view, the whole
+    # cell along the tilt of a grazing view), keep that below the noise for alpha >= 0.1.
     if calibration is None:
         setup = resolve_setup(session, load_manifest(session))
-        setup = dataclasses.replace(setup, geometry="rig", grid=6)  # = --geometry rig --grid 6
+        # = --geometry rig --grid 6 --max-region-spread-deg 0.3
+        setup = dataclasses.replace(
+            setup, geometry="rig", grid=6, max_region_spread_deg=REGION_SPREAD_DEG
+        )
     else:
-        # = --camera-calibration camera.toml --grid 6: the calibrated camera; each view's
-        # pose from the board, the calibrated rig checking it (and giving the light).
+        # = --camera-calibration camera.toml --grid 6 --max-region-spread-deg 0.3: the
+        # calibrated camera; each view's pose from the board where it shows enough of it
+        # (geometry "auto"), else from the calibrated rig, which checks the board and
+        # gives the light.
         setup = resolve_setup(
             session, load_manifest(session), camera_calibration=calibration.camera_file
         )
-        setup = dataclasses.replace(setup, grid=6)
+        setup = dataclasses.replace(setup, grid=6, max_region_spread_deg=REGION_SPREAD_DEG)
     red = reduce_session(session, setup=setup, plot=True)
     seconds["reduce"] = time.perf_counter() - t
 
@@ -429,6 +452,7 @@ def run_demo(
         world=world,
         world_seed=None if world == "perfect" else world_seed,
         calibration=calibration,
+        retention=red.summary.get("retention"),
     )
 
 
@@ -613,6 +637,37 @@ def demo(
     _print_summary(console, res)
 
 
+def retention_table(ret: dict[str, Any]) -> Any:
+    """A rich table of ``reduction.json``'s ``"retention"``: kept of the planned region
+    samples by theta band (the larger of theta_i and theta_o), and in all up to
+    ``up_to_deg``."""
+    from rich.table import Table
+
+    def pct(f: float | None) -> str:
+        return "-" if f is None else f"{f:.1%}"
+
+    t = Table(
+        "theta band (deg)",
+        "planned",
+        "kept",
+        "retained",
+        title=f"region samples kept, by max(theta_i, theta_o) (up to {ret['up_to_deg']:g} deg)",
+    )
+    for b in ret["bands"]:
+        lo, hi = b["theta_deg"]
+        t.add_row(f"{lo:g}-{hi:g}", str(b["planned"]), str(b["kept"]), pct(b["fraction"]))
+    t.add_row(
+        f"[bold]0-{ret['up_to_deg']:g}[/]",
+        f"[bold]{ret['planned']}[/]",
+        f"[bold]{ret['kept']}[/]",
+        f"[bold]{pct(ret['fraction'])}[/]",
+    )
+    src = ", ".join(f"{k} {v}" for k, v in ret.get("geometry_source", {}).items())
+    if src:
+        t.caption = f"geometry of the kept samples: {src}"
+    return t
+
+
 def _print_summary(console: Any, res: DemoResult) -> None:
     from rich.table import Table
 
@@ -647,6 +702,8 @@ def _print_summary(console: Any, res: DemoResult) -> None:
         f"median relative BRDF error against the truth on the samples: "
         f"{res.brdf_rel_error_median:.2%}"
     )
+    if res.retention:
+        console.print(retention_table(res.retention))
     st = Table("stage", "seconds", title="time per stage")
     for k, v in res.seconds.items():
         st.add_row(k, f"{v:.1f}")

@@ -71,6 +71,33 @@ def _calibration_lines(cal: Any, out: Path) -> list[str]:
     return [*lines, ""]
 
 
+def _retention_lines(ret: dict | None) -> list[str]:
+    """``reduction.json``'s ``"retention"`` as a Markdown section."""
+    if not ret:
+        return []
+
+    def pct(f: float | None) -> str:
+        return "-" if f is None else f"{f:.1%}"
+
+    src = ", ".join(f"{k} {v}" for k, v in ret.get("geometry_source", {}).items())
+    lines = [
+        "## Sample retention",
+        "",
+        f"Region samples kept of those planned, by theta band ({ret['band_by']}): "
+        f"**{pct(ret['fraction'])}** up to {ret['up_to_deg']:g} deg "
+        f"({ret['kept']} of {ret['planned']}).",
+        "",
+        "| theta (deg) | planned | kept | retained |",
+        "|---|---|---|---|",
+    ]
+    for b in ret["bands"]:
+        lo, hi = b["theta_deg"]
+        lines.append(f"| {lo:g}-{hi:g} | {b['planned']} | {b['kept']} | {pct(b['fraction'])} |")
+    if src:
+        lines += ["", f"Where the kept samples' camera geometry came from: {src}."]
+    return [*lines, ""]
+
+
 def write_report(
     out: Path,
     session: Path,
@@ -131,6 +158,7 @@ def write_report(
     ]
     if calibration is not None:
         lines += _calibration_lines(calibration, out)
+    lines += _retention_lines(red.summary.get("retention") if red.summary else None)
     lines += ["## Rejected samples", ""]
     if red.rejected:
         lines += ["| reason | count |", "|---|---|"]

@@ -194,3 +194,28 @@ def test_zero_distortion_is_the_pinhole_path_to_the_bit(brackets, monkeypatch):
             assert np.array_equal(x.regions.label, y.regions.label)
             for name in ("wi", "wo", "radiance", "radiance_var", "geometry", "ratio"):
                 np.testing.assert_array_equal(getattr(x, name), getattr(y, name), err_msg=name)
+
+
+def test_fused_kernel_matches_numpy_path_with_regions_trimmed_to_a_spread(brackets, monkeypatch):
+    """``max_region_spread_deg``: both paths keep the same pixels; every region's pixels
+    see the camera and the light within the spread (angles between the pixels' own
+    directions, from their points on the sample), and the trim removed pixels."""
+    setup, poses = brackets
+    frames, rp = poses[0]
+    spread = 1.0
+    ref, got = both_paths(monkeypatch, frames, setup.replace(max_region_spread_deg=spread), rp)
+    assert_same(ref, got)
+    whole, _ = both_paths(monkeypatch, frames, setup, rp)
+    n_trim, n_whole = (ref.regions.label >= 0).sum(), (whole.regions.label >= 0).sum()
+    assert n_trim < 0.8 * n_whole, (n_trim, n_whole)
+    pts = ref.regions.points
+    for j in range(ref.regions.n_regions):
+        p = pts[ref.regions.label == j]
+        assert len(p) > 20
+        for pos in (rp.camera_position, rp.light_position):
+            w = np.asarray(pos)[None, :] - p
+            w /= np.linalg.norm(w, axis=1, keepdims=True)
+            # the largest angle between two of the region's directions: between the
+            # extremes of its bounding directions (pixels on opposite corners)
+            cosmin = float(np.min(w @ w.T))
+            assert np.degrees(np.arccos(min(cosmin, 1.0))) <= spread * np.sqrt(2) + 1e-6

@@ -267,10 +267,17 @@ def test_bad_frames_are_reported_and_their_samples_flagged(session, tmp_path, ca
         assert (samples.flags[by_pose[p]] & Flag.INVALID).all()
     assert (samples.flags[by_pose[pose_c]] & Flag.SATURATED).all()
     assert np.isnan(samples.brdf[by_pose[pose_c]]).all()
-    # no board: the rig's pose stands in, and the samples say so
-    assert (samples.flags[by_pose[pose_d]] & Flag.GEOMETRY_MISMATCH).all()
+    # no board: with geometry "auto" (the default) the rig's pose stands in, not flagged
+    # for it (these dark frames are underexposed anyway) ...
+    assert not (samples.flags[by_pose[pose_d]] & Flag.GEOMETRY_MISMATCH).any()
+    assert (samples.flags[by_pose[pose_d]] & Flag.UNDEREXPOSED).all()
     assert samples.valid.sum() == 0
     assert "rejected: saturated" in out and f"wrote {s / 'samples.h5'}" in out
+    # ... with "board" it stands in too, and the samples say the board was lost
+    board = tmp_path / "board.h5"
+    assert run("capture", "reduce", str(s), "--geometry", "board", "--out", str(board)) == 0
+    flags = load_samples(board).flags
+    assert (flags[by_pose[pose_d]] & Flag.GEOMETRY_MISMATCH).all()
 
 
 def test_no_reference_and_not_a_session_are_clear_errors(session, tmp_path, capsys):

@@ -45,7 +45,8 @@ def test_the_example_is_valid_and_says_what_it_means():
     assert setup.sample_size == (0.05, 0.05) and setup.light_radius == 0.01
     assert setup.reflectance.tolist() == [0.99] * 3
     assert setup.reflectance_std.tolist() == [0.005] * 3
-    assert (setup.grid, setup.roi_fraction, setup.geometry) == (3, 0.6, "board")
+    assert (setup.grid, setup.roi_fraction, setup.geometry) == (3, 0.6, "auto")
+    assert (setup.max_board_obliquity_deg, setup.min_board_corners) == (60.0, 10)
     cal = setup.camera_calibration
     assert cal["rms_px"] == 0.18 and cal["dist_std"][4] == 0.0071
     assert cal["camera"] == {
@@ -71,6 +72,11 @@ def test_defaults_of_a_minimal_file(tmp_path):
     assert setup.reflectance.tolist() == [0.5] * 3  # the plan's value when the file has none
     assert setup.noise.quantisation and setup.noise.iso == 100.0
     assert (setup.grid, setup.min_snr, setup.geometry_tolerance_deg) == (3, 5.0, 0.5)
+    assert (setup.geometry, setup.max_board_obliquity_deg, setup.min_board_corners) == (
+        "auto",
+        60.0,
+        10,
+    )
 
 
 @pytest.mark.parametrize(
@@ -107,6 +113,8 @@ def test_a_wrong_camera_field_is_named(tmp_path, change, field, what):
         ("[reduction]\ngrid = 0", "reduction.grid"),
         ("[reduction]\ngrid = 6\nroi_fraction = 1.5", "reduction.roi_fraction"),
         ('[reduction]\ngeometry = "fiducials"', "reduction.geometry"),
+        ("[reduction]\nmax_board_obliquity_deg = 95.0", "reduction.max_board_obliquity_deg"),
+        ("[reduction]\nmin_board_corners = 3", "reduction.min_board_corners"),
         ("[reduction]\ngird = 6", "reduction.gird"),
         ("[board]\nsquares_x = 7\nmarker_length = 0.03", "board"),
         ('[board]\ndictionary = "DICT_9X9_1"', "board.dictionary"),

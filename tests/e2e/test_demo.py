@@ -57,6 +57,30 @@ def test_demo_recovers_the_truth_within_reported_uncertainty(tmp_path):
         assert max(d["rel_error"][k]) < 0.02, (k, d["rel_error"][k])
     for key in ("capture", "reduce", "fit", "total"):
         assert d["seconds"][key] > 0
+    # retention: the planned region samples (the manifest's sample poses x 6 x 6 regions,
+    # counted here from the files, not from the reduction's summary) and those kept
+    # (unflagged in samples.h5), by the larger planned theta; the demo's plan reaches 80
+    from gonio.dataset import load_samples
+
+    manifest = json.loads((out / "session" / "manifest.json").read_text())
+    planned = [e for e in manifest["schedule"] if e["kind"] == "sample"]
+    theta = np.array([max(e["theta_i_deg"], e["theta_o_deg"]) for e in planned])
+    assert max(e["theta_i_deg"] for e in planned) == 80.0
+    assert max(e["theta_o_deg"] for e in planned) == 80.0
+    samples = load_samples(out / "session" / "samples.h5")
+    pose_of = np.array([int(f.split("raw/p")[1][:4]) for f in samples.frames])
+    kept = {p: int(np.sum(samples.valid[pose_of == p])) for p in np.unique(pose_of)}
+    sample_poses = [p for p, e in enumerate(manifest["schedule"]) if e["kind"] == "sample"]
+    n_kept = sum(kept.get(p, 0) for p in sample_poses)
+    assert n_kept / (36 * len(planned)) >= 0.90, (n_kept, len(planned))
+    ret = d["retention"]
+    assert (ret["planned"], ret["kept"], ret["up_to_deg"]) == (36 * len(planned), n_kept, 80.0)
+    for band in ret["bands"]:
+        lo, hi = band["theta_deg"]
+        sel = [p for p, t in zip(sample_poses, theta, strict=True) if lo < t <= hi or t == lo == 0]
+        assert band["planned"] == 36 * len(sel), band
+        assert band["kept"] == sum(kept.get(p, 0) for p in sel), band
+    assert "region samples kept" not in r.stdout  # --json: the JSON object only
     assert (out / "report.md").is_file() and (out / "fit.json").is_file()
     text = (out / "report.md").read_text()
     for fig in ("slices.png", "residuals.png"):
