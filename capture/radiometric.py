@@ -475,21 +475,18 @@ def dark_offset_rel_std(
         return num / den / np.sqrt(n_c) / np.abs(L)
 
 
-def irradiance_rel_std(
-    cos_psi: NDArray, profile: LightProfile, applied: bool
-) -> NDArray[np.float64]:
+def irradiance_rel_std(cos_psi: NDArray, cos_psi_ref: float, n_std: float) -> NDArray[np.float64]:
     """The ``irradiance`` term (the light's radiance profile), (n, 3).
 
-    ``G`` scales with ``cos^n(psi)``: ``d ln G / d n = ln cos(psi)``.  Applied: ``u =
-    |ln cos psi| n_std`` (type A, from the fit).  Not applied (``[light] profile =
-    "none"``): the uncorrected bias joins it, ``u = |ln cos psi| sqrt(n^2 + n_std^2)``.
-    Not determined (``n_std`` NaN): 0, and the reduction warns.
+    ``G`` scales with ``cos^n(psi)`` and the light scale ``I`` with the reference
+    regions' mean of it, so ``d ln f / d n = -(ln cos psi - <ln cos psi>_ref)``:
+    ``u = |ln cos psi - <ln cos psi>_ref| n_std``, ``n_std`` the fit's (type A) when the
+    fitted n is applied, else the stated ``[light] profile_n_std`` (type B).
+    ``cos_psi_ref`` is ``exp(<ln cos psi>_ref)``.
     """
-    lc = np.abs(np.log(np.clip(np.asarray(cos_psi, float), 1e-12, 1.0)))
-    if not np.isfinite(profile.n_std):
-        return np.zeros((len(lc), 3))
-    s = profile.n_std if applied else math.hypot(profile.n, profile.n_std)
-    return np.repeat((lc * s)[:, None], 3, axis=1)
+    lc = np.log(np.clip(np.asarray(cos_psi, float), 1e-12, 1.0))
+    lr = math.log(min(max(float(cos_psi_ref), 1e-12), 1.0))
+    return np.repeat((np.abs(lc - lr) * float(n_std))[:, None], 3, axis=1)
 
 
 def stray_rel_std(

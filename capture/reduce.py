@@ -112,7 +112,7 @@ class ReductionResult:
         The plot file, or None.
     warnings
         What the session lacks and what it costs (no flats, no darks, one reference
-        group, an undetermined light profile), also in ``reduction.json["warnings"]``.
+        group, a light profile the fit does not determine), also in ``reduction.json["warnings"]``.
     """
 
     path: Path
@@ -499,9 +499,16 @@ class _PoseRun:
                 self._measure(p, shots[p], loader, masters)
         refs = [m for m in self.measurements if m.kind == "reference"]
         prof = fit_light_profile(refs, self._cos_psi(refs), self.setup.light_profile_n)
-        if np.isfinite(prof.n_std):
+        # applied when it knows n better than the lab's statement does
+        if np.isfinite(prof.n_std) and prof.n_std <= self.setup.light_profile_n_std:
             self.setup = self.setup.replace(light_profile_n=prof.n)
             self.cal.profile_applied = True
+        else:
+            self.warnings.append(
+                f"[light] profile = 'fit': the reference regions give n = {prof.n:.3g} +- "
+                f"{prof.n_std:.3g}, no better than the stated [light] profile_n_std = "
+                f"{self.setup.light_profile_n_std:g}: not applied (n = 0 in G)"
+            )
         # measured again below with the fitted n: nothing of this pass is kept
         self.measurements.clear()
         self.failed_poses.clear()
@@ -526,6 +533,10 @@ class _PoseRun:
         self.cal.drift = model
         prof = fit_light_profile(refs, self._cos_psi(refs), self.setup.light_profile_n)
         self.cal.profile = prof
+        cps = self._cos_psi(refs)
+        lc = [np.log(np.clip(cps[m.pose][m.flags == 0], 1e-12, 1.0)) for m in refs if m.pose in cps]
+        lc_all = np.concatenate(lc) if lc else np.zeros(0)
+        self.cal.cos_psi_ref = float(np.exp(np.mean(lc_all))) if lc_all.size else 1.0
         g0 = []
         for m in refs:
             ok = (m.flags == 0)[:, None] & np.isfinite(m.geometry) & (m.wi[:, 2:3] > 0)
@@ -556,9 +567,7 @@ class _PoseRun:
         prof = cal.profile
         assert prof is not None
         cc = cal.cell_channel
-        applied = cal.profile_applied or (
-            not isinstance(s.light_profile, str) and s.light_profile_n != 0.0
-        )
+        n_std = prof.n_std if cal.profile_applied else s.light_profile_n_std
         pix_flat = cal.flat.pixel_rel_std if cal.flat is not None else np.full(3, s.prnu)
         cos_psi = self._cos_psi(samples_m)
         for m, u_d in zip(samples_m, drift_u, strict=True):
@@ -570,7 +579,9 @@ class _PoseRun:
                 "drift": np.broadcast_to(u_d, (n, 3)).copy(),
                 "flat": flat_rel_std(m.n_pixels, pix_flat, cc),
                 "dark": np.zeros((n, 3)),
-                "irradiance": irradiance_rel_std(cos_psi.get(m.pose, np.ones(n)), prof, applied),
+                "irradiance": irradiance_rel_std(
+                    cos_psi.get(m.pose, np.ones(n)), cal.cos_psi_ref, n_std
+                ),
                 "stray": stray_rel_std(m.geometry, cal.g0, s.stray_fraction),
             }
             if m.pose in cal.undarked:
@@ -623,11 +634,6 @@ class _PoseRun:
                 "the light's drift is not measured; the budget's 'drift' term is the "
                 f"stated [light] drift_rel_std = {100 * s.drift_rel_std:g} % for every sample"
             )
-        if cal.profile is not None and not np.isfinite(cal.profile.n_std):
-            out.append(
-                "the light's radiance profile could not be fitted from the reference "
-                "regions (too few unflagged regions per pose): the 'irradiance' term is 0"
-            )
         return out
 
     def summary(self, n_samples: int, n_kept: int, path: Path) -> dict[str, Any]:
@@ -671,6 +677,7 @@ class _Radiometry:
     profile: LightProfile | None = None
     profile_applied: bool = False
     g0: NDArray[np.float64] | None = None
+    cos_psi_ref: float = 1.0
 
     def summary(self) -> dict[str, Any]:
         """The ``reduction.json["radiometric"]`` block."""

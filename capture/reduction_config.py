@@ -222,6 +222,9 @@ class LightSection(_Strict):
     #: ``"none"`` (n = 0, a Lambertian emitter: today's G), ``"fit"`` (n fitted from the
     #: reference target's regions and applied in G) or a number (a measured n).
     profile: Literal["none", "fit"] | NonNegative = "none"
+    #: Standard uncertainty of the profile's exponent n when it is not fitted (or the
+    #: fit is no better): the lab's statement (an unmeasured LED lies within n = 0..2).
+    profile_n_std: NonNegative = 1.0
     #: Upper bound of the room's stray light (the light's own output scattered back onto
     #: the sample) as a fraction of the light's direct irradiance at normal incidence.
     stray_fraction: Annotated[float, Field(ge=0, le=0.5)] = 5e-4
@@ -324,6 +327,8 @@ class ReductionSetup:
     light_profile_n
         The exponent n of the ``cos^n(psi)`` radiance profile applied in G (0: a
         Lambertian emitter; the reduction sets it from ``light_profile``).
+    light_profile_n_std
+        ``[light] profile_n_std``: the stated std of n when it is not fitted.
     stray_fraction, drift_rel_std
         ``[light]``: the stray light's upper bound (fraction of the direct irradiance at
         normal incidence) and the drift's relative std with one reference group.
@@ -351,6 +356,7 @@ class ReductionSetup:
     camera_file: str | None = None
     light_profile: str | float = "none"
     light_profile_n: float = 0.0
+    light_profile_n_std: float = 1.0
     stray_fraction: float = 5e-4
     drift_rel_std: float = 0.01
     prnu: float = 0.01
@@ -606,6 +612,7 @@ def setup_from_config(
         light_profile_n=(
             float(config.light.profile) if not isinstance(config.light.profile, str) else 0.0
         ),
+        light_profile_n_std=config.light.profile_n_std,
         stray_fraction=config.light.stray_fraction,
         drift_rel_std=config.light.drift_rel_std,
         prnu=config.noise.prnu if config.noise is not None else 0.01,

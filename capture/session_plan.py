@@ -148,7 +148,7 @@ def _shot_record(
 
 
 def _pose_fields(step: Mapping[str, Any], state: RigState, forward: Forward) -> dict[str, Any]:
-    if step["kind"] == "dark":
+    if step["kind"] in ("dark", "flat"):
         wi = wo = wi_a = wo_a = None
     else:
         wi, wo = list(step["wi"]), list(step["wo"])
