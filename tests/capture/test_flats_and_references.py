@@ -256,3 +256,21 @@ def test_calibration_frames_without_their_device_are_refused(tables, light, targ
     for w in words:
         assert w in str(info.value)
     check_calibration_devices(plan, True, True)  # with both: nothing to refuse
+
+
+def test_a_flat_step_cut_short_continues_on_resume(tmp_path):
+    (tmp_path / "raw").mkdir()
+    plan = plan_from_dict(_doc(flats={"count": 3}))
+    steps = [{"kind": "flat", "wi": None, "wo": None}, dict(SAMPLE)]
+    events, docs, clock = [], [], Clock()
+    sw = Switches(events)
+    dev = SessionDevices(Rig(), Camera(clock, events), light=sw, target=sw, clock=clock)
+    first = {"type": "shot", "pose": 0, "frame": 0, "kind": "flat", "exposure_time_requested": 0.01}
+    state = PlanState(done={1}, shots={0: [first]})
+    Engine(dev, tmp_path, [docs.append]).execute(
+        session_plan(steps, plan, state, lambda j: ((0, 0, 1), (0, 0, 1)), 2.0)
+    )
+    shots = [d for d in docs if d["type"] == "shot"]
+    assert [(r["pose"], r["frame"], r["kind"]) for r in shots] == [(0, 1, "flat"), (0, 2, "flat")]
+    assert [e for e in events if e[0] == "target"] == [("target", "flat"), ("target", "sample")]
+    assert [d["pose"] for d in docs if d["type"] == "pose_done"] == [0]
