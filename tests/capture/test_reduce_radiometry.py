@@ -108,9 +108,9 @@ def _flat_dng(template, level: float, dead: list[tuple[int, int]], seed: int, K)
 
 
 def test_flats_mask_dead_pixels_and_change_samples_within_the_flat_term(session):
+    from gonio.capture.manifest import load_manifest
     from gonio.capture.raw import read_raw
     from gonio.capture.reduction_config import resolve_setup
-    from gonio.capture.manifest import load_manifest
     from gonio.simulator.sensor import RawFrame as SimFrame
 
     setup = resolve_setup(session, load_manifest(session), None)
@@ -177,3 +177,34 @@ def test_flats_mask_dead_pixels_and_change_samples_within_the_flat_term(session)
     # sample by no more than its flat term (and the references' share of it)
     assert np.all(rel <= 5 * np.sqrt(u_flat[ok] ** 2 + np.median(u_flat[ok]) ** 2))
     assert np.median(u_flat[ok]) < 0.2 * 0.01  # far below the PRNU statement it replaces
+
+
+def _simulator_has_flats() -> bool:
+    from gonio.simulator.rig_camera import TARGETS
+
+    return "flat" in TARGETS
+
+
+@pytest.mark.skipif(
+    not _simulator_has_flats(),
+    reason="the simulated camera's flat-field panel (set_target('flat')) is not in this "
+    "simulator yet; the flat step is tested on fake devices in test_flats_and_references",
+)
+def test_a_simulated_session_with_flats_reduces_with_its_flat_field(tmp_path):
+    from gonio.rig.config import virtual_rig_document
+
+    (tmp_path / "rig.toml").write_text(virtual_rig_document())
+    plan = PLAN_H2.replace("[reference]", "[flats]\ncount = 3\nexposure_s = 0.01\n[reference]")
+    (tmp_path / "plan.toml").write_text(plan)
+    (tmp_path / "scene.toml").write_text(SCENE)
+    out = tmp_path / "S"
+    args = ["capture", "run", str(tmp_path / "plan.toml"), "--rig", str(tmp_path / "rig.toml")]
+    assert run(*args, "--camera", "simulated", "--out", str(out), "--quiet") == 0
+    recs = read_journal(out / "journal.jsonl")
+    flats = [r for r in recs if r.get("type") == "shot" and r["kind"] == "flat"]
+    assert len(flats) == 3 and all("rig_time" in r for r in flats)
+    darks = {r["exposure_time_requested"] for r in recs if r.get("kind") == "dark"}
+    assert 0.01 in darks  # the flats are dark-subtracted
+    res = reduce_session(out, plot=False)
+    assert res.summary["radiometric"]["flat_frames"] == 3
+    assert not any("no flat fields" in w for w in res.warnings)
