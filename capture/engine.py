@@ -103,6 +103,11 @@ class SessionDevices:
         devices know and the reduction needs (a simulated camera's ``reduction.toml``:
         its camera matrix, board, noise and light).  Written when the session is
         created, and on resume when missing (never over a file that is there).
+    clock
+        *Rig time* in s: ``time.monotonic`` for a real rig, the virtual bus's servo
+        clock for a simulated one (the simulated camera's light drifts with the same
+        clock).  When given, every ``shot`` record carries ``rig_time``, read just
+        before the frame is shot; None: no ``rig_time``.
     """
 
     rig: RigDevice
@@ -113,6 +118,7 @@ class SessionDevices:
     sleep: Callable[[float], None] = time.sleep
     read_noise_dn: Callable[[float], float] | None = None
     files: Mapping[str, bytes] = field(default_factory=dict)
+    clock: Callable[[], float] | None = None
 
     def noise_floor_dn(self, iso: float | None) -> float:
         """Read noise (DN rms) at ``iso`` (ISO 100 when the camera keeps its own)."""
@@ -235,6 +241,12 @@ class Engine:
     def _set_target(self, msg: SetTarget) -> None:
         if self.devices.target is not None:
             self.devices.target.set_target(msg.kind)
+        elif msg.kind == "flat":
+            raise CameraError(
+                "the plan asks for flat frames ([flats] count > 0) but this session has no "
+                "target changer to put the flat-field panel over the lens; set "
+                "[flats] count = 0"
+            )
 
     def _shoot(self, msg: Shoot) -> Captured:
         if self.session_dir is None:
@@ -242,11 +254,15 @@ class Engine:
         camera = self.devices.camera
         if isinstance(camera, SeededShots):
             camera.next_shot(msg.step, msg.frame)
+        clock = self.devices.clock
+        rig_time = None if clock is None else float(clock())
         shot = camera.capture(msg.exposure_time, msg.iso, msg.f_number)
         name = msg.stem + (shot.suffix or ".raw")
         # On disk (renamed into place, fsynced) before the plan can journal it.
         write_atomic(self.session_dir / name, shot.data)
-        return Captured(shot, name, sha256_bytes(shot.data), xxh3_bytes(shot.data), len(shot.data))
+        return Captured(
+            shot, name, sha256_bytes(shot.data), xxh3_bytes(shot.data), len(shot.data), rig_time
+        )
 
 
 # --------------------------------------------------------------------------------------

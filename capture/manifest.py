@@ -60,7 +60,7 @@ class ScheduleStep(_Open):
     which decides).  ``kind = "mirror"``: a rig calibration's view of the flat mirror.
     """
 
-    kind: Literal["sample", "reference", "dark", "mirror"]
+    kind: Literal["sample", "reference", "dark", "flat", "mirror"]
     wi: _Vec3 | None = None
     wo: _Vec3 | None = None
     joints: dict[str, _Finite] | None = None
@@ -68,7 +68,7 @@ class ScheduleStep(_Open):
 
     @model_validator(mode="after")
     def _directions(self) -> ScheduleStep:
-        if self.kind != "dark" and (self.wi is None or self.wo is None):
+        if self.kind not in ("dark", "flat") and (self.wi is None or self.wo is None):
             raise ValueError(f"a {self.kind} step needs 'wi' and 'wo' (unit vectors)")
         return self
 

@@ -107,6 +107,9 @@ class Captured:
     sha256: str
     xxh3_128: str
     bytes: int
+    #: Rig time (s) read just before the frame was shot (``SessionDevices.clock``), or
+    #: None when the devices keep no clock.
+    rig_time: float | None = None
 
 
 @dataclass(frozen=True)

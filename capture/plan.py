@@ -56,6 +56,7 @@ __all__ = [
     "BracketPolicy",
     "DarkFrames",
     "Exclusions",
+    "FlatFrames",
     "Grid",
     "JointPose",
     "Plan",
@@ -275,6 +276,19 @@ class DarkFrames(_Strict):
     exposure_times_s: tuple[Seconds, ...] = ()
 
 
+class FlatFrames(_Strict):
+    """Flat fields: ``count`` frames of a uniform diffuse panel over the lens (the target
+    changer's ``"flat"``), at ``exposure_s`` and ``iso`` (None: the bracket's), shot at
+    ``when``; ``count = 0`` for none.  Darks are also shot at this exposure and ISO, so
+    the flats are dark-subtracted.  The reduction makes the PRNU gain map and the
+    hot/dead pixel mask from them."""
+
+    count: int = Field(default=0, ge=0, le=100)
+    exposure_s: Seconds = 0.01
+    iso: float | None = Field(default=None, gt=0)
+    when: Literal["start", "end"] = "start"
+
+
 class ReferencePose(_Strict):
     theta_i_deg: float = Field(ge=0, le=90)
     phi_i_deg: float = 0.0
@@ -289,6 +303,9 @@ class ReferenceShots(_Strict):
     poses: tuple[ReferencePose, ...] = ()
     reflectance: float | tuple[float, float, float] = 0.99
     when: Literal["start", "end"] = "start"
+    #: Shoot the reference group again after every this many sample poses (and at
+    #: ``when``), so the reduction can follow the light's drift; 0: only at ``when``.
+    every_poses: int = Field(default=0, ge=0)
 
 
 class SimulationSettings(_Strict):
@@ -358,6 +375,7 @@ class Plan(_Strict):
     exclusions: Exclusions = Exclusions()
     bracket: BracketPolicy = BracketPolicy()
     darks: DarkFrames = DarkFrames()
+    flats: FlatFrames = FlatFrames()
     reference: ReferenceShots = ReferenceShots()
     simulation: SimulationSettings = SimulationSettings()
 
@@ -404,7 +422,30 @@ class Plan(_Strict):
                 data.pop("joint_poses", None)
             if self.grid is None:
                 data.pop("grid", None)
+            # The same for the flats and the repeated references (issue 16).
+            if self.flats == FlatFrames():
+                data.pop("flats", None)
+            if not self.reference.every_poses and isinstance(data.get("reference"), dict):
+                data["reference"].pop("every_poses", None)
         return data
+
+    @property
+    def flats_iso(self) -> float | None:
+        """The flats' ISO: their own, else the bracket's (None: the camera's own)."""
+        return self.flats.iso if self.flats.iso is not None else self.bracket.camera_iso()
+
+    def reference_repeats(self, n_sample: int) -> int:
+        """How many times the reference group is shot for ``n_sample`` sample poses: at
+        ``when``, and after every ``every_poses``-th sample pose (the group at the end is
+        not shot twice)."""
+        if not self.reference.poses:
+            return 0
+        n = self.reference.every_poses
+        if not n or n_sample <= 0:
+            return 1
+        if self.reference.when == "start":
+            return 1 + n_sample // n
+        return n_sample // n + (1 if n_sample % n else 0)
 
 
 def plan_from_dict(data: dict, source: str = "<plan>") -> Plan:
@@ -666,10 +707,11 @@ def estimate_plan(plan: Plan) -> PlanEstimate:
         n_sample = len(a) * len(c) * _distinct_relative_azimuths(b, d)
     else:
         n_sample = len(a) * len(c) * len(d)  # phi_h is a rotation about the normal
-    n_poses = min(n_grid, n_sample) + len(plan.reference.poses)
+    n_sample_poses = min(n_grid, n_sample)
+    n_poses = n_sample_poses + len(plan.reference.poses) * plan.reference_repeats(n_sample_poses)
     br = plan.bracket
     per_pose = len(br.exposures_s) if br.policy == "fixed" else br.max_frames
-    n_frames = n_poses * per_pose
+    n_frames = n_poses * per_pose + plan.flats.count
     if plan.darks.count:
         if plan.darks.exposure_times_s:
             n_times = len(set(plan.darks.exposure_times_s))
@@ -677,7 +719,7 @@ def estimate_plan(plan: Plan) -> PlanEstimate:
             n_times = len(set(br.exposures_s))
         else:  # one per rung of the exposure ladder between the limits
             n_times = int(math.log2(br.max_exposure_s / br.min_exposure_s) / br.step_ev) + 2
-        n_frames += plan.darks.count * n_times
+        n_frames += plan.darks.count * (n_times + (1 if plan.flats.count else 0))
     lim = plan.limits
     sim = plan.simulation
     if lim.frame_bytes is not None:

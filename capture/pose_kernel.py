@@ -65,6 +65,7 @@ class Bracket(NamedTuple):
     noise_quant: float  # quantisation variance added (0 or 1/12), DN^2
     dark_var: NDArray[np.float64]  # (h, w) variance of the subtracted master dark, or (0, 0)
     dark_var0: float  # its value when constant, DN^2
+    mask: NDArray[np.bool_]  # (h, w) hot/dead pixels (weight 0 in every sum), or (0, 0)
 
 
 class Stencils(NamedTuple):
@@ -93,6 +94,7 @@ class View(NamedTuple):
     light_normal: NDArray[np.float64]  # (3,) emitting normal (ignored unless has_normal)
     has_normal: bool
     light_radius: float  # disk radius, metres (0: a point source)
+    profile_n: float  # the emitted radiance's cos^n(psi) profile about the normal (0: none)
     n_channels: int
     # A distorting lens: the (h, w) undistorted normalised coordinates of the crop's
     # pixels (gonio.capture.fiducials.undistorted_coordinates), the rays' directions;
@@ -115,12 +117,14 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     noise_gain, noise_read2 = bracket.noise_gain, bracket.noise_read2
     noise_quant = bracket.noise_quant
     dark_var, dark_var0 = bracket.dark_var, bracket.dark_var0
+    mask = bracket.mask
     cell_channel, st_n = stencils.cell_channel, stencils.size
     st_dy, st_dx, st_w = stencils.dy, stencils.dx, stencils.weight
     cam, rot, cpos, r0, c0 = view.cam, view.rot, view.cpos, view.r0, view.c0
     roi, grid, light, light_normal = view.roi, view.grid, view.light, view.light_normal
     has_normal, light_radius, n_channels = view.has_normal, view.light_radius, view.n_channels
     ray_x, ray_y, undistorted = view.ray_x, view.ray_y, view.undistorted
+    profile_n = view.profile_n
     F, h, w = raws.shape
     n = grid * grid
     label = np.full((h, w), -1, np.int64)
@@ -196,8 +200,13 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     has_offset = offset.shape[1] > 0
     has_gain = gain.shape[1] > 0
     has_dark = dark_var.shape[0] > 0
+    has_mask = mask.shape[0] > 0
+    has_profile = has_normal and profile_n != 0.0
     for i in range(h):
         for j in range(w):
+            # a hot or dead pixel's site weighs nothing in any region (not "saturated")
+            if has_mask and mask[i, j]:
+                continue
             a, b = i % 2, j % 2
             ps = 2 * a + b
             nr = 0
@@ -279,8 +288,11 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
             dd = v0 * v0 + v1 * v1 + v2 * v2
             num = _max0(v2)
             if has_normal:
-                num *= _max0(-(v0 * light_normal[0] + v1 * light_normal[1] + v2 * light_normal[2]))
+                cos_e = _max0(-(v0 * light_normal[0] + v1 * light_normal[1] + v2 * light_normal[2]))
+                num *= cos_e
                 den = dd * dd * nrm
+                if has_profile:  # the emitted radiance's cos^n(psi) about the normal
+                    num *= (cos_e / (math.sqrt(dd) * nrm)) ** profile_n
             else:
                 den = dd * math.sqrt(dd)
             if light_radius > 0.0:

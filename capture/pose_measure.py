@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -86,6 +86,14 @@ class PoseMeasurement:
         ChArUco board in this pose's frames), ``"rig"`` (the rig's read-back pose through
         its kinematics, calibrated when the session's rig is) or ``"none"`` (no
         measurement: :func:`invalid_pose`); see ``[reduction] geometry``.
+    n_pixels
+        (n,) pixels of each region (None for :func:`invalid_pose`).
+    radiometric_rel_std
+        The radiometric budget terms of each region, relative standard uncertainties of
+        the BRDF, (n, 3) per term: ``drift``, ``flat``, ``dark``, ``irradiance``,
+        ``stray`` (a missing key is 0).  Filled by the reduction after the light scale
+        (:func:`gonio.capture.radiometric.radiometric_terms`); empty from
+        :func:`measure_pose`.
     """
 
     pose: int
@@ -104,6 +112,8 @@ class PoseMeasurement:
     regions: RegionMap | None = None
     kernel: Literal["numba", "numpy", "none"] = "none"
     geometry_source: GeometrySource = "none"
+    n_pixels: NDArray[np.float64] | None = None
+    radiometric_rel_std: dict[str, NDArray[np.float64]] = field(default_factory=dict)
 
 
 def _flag(name: str) -> int:
@@ -136,6 +146,7 @@ def measure_pose(
     reported_wo: NDArray[np.float64] | None = None,
     reported_camera: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     dark_variance: float | NDArray[np.float64] = 0.0,
+    pixel_mask: NDArray[np.bool_] | None = None,
 ) -> PoseMeasurement:
     """Measure one pose's bracket: camera pose, regions, merged radiance per region.
 
@@ -158,6 +169,10 @@ def measure_pose(
         when the board cannot be seen (the samples are then flagged GEOMETRY_MISMATCH).
     dark_variance
         Variance (DN^2) added by the subtracted master dark.
+    pixel_mask
+        (H, W) hot or dead pixels (from the master darks and flat): their sites weigh 0
+        in every region's sums, in both paths; None for none.  The light's ``cos^n``
+        radiance profile in G is ``setup.light_profile_n``.
 
     Raises
     ------
@@ -170,11 +185,14 @@ def measure_pose(
     lp = np.asarray(light_position, float)
     ln = None if light_normal is None else np.asarray(light_normal, float)
     fused = _fused_kernel() if all(f.raw is not None for f in frames) else None
+    mask = _checked_mask(pixel_mask, frames[0])
     if fused is not None:
-        regions, sums, dirs = _pose_sums_fused(fused, frames, setup, cam, lp, ln, dark_variance)
+        regions, sums, dirs = _pose_sums_fused(
+            fused, frames, setup, cam, lp, ln, dark_variance, mask
+        )
         kernel: Literal["numba", "numpy"] = "numba"
     else:
-        regions, sums, dirs = _pose_sums_numpy(frames, setup, cam, lp, ln, dark_variance)
+        regions, sums, dirs = _pose_sums_numpy(frames, setup, cam, lp, ln, dark_variance, mask)
         kernel = "numpy"
     k, s_L, s_Lv, s_G, s_Q, s_Qv, s_sat = np.moveaxis(sums, -1, 0)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -194,8 +212,20 @@ def measure_pose(
     _horizon_flags(wi, lp, setup, npx, flags, reasons)
     names = tuple(f.name for f in frames)
     return PoseMeasurement(
-        pose, kind, wi, wo, L, Lv, G, Q, Qv, flags, reasons, names, cam, regions, kernel, source
+        pose, kind, wi, wo, L, Lv, G, Q, Qv, flags, reasons, names, cam, regions, kernel, source,
+        npx,
     )
+
+
+def _checked_mask(mask: NDArray[np.bool_] | None, frame: RawFrame) -> NDArray[np.bool_] | None:
+    """The pixel mask as a boolean array of the frame's size; None when it masks nothing
+    (so a session without hot pixels is reduced exactly as without a mask)."""
+    if mask is None:
+        return None
+    m = np.asarray(mask, dtype=bool)
+    if m.shape != frame.shape:
+        raise ReductionError(f"{frame.name}: pixel mask is {m.shape}, frame is {frame.shape}")
+    return m if m.any() else None
 
 
 def _camera_pose(
@@ -389,6 +419,7 @@ def _pose_sums_numpy(
     lp: NDArray[np.float64],
     light_normal: NDArray[np.float64] | None,
     dark_variance: float | NDArray[np.float64],
+    mask: NDArray[np.bool_] | None = None,
 ) -> tuple[RegionMap, NDArray[np.float64], NDArray[np.float64]]:
     """The regions of a pose, their weighted sums per channel and their direction sums.
 
@@ -422,6 +453,9 @@ def _pose_sums_numpy(
     # the directions below are that centroid's, so R and B (whose sites sit half a pixel
     # off it) would otherwise be measured at other directions than reported.
     site, row, wt = bayer_region_entries(regions.label, merged.channel, n)
+    if mask is not None:  # hot/dead pixels: their sites leave every sum (weight 0)
+        keep = ~mask[regions.box].reshape(-1)[site]
+        site, row, wt = site[keep], row[keep], wt[keep]
 
     def on(a: NDArray) -> NDArray:
         return a.reshape(-1)[site]
@@ -442,6 +476,12 @@ def _pose_sums_numpy(
     g = irradiance_geometry(pts, lp, light_normal)
     to_light_u = [lp[a] - pts[:, a] for a in range(3)]
     d2u = to_light_u[0] ** 2 + to_light_u[1] ** 2 + to_light_u[2] ** 2
+    if light_normal is not None and setup.light_profile_n != 0.0:
+        # the emitted radiance's cos^n(psi), psi the emission's angle off the normal
+        ln_ = np.asarray(light_normal, float)
+        cos_e = -(to_light_u[0] * ln_[0] + to_light_u[1] * ln_[1] + to_light_u[2] * ln_[2])
+        cos_psi = np.maximum(cos_e, 0.0) / (np.sqrt(d2u) * np.linalg.norm(ln_))
+        g = g * cos_psi**setup.light_profile_n
     if setup.light_radius:
         g = g * (np.pi * setup.light_radius**2) * d2u / (d2u + setup.light_radius**2)
     val = np.where(sat, 0.0, val)
@@ -499,6 +539,7 @@ def _pose_sums_fused(
     lp: NDArray[np.float64],
     light_normal: NDArray[np.float64] | None,
     dark_variance: float | NDArray[np.float64],
+    mask: NDArray[np.bool_] | None = None,
 ) -> tuple[RegionMap, NDArray[np.float64], NDArray[np.float64]]:
     """:func:`_pose_sums_numpy` in one pass of :mod:`gonio.capture.pose_kernel`."""
     from gonio.capture import pose_kernel as pk
@@ -563,6 +604,7 @@ def _pose_sums_fused(
         noise_quant=1.0 / 12.0 if setup.noise.quantisation else 0.0,
         dark_var=dv[box] if dv.ndim == 2 else np.zeros((0, 0)),
         dark_var0=float(dv) if dv.ndim != 2 else 0.0,
+        mask=np.ascontiguousarray(mask[box]) if mask is not None else np.zeros((0, 0), bool),
     )
     stencils = pk.Stencils(
         cell_channel=cell,
@@ -583,6 +625,7 @@ def _pose_sums_fused(
         light_normal=np.zeros(3) if light_normal is None else light_normal,
         has_normal=light_normal is not None,
         light_radius=float(setup.light_radius or 0.0),
+        profile_n=float(setup.light_profile_n),
         n_channels=len(CHANNELS),
         ray_x=ray_x,
         ray_y=ray_y,

@@ -10,7 +10,9 @@ camera's absolute response cancels (see :mod:`gonio.capture.calibration`).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,7 +24,47 @@ if TYPE_CHECKING:
     from gonio.capture.pose_measure import PoseMeasurement
     from gonio.capture.reduction_config import ReductionSetup
 
-__all__ = ["brdf_of", "light_scale"]
+__all__ = [
+    "RADIOMETRIC_TERMS",
+    "DriftModel",
+    "LightProfile",
+    "ReferenceGroup",
+    "brdf_of",
+    "dark_offset_rel_std",
+    "drift_model",
+    "fit_light_profile",
+    "flat_rel_std",
+    "irradiance_rel_std",
+    "light_scale",
+    "reference_ratio",
+    "stray_rel_std",
+]
+
+#: The radiometric budget terms, relative std of the BRDF, (n, 3) per pose.
+RADIOMETRIC_TERMS = ("drift", "flat", "dark", "irradiance", "stray")
+
+
+def reference_ratio(
+    references: list[PoseMeasurement],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Inverse-variance mean of ``L/G`` over every unflagged region of ``references``.
+
+    Returns ``(q, q_var, ok)``: (3,) the mean ratio and its variance (statistics only,
+    NaN in a channel without a usable region), and which channels have one.
+    """
+    q, qv = [], []
+    for r in references:
+        ok = (r.flags == 0)[:, None] & np.isfinite(r.ratio) & np.isfinite(r.ratio_var)
+        q.append(np.where(ok, r.ratio, np.nan))
+        qv.append(np.where(ok, r.ratio_var, np.nan))
+    Q = np.concatenate(q)
+    V = np.concatenate(qv)
+    good = np.isfinite(Q)
+    w = np.where(good, 1.0 / np.where(good, V, 1.0), 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        qm = np.nansum(w * np.nan_to_num(Q), axis=0) / w.sum(0)
+        qm_var = 1.0 / w.sum(0)
+    return qm, qm_var, good.any(axis=0)
 
 
 def light_scale(
@@ -104,3 +146,358 @@ def brdf_of(
         f = m.radiance / E
         var = m.radiance_var / E**2 + f**2 * (I_var / I**2)[None, :]
     return f, np.sqrt(var), E, I_var[None, :] * m.geometry**2
+
+
+# --------------------------------------------------------------------------------------
+# Drift: the light's output per reference group, interpolated in rig time
+
+
+@dataclass
+class ReferenceGroup:
+    """Consecutive reference poses of one journal segment, and the light they measured.
+
+    Attributes
+    ----------
+    poses
+        Journal pose indices.
+    segment
+        Journal segment (0 = before the first resume).
+    time
+        Mean rig time of their shots, s (journal order when the segment has no rig
+        time).
+    I, I_rel_var
+        (3,) light radiance in camera units (``pi / rho <L/G>``) and its relative
+        variance from the regions' statistics (type A; the reflectance's is shared).
+    """
+
+    poses: list[int]
+    segment: int
+    time: float
+    I: NDArray[np.float64]
+    I_rel_var: NDArray[np.float64]
+
+
+@dataclass
+class DriftModel:
+    """The light's output over the session: :meth:`at` gives it at a rig time."""
+
+    groups: list[ReferenceGroup]
+    pooled: NDArray[np.float64]
+    drift_rel_std: float
+
+    def at(self, segment: int, t: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``(I, rel_std)``: (3,) the light's radiance at rig time ``t`` of ``segment``,
+        and the drift term's relative standard uncertainty there.
+
+        One group in the segment (or none): the pooled ``I`` of every reference pose and
+        the lab's ``drift_rel_std`` (type B).  Several: ``I`` piecewise linear in ``t``
+        through the groups (the nearest group outside them) and
+        ``u = sqrt(u_A^2 + u_B^2)`` with
+
+        - type A: ``u_A^2 = (1 - x)^2 r_a^2 + x^2 r_b^2``, ``x`` the place of ``t``
+          between groups ``a`` and ``b`` (0..1), ``r`` their relative statistical std
+          (outside: the nearest group's ``r``);
+        - type B, the linear interpolation's error, rectangular: half width
+          ``h = |D2| dt^2 x (1 - x) / I`` inside an interval (``D2`` the largest second
+          divided difference of the groups next to it: the chord's error of a function
+          of that curvature; an end interval extrapolates the curvature's trend
+          geometrically, exact for an exponential warm-up), ``h = |slope| |t - t_end|
+          / I`` outside; ``u_B = h / sqrt(3)``.  Two groups only: ``D2`` unknown,
+          ``h = |I_b - I_a| x (1 - x) / I`` (the chord's largest error for a monotone
+          output that changes by ``I_b - I_a``).
+        """
+        gs = [g for g in self.groups if g.segment == segment]
+        if len(gs) < 2:
+            return self.pooled.copy(), np.full(3, self.drift_rel_std)
+        gs.sort(key=lambda g: g.time)
+        tk = np.array([g.time for g in gs])
+        Ik = np.stack([g.I for g in gs])  # (G, 3)
+        rk = np.sqrt(np.stack([g.I_rel_var for g in gs]))
+        I = np.array([np.interp(t, tk, Ik[:, c]) for c in range(3)])
+        if t <= tk[0] or t >= tk[-1]:
+            e = 0 if t <= tk[0] else len(tk) - 1
+            nb = 1 if e == 0 else len(tk) - 2
+            dt_edge = tk[nb] - tk[e]
+            slope = (Ik[nb] - Ik[e]) / dt_edge if dt_edge != 0 else np.zeros(3)
+            h = np.abs(slope) * abs(t - tk[e]) / np.abs(I)
+            u_a = rk[e]
+        else:
+            b = int(np.searchsorted(tk, t, side="right"))
+            a = b - 1
+            dt = tk[b] - tk[a]
+            x = (t - tk[a]) / dt if dt > 0 else 0.0
+            u_a = np.sqrt((1 - x) ** 2 * rk[a] ** 2 + x**2 * rk[b] ** 2)
+            if len(tk) == 2:
+                h = np.abs(Ik[b] - Ik[a]) * x * (1 - x) / np.abs(I)
+            else:
+                d2 = _interval_curvature(tk, Ik, a)
+                h = d2 * dt**2 * x * (1 - x) / np.abs(I)
+        return I, np.sqrt(u_a**2 + h**2 / 3.0)
+
+
+def _second_difference(t: NDArray, I: NDArray, k: int) -> NDArray[np.float64]:
+    """|I[t_k, t_k+1, t_k+2]|, the second divided difference (half the curvature)."""
+    d1 = (I[k + 1] - I[k]) / (t[k + 1] - t[k])
+    d2 = (I[k + 2] - I[k + 1]) / (t[k + 2] - t[k + 1])
+    return np.abs((d2 - d1) / (t[k + 2] - t[k]))
+
+
+def _interval_curvature(t: NDArray, I: NDArray, a: int) -> NDArray[np.float64]:
+    """The largest second divided difference around the interval ``[t_a, t_a+1]``.
+
+    The triples that contain the interval (``a-1, a, a+1`` and ``a, a+1, a+2``); at an
+    end, where one of them is missing, the curvature's trend is extrapolated one step
+    geometrically from the two nearest triples (a decaying exponential's second
+    differences shrink by the same factor every step)."""
+    n = len(t)
+    cands = [_second_difference(t, I, k) for k in (a - 1, a) if 0 <= k <= n - 3]
+    if a == 0 and n >= 4:  # the first interval: the trend of the next two triples
+        d0, d1 = _second_difference(t, I, 0), _second_difference(t, I, 1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ext = np.where((d1 > 0) & (d0 > d1), d0 * d0 / d1, d0)
+        cands.append(ext)
+    if a == n - 2 and n >= 4:  # the last interval
+        d0, d1 = _second_difference(t, I, n - 3), _second_difference(t, I, n - 4)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ext = np.where((d1 > 0) & (d0 > d1), d0 * d0 / d1, d0)
+        cands.append(ext)
+    return np.max(np.stack(cands), axis=0)
+
+
+def drift_model(
+    references: list[PoseMeasurement],
+    stamps: dict[int, tuple[int, float]],
+    order: list[int],
+    kinds: dict[int, str],
+    setup: ReductionSetup,
+    pooled: NDArray[np.float64],
+) -> DriftModel:
+    """The reference groups of a session and the drift model through them.
+
+    Parameters
+    ----------
+    references
+        Measured reference poses.
+    stamps
+        Pose -> (journal segment, rig time or journal order) of its shots.
+    order
+        Every shot pose of the session in journal order (sample and reference).
+    kinds
+        Pose -> its kind: a sample pose between two reference poses separates groups.
+    setup
+        Gives the reflectance and ``drift_rel_std``.
+    pooled
+        (3,) the light's radiance from every reference pose (:func:`light_scale`).
+    """
+    by_pose = {m.pose: m for m in references}
+    runs: list[list[int]] = []
+    cur: list[int] = []
+    cur_seg = None
+    for p in order:
+        kind, seg = kinds.get(p), stamps.get(p, (0, 0.0))[0]
+        if kind == "reference":
+            if cur and seg != cur_seg:  # a resume between: another segment's group
+                runs.append(cur)
+                cur = []
+            if p in by_pose:
+                cur.append(p)
+                cur_seg = seg
+        elif kind == "sample" and cur:  # a sample pose closes the group
+            runs.append(cur)
+            cur = []
+    if cur:
+        runs.append(cur)
+    groups = []
+    rho = setup.reflectance
+    for run in runs:
+        q, qv, ok = reference_ratio([by_pose[p] for p in run])
+        if not ok.all():
+            continue  # a group without a usable region in a channel tells nothing there
+        seg = stamps.get(run[0], (0, 0.0))[0]
+        t = float(np.mean([stamps.get(p, (0, 0.0))[1] for p in run]))
+        groups.append(ReferenceGroup(run, seg, t, np.pi * q / rho, qv / q**2))
+    return DriftModel(groups, np.asarray(pooled, float), float(setup.drift_rel_std))
+
+
+# --------------------------------------------------------------------------------------
+# The light's radiance profile
+
+
+@dataclass
+class LightProfile:
+    """The fitted exponent of the light's ``cos^n(psi)`` radiance profile.
+
+    ``n`` and its standard uncertainty ``n_std`` (NaN when the reference regions do not
+    determine it), the regions used and the Birge ratio applied to ``n_std``."""
+
+    n: float
+    n_std: float
+    n_regions: int
+    birge: float
+
+    def to_json(self) -> dict[str, Any]:
+        def fin(x: float) -> float | None:
+            return float(x) if np.isfinite(x) else None
+
+        return {
+            "n": fin(self.n),
+            "n_std": fin(self.n_std),
+            "regions": self.n_regions,
+            "birge_ratio": fin(self.birge),
+        }
+
+
+def fit_light_profile(
+    references: list[PoseMeasurement],
+    cos_psi: dict[int, NDArray[np.float64]],
+    applied_n: float = 0.0,
+) -> LightProfile:
+    """Fit ``n`` of the light's radiance profile ``L_e cos^n(psi)`` from the reference
+    target's regions.
+
+    A Lambertian target's ``L/G`` is ``rho/pi I cos^(n - n0)(psi)`` when G already
+    holds ``cos^n0`` (``applied_n``): so ``ln(L/G) = a_(pose, channel) + (n - n0) ln
+    cos(psi)``, one offset per pose and channel (the light may drift between poses),
+    one slope for all.  Weighted least squares (weights ``(L/G)^2 / var``) on the
+    within-offset deviations; ``n_std`` from the weights, times the Birge ratio
+    ``sqrt(chi^2 / dof)`` when that exceeds 1 (type A).
+
+    Parameters
+    ----------
+    references
+        Measured reference poses.
+    cos_psi
+        Pose -> (n_regions,) cosine of each region's angle off the light's normal.
+    applied_n
+        The exponent already in G.
+    """
+    sxx = sxy = 0.0
+    rows: list[tuple[NDArray, NDArray, NDArray]] = []
+    for m in references:
+        c = cos_psi.get(m.pose)
+        if c is None:
+            continue
+        ok = (m.flags == 0)[:, None] & np.isfinite(m.ratio) & (m.ratio > 0)
+        ok &= np.isfinite(m.ratio_var) & (m.ratio_var > 0) & (np.asarray(c) > 0)[:, None]
+        for ch in range(m.ratio.shape[1]):
+            k = ok[:, ch]
+            if k.sum() < 2:
+                continue
+            x = np.log(np.asarray(c, float)[k])
+            y = np.log(m.ratio[k, ch])
+            w = m.ratio[k, ch] ** 2 / m.ratio_var[k, ch]
+            xc = x - np.sum(w * x) / w.sum()
+            yc = y - np.sum(w * y) / w.sum()
+            sxx += float(np.sum(w * xc * xc))
+            sxy += float(np.sum(w * xc * yc))
+            rows.append((xc, yc, w))
+    n_reg = int(sum(len(r[0]) for r in rows))
+    if not rows or not sxx > 0:
+        return LightProfile(float(applied_n), math.nan, n_reg, math.nan)
+    slope = sxy / sxx
+    chi2 = float(sum(np.sum(w * (yc - slope * xc) ** 2) for xc, yc, w in rows))
+    dof = n_reg - len(rows) - 1
+    birge = math.sqrt(chi2 / dof) if dof > 0 else math.nan
+    std = math.sqrt(1.0 / sxx) * (max(1.0, birge) if np.isfinite(birge) else 1.0)
+    return LightProfile(float(applied_n) + slope, std, n_reg, birge)
+
+
+# --------------------------------------------------------------------------------------
+# The per-region terms
+
+
+def _sites_per_channel(n_pixels: NDArray, cell_channel: NDArray | None) -> NDArray[np.float64]:
+    """(n, 3) CFA sites of each channel in a region of ``n_pixels`` pixels."""
+    frac = np.array([0.25, 0.5, 0.25])
+    if cell_channel is not None:
+        cc = np.asarray(cell_channel).reshape(-1)
+        frac = np.array([np.mean(cc == c) for c in range(3)])
+    return np.asarray(n_pixels, float)[:, None] * frac[None, :]
+
+
+def flat_rel_std(
+    n_pixels: NDArray, pixel_rel_std: NDArray, cell_channel: NDArray | None = None
+) -> NDArray[np.float64]:
+    """The ``flat`` term: ``u_pix,c / sqrt(N_c)``, (n, 3).
+
+    ``u_pix,c`` is the relative std of one pixel's gain in channel c: with flats the
+    master flat's own noise (type A: ``sqrt(var(S_c)/N_flat + var_dark) / S_c`` at the
+    flats' mean level ``S_c``), without flats the sensor's PRNU (type B: ``[noise]
+    prnu``); independent pixels average it down over the region's ``N_c`` sites.
+    """
+    n_c = _sites_per_channel(n_pixels, cell_channel)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.asarray(pixel_rel_std, float)[None, :] / np.sqrt(n_c)
+
+
+def dark_offset_rel_std(
+    radiance: NDArray,
+    n_pixels: NDArray,
+    exposures: list[tuple[float, float, float]],
+    noise: Any,
+    dsnu_e: float,
+    cell_channel: NDArray | None = None,
+) -> NDArray[np.float64]:
+    """The ``dark`` term of a pose whose frames were not dark-subtracted, (n, 3).
+
+    Type B: the sensor's DSNU, ``dsnu_e`` electrons rms per pixel (``[noise] dsnu_e``),
+    is an offset ``d_k = dsnu_e g_k`` DN (``g_k`` the gain at frame k's ISO) the merge
+    divides by each frame's exposure factor ``e_k`` and weighs as it weighs the frame
+    (``w_k = e_k^2 / var_k`` for the frames the region does not saturate, at its
+    radiance ``L``): ``u = (sum_k w_k d_k / e_k / sum_k w_k) / sqrt(N_c) / L``.
+
+    Parameters
+    ----------
+    radiance
+        (n, 3) the regions' radiance ``L`` (DN per exposure factor).
+    n_pixels
+        (n,) pixels per region.
+    exposures
+        ``(exposure factor, ISO, headroom DN)`` of each frame of the bracket.
+    noise
+        The camera's :class:`~gonio.capture.noise.NoiseModel`.
+    dsnu_e
+        DSNU, electrons rms.
+    """
+    L = np.asarray(radiance, float)
+    num = np.zeros_like(L)
+    den = np.zeros_like(L)
+    for e, iso, headroom in exposures:
+        model = noise.at_iso(iso)
+        S = L * e
+        var = model.variance(S)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = np.where(S < headroom, e * e / var, 0.0)
+        num += w * (dsnu_e * model.gain) / e
+        den += w
+    n_c = _sites_per_channel(n_pixels, cell_channel)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return num / den / np.sqrt(n_c) / np.abs(L)
+
+
+def irradiance_rel_std(cos_psi: NDArray, cos_psi_ref: float, n_std: float) -> NDArray[np.float64]:
+    """The ``irradiance`` term (the light's radiance profile), (n, 3).
+
+    ``G`` scales with ``cos^n(psi)`` and the light scale ``I`` with the reference
+    regions' mean of it, so ``d ln f / d n = -(ln cos psi - <ln cos psi>_ref)``:
+    ``u = |ln cos psi - <ln cos psi>_ref| n_std``, ``n_std`` the fit's (type A) when the
+    fitted n is applied, else the stated ``[light] profile_n_std`` (type B).
+    ``cos_psi_ref`` is ``exp(<ln cos psi>_ref)``.
+    """
+    lc = np.log(np.clip(np.asarray(cos_psi, float), 1e-12, 1.0))
+    lr = math.log(min(max(float(cos_psi_ref), 1e-12), 1.0))
+    return np.repeat((np.abs(lc - lr) * float(n_std))[:, None], 3, axis=1)
+
+
+def stray_rel_std(
+    geometry: NDArray, g0: NDArray | float, stray_fraction: float
+) -> NDArray[np.float64]:
+    """The ``stray`` term, (n, 3): ``s / sqrt(3) * G0 / G``.
+
+    Type B, rectangular: the room returns at most ``s`` (``[light] stray_fraction``) of
+    the light's direct irradiance at normal incidence and nominal distance (``G0``,
+    from the reference poses: median ``G / cos(theta_i)``) as a diffuse irradiance; a
+    region whose direct irradiance is ``I G`` errs by up to ``s G0 / G`` of it.
+    """
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return stray_fraction / math.sqrt(3.0) * np.asarray(g0, float) / np.asarray(geometry)

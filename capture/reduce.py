@@ -42,8 +42,19 @@ from gonio.capture.frame_loader import PREFETCH_POSES, FrameLoader, default_thre
 from gonio.capture.noise import NoiseModel
 from gonio.capture.output_set import output_set
 from gonio.capture.pose_measure import PoseMeasurement, invalid_pose, measure_pose
-from gonio.capture.radiometric import brdf_of, light_scale
-from gonio.capture.raw import CHANNELS, RawFrame, subtract_dark
+from gonio.capture.radiometric import (
+    DriftModel,
+    LightProfile,
+    brdf_of,
+    dark_offset_rel_std,
+    drift_model,
+    fit_light_profile,
+    flat_rel_std,
+    irradiance_rel_std,
+    light_scale,
+    stray_rel_std,
+)
+from gonio.capture.raw import CHANNELS, RawFrame, apply_flat, subtract_dark
 from gonio.capture.reduction_config import (
     CONFIG_FILE,
     NOISE_FILE,
@@ -101,6 +112,9 @@ class ReductionResult:
         The JSON summary written next to the samples.
     plot
         The plot file, or None.
+    warnings
+        What the session lacks and what it costs (no flats, no darks, one reference
+        group, a light profile the fit does not determine), also in ``reduction.json["warnings"]``.
     """
 
     path: Path
@@ -109,6 +123,7 @@ class ReductionResult:
     rejected: dict[str, int]
     summary: dict[str, Any]
     plot: Path | None
+    warnings: list[str] = field(default_factory=list)
 
 
 def output_lock(path: str | os.PathLike) -> Path:
@@ -193,7 +208,9 @@ def reduce_session(
             if plot:
                 plot_samples(samples, stage / PLOT_FILE)
         plot_path = path.with_name(PLOT_FILE) if plot else None
-    return ReductionResult(path, len(samples), n_kept, dict(run.rejected), summary, plot_path)
+    return ReductionResult(
+        path, len(samples), n_kept, dict(run.rejected), summary, plot_path, list(run.warnings)
+    )
 
 
 @dataclass
@@ -209,10 +226,14 @@ class _PoseRun:
     frame_problems: dict[str, str] = field(default_factory=dict)
     rejected: Counter[str] = field(default_factory=Counter)
     light: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+    # the radiometric calibration (issue 16): see _radiometric_calibration
+    cal: _Radiometry = field(default_factory=lambda: _Radiometry())
+    warnings: list[str] = field(default_factory=list)
 
     def measure_all(self, threads: int, progress: Callable[[int, int], None] | None) -> None:
         """Decode and measure every sample and reference pose, in journal order."""
         shots, done = _shots_by_pose(self.records)
+        self.cal.stamps = journal_stamps(self.records)
         if self.setup.signature is None:  # the session camera's: the first frame's
             first = next(
                 (r for recs in shots.values() for r in recs if r.get("kind") != "dark"), None
@@ -223,11 +244,15 @@ class _PoseRun:
                     self.setup = self.setup.replace(signature=fr.signature)
         with FrameLoader(self.session, self.setup.signature, threads) as loader:
             masters = self._master_darks(loader, shots)
+            self._radiometric_calibration(loader, shots, masters)
             poses = sorted(
                 p
                 for p, recs in shots.items()
                 if recs and recs[0].get("kind") in ("sample", "reference")
             )
+            self.cal.kinds = {p: shots[p][0]["kind"] for p in poses}
+            if self.setup.light_profile == "fit":
+                self._fit_profile_first(poses, shots, done, loader, masters)
             for i, p in enumerate(poses):
                 if p in done:
                     # keep the worker two completed poses ahead of the measurement
@@ -284,6 +309,10 @@ class _PoseRun:
                 mdark, nd = masters[key]
                 fr = subtract_dark(fr, mdark)
                 dvar = self.setup.noise.variance(0.0, iso=fr.iso) / nd
+            else:
+                self.cal.undarked.add(p)
+            if self.cal.flat is not None:
+                fr = apply_flat(fr, self.cal.flat.gain)
             frames.append(fr)
         last = recs[-1]
         wi_rep = np.asarray(last.get("wi_achieved") or last.get("wi_requested"), float)
@@ -312,6 +341,7 @@ class _PoseRun:
                 reported_wo=wo_rep,
                 reported_camera=cam_rep,
                 dark_variance=dvar,
+                pixel_mask=self.cal.mask,
             )
         except ReductionError as exc:
             self._fail(p, kind, str(exc))
@@ -323,6 +353,11 @@ class _PoseRun:
                 )
         else:
             self.measurements.append(m)
+            self.cal.light_normal[p] = light_n
+            self.cal.exposures[p] = [
+                (f.exposure_factor(), f.iso, float(np.min(f.headroom))) for f in frames
+            ]
+            self.cal.cell_channel = frames[0].cell_channel
 
     def samples(self, manifest: Mapping[str, Any]) -> Any:
         """The calibrated samples of the measured sample poses (a BRDFSamples)."""
@@ -341,7 +376,13 @@ class _PoseRun:
         # uncertainty is fully correlated, so it is stored once (calibration_rel_std) for
         # the fitter to add to the parameters it scales, not folded into each sample's
         # sigma (which would let N samples average it down by sqrt(N)).
-        parts = [brdf_of(m, I, np.zeros_like(I_var)) for m in samples_m]
+        drift = self._drift(I)
+        light_at = [self._light_at(drift, m.pose, I) for m in samples_m]
+        parts = [
+            brdf_of(m, It, np.zeros_like(I_var))
+            for m, (It, _) in zip(samples_m, light_at, strict=True)
+        ]
+        self._radiometric_terms(samples_m, [u for _, u in light_at])
         for m in samples_m:
             for rs in m.reasons:
                 for r in rs:
@@ -380,6 +421,224 @@ class _PoseRun:
             units={"radiance": RADIANCE_UNITS, "irradiance": IRRADIANCE_UNITS},
         )
 
+    # -- the radiometric calibration (issue 16) ---------------------------------------
+    def _radiometric_calibration(
+        self,
+        loader: FrameLoader,
+        shots: dict[int, list[dict]],
+        masters: Mapping[tuple[float, float], tuple[NDArray[np.float64], int]],
+    ) -> None:
+        """The hot pixels of the master darks, the flats' PRNU gain and odd pixels: the
+        pixel mask and gain map every pose is measured with."""
+        from gonio.capture.pixel_calibration import hot_pixels, prnu_gain
+
+        cal = self.cal
+        cal.n_darks = sum(nd for _, nd in masters.values())
+        hot = None
+        dark_recs = [r for recs in shots.values() for r in recs if r.get("kind") == "dark"]
+        first = next(iter(masters.values()), None)
+        if first is not None:
+            channel = self._channel_map(loader, dark_recs)
+            hot = np.zeros(first[0].shape, bool)
+            for (_, iso), (mdark, nd) in masters.items():
+                floor = float(np.sqrt(self.setup.noise.variance(0.0, iso=iso) / nd))
+                hot |= hot_pixels(mdark, channel, floor)
+            cal.n_hot = int(hot.sum())
+        flat_recs = [r for recs in shots.values() for r in recs if r.get("kind") == "flat"]
+        if flat_recs:
+            loader.prefetch(flat_recs)
+            frames = [f for f in self._checked(flat_recs, loader.results(flat_recs)) if f]
+            if frames:
+                key = Counter((round(f.exposure_time, 9), f.iso) for f in frames).most_common(1)
+                k0 = key[0][0]
+                fs = [f for f in frames if (round(f.exposure_time, 9), f.iso) == k0]
+                dark, dvar = None, 0.0
+                if k0 in masters:
+                    dark = masters[k0][0]
+                    dvar = float(self.setup.noise.variance(0.0, iso=k0[1])) / masters[k0][1]
+                else:
+                    self.warnings.append(
+                        f"the flat frames ({fs[0].exposure_time:g} s, ISO {k0[1]:g}) have no "
+                        "dark frames at their exposure: the flat field keeps the dark "
+                        "signal (shoot [darks] with the [flats])"
+                    )
+                cal.flat = prnu_gain(
+                    [f.linear for f in fs],
+                    fs[0].channel,
+                    self.setup.K,
+                    dark=dark,
+                    saturated=np.any([f.saturated for f in fs], axis=0),
+                    pixel_variance=lambda S, iso=k0[1]: self.setup.noise.variance(S, iso=iso),
+                    dark_variance=dvar,
+                    mask=hot,
+                )
+                cal.n_flats = len(fs)
+        mask = hot
+        if cal.flat is not None:
+            mask = cal.flat.odd if mask is None else (mask | cal.flat.odd)
+        cal.mask = mask if mask is not None and mask.any() else None
+        cal.n_masked = 0 if cal.mask is None else int(cal.mask.sum())
+
+    def _channel_map(self, loader: FrameLoader, recs: list[dict[str, Any]]) -> NDArray[np.int8]:
+        """The CFA channel of each pixel (from one readable frame of ``recs``)."""
+        for rec in recs:
+            fr, _ = load_frame(self.session, self.setup.signature, rec)
+            if fr is not None:
+                return fr.channel
+        raise ReductionError("no readable dark frame to take the CFA layout from")
+
+    def _fit_profile_first(
+        self,
+        poses: list[int],
+        shots: dict[int, list[dict]],
+        done: set[int],
+        loader: FrameLoader,
+        masters: Mapping[tuple[float, float], tuple[NDArray[np.float64], int]],
+    ) -> None:
+        """``[light] profile = "fit"``: measure the reference poses once with G as
+        configured, fit n from them, and measure the session with that n in G."""
+        for p in poses:
+            if p in done and shots[p][0]["kind"] == "reference":
+                self._measure(p, shots[p], loader, masters)
+        refs = [m for m in self.measurements if m.kind == "reference"]
+        prof = fit_light_profile(refs, self._cos_psi(refs), self.setup.light_profile_n)
+        # applied when it knows n better than the lab's statement does
+        if np.isfinite(prof.n_std) and prof.n_std <= self.setup.light_profile_n_std:
+            self.setup = self.setup.replace(light_profile_n=prof.n)
+            self.cal.profile_applied = True
+        else:
+            self.warnings.append(
+                f"[light] profile = 'fit': the reference regions give n = {prof.n:.3g} +- "
+                f"{prof.n_std:.3g}, no better than the stated [light] profile_n_std = "
+                f"{self.setup.light_profile_n_std:g}: not applied (n = 0 in G)"
+            )
+        # measured again below with the fitted n: nothing of this pass is kept
+        self.measurements.clear()
+        self.failed_poses.clear()
+        self.frame_problems.clear()
+        self.rejected.clear()
+
+    def _cos_psi(self, ms: list[PoseMeasurement]) -> dict[int, NDArray[np.float64]]:
+        """Pose -> (n,) cosine of each region's direction off the light's normal."""
+        out = {}
+        for m in ms:
+            n = self.cal.light_normal.get(m.pose)
+            if n is None:
+                continue
+            n = np.asarray(n, float) / np.linalg.norm(n)
+            out[m.pose] = -(m.wi @ n)  # the light emits along -wi towards the region
+        return out
+
+    def _drift(self, I: NDArray[np.float64]) -> DriftModel:
+        refs = [m for m in self.measurements if m.kind == "reference"]
+        order = sorted(self.cal.kinds)
+        model = drift_model(refs, self.cal.stamps, order, self.cal.kinds, self.setup, I)
+        self.cal.drift = model
+        prof = fit_light_profile(refs, self._cos_psi(refs), self.setup.light_profile_n)
+        self.cal.profile = prof
+        cps = self._cos_psi(refs)
+        lc = [np.log(np.clip(cps[m.pose][m.flags == 0], 1e-12, 1.0)) for m in refs if m.pose in cps]
+        lc_all = np.concatenate(lc) if lc else np.zeros(0)
+        self.cal.cos_psi_ref = float(np.exp(np.mean(lc_all))) if lc_all.size else 1.0
+        g0 = []
+        for m in refs:
+            ok = (m.flags == 0)[:, None] & np.isfinite(m.geometry) & (m.wi[:, 2:3] > 0)
+            g0.append(np.where(ok, m.geometry / m.wi[:, 2:3], np.nan))
+        self.cal.g0 = np.nanmedian(np.concatenate(g0), axis=0) if g0 else np.full(3, np.nan)
+        return model
+
+    def _light_at(
+        self, drift: DriftModel, pose: int, I: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The light's radiance at a sample pose's rig time and the drift term there
+        (the pooled ``I`` itself, bit for bit, without repeated reference groups)."""
+        seg, t = self.cal.stamps.get(pose, (0, 0.0))
+        It, u = drift.at(seg, t)
+        if sum(g.segment == seg for g in drift.groups) < 2:
+            It = I
+        return It, u
+
+    def _radiometric_terms(
+        self,
+        samples_m: list[PoseMeasurement],
+        drift_u: list[NDArray[np.float64]],
+    ) -> None:
+        """Each sample pose's ``radiometric_rel_std`` (drift, flat, dark, irradiance,
+        stray; DEVELOPING.md, "Radiometric budget terms") and the warnings for what the
+        session lacks."""
+        s, cal = self.setup, self.cal
+        prof = cal.profile
+        assert prof is not None
+        cc = cal.cell_channel
+        n_std = prof.n_std if cal.profile_applied else s.light_profile_n_std
+        pix_flat = cal.flat.pixel_rel_std if cal.flat is not None else np.full(3, s.prnu)
+        cos_psi = self._cos_psi(samples_m)
+        for m, u_d in zip(samples_m, drift_u, strict=True):
+            n = len(m.flags)
+            if m.n_pixels is None:  # an invalid pose: no terms to state
+                m.radiometric_rel_std = {k: np.full((n, 3), np.nan) for k in _TERMS}
+                continue
+            terms = {
+                "drift": np.broadcast_to(u_d, (n, 3)).copy(),
+                "flat": flat_rel_std(m.n_pixels, pix_flat, cc),
+                "dark": np.zeros((n, 3)),
+                "irradiance": irradiance_rel_std(
+                    cos_psi.get(m.pose, np.ones(n)), cal.cos_psi_ref, n_std
+                ),
+                "stray": stray_rel_std(m.geometry, cal.g0, s.stray_fraction),
+            }
+            if m.pose in cal.undarked:
+                terms["dark"] = dark_offset_rel_std(
+                    m.radiance, m.n_pixels, cal.exposures.get(m.pose, []), s.noise, s.dsnu_e, cc
+                )
+            m.radiometric_rel_std = terms
+        self.warnings.extend(self._missing_calibration_warnings(samples_m))
+
+    def _missing_calibration_warnings(self, samples_m: list[PoseMeasurement]) -> list[str]:
+        s, cal = self.setup, self.cal
+
+        def grown(term: str) -> str:
+            kept = [
+                m.radiometric_rel_std[term][m.flags == 0]
+                for m in samples_m
+                if m.radiometric_rel_std
+            ]
+            v = np.concatenate(kept) if kept else np.zeros((0, 3))
+            v = v[np.isfinite(v)]
+            if not v.size:
+                return "no kept sample to state it for"
+            return f"median {100 * np.median(v):.3g} % of the BRDF, largest {100 * np.max(v):.3g} %"
+
+        out = []
+        if cal.flat is None:
+            out.append(
+                "no flat fields in this session ([flats] count = 0): the pixels' gain "
+                "(PRNU) and the lens's vignetting beyond cos^4 are not corrected and no "
+                "dead pixel is masked; the budget's 'flat' term takes the stated "
+                f"[noise] prnu = {s.prnu:g} per pixel: {grown('flat')}"
+            )
+        if cal.undarked:
+            what = (
+                "no dark frames" if not cal.n_darks else "frames without a dark at their exposure"
+            )
+            out.append(
+                f"{what} ({len(cal.undarked)} pose(s); [darks] count): the dark offsets "
+                "(DSNU, dark current) are not subtracted"
+                + (" and no hot pixel is masked" if not cal.n_darks else "")
+                + "; the budget's 'dark' term takes the stated "
+                f"[noise] dsnu_e = {s.dsnu_e:g} e-: {grown('dark')}"
+            )
+        segs = {g.segment for g in cal.drift.groups} if cal.drift else set()
+        if cal.drift is not None and all(
+            sum(g.segment == sg for g in cal.drift.groups) < 2 for sg in segs | {0}
+        ):
+            out.append(
+                "the reference target was shot as one group ([reference] every_poses = 0): "
+                "the light's drift is not measured; the budget's 'drift' term is the "
+                f"stated [light] drift_rel_std = {100 * s.drift_rel_std:g} % for every sample"
+            )
+        return out
+
     def summary(self, n_samples: int, n_kept: int, path: Path) -> dict[str, Any]:
         """The ``reduction.json`` document."""
         assert self.light is not None
@@ -393,6 +652,8 @@ class _PoseRun:
             "frame_problems": dict(sorted(self.frame_problems.items())),
             "light_radiance_camera_units": self.light[0].tolist(),
             "output": path.name,
+            "radiometric": self.cal.summary(),
+            "warnings": list(self.warnings),
         }
 
 
@@ -482,6 +743,85 @@ def retention(
         "bands": bands,
         "geometry_source": dict(sorted(sources.items())),
     }
+
+
+_TERMS = ("drift", "flat", "dark", "irradiance", "stray")
+
+
+@dataclass
+class _Radiometry:
+    """The session's radiometric calibration, as the reduction builds it."""
+
+    stamps: dict[int, tuple[int, float]] = field(default_factory=dict)
+    kinds: dict[int, str] = field(default_factory=dict)
+    flat: Any = None  # gonio.capture.pixel_calibration.FlatField
+    mask: NDArray[np.bool_] | None = None
+    n_darks: int = 0
+    n_flats: int = 0
+    n_hot: int = 0
+    n_masked: int = 0
+    undarked: set[int] = field(default_factory=set)
+    light_normal: dict[int, Any] = field(default_factory=dict)
+    exposures: dict[int, list[tuple[float, float, float]]] = field(default_factory=dict)
+    cell_channel: Any = None
+    drift: DriftModel | None = None
+    profile: LightProfile | None = None
+    profile_applied: bool = False
+    g0: NDArray[np.float64] | None = None
+    cos_psi_ref: float = 1.0
+
+    def summary(self) -> dict[str, Any]:
+        """The ``reduction.json["radiometric"]`` block."""
+        groups = self.drift.groups if self.drift is not None else []
+        return {
+            "dark_frames": self.n_darks,
+            "flat_frames": self.n_flats,
+            "hot_pixels": self.n_hot,
+            "masked_pixels": self.n_masked,
+            "reference_groups": [
+                {
+                    "poses": g.poses,
+                    "segment": g.segment,
+                    "time": g.time,
+                    "light_radiance_camera_units": g.I.tolist(),
+                    "rel_std": np.sqrt(g.I_rel_var).tolist(),
+                }
+                for g in groups
+            ],
+            "light_profile": {
+                **(self.profile.to_json() if self.profile is not None else {}),
+                "applied": self.profile_applied,
+            },
+        }
+
+
+def journal_stamps(records: list[dict[str, Any]]) -> dict[int, tuple[int, float]]:
+    """Pose -> ``(segment, time)`` of its shots: the journal segment (a ``start`` record
+    opens one: a resume's new bus may restart the rig time) of its last shot, and the
+    mean ``rig_time`` of its shots in that segment -- or, in a segment whose shots do not
+    all carry ``rig_time`` (journals from before it), the mean position of their records
+    in the journal (the drift is then interpolated in journal order)."""
+    seg = -1
+    per: dict[int, list[tuple[int, float | None, int]]] = defaultdict(list)
+    timed: dict[int, bool] = defaultdict(lambda: True)
+    for i, r in enumerate(records):
+        if r.get("type") == "start":
+            seg += 1
+        elif r.get("type") == "shot":
+            t = r.get("rig_time")
+            s = max(seg, 0)
+            per[int(r["pose"])].append((s, None if t is None else float(t), i))
+            if t is None:
+                timed[s] = False
+    out = {}
+    for p, shots in per.items():
+        s = shots[-1][0]
+        mine = [x for x in shots if x[0] == s]
+        if timed[s]:
+            out[p] = (s, float(np.mean([x[1] for x in mine])))
+        else:
+            out[p] = (s, float(np.mean([x[2] for x in mine])))
+    return out
 
 
 def _write_json(path: Path, doc: Mapping[str, Any]) -> None:

@@ -204,6 +204,10 @@ def reduce_cmd(
     console.print(f"wrote {res.path}", soft_wrap=True)
     if res.plot:
         console.print(f"plot: {res.plot}", soft_wrap=True)
+    # What the session lacks and what it costs: printed even with --quiet (never silent),
+    # plain text (the warnings name plan tables in brackets, which rich takes for markup).
+    for w in getattr(res, "warnings", []):
+        click.echo(f"warning: {w}", err=True)
 
 
 @click.command("calibrate-noise")

@@ -162,6 +162,13 @@ class NoiseSection(_Strict):
     read_noise: NonNegative | None = None
     iso: Positive = 100.0
     quantisation: bool = True
+    #: The sensor's photo-response non-uniformity, relative rms per pixel: the budget's
+    #: ``flat`` term of a session without flat fields (a lab's statement, or the
+    #: sensor's data sheet).
+    prnu: NonNegative = 0.01
+    #: The sensor's dark signal non-uniformity, electrons rms per pixel: the budget's
+    #: ``dark`` term of a session without dark frames.
+    dsnu_e: NonNegative = 5.0
 
     @model_validator(mode="after")
     def _file_or_numbers(self) -> NoiseSection:
@@ -206,9 +213,24 @@ class SampleSection(_Strict):
 
 
 class LightSection(_Strict):
-    """``[light]``: radius of the disk light, metres (left out: a point source)."""
+    """``[light]``: radius of the disk light, metres (left out: a point source); its
+    radiance profile; and the lab's statements the budget needs where the session does
+    not measure them."""
 
     radius: Positive | None = None
+    #: The emitted radiance's profile ``cos^n(psi)`` about the light's normal:
+    #: ``"none"`` (n = 0, a Lambertian emitter: today's G), ``"fit"`` (n fitted from the
+    #: reference target's regions and applied in G) or a number (a measured n).
+    profile: Literal["none", "fit"] | NonNegative = "none"
+    #: Standard uncertainty of the profile's exponent n when it is not fitted (or the
+    #: fit is no better): the lab's statement (an unmeasured LED lies within n = 0..2).
+    profile_n_std: NonNegative = 1.0
+    #: Upper bound of the room's stray light (the light's own output scattered back onto
+    #: the sample) as a fraction of the light's direct irradiance at normal incidence.
+    stray_fraction: Annotated[float, Field(ge=0, le=0.5)] = 5e-4
+    #: Relative standard uncertainty of the light's output between the reference shots
+    #: when the session shot the reference group once (the drift is not measured).
+    drift_rel_std: Annotated[float, Field(ge=0, le=0.5)] = 0.01
 
 
 class ReferenceSection(_Strict):
@@ -329,6 +351,19 @@ class ReductionSetup:
         RMS, camera identity and digest) when the camera came from one, else None.
     camera_file
         The camera calibration file it came from, None for numbers in the document.
+    light_profile
+        ``[light] profile``: ``"none"``, ``"fit"`` or a stated exponent n.
+    light_profile_n
+        The exponent n of the ``cos^n(psi)`` radiance profile applied in G (0: a
+        Lambertian emitter; the reduction sets it from ``light_profile``).
+    light_profile_n_std
+        ``[light] profile_n_std``: the stated std of n when it is not fitted.
+    stray_fraction, drift_rel_std
+        ``[light]``: the stray light's upper bound (fraction of the direct irradiance at
+        normal incidence) and the drift's relative std with one reference group.
+    prnu, dsnu_e
+        ``[noise]``: PRNU (relative rms) and DSNU (e- rms) per pixel, the budget's
+        ``flat`` and ``dark`` terms without flats or darks.
     """
 
     K: NDArray[np.float64]
@@ -351,6 +386,13 @@ class ReductionSetup:
     max_region_spread_deg: float | None = None
     camera_calibration: dict[str, Any] | None = None
     camera_file: str | None = None
+    light_profile: str | float = "none"
+    light_profile_n: float = 0.0
+    light_profile_n_std: float = 1.0
+    stray_fraction: float = 5e-4
+    drift_rel_std: float = 0.01
+    prnu: float = 0.01
+    dsnu_e: float = 5.0
 
     def replace(self, **changes: Any) -> ReductionSetup:
         """A copy with some fields changed (``dataclasses.replace``)."""
@@ -601,6 +643,15 @@ def setup_from_config(
         max_board_obliquity_deg=red.max_board_obliquity_deg,
         min_board_corners=red.min_board_corners,
         max_region_spread_deg=red.max_region_spread_deg,
+        light_profile=config.light.profile,
+        light_profile_n=(
+            float(config.light.profile) if not isinstance(config.light.profile, str) else 0.0
+        ),
+        light_profile_n_std=config.light.profile_n_std,
+        stray_fraction=config.light.stray_fraction,
+        drift_rel_std=config.light.drift_rel_std,
+        prnu=config.noise.prnu if config.noise is not None else 0.01,
+        dsnu_e=config.noise.dsnu_e if config.noise is not None else 5.0,
     )
     return _camera_setup(setup, cam, cam_file)
 

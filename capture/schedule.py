@@ -28,7 +28,16 @@ from gonio.devices import MoveResult, RigState
 from gonio.errors import PoseRefused, SessionError
 from gonio.radiometry.frames import angle_between
 
-__all__ = ["DryRunRig", "Refusal", "Schedule", "StageProgress", "build_schedule", "dry_run"]
+__all__ = [
+    "DryRunRig",
+    "Refusal",
+    "Schedule",
+    "StageProgress",
+    "build_schedule",
+    "dry_run",
+    "with_calibration_steps",
+    "with_reference_groups",
+]
 
 
 @dataclass
@@ -46,9 +55,9 @@ class Schedule:
     """The ordered steps of a session and its estimated duration.
 
     ``steps[k]`` is journaled as pose ``k``: a dict with ``kind`` (``"sample"``,
-    ``"reference"`` or ``"dark"``), ``wi``/``wo`` (None for darks), angles in degrees,
-    the ``joints`` the dry run chose (rad; absent when refused) and ``refused``
-    (``{"code", "message"}``) when the dry run refused the step.
+    ``"reference"``, ``"dark"`` or ``"flat"``), ``wi``/``wo`` (None for darks and
+    flats), angles in degrees, the ``joints`` the dry run chose (rad; absent when
+    refused) and ``refused`` (``{"code", "message"}``) when the dry run refused the step.
     """
 
     steps: list[dict[str, Any]]
@@ -292,15 +301,19 @@ def build_schedule(
         order = order_r + ordered(idx_sample, (order_r[-1] + 1) if order_r else 0)
     else:
         order = order_s + ordered(idx_ref, (order_s[-1] + 1) if order_s else 0)
-    travel = tour_time(D, [0] + [k + 1 for k in order])
     raster = tour_time(D, [0] + [k + 1 for k in range(len(expanded.poses))])
+    # Repeated reference groups (every_poses) in the samples' order, the group ordered
+    # as at ``when``.
+    order_ref = [k for k in order if expanded.poses[k].kind == "reference"]
+    order = with_reference_groups(
+        [k for k in order if expanded.poses[k].kind != "reference"], order_ref, plan
+    )
+    travel = tour_time(D, [0] + [k + 1 for k in order])
     steps: list[dict[str, Any]] = []
     for k in order:
         p: Pose = expanded.poses[k]
         steps.append(p.to_json())
-    if plan.darks.count:
-        dark = {"kind": "dark", "wi": None, "wo": None}
-        steps.insert(0, dark) if plan.darks.when == "start" else steps.append(dark)
+    steps = with_calibration_steps(steps, plan)
 
     tell("order", 1, 1)
     tell("dry run", 0, len(steps))
@@ -316,15 +329,55 @@ def build_schedule(
     return Schedule(steps, expanded, travel, raster, est, refused)
 
 
+def with_reference_groups(samples: list[Any], group: list[Any], plan: Plan) -> list[Any]:
+    """The visiting order with the reference ``group`` at ``plan.reference.when`` and
+    again after every ``plan.reference.every_poses``-th sample (never twice in a row).
+
+    ``samples`` and ``group`` are steps (or pose indices) in their own orders; the
+    result holds ``plan.reference_repeats(len(samples))`` copies of the group.
+    """
+    if not group:
+        return list(samples)
+    n = plan.reference.every_poses
+    start = plan.reference.when == "start"
+    out: list[Any] = list(group) if start else []
+    for i, s in enumerate(samples, 1):
+        out.append(s)
+        if n and i % n == 0:
+            out.extend(group)
+    if not start and not (n and samples and len(samples) % n == 0):
+        out.extend(group)
+    return out
+
+
+def with_calibration_steps(steps: list[dict[str, Any]], plan: Plan) -> list[dict[str, Any]]:
+    """``steps`` with the flat-field step and the dark step at their ``when``: at the
+    start darks first, at the end darks last (the light is off for the least time
+    between the light-on frames)."""
+    steps = list(steps)
+    if plan.flats.count:
+        flat = {"kind": "flat", "wi": None, "wo": None}
+        steps.insert(0, flat) if plan.flats.when == "start" else steps.append(flat)
+    if plan.darks.count:
+        dark = {"kind": "dark", "wi": None, "wo": None}
+        steps.insert(0, dark) if plan.darks.when == "start" else steps.append(dark)
+    return steps
+
+
 def _estimated_duration(plan: Plan, n_pose: int, travel: float) -> float:
     b = plan.bracket
     per_frame = (
         b.exposures_s and float(np.mean(b.exposures_s)) or b.exposure_time_s
     ) + b.shot_overhead_s
+    n_ref = len(plan.reference.poses)
+    n_pose += n_ref * (plan.reference_repeats(n_pose - n_ref) - 1) if n_ref else 0
     est = travel + n_pose * (plan.settle_s + _expected_frames(plan) * per_frame)
     if plan.darks.count:
         n_t = len(plan.darks.exposure_times_s) or (len(b.exposures_s) or 3)
+        n_t += 1 if plan.flats.count else 0
         est += plan.darks.count * n_t * per_frame
+    if plan.flats.count:
+        est += plan.flats.count * (plan.flats.exposure_s + b.shot_overhead_s)
     return est
 
 
@@ -340,13 +393,8 @@ def _joint_pose_schedule(
     poses as a group at the start or end, darks as for a grid plan."""
     joint_steps = [p.to_json() for p in expanded.poses if p.kind != "reference"]
     ref_steps = [p.to_json() for p in expanded.poses if p.kind == "reference"]
-    if plan.reference.when == "start":
-        steps = ref_steps + joint_steps
-    else:
-        steps = joint_steps + ref_steps
-    if plan.darks.count:
-        dark = {"kind": "dark", "wi": None, "wo": None}
-        steps.insert(0, dark) if plan.darks.when == "start" else steps.append(dark)
+    steps = [dict(s) for s in with_reference_groups(joint_steps, ref_steps, plan)]
+    steps = with_calibration_steps(steps, plan)
     tell("dry run", 0, len(steps))
     approach: dict[int, dict[str, int]] = {}
     joints, refused = dry_run(steps, plan, kinematics, start_joints, approach)

@@ -199,7 +199,7 @@ class _Shot(_Record):
     type: Literal["shot"]
     pose: _Count
     frame: _Count
-    kind: Literal["sample", "reference", "dark", "mirror"]
+    kind: Literal["sample", "reference", "dark", "flat", "mirror"]
     file: str
     exposure_time_requested: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     bytes: _Count | None = None
@@ -235,7 +235,7 @@ class SessionState:
         used = {
             float(r["exposure_time_requested"])
             for r in self.records
-            if r.get("type") == "shot" and r.get("kind") != "dark"
+            if r.get("type") == "shot" and r.get("kind") not in ("dark", "flat")
         }
         return PlanState(
             done=set(self.done),

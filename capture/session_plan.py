@@ -138,6 +138,8 @@ def _shot_record(
         "xxh3_128": cap.xxh3_128,
         "bytes": cap.bytes,
     }
+    if cap.rig_time is not None:
+        rec["rig_time"] = cap.rig_time
     if shot.extra:
         rec["camera"] = {
             k: v for k, v in shot.extra.items() if isinstance(v, str | int | float | bool)
@@ -146,7 +148,7 @@ def _shot_record(
 
 
 def _pose_fields(step: Mapping[str, Any], state: RigState, forward: Forward) -> dict[str, Any]:
-    if step["kind"] == "dark":
+    if step["kind"] in ("dark", "flat"):
         wi = wo = wi_a = wo_a = None
     else:
         wi, wo = list(step["wi"]), list(step["wo"])
@@ -209,12 +211,21 @@ def session_plan(
         done_shots = list(state.shots.get(k, []))
         retake = sorted(state.retake.get(k, ()))
         if k in state.done and not retake:
-            if kind != "dark":
+            if kind not in ("dark", "flat"):
                 prev_verdicts = _verdicts(done_shots)
                 prev_cos = float(step["wi"][2])
             continue
         if kind == "dark":
             yield from _darks(k, plan, state, done_shots, retake, sorted(used), iso, f_number)
+            if k not in state.done:
+                yield Checkpoint({"type": "pose_done", "pose": k})
+            continue
+        if kind == "flat":
+            yield SetTarget("flat")
+            yield from _flats(k, plan, state, done_shots, retake, f_number)
+            # the sample back in place (the next step swaps again if it needs to)
+            yield SetTarget("sample")
+            target = "sample"
             if k not in state.done:
                 yield Checkpoint({"type": "pose_done", "pose": k})
             continue
@@ -280,11 +291,47 @@ def session_plan(
         prev_verdicts, prev_cos = verdicts, float(wi[2])
 
 
-def _darks(k, plan, state, done_shots, retake, exposures, iso, f_number):
+def _flats(k, plan, state, done_shots, retake, f_number):
+    """The flat-field frames: ``flats.count`` at ``flats.exposure_s`` and the flats' ISO
+    (the rig stays where it is: the panel covers the lens)."""
+    t, iso = float(plan.flats.exposure_s), plan.flats_iso
+    rig_state = yield Read()
+    fields = _pose_fields({"kind": "flat"}, rig_state, lambda j: (None, None))
+    for frame in retake:
+        old = done_shots[frame]
+        n = state.records_per_frame.get((k, frame), 1)
+        cap = yield Shoot(k, frame, t, iso, f_number, _stem(k, frame, "flat", n))
+        if cap is not None:
+            rec = _shot_record(k, frame, "flat", cap, t)
+            rec.update(fields)
+            rec.update(_retake_fields(old))
+            yield Emit(rec)
+    if k not in state.done:
+        for frame in range(len(done_shots), plan.flats.count):
+            cap = yield Shoot(k, frame, t, iso, f_number, _stem(k, frame, "flat"))
+            if cap is None:
+                break
+            rec = _shot_record(k, frame, "flat", cap, t)
+            rec.update(fields)
+            yield Emit(rec)
+
+
+def _dark_wanted(plan: Plan, exposures, iso) -> list[tuple[float, float | None]]:
+    """(exposure time, ISO) of every dark frame: ``darks.count`` per exposure time of the
+    plan's list (else every one used), and per flat exposure when the plan has flats."""
     times = list(plan.darks.exposure_times_s) or list(exposures) or list(plan.bracket.exposures_s)
     if not times:
         times = [plan.bracket.exposure_time_s]
-    wanted = [t for t in sorted(set(times)) for _ in range(plan.darks.count)]
+    wanted = [(t, iso) for t in sorted(set(times)) for _ in range(plan.darks.count)]
+    if plan.flats.count:
+        flat = (float(plan.flats.exposure_s), plan.flats_iso)
+        if flat not in set(wanted):
+            wanted += [flat] * plan.darks.count
+    return wanted
+
+
+def _darks(k, plan, state, done_shots, retake, exposures, iso, f_number):
+    wanted = _dark_wanted(plan, exposures, iso)
     rig_state = yield Read()
     fields = _pose_fields({"kind": "dark"}, rig_state, lambda j: (None, None))
     yield SetLight(False)
@@ -292,7 +339,9 @@ def _darks(k, plan, state, done_shots, retake, exposures, iso, f_number):
         old = done_shots[frame]
         t = float(old["exposure_time_requested"])
         n = state.records_per_frame.get((k, frame), 1)
-        cap = yield Shoot(k, frame, t, iso, f_number, _stem(k, frame, "dark", n))
+        # the flats' darks at the flats' ISO
+        t_iso = wanted[frame][1] if frame < len(wanted) and wanted[frame][0] == t else iso
+        cap = yield Shoot(k, frame, t, t_iso, f_number, _stem(k, frame, "dark", n))
         if cap is not None:
             rec = _shot_record(k, frame, "dark", cap, t)
             rec.update(fields)
@@ -300,8 +349,8 @@ def _darks(k, plan, state, done_shots, retake, exposures, iso, f_number):
             yield Emit(rec)
     if k not in state.done:
         for frame in range(len(done_shots), len(wanted)):
-            t = wanted[frame]
-            cap = yield Shoot(k, frame, t, iso, f_number, _stem(k, frame, "dark"))
+            t, t_iso = wanted[frame]
+            cap = yield Shoot(k, frame, t, t_iso, f_number, _stem(k, frame, "dark"))
             if cap is None:
                 break
             rec = _shot_record(k, frame, "dark", cap, t)

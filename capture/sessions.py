@@ -60,6 +60,7 @@ __all__ = [
     "SessionReport",
     "SessionStopped",
     "SkippedPose",
+    "check_calibration_devices",
     "inspect_session",
     "plan_session",
     "resume_session",
@@ -129,6 +130,7 @@ class DryRun:
             "sample_poses": sum(1 for s in sched.steps if s["kind"] == "sample"),
             "reference_poses": sum(1 for s in sched.steps if s["kind"] == "reference"),
             "dark_steps": sum(1 for s in sched.steps if s["kind"] == "dark"),
+            "flat_steps": sum(1 for s in sched.steps if s["kind"] == "flat"),
             "travel_time_s": round(sched.travel_time_s, 3),
             "raster_travel_time_s": round(sched.raster_travel_time_s, 3),
             "estimated_duration_s": round(sched.estimated_duration_s, 1),
@@ -214,6 +216,33 @@ def _check_target_changer(
             "'mirror') but these devices have no target changer to put it in the sample's "
             "place; use a rig that has one (the simulated camera, or an operator prompt) "
             "(nothing was moved or written)"
+        )
+
+
+def check_calibration_devices(
+    plan: Plan, has_light: bool, has_target: bool, *, resumed: bool = False
+) -> None:
+    """Dark frames need a light switch, flat fields a target changer (the panel over the
+    lens): refused before anything moves (or is written) when the devices lack them.
+
+    Raises
+    ------
+    SessionError
+        Naming the plan table, the count and the option that gives the device.
+    """
+    after = " (nothing was moved or written)" if not resumed else " (nothing was moved)"
+    if plan.darks.count and not has_light:
+        raise SessionError(
+            f"plan {plan.name!r}: [darks] count = {plan.darks.count} needs the rig's light "
+            "switched off, and these devices have no light switch: give --light "
+            "relay:PORT (a serial relay) or --light operator (you switch it when asked), "
+            "or set [darks] count = 0 and shoot darks with the lens capped" + after
+        )
+    if plan.flats.count and not has_target:
+        raise SessionError(
+            f"plan {plan.name!r}: [flats] count = {plan.flats.count} needs a target changer "
+            "to put the flat-field panel over the lens, and these devices have none (the "
+            "simulated camera has one); set [flats] count = 0 and shoot flats apart" + after
         )
 
 
@@ -319,12 +348,7 @@ def run_session(
         with contextlib.ExitStack() as opened:
             dev = _enter(devices, request, opened)
             _check_target_changer(dry.steps, dev, plan)
-            if plan.darks.count and dev.light is None:
-                raise SessionError(
-                    f"plan {plan.name!r}: darks.count = {plan.darks.count} but the "
-                    f"{camera_backend} camera cannot switch the rig's light off; set "
-                    "darks.count = 0 and shoot darks with the lens capped (nothing was written)"
-                )
+            check_calibration_devices(plan, dev.light is not None, dev.target is not None)
             # The session's own lock goes into the outer stack: it is released after the
             # devices are closed, never while this process still holds the rig.
             create_session(
@@ -438,6 +462,9 @@ def resume_session(
         with contextlib.ExitStack() as opened:
             dev = _enter(devices, request, opened)
             _check_target_changer([s.model_dump() for s in manifest.schedule], dev, manifest.plan)
+            check_calibration_devices(
+                manifest.plan, dev.light is not None, dev.target is not None, resumed=True
+            )
             for rel, data in dev.files.items():  # sessions made before the devices gave it
                 dest = session_file(d, {"file": rel})
                 if not dest.exists():

@@ -134,8 +134,8 @@ def plan_cmd(
     if show_poses:
         t = Table("#", "kind", "theta_i", "phi_i", "theta_o", "phi_o", title="visiting order")
         for k, s in enumerate(sched.steps):
-            if s["kind"] == "dark":
-                t.add_row(str(k), "dark", "", "", "", "")
+            if s["kind"] in ("dark", "flat"):
+                t.add_row(str(k), s["kind"], "", "", "", "")
                 continue
             t.add_row(
                 str(k),
@@ -241,7 +241,7 @@ def _plot_poses(path: Path, sched) -> None:
         (axes[0], "i", "light (incident)"),
         (axes[1], "o", "camera (outgoing)"),
     ):
-        steps = [s for s in sched.steps if s["kind"] != "dark"]
+        steps = [s for s in sched.steps if s["kind"] not in ("dark", "flat")]
         th = np.array([s[f"theta_{which}_deg"] for s in steps])
         ph = np.radians([s[f"phi_{which}_deg"] for s in steps])
         ax.plot(ph, th, "-", color="0.8", lw=0.6, zorder=1)
@@ -282,6 +282,17 @@ def _report(result) -> None:
         click.echo(f"{len(result.retaken)} frame(s) shot again: {', '.join(result.retaken)}")
 
 
+def _light_option(spec: str, camera_backend: str | None) -> str | None:
+    """The ``--light`` option checked (a :class:`ConfigError` naming it), or None for
+    ``none``; a simulated camera is its own light switch."""
+    from gonio.app.light_switch import parse_light_spec
+
+    kind = parse_light_spec(spec)["kind"]
+    if kind != "none" and camera_backend == "simulated":
+        raise click.UsageError("--light is for a real rig; --camera simulated switches its own")
+    return None if kind == "none" else spec
+
+
 #: Only for ``run``: a resumed session keeps the camera backend it was started with.
 _CAMERA = click.option(
     "--camera",
@@ -309,6 +320,17 @@ _COMMON_RUN = [
         "[run: virtual; resume: the session's own]. The journal is the same either way.",
     ),
     click.option("--quiet", is_flag=True, help="No progress bar."),
+    click.option(
+        "--light",
+        "light_spec",
+        metavar="relay:PORT|operator|none",
+        default="none",
+        show_default=True,
+        help="A real rig's light switch, needed for [darks]: a serial relay "
+        "(relay:/dev/ttyUSB0, optionally ,on=HEX,off=HEX,baud=N,settle=S; default the "
+        "LCUS-1 relay's commands A00101A2/A00100A1), or the operator, asked at the "
+        "terminal. --camera simulated switches its own light.",
+    ),
 ]
 
 
@@ -370,6 +392,7 @@ def run_cmd(
     camera_port: str | None,
     sim_speed: float | str | None,
     quiet: bool,
+    light_spec: str,
 ) -> None:
     """Run a measurement session: move, shoot adaptive brackets, journal every shot.
 
@@ -393,17 +416,20 @@ def run_cmd(
     from gonio.app.simulation import simulated_run
     from gonio.capture.plan import load_plan
     from gonio.capture.session_dir import check_new_session_dir
-    from gonio.capture.sessions import plan_session, run_session
+    from gonio.capture.sessions import check_calibration_devices, plan_session, run_session
 
     check_new_session_dir(out)  # before anything slow or physical
     if (world is not None or world_seed is not None) and camera_backend != "simulated":
         raise click.UsageError("--world and --world-seed need --camera simulated")
     plan = load_plan(plan_file)
+    light = _light_option(light_spec, camera_backend)
+    if camera_backend != "simulated":  # before the rig or the camera is opened
+        check_calibration_devices(plan, light is not None, True)
     cfg = _load_rig(rig_file)
     dry = plan_session(plan, cfg)
     speed = sim_speed or DEFAULT_TIME_SCALE
     simulation, attachments = None, None
-    opener = device_opener(camera_port=camera_port, time_scale=speed)
+    opener = device_opener(camera_port=camera_port, time_scale=speed, light_spec=light)
     if camera_backend == "simulated":
         sim = simulated_run(plan, plan_file, scene_file, speed, world, world_seed)
         simulation, attachments, opener = sim.simulation, sim.attachments, sim.opener
@@ -467,6 +493,7 @@ def resume_cmd(
     camera_port: str | None,
     sim_speed: float | str | None,
     quiet: bool,
+    light_spec: str,
 ) -> None:
     """Continue a session after a fault, a crash or Ctrl-C.
 
@@ -499,7 +526,11 @@ def resume_cmd(
     with SessionProgress(quiet) as progress:
         result = resume_session(
             session_dir,
-            device_opener(camera_port=camera_port, time_scale=sim_speed),
+            device_opener(
+                camera_port=camera_port,
+                time_scale=sim_speed,
+                light_spec=_light_option(light_spec, None),
+            ),
             plan=plan,
             rig_config=cfg,
             force=force,

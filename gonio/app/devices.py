@@ -24,6 +24,7 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from gonio.app.light_switch import open_light
 from gonio.capture.engine import SessionDevices
 from gonio.capture.sessions import DeviceOpener, DeviceRequest
 from gonio.devices import RigDevice
@@ -69,6 +70,7 @@ def open_session_devices(
     time_scale: float | str | None = None,
     scene: Mapping[str, Any] | None = None,
     scene_base: Path | None = None,
+    light_spec: str | None = None,
 ) -> Iterator[SessionDevices]:
     """Open the rig, its kinematics and the camera a session asks for.
 
@@ -110,8 +112,8 @@ def open_session_devices(
     # A real camera's rig cannot swap the calibration mirror in: the operator does.
     # Whether someone is there to answer is asked before the rig is even opened.
     target = None
-    if request.camera_backend != "simulated" and any(
-        p.target == "mirror" for p in request.plan.joint_poses
+    if request.camera_backend != "simulated" and (
+        any(p.target == "mirror" for p in request.plan.joint_poses) or request.plan.flats.count
     ):
         from gonio.app.operator import OperatorTargetChanger
 
@@ -143,6 +145,9 @@ def open_session_devices(
             # Settle times and move durations in servo time, whichever clock it keeps.
             sleep, clock = bus.sleep, bus.clock
         rig = stack.enter_context(open_rig(cfg, clock))
+        # Rig time for the journal's shots (and the simulated light's drift): the servo
+        # clock of a virtual bus, else the wall's monotonic clock.
+        rig_clock: Callable[[], float] = clock if clock is not None else time.monotonic
         if request.camera_backend == "simulated":
             from gonio.simulator.rig_camera import SimulatedRigCamera
 
@@ -177,6 +182,7 @@ def open_session_devices(
                 request.seed,
                 **({"reference_albedo": refl} if refl is not None else {}),
                 **simulated_camera_kwargs(world),
+                **_clock_kwargs(SimulatedRigCamera, rig_clock),
             )
             stack.callback(camera.close)
             from gonio.app.sim_reduction import CONFIG_FILE, reduction_document, reduction_toml_text
@@ -194,6 +200,7 @@ def open_session_devices(
                 sleep=sleep,
                 read_noise_dn=camera.read_noise_dn,
                 files={CONFIG_FILE: setup.encode()},
+                clock=rig_clock,
             )
             return
         from gonio.capture.camera import open_camera
@@ -202,7 +209,24 @@ def open_session_devices(
             request.camera_backend, **({"port": camera_port} if camera_port else {})
         )
         stack.callback(camera.close)
-        yield SessionDevices(rig, camera, target=target, kinematics=kin, sleep=sleep)
+        light = open_light(light_spec) if light_spec is not None else None
+        if light is not None:
+            stack.callback(getattr(light, "close", lambda: None))
+        yield SessionDevices(
+            rig, camera, light=light, target=target, kinematics=kin, sleep=sleep, clock=rig_clock
+        )
+
+
+def _clock_kwargs(camera_class: Any, clock: Callable[[], float]) -> dict[str, Any]:
+    """``{"clock": clock}`` when the simulated camera takes a rig clock (its light drifts
+    with rig time), else nothing (a simulator from before the keyword)."""
+    import inspect
+
+    try:
+        params = inspect.signature(camera_class).parameters
+    except (TypeError, ValueError):
+        return {}
+    return {"clock": clock} if "clock" in params else {}
 
 
 def _nominal_of(cfg: Any) -> Any:
@@ -221,6 +245,7 @@ def device_opener(
     time_scale: float | str | None = None,
     scene: Mapping[str, Any] | None = None,
     scene_base: Path | None = None,
+    light_spec: str | None = None,
 ) -> DeviceOpener:
     """A device opener for :func:`gonio.capture.sessions.run_session` /
     :func:`~gonio.capture.sessions.resume_session` (see :func:`open_session_devices`)."""
@@ -232,6 +257,7 @@ def device_opener(
             time_scale=time_scale,
             scene=scene,
             scene_base=scene_base,
+            light_spec=light_spec,
         )
 
     return opener

@@ -22,6 +22,7 @@ TARGET_WORDS = {
     "sample": "the SAMPLE back on the holder",
     "mirror": "the flat calibration MIRROR in the sample's place (flush with the board)",
     "reference": "the REFERENCE target in the sample's place",
+    "flat": "the FLAT-FIELD panel (uniform diffuse light) over the camera's lens",
 }
 
 

@@ -138,6 +138,7 @@ def _legacy_opener():
                         sleep=bus.sleep,
                         read_noise_dn=camera.read_noise_dn,
                         files={CONFIG_FILE: setup.encode()},
+                        clock=bus.clock,  # rig time in the shot records (issue 16)
                     )
                 finally:
                     camera.close()

@@ -219,3 +219,94 @@ def test_fused_kernel_matches_numpy_path_with_regions_trimmed_to_a_spread(bracke
             # extremes of its bounding directions (pixels on opposite corners)
             cosmin = float(np.min(w @ w.T))
             assert np.degrees(np.arccos(min(cosmin, 1.0))) <= spread * np.sqrt(2) + 1e-6
+
+
+def _hot_mask(shape, seed=7, n=40):
+    rng = np.random.default_rng(seed)
+    mask = np.zeros(shape, bool)
+    mask.reshape(-1)[rng.choice(mask.size, n * 50, replace=False)] = True
+    return mask
+
+
+def test_masked_pixels_weigh_nothing_in_both_paths(brackets, monkeypatch):
+    """A hot/dead pixel mask (2000 pixels) in both paths: the same sums; and it changes
+    them (the masked sites really leave the sums)."""
+    setup, poses = brackets
+    frames, rp = poses[0]
+    mask = _hot_mask(frames[0].shape)
+    ref, got = both_paths(monkeypatch, frames, setup, rp, pixel_mask=mask)
+    assert_same(ref, got)
+    plain, _ = both_paths(monkeypatch, frames, setup, rp)
+    ok = np.isfinite(plain.radiance) & np.isfinite(ref.radiance)
+    assert not np.array_equal(plain.radiance[ok], ref.radiance[ok])
+    np.testing.assert_array_equal(plain.wi, ref.wi)  # directions: every pixel of the region
+
+
+def test_planted_hot_pixels_are_excluded(brackets, monkeypatch):
+    """Frames with hot pixels planted (a dark signal of 500 DN at 2000 pixels) reduce,
+    with those pixels masked, to exactly what the frames without them give."""
+    setup, poses = brackets
+    frames, rp = poses[1]
+    mask = _hot_mask(frames[0].shape, seed=8)
+    hot = np.where(mask, -500.0, 0.0)  # subtracting a negative dark adds the hot signal
+    planted = [subtract_dark(f, hot) for f in frames]
+    clean = [subtract_dark(f, np.zeros(f.shape)) for f in frames]
+    for kernel in ("0", "1"):
+        monkeypatch.setenv("GONIO_NUMBA", kernel)
+        a = measure_pose(
+            planted,
+            setup,
+            rp.light_position,
+            rp.light_normal,
+            pixel_mask=mask,
+            reported_camera=(rp.camera_position, rp.camera_rotation.T),
+        )
+        b = measure_pose(
+            clean,
+            setup,
+            rp.light_position,
+            rp.light_normal,
+            pixel_mask=mask,
+            reported_camera=(rp.camera_position, rp.camera_rotation.T),
+        )
+        unmasked, clean_unmasked = (
+            measure_pose(
+                fs,
+                setup,
+                rp.light_position,
+                rp.light_normal,
+                reported_camera=(rp.camera_position, rp.camera_rotation.T),
+            )
+            for fs in (planted, clean)
+        )
+        assert a.kernel == ("numba" if kernel == "1" else "numpy")
+        for name in ("radiance", "radiance_var", "geometry", "ratio"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        ok = np.isfinite(clean_unmasked.radiance) & np.isfinite(unmasked.radiance)
+        # unmasked, the hot signal is in the regions' radiance
+        assert np.all(unmasked.radiance[ok] >= clean_unmasked.radiance[ok])
+        assert (unmasked.radiance[ok] > clean_unmasked.radiance[ok]).sum() > ok.sum() // 2
+
+
+def test_light_profile_in_g_in_both_paths_and_its_closed_form(brackets, monkeypatch):
+    """``cos^n(psi)`` in G: the same in both paths, and each region's G divided by the
+    Lambertian emitter's is the mean of cos^n(psi) over its pixels (psi: the angle off
+    the light's normal of the direction from the light to the pixel's point), to the
+    weights' second order."""
+    setup, poses = brackets
+    frames, rp = poses[1]
+    prof = setup.replace(light_profile_n=1.7)
+    ref, got = both_paths(monkeypatch, frames, prof, rp)
+    assert_same(ref, got)
+    lambertian, _ = both_paths(monkeypatch, frames, setup, rp)
+    n_l = np.asarray(rp.light_normal, float) / np.linalg.norm(rp.light_normal)
+    lp = np.asarray(rp.light_position, float)
+    x, y, z = ref.regions.xyz
+    v = np.stack([x - lp[0], y - lp[1], z - lp[2]], axis=-1)
+    cos_psi = (v @ n_l) / np.linalg.norm(v, axis=-1)
+    lab = ref.regions.label
+    want = np.array([np.mean(cos_psi[lab == r] ** 1.7) for r in range(len(ref.flags))])
+    ok = np.isfinite(ref.geometry[:, 1])
+    ratio = ref.geometry[ok, 1] / lambertian.geometry[ok, 1]
+    np.testing.assert_allclose(1 - ratio, 1 - want[ok], rtol=0.02)
+    assert np.ptp(ratio) > 1e-4  # the profile changes G across the sample

@@ -73,8 +73,9 @@ strategy = "quadrature"
 quadrature_order = 1
 """
 
-#: Journal fields that are wall-clock timestamps by design.
-TIMESTAMPS = {"time"}
+#: Journal fields that are clock stamps by design: the wall clock's, and the rig time of
+#: each shot (the servo clock, which on a watched bus runs with the wall clock).
+TIMESTAMPS = {"time", "rig_time"}
 #: samples.h5 attributes that are: the session's creation time (from its manifest).
 H5_TIMESTAMPS = {"/@session"}
 
@@ -122,6 +123,12 @@ def test_journals_are_identical_apart_from_timestamps(sessions):
     assert a[-1]["type"] == "stop" and a[-1]["status"] == "completed"
     for ra, rb in zip(a, b, strict=True):
         assert _without_timestamps(ra) == _without_timestamps(rb)
+    # every shot carries its rig time, a stamp of the servo clock that never runs back
+    for journal in (a, b):
+        stamps = [r["rig_time"] for r in journal if r["type"] == "shot"]
+        assert stamps and all(isinstance(t, float) for t in stamps)
+        assert all(t1 >= t0 for t0, t1 in zip(stamps, stamps[1:], strict=False))
+        assert stamps[-1] > stamps[0]  # the moves between the poses took servo time
     # the comparison covers fields that move with the servos: the read-back joints and
     # the motors' temperatures, which rose above the 30 degC ambient during the moves
     shots = [r for r in a if r["type"] == "shot" and r["kind"] != "dark"]
