@@ -212,7 +212,22 @@ def measure_pose(
     _horizon_flags(wi, lp, setup, npx, flags, reasons)
     names = tuple(f.name for f in frames)
     return PoseMeasurement(
-        pose, kind, wi, wo, L, Lv, G, Q, Qv, flags, reasons, names, cam, regions, kernel, source,
+        pose,
+        kind,
+        wi,
+        wo,
+        L,
+        Lv,
+        G,
+        Q,
+        Qv,
+        flags,
+        reasons,
+        names,
+        cam,
+        regions,
+        kernel,
+        source,
         npx,
     )
 

@@ -6,10 +6,10 @@ scene there with :class:`gonio.simulator.camera.SimulatedCamera` and returns its
 and the abilities a real rig gets from extra hardware, :class:`Light` (dark frames are
 exposures with the light off; the room's light still reaches them) and
 :class:`TargetChanger` (the reference target or the mirror in the sample's place, or a
-flat light panel over the lens), plus :class:`SeededShots`: the session seed is given at construction and
-the engine names each shot's (step, frame) with :meth:`next_shot` before capturing it, so
-its noise is drawn from :func:`shot_seed` -- a session is reproducible bit for bit, and a
-shot redone after a crash renders the same bytes.
+flat light panel over the lens), plus :class:`SeededShots`: the session seed is given at
+construction and the engine names each shot's (step, frame) with :meth:`next_shot` before
+capturing it, so its noise is drawn from :func:`shot_seed` -- a session is reproducible
+bit for bit, and a shot redone after a crash renders the same bytes.
 
 The camera knows nothing of the rig's kinematics: the composition root wires
 ``pose_provider = lambda: Kinematics(cfg).poses(rig.read().joints)``, and the rig's time
