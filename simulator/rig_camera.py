@@ -32,7 +32,12 @@ from gonio.errors import CameraError, ConfigError
 from gonio.simulator.camera import TARGETS, SimulatedCamera
 from gonio.simulator.scene import Scene, parse_scene
 
-__all__ = ["SimulatedRigCamera", "minimal_scene", "shot_seed"]
+__all__ = ["DOWNLOAD_S", "SimulatedRigCamera", "minimal_scene", "shot_seed"]
+
+#: Rig time a simulated frame's RAW file takes to reach the host, s: a lab camera over
+#: USB 2 downloads a 25-30 MB RAW in about a second (the example plan's
+#: ``shot_overhead_s`` is 0.8 s for the same reason).
+DOWNLOAD_S = 0.8
 
 
 def shot_seed(seed: int, step: int, frame: int) -> int:
@@ -104,6 +109,12 @@ class SimulatedRigCamera:
         The as-built :class:`~gonio.simulator.world.World` whose radiometry the camera
         sees (light profile and drift, ambient and stray light, sensor defects; its
         geometry is the caller's: pose provider and as-built scene camera); None: none.
+    sleep, download_s
+        ``sleep(s)`` waits rig time (the virtual bus's ``sleep``): after each frame the
+        camera spends its exposure plus ``download_s`` (s, the RAW file's transfer to the
+        host; a lab camera over USB takes about a second) of rig time, as a real camera
+        would, so a simulated session's rig time -- and the light's warm-up drift over
+        it -- runs as long as a lab session's.  None: frames take no rig time.
     """
 
     def __init__(
@@ -119,6 +130,8 @@ class SimulatedRigCamera:
         serial: str | None = None,
         clock: Callable[[], float] | None = None,
         world: Any = None,
+        sleep: Callable[[float], None] | None = None,
+        download_s: float = DOWNLOAD_S,
     ) -> None:
         if pose_provider is None:
             raise CameraError("the simulated camera needs a pose provider (the rig's pose)")
@@ -144,6 +157,12 @@ class SimulatedRigCamera:
                 f"clock must be a callable returning the rig time in s, got {clock!r}"
             )
         self.clock = clock
+        if sleep is not None and not callable(sleep):
+            raise CameraError(f"sleep must be a callable taking seconds, got {sleep!r}")
+        if not (math.isfinite(download_s) and download_s >= 0):
+            raise CameraError(f"download_s = {download_s!r}: expected a finite time >= 0 s")
+        self._sleep = sleep
+        self.download_s = float(download_s)
         self._cam = SimulatedCamera(
             scene, pose_provider=pose_provider, reference_albedo=reference_albedo, world=world
         )
@@ -226,6 +245,8 @@ class SimulatedRigCamera:
             data = self._cam.capture(exposure_time, iso_v, f_v, seed, target=self._target)
         else:
             data = self._dark(exposure_time, iso_v, f_v, seed)
+        if self._sleep is not None:
+            self._sleep(float(exposure_time) + self.download_s)
         return Shot(
             data=data,
             suffix=".dng",

@@ -126,6 +126,7 @@ def _legacy_opener():
                     height=sim.get("height"),
                     base_dir=request.session_dir,
                     **({"reference_albedo": refl} if refl is not None else {}),
+                    sleep=bus.sleep,  # frames take rig time (issue 16)
                 )
                 setup = reduction_toml_text(reduction_document(camera.scene, refl))
                 try:
@@ -372,9 +373,10 @@ def test_world_servos_start_on_the_worlds_side_of_backlash(setup):
 
 
 def test_resume_rebuilds_the_recorded_world(tmp_path):
-    """A realistic world (landing and backlash zeroed so that where a resumed rig starts
-    does not matter): the frames a resume shoots are byte for byte those of the
-    uninterrupted run -- they would not be in any other world (checked: perfect)."""
+    """A realistic world (landing, backlash and the light's drift zeroed so that where
+    and when a resumed rig starts does not matter: a resume's new bus restarts rig time):
+    the frames a resume shoots are byte for byte those of the uninterrupted run -- they
+    would not be in any other world (checked: perfect)."""
     import shutil
 
     (tmp_path / "rig.toml").write_text(virtual_rig_document())
@@ -387,6 +389,7 @@ def test_resume_rebuilds_the_recorded_world(tmp_path):
     (tmp_path / "w.toml").write_text(
         '[world]\npreset = "realistic"\nseed = 5\n[world.servos]\nlanding_pulses = 0\n'
         f"[world.rig]\n{backlash}\n"
+        "[world.radiometry]\ndrift_amplitude = [0.0, 0.0, 0.0]\ndrift_rate_per_h = 0.0\n"
     )
     args = [
         "--rig",
