@@ -35,6 +35,7 @@ from gonio.radiometry.frames import angle_between as angle_between  # gonio.capt
 from gonio.radiometry.frames import rotation_angle
 
 
+
 @lru_cache(maxsize=8)
 def _cv_board(nx: int, ny: int, square: float, marker: float, dictionary: str) -> Any:
     # built once per board: a session detects it in every pose
@@ -127,6 +128,10 @@ class CameraPose:
         RMS reprojection error of the board corners, pixels.
     n_corners
         Number of ChArUco corners used.
+    covariance
+        (6, 6) covariance of ``(rvec, tvec)``: the Rodrigues vector of ``rotation`` (rad)
+        and ``translation`` (m), from the corners' reprojection residuals
+        (:func:`pose_covariance`); None when the pose did not come from corners.
     """
 
     rotation: NDArray[np.float64]
@@ -134,6 +139,7 @@ class CameraPose:
     position: NDArray[np.float64]
     reprojection_rms: float
     n_corners: int
+    covariance: NDArray[np.float64] | None = None
 
     def angle_to(self, rotation: ArrayLike) -> float:
         """Angle (rad) of the rotation between this pose and another world-to-camera one."""
@@ -401,7 +407,59 @@ def _solve(
     # p_cam = R_bc p_board + t_bc and p_board = R_bs^T (p_sample - t_bs)
     R = R_bc @ R_bs.T
     t = tvec.ravel() - R @ t_bs
-    return CameraPose(R, t, -R.T @ t, rms, len(ids))
+    cov = pose_covariance(obj @ R_bs.T + t_bs, img, R, t, K, dist)
+    return CameraPose(R, t, -R.T @ t, rms, len(ids), cov)
+
+
+def pose_covariance(
+    points: ArrayLike,
+    image_points: ArrayLike,
+    rotation: ArrayLike,
+    translation: ArrayLike,
+    K: ArrayLike,
+    dist: ArrayLike | None = None,
+) -> NDArray[np.float64]:
+    """Covariance of a camera pose solved from point correspondences.
+
+    ``sigma^2 (J^T J)^-1``, with ``J`` the (2n, 6) Jacobian of the projections
+    (``cv2.projectPoints``) with respect to ``(rvec, tvec)`` and ``sigma^2`` the residuals'
+    sum of squares over their ``2n - 6`` degrees of freedom: the first-order covariance of
+    the least-squares pose when every coordinate has the same independent noise.
+
+    Parameters
+    ----------
+    points
+        (n, 3) object points in the frame the pose maps from (here: the sample frame), m.
+    image_points
+        (n, 2) detected image points, px.
+    rotation, translation
+        The solved pose: (3, 3) rotation and (3,) translation (object -> camera), m.
+    K, dist
+        Camera matrix (px) and OpenCV distortion coefficients (None: none).
+
+    Returns
+    -------
+    ndarray
+        (6, 6) covariance of ``(rvec, tvec)`` in rad^2, rad m, m^2 (NaN when the points
+        cannot determine the pose: fewer than 4, or a degenerate set).
+    """
+    obj = np.asarray(points, np.float64).reshape(-1, 3)
+    img = np.asarray(image_points, np.float64).reshape(-1, 2)
+    n = len(obj)
+    if n < 4:
+        return np.full((6, 6), np.nan)
+    rvec = cv2.Rodrigues(np.asarray(rotation, np.float64))[0]
+    tvec = np.asarray(translation, np.float64).reshape(3, 1)
+    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64)
+    proj, jac = cv2.projectPoints(obj, rvec, tvec, np.asarray(K, np.float64), d)
+    J = jac[:, :6]
+    res = proj.reshape(-1, 2) - img
+    sigma2 = float(np.sum(res**2)) / (2 * n - 6)
+    JtJ = J.T @ J
+    if not np.all(np.isfinite(JtJ)) or np.linalg.cond(JtJ) > 1e15:
+        return np.full((6, 6), np.nan)
+    cov = sigma2 * np.linalg.inv(JtJ)
+    return 0.5 * (cov + cov.T)
 
 
 def detect_pose(

@@ -229,6 +229,9 @@ class ReductionSection(_Strict):
     position_tolerance_m: Positive = 0.01
     min_snr: NonNegative = 5.0
     geometry: Literal["board", "rig"] = "board"
+    #: Assumed std of each joint's zero offset (deg) when the rig has no calibration
+    #: covariance: the uncertainty budget's session geometry modes (issue 16, H3).
+    nominal_joint_std_deg: NonNegative = 0.1
 
 
 class ReductionConfig(_Strict):
@@ -295,6 +298,9 @@ class ReductionSetup:
         0.04 deg pose error is a percent of BRDF, shared by every region of the pose.
     min_snr
         Regions whose signal-to-noise ratio is lower are flagged UNDEREXPOSED.
+    nominal_joint_std_deg
+        Assumed standard deviation of every joint's zero offset, deg, for the budget's
+        geometry when the rig carries no calibration covariance (an assumption).
     camera_calibration
         The camera calibration's ``[camera.calibration]`` table (standard deviations,
         RMS, camera identity and digest) when the camera came from one, else None.
@@ -317,6 +323,7 @@ class ReductionSetup:
     position_tolerance_m: float = 0.01
     min_snr: float = 5.0
     geometry: str = "board"
+    nominal_joint_std_deg: float = 0.1
     camera_calibration: dict[str, Any] | None = None
     camera_file: str | None = None
 
@@ -566,6 +573,7 @@ def setup_from_config(
         position_tolerance_m=red.position_tolerance_m,
         min_snr=red.min_snr,
         geometry=red.geometry,
+        nominal_joint_std_deg=red.nominal_joint_std_deg,
     )
     return _camera_setup(setup, cam, cam_file)
 

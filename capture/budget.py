@@ -1,0 +1,490 @@
+"""The per-sample uncertainty budget (GUM): geometric modes, their BRDF effect, the terms.
+
+Every reduced sample carries a budget of standard deviations in BRDF units (1/sr), one
+per term of :data:`TERMS`, whose root sum of squares is its ``brdf_std``; terms shared
+by every sample (:data:`SHARED_TERMS`, relative) are kept apart, for the fitter to treat
+as fully correlated.
+
+Geometry enters as *modes*: 1-sigma perturbations of ``(wi, wo)`` (sample frame) that
+one error source causes in every sample it touches.
+
+- ``"session"`` modes: the rig calibration's covariance (``[calibration.covariance]``
+  of the manifest's rig), eigen-decomposed, each eigenvector scaled by the root of its
+  eigenvalue; every mode moves the light (and, for a pose whose camera came from the
+  rig, the camera) through the rig's kinematics at the pose's journaled joints and
+  approach sides (:class:`SessionModes`).  Without a calibration record the rig is
+  taken as nominal to ``nominal_joint_std_deg`` per joint zero offset (an assumption,
+  stated in ``reduction.toml``'s ``[reduction]``).
+- ``"pose"`` modes: the board pose of one pose (``CameraPose.covariance``,
+  eigen-decomposed): shared only by that pose's regions.
+
+A mode moves a region's directions from its centroid point: the point the ray through
+the region's centroid pixel meets the sample plane at (:func:`centroid_points`).
+Perturbing the camera moves that ray, hence the point, and both directions are
+recomputed; perturbing the light changes ``wi`` only.
+
+The BRDF's response ``df/dw`` needs a model, and the capture layer has none: it is the
+gradient of a model-free local fit of the measured samples (:func:`local_log_gradient`:
+k-nearest-neighbour, tricube-weighted, ridge-regularised linear regression of ``log f``
+on the projected directions ``(wi_x, wi_y, wo_x, wo_y)``).  The marginal ``geometry``
+term is ``f sqrt(sum_j (grad . dX_j)^2)`` over all modes (:func:`geometry_std`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "MODE_WIDTH",
+    "POSE_MODE_NAMES",
+    "SHARED_TERMS",
+    "TERMS",
+    "SessionModes",
+    "budget_rows",
+    "centroid_points",
+    "direction_features",
+    "geometry_std",
+    "local_log_gradient",
+    "pose_modes",
+    "session_modes",
+]
+
+Array = NDArray[np.float64]
+
+#: Per-sample terms, std in 1/sr, (N, C): photon/read/dark-subtraction noise, geometry
+#: (marginal over the modes), then H2's radiometric terms.
+TERMS: tuple[str, ...] = ("noise", "geometry", "irradiance", "drift", "flat", "dark", "stray")
+#: Terms shared by every sample, relative std per channel, (C,).
+SHARED_TERMS: tuple[str, ...] = ("reference", "light_scale")
+#: The six modes of a board pose (eigenvectors of its covariance, largest first).
+POSE_MODE_NAMES: tuple[str, ...] = tuple(f"board pose {k + 1}" for k in range(6))
+#: ``(wi, wo)`` components of a mode: (..., 6).
+MODE_WIDTH = 6
+_Z = np.array([0.0, 0.0, 1.0])
+
+
+def _unit(v: Array) -> Array:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _plane_hit(C: Array, d: Array) -> Array:
+    """(n, 3) points where rays from ``C`` (3,) along ``d`` (n, 3) meet z = 0."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = -C[2] / d[:, 2]
+    return C + s[:, None] * d
+
+
+def centroid_points(camera_position: Array, wo: Array) -> Array:
+    """The sample-plane points (z = 0) whose direction to the camera is ``wo``.
+
+    Parameters
+    ----------
+    camera_position
+        (3,) camera centre, sample frame, m.
+    wo
+        (n, 3) measured unit directions to the camera of the regions.
+
+    Returns
+    -------
+    ndarray
+        (n, 3) points, m: each region's centroid as its measured ``wo`` sees it (NaN
+        rows stay NaN).
+    """
+    C = np.asarray(camera_position, float)
+    return _plane_hit(C, -np.asarray(wo, float))
+
+
+@dataclass
+class SessionModes:
+    """The session's geometric modes: 1-sigma steps of the rig's parameters.
+
+    Attributes
+    ----------
+    names
+        One name per mode (``"rig k: <largest parameter>"`` or ``"nominal <joint>"``).
+    parameter_names
+        The parameters the steps are over (rig parameters, then camera intrinsics).
+    steps
+        (M, P) one 1-sigma step per mode, in the parameters' units (deg, m, px, 1).
+    plus, minus
+        Per mode, the kinematics of the rig moved by ``+step`` and ``-step``.
+    source
+        ``"calibration"`` (the record's covariance), ``"nominal"`` (the assumed joint
+        tolerance) or ``"none"``.
+    warnings
+        What could not be done (e.g. a rig the parameters cannot express).
+    """
+
+    names: list[str] = field(default_factory=list)
+    parameter_names: list[str] = field(default_factory=list)
+    steps: Array = field(default_factory=lambda: np.zeros((0, 0)))
+    plus: list[Any] = field(default_factory=list)
+    minus: list[Any] = field(default_factory=list)
+    source: str = "none"
+    warnings: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def intrinsic_steps(self) -> Array:
+        """(M, 4) the modes' steps of ``fx, fy, cx, cy`` (px; 0 where not in the set)."""
+        out = np.zeros((len(self.names), 4))
+        for k, n in enumerate(("fx", "fy", "cx", "cy")):
+            if n in self.parameter_names:
+                out[:, k] = self.steps[:, self.parameter_names.index(n)]
+        return out
+
+
+def session_modes(rig: Any, *, nominal_joint_std_deg: float = 0.1) -> SessionModes:
+    """The geometric modes a rig configuration's uncertainty gives.
+
+    Parameters
+    ----------
+    rig
+        The manifest's :class:`gonio.rig.config.RigConfig` (None: no modes).
+    nominal_joint_std_deg
+        Standard deviation of each joint's zero offset, deg, assumed when the rig carries
+        no calibration covariance.
+
+    Returns
+    -------
+    SessionModes
+        Modes from the eigen-decomposition of the rig's parameter covariance (rig
+        parameters and camera intrinsics), eigenvalues below 1e-12 of the largest left
+        out.
+    """
+    if rig is None:
+        return SessionModes(warnings=["no rig configuration: no session geometry modes"])
+    from gonio.errors import GonioError
+    from gonio.rig.calibration import PARAMETER_NAMES, apply_parameters, parameters_of
+    from gonio.rig.config import JOINT_NAMES, rig_config_from_dict
+    from gonio.rig.kinematics import Kinematics
+
+    rec = rig.calibration
+    try:
+        if rec is not None and rec.covariance is not None and rec.nominal is not None:
+            nominal = rig_config_from_dict(dict(rec.nominal), "calibration.nominal")
+            names = list(rec.covariance.names)
+            cov = rec.covariance.array()
+            source = "calibration"
+        else:
+            nominal = rig
+            names = [f"{j}.offset" for j in JOINT_NAMES]
+            cov = np.diag(np.full(len(names), float(nominal_joint_std_deg) ** 2))
+            source = "nominal"
+        p0 = parameters_of(rig, nominal)
+    except GonioError as exc:
+        return SessionModes(warnings=[f"the rig's uncertainty cannot be propagated: {exc}"])
+    lam, U = np.linalg.eigh(cov)
+    order = np.argsort(lam)[::-1]
+    lam, U = lam[order], U[:, order]
+    keep = lam > 1e-12 * max(float(lam[0]), 1e-300) if len(lam) else np.zeros(0, bool)
+    steps = (U[:, keep] * np.sqrt(lam[keep])).T
+    rig_idx = [i for i, n in enumerate(names) if n in PARAMETER_NAMES]
+    out = SessionModes(parameter_names=names, steps=steps, source=source)
+    for j, step in enumerate(steps):
+        # the name says which parameter the mode moves most (its share of the step,
+        # each parameter scaled by its own standard deviation)
+        sd = np.sqrt(np.diag(cov))
+        share = np.abs(step) / np.where(sd > 0, sd, 1.0)
+        top = names[int(np.argmax(share))]
+        out.names.append(f"nominal {top}" if source == "nominal" else f"rig {j + 1}: {top}")
+        for sign, dest in ((1.0, out.plus), (-1.0, out.minus)):
+            v = dict(p0)
+            for i in rig_idx:
+                v[names[i]] = v[names[i]] + sign * float(step[i])
+            dest.append(Kinematics(apply_parameters(nominal, v, validate=False)))
+    return out
+
+
+def _rig_camera(rp: Any) -> tuple[Array, Array]:
+    """``(position, sample->camera rotation)`` of a :class:`RigPoses`."""
+    return np.asarray(rp.camera_position, float), np.asarray(rp.camera_rotation, float).T
+
+
+def pose_modes(
+    wi: Array,
+    wo: Array,
+    camera: Any,
+    light_position: Array,
+    *,
+    source: str = "board",
+    session: SessionModes | None = None,
+    joints: Mapping[str, float] | None = None,
+    approach: Mapping[str, int] | None = None,
+    K: Array | None = None,
+) -> Array:
+    """The geometric modes of one pose's regions: ``(n, M + 6, 6)``.
+
+    Parameters
+    ----------
+    wi, wo
+        (n, 3) the regions' measured directions (sample frame).
+    camera
+        The pose's :class:`gonio.capture.fiducials.CameraPose` (rotation, translation,
+        position and, from the board, covariance).
+    light_position
+        (3,) the light's centre the reduction used, sample frame, m.
+    source
+        Where the camera pose came from: ``"board"`` (the rig's modes move the light
+        only; the board's covariance gives the six pose modes), ``"rig"`` (the rig's
+        modes move light and camera, and the intrinsics move the pixel rays; no pose
+        modes) or ``"none"`` (no modes).
+    session
+        The session's modes (:func:`session_modes`); None: none.
+    joints, approach
+        The pose's journaled joint readings (rad) and approach sides.
+    K
+        Camera matrix (px), for the intrinsics' part of the modes on ``"rig"`` poses.
+
+    Returns
+    -------
+    ndarray
+        (n, M + 6, 6) per region the 1-sigma change of ``(wi, wo)`` along each session
+        mode (central difference through the kinematics), then along the six board pose
+        modes (zeros where they do not apply).
+    """
+    wi = np.asarray(wi, float)
+    wo = np.asarray(wo, float)
+    n = len(wi)
+    M = 0 if session is None else len(session)
+    out = np.zeros((n, M + 6, MODE_WIDTH))
+    if source == "none":
+        return out
+    C = np.asarray(camera.position, float)
+    R = np.asarray(camera.rotation, float)
+    L = np.asarray(light_position, float)
+    x = centroid_points(C, wo)
+    d_cam = _unit((x - C) @ R.T)  # the centroid pixel's ray, camera frame
+    if M and joints:
+        from gonio.errors import GonioError
+
+        q = {k: float(v) for k, v in joints.items()}
+        appr = {k: int(v) for k, v in approach.items()} if approach else None
+        dK = session.intrinsic_steps()
+        for j in range(M):
+            pair = []
+            for sign, kin in ((1.0, session.plus[j]), (-1.0, session.minus[j])):
+                try:
+                    rp = kin.poses(q, appr)
+                except GonioError:
+                    pair = []
+                    break
+                Lp = np.asarray(rp.light_position, float)
+                if source == "rig":
+                    Cp, Rp = _rig_camera(rp)
+                    ray = d_cam if K is None else _ray_moved(d_cam, K, sign * dK[j])
+                    xp = _plane_hit(Cp, ray @ Rp)
+                    pair.append(np.concatenate([_unit(Lp - xp), _unit(Cp - xp)], axis=1))
+                else:
+                    pair.append(np.concatenate([_unit(Lp - x), wo], axis=1))
+            if pair:
+                out[:, j] = 0.5 * (pair[0] - pair[1])
+    cov = getattr(camera, "covariance", None)
+    if source == "board" and cov is not None and np.all(np.isfinite(cov)):
+        import cv2
+
+        lam, U = np.linalg.eigh(0.5 * (cov + cov.T))
+        order = np.argsort(lam)[::-1]
+        rvec = cv2.Rodrigues(R)[0].ravel()
+        t = np.asarray(camera.translation, float)
+        for k, i in enumerate(order):
+            step = U[:, i] * math.sqrt(max(float(lam[i]), 0.0))
+            pair = []
+            for sign in (1.0, -1.0):
+                Rp = cv2.Rodrigues(rvec + sign * step[:3])[0]
+                tp = t + sign * step[3:]
+                Cp = -Rp.T @ tp
+                xp = _plane_hit(Cp, d_cam @ Rp)
+                pair.append(np.concatenate([_unit(L - xp), _unit(Cp - xp)], axis=1))
+            out[:, M + k] = 0.5 * (pair[0] - pair[1])
+    return out
+
+
+def _ray_moved(d_cam: Array, K: Array, dk: Array) -> Array:
+    """The camera-frame rays of the same pixels with ``fx, fy, cx, cy`` moved by ``dk``
+    (px): pinhole ``x = (u - cx) / fx``, so ``dx = -(dcx + x dfx) / fx`` (distortion's
+    own derivative left out: second order here)."""
+    K = np.asarray(K, float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        xn = d_cam[:, 0] / d_cam[:, 2]
+        yn = d_cam[:, 1] / d_cam[:, 2]
+    dfx, dfy, dcx, dcy = dk
+    # the pixel stays, the intrinsics move: the ray that pixel sees changes by -d(K)/K
+    xp = xn - (dcx + xn * dfx) / K[0, 0]
+    yp = yn - (dcy + yn * dfy) / K[1, 1]
+    return _unit(np.stack([xp, yp, np.ones_like(xp)], axis=1))
+
+
+# ------------------------------------------------------------------ df/dw
+def direction_features(wi: Array, wo: Array) -> Array:
+    """(N, 4) ``(wi_x, wi_y, wo_x, wo_y)``: the projected-disk chart of the direction
+    pair that :func:`local_log_gradient` regresses on (a mode's feature change is its
+    ``(dwi_x, dwi_y, dwo_x, dwo_y)``)."""
+    wi = np.asarray(wi, float)
+    wo = np.asarray(wo, float)
+    return np.concatenate([wi[..., :2], wo[..., :2]], axis=-1)
+
+
+def local_log_gradient(
+    wi: Array,
+    wo: Array,
+    brdf: Array,
+    usable: NDArray[np.bool_] | None = None,
+    *,
+    k: int = 16,
+    ridge: float = 1e-3,
+) -> Array:
+    """The gradient of ``log f`` over :func:`direction_features`, from the samples alone.
+
+    For every sample: its ``k`` nearest usable samples in feature space
+    (``scipy.spatial.cKDTree``), tricube weights over the ``k``-th distance, and the
+    weighted least-squares plane ``log f ~ a + g . (X - X_0)`` per channel, ridge
+    regularised (``ridge`` times the weight sum times the squared radius) so directions
+    the neighbourhood does not span get no slope rather than noise.
+
+    Parameters
+    ----------
+    wi, wo
+        (N, 3) unit directions.
+    brdf
+        (N, C) measured f_r, 1/sr.
+    usable
+        (N,) samples that may serve as neighbours (default: all); only those with every
+        channel finite and positive are used.
+    k
+        Neighbours per fit (at least 6).
+    ridge
+        Relative ridge weight (dimensionless).
+
+    Returns
+    -------
+    ndarray
+        (N, C, 4) ``d log f / dX`` (per unit of the features); NaN where fewer than 6
+        neighbours exist.
+    """
+    from scipy.spatial import cKDTree
+
+    X = direction_features(wi, wo)
+    f = np.asarray(brdf, float)
+    if f.ndim == 1:
+        f = f[:, None]
+    N, C = f.shape
+    ok = np.isfinite(X).all(axis=1) & np.isfinite(f).all(axis=1) & (f > 0).all(axis=1)
+    if usable is not None:
+        ok &= np.asarray(usable, bool)
+    out = np.full((N, C, 4), np.nan)
+    pool = np.flatnonzero(ok)
+    kk = min(int(k), len(pool))
+    if kk < 6:
+        return out
+    q = np.flatnonzero(np.isfinite(X).all(axis=1))
+    tree = cKDTree(X[pool])
+    dist, idx = tree.query(X[q], k=kk)
+    nb = pool[idx]  # (Q, k)
+    h = dist[:, -1:] * 1.0001 + 1e-12
+    w = (1.0 - (dist / h) ** 3) ** 3  # tricube
+    D = X[nb] - X[q][:, None, :]  # (Q, k, 4)
+    A = np.concatenate([np.ones(D.shape[:2] + (1,)), D], axis=2)  # (Q, k, 5)
+    AtW = A.transpose(0, 2, 1) * w[:, None, :]
+    N5 = AtW @ A
+    reg = ridge * w.sum(axis=1) * h[:, 0] ** 2
+    N5[:, 1:, 1:] += reg[:, None, None] * np.eye(4)
+    y = np.log(f[nb])  # (Q, k, C)
+    rhs = AtW @ y  # (Q, 5, C)
+    beta = np.linalg.solve(N5, rhs)
+    out[q] = beta[:, 1:, :].transpose(0, 2, 1)
+    return out
+
+
+def geometry_std(brdf: Array, gradient: Array, modes: Array) -> Array:
+    """The marginal geometric std of each sample, 1/sr: ``f sqrt(sum_j (g . dX_j)^2)``.
+
+    Parameters
+    ----------
+    brdf
+        (N, C) f_r, 1/sr.
+    gradient
+        (N, C, 4) ``d log f / dX`` (:func:`local_log_gradient`).
+    modes
+        (N, M, 6) the samples' mode perturbations of ``(wi, wo)``.
+
+    Returns
+    -------
+    ndarray
+        (N, C), 0 where the gradient is unknown (NaN) but the sample is finite.
+    """
+    dX = np.asarray(modes, float)[..., [0, 1, 3, 4]]  # (N, M, 4)
+    g = np.nan_to_num(np.asarray(gradient, float))
+    dlog = np.einsum("ncf,nmf->ncm", g, dX)
+    return np.abs(np.asarray(brdf, float)) * np.sqrt(np.sum(dlog**2, axis=2))
+
+
+# ------------------------------------------------------------------ reporting
+def budget_rows(
+    budget: Mapping[str, Array],
+    brdf: Array,
+    usable: NDArray[np.bool_] | None = None,
+    shared: Mapping[str, Sequence[float]] | None = None,
+) -> list[dict[str, Any]]:
+    """The budget's terms, largest first: median relative std and share of the variance.
+
+    Parameters
+    ----------
+    budget
+        Term -> (N, C) std, 1/sr.
+    brdf
+        (N, C) f_r, 1/sr.
+    usable
+        (N,) samples to summarise (default: all with finite, positive f).
+    shared
+        Shared term -> (C,) relative std (listed after the per-sample terms, their share
+        taken of the same total at the median sample).
+
+    Returns
+    -------
+    list of dict
+        ``{"term", "median_rel_std", "share", "scope"}``: the median over samples and
+        channels of ``std / f``, and the term's share of the summed variance (per-sample
+        terms: ``sum std^2 / sum total^2`` over the usable samples and channels).
+    """
+    f = np.asarray(brdf, float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = {t: np.asarray(v, float) / f for t, v in budget.items()}
+    sel = np.isfinite(f).all(axis=1) & (f > 0).all(axis=1)
+    if usable is not None:
+        sel &= np.asarray(usable, bool)
+    for v in rel.values():
+        sel &= np.isfinite(v).all(axis=1)
+    rows = []
+    var = {t: float(np.sum(v[sel] ** 2)) for t, v in rel.items()}
+    n = max(int(sel.sum()) * f.shape[1], 1)
+    shared_var = {t: float(np.sum(np.square(v))) / f.shape[1] for t, v in (shared or {}).items()}
+    total = sum(var.values()) + sum(shared_var.values()) * n
+    for t, v in rel.items():
+        rows.append(
+            {
+                "term": t,
+                "median_rel_std": float(np.median(v[sel])) if sel.any() else math.nan,
+                "share": var[t] / total if total > 0 else math.nan,
+                "scope": "sample",
+            }
+        )
+    for t, v in (shared or {}).items():
+        rows.append(
+            {
+                "term": t,
+                "median_rel_std": float(np.median(np.asarray(v, float))),
+                "share": shared_var[t] * n / total if total > 0 else math.nan,
+                "scope": "shared",
+            }
+        )
+    rows.sort(key=lambda r: -(r["share"] if np.isfinite(r["share"]) else -1.0))
+    return rows
