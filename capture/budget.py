@@ -40,28 +40,33 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gonio.dataset import BUDGET_TERMS, SHARED_BUDGET_TERMS
+
 __all__ = [
     "MODE_WIDTH",
     "POSE_MODE_NAMES",
     "SHARED_TERMS",
     "TERMS",
+    "RigShifts",
     "SessionModes",
     "budget_rows",
+    "budget_table",
     "centroid_points",
     "direction_features",
     "geometry_std",
     "local_log_gradient",
     "pose_modes",
+    "rig_shifts",
     "session_modes",
 ]
 
 Array = NDArray[np.float64]
 
 #: Per-sample terms, std in 1/sr, (N, C): photon/read/dark-subtraction noise, geometry
-#: (marginal over the modes), then H2's radiometric terms.
-TERMS: tuple[str, ...] = ("noise", "geometry", "irradiance", "drift", "flat", "dark", "stray")
+#: (marginal over the modes), then the radiometric terms (samples.h5's budget group).
+TERMS: tuple[str, ...] = BUDGET_TERMS
 #: Terms shared by every sample, relative std per channel, (C,).
-SHARED_TERMS: tuple[str, ...] = ("reference", "light_scale")
+SHARED_TERMS: tuple[str, ...] = SHARED_BUDGET_TERMS
 #: The six modes of a board pose (eigenvectors of its covariance, largest first).
 POSE_MODE_NAMES: tuple[str, ...] = tuple(f"board pose {k + 1}" for k in range(6))
 #: ``(wi, wo)`` components of a mode: (..., 6).
@@ -114,7 +119,11 @@ class SessionModes:
     steps
         (M, P) one 1-sigma step per mode, in the parameters' units (deg, m, px, 1).
     plus, minus
-        Per mode, the kinematics of the rig moved by ``+step`` and ``-step``.
+        Per mode, the rig configuration moved by ``+step`` and ``-step``.
+    joint_steps
+        Per mode, the step of each joint's zero offset, rad: a journal's joint readings
+        were converted with the rig's zeros, so a zero off by ``d`` puts the joint at
+        ``reading + d`` (as :mod:`gonio.rig.calibration` models its observations).
     source
         ``"calibration"`` (the record's covariance), ``"nominal"`` (the assumed joint
         tolerance) or ``"none"``.
@@ -127,6 +136,7 @@ class SessionModes:
     steps: Array = field(default_factory=lambda: np.zeros((0, 0)))
     plus: list[Any] = field(default_factory=list)
     minus: list[Any] = field(default_factory=list)
+    joint_steps: list[dict[str, float]] = field(default_factory=list)
     source: str = "none"
     warnings: list[str] = field(default_factory=list)
 
@@ -165,27 +175,36 @@ def session_modes(rig: Any, *, nominal_joint_std_deg: float = 0.1) -> SessionMod
     from gonio.errors import GonioError
     from gonio.rig.calibration import PARAMETER_NAMES, apply_parameters, parameters_of
     from gonio.rig.config import JOINT_NAMES, rig_config_from_dict
-    from gonio.rig.kinematics import Kinematics
 
     rec = rig.calibration
     try:
-        if rec is not None and rec.covariance is not None and rec.nominal is not None:
+        nominal = rig
+        if rec is not None and rec.nominal is not None:
             nominal = rig_config_from_dict(dict(rec.nominal), "calibration.nominal")
+        if rec is not None and rec.covariance is not None:
             names = list(rec.covariance.names)
             cov = rec.covariance.array()
             source = "calibration"
+        elif rec is not None and rec.parameters:
+            # a record written before the covariance was kept: its standard deviations,
+            # uncorrelated (the correlations are lost)
+            names = list(rec.parameters) + list(rec.intrinsics)
+            est = {**rec.parameters, **rec.intrinsics}
+            cov = np.diag([est[n].std ** 2 for n in names])
+            source = "calibration"
         else:
-            nominal = rig
             names = [f"{j}.offset" for j in JOINT_NAMES]
             cov = np.diag(np.full(len(names), float(nominal_joint_std_deg) ** 2))
             source = "nominal"
         p0 = parameters_of(rig, nominal)
     except GonioError as exc:
         return SessionModes(warnings=[f"the rig's uncertainty cannot be propagated: {exc}"])
+    if not len(names):
+        return SessionModes(source=source)
     lam, U = np.linalg.eigh(cov)
     order = np.argsort(lam)[::-1]
     lam, U = lam[order], U[:, order]
-    keep = lam > 1e-12 * max(float(lam[0]), 1e-300) if len(lam) else np.zeros(0, bool)
+    keep = lam > 1e-12 * max(float(lam[0]), 1e-300)
     steps = (U[:, keep] * np.sqrt(lam[keep])).T
     rig_idx = [i for i, n in enumerate(names) if n in PARAMETER_NAMES]
     out = SessionModes(parameter_names=names, steps=steps, source=source)
@@ -196,17 +215,87 @@ def session_modes(rig: Any, *, nominal_joint_std_deg: float = 0.1) -> SessionMod
         share = np.abs(step) / np.where(sd > 0, sd, 1.0)
         top = names[int(np.argmax(share))]
         out.names.append(f"nominal {top}" if source == "nominal" else f"rig {j + 1}: {top}")
+        out.joint_steps.append(
+            {
+                j: math.radians(float(step[names.index(f"{j}.offset")]))
+                for j in JOINT_NAMES
+                if f"{j}.offset" in names
+            }
+        )
         for sign, dest in ((1.0, out.plus), (-1.0, out.minus)):
             v = dict(p0)
             for i in rig_idx:
                 v[names[i]] = v[names[i]] + sign * float(step[i])
-            dest.append(Kinematics(apply_parameters(nominal, v, validate=False)))
+            dest.append(apply_parameters(nominal, v, validate=False))
     return out
 
 
-def _rig_camera(rp: Any) -> tuple[Array, Array]:
-    """``(position, sample->camera rotation)`` of a :class:`RigPoses`."""
-    return np.asarray(rp.camera_position, float), np.asarray(rp.camera_rotation, float).T
+@dataclass
+class RigShifts:
+    """The session modes' light and camera at every pose: ``[mode, +/-, pose]``.
+
+    Attributes
+    ----------
+    light
+        (M, 2, P, 3) light centre, sample frame, m (index 1: ``+step``, ``-step``).
+    camera_position
+        (M, 2, P, 3) camera centre, m.
+    camera_rotation
+        (M, 2, P, 3, 3) sample-to-camera rotation.
+    """
+
+    light: Array
+    camera_position: Array
+    camera_rotation: Array
+
+    def at(self, k: int) -> tuple[Array, Array, Array]:
+        """The ``(M, 2, ...)`` slices of pose ``k``."""
+        return self.light[:, :, k], self.camera_position[:, :, k], self.camera_rotation[:, :, k]
+
+
+def rig_shifts(
+    session: SessionModes,
+    joints: Sequence[Mapping[str, float] | None],
+    approach: Sequence[Mapping[str, int] | None],
+) -> RigShifts:
+    """Light and camera of every pose under every session mode, one vectorised
+    kinematics evaluation per mode and sign (:func:`gonio.rig.asbuilt.rig_poses`).
+
+    Parameters
+    ----------
+    session
+        The session's modes.
+    joints, approach
+        Per pose, its journaled joint readings (rad) and approach sides (None: unknown;
+        a pose without joints gets NaN).
+
+    Returns
+    -------
+    RigShifts
+    """
+    from gonio.rig.asbuilt import rig_poses
+    from gonio.rig.config import JOINT_NAMES
+
+    P, M = len(joints), len(session)
+    have = np.array([bool(q) and all(j in q for j in JOINT_NAMES) for q in joints])
+    q0 = {
+        j: np.array([float(q[j]) if h else 0.0 for q, h in zip(joints, have, strict=True)])
+        for j in JOINT_NAMES
+    }
+    sides = {j: np.array([float((a or {}).get(j, 0)) for a in approach]) for j in JOINT_NAMES}
+    light = np.full((M, 2, P, 3), np.nan)
+    cpos = np.full((M, 2, P, 3), np.nan)
+    crot = np.full((M, 2, P, 3, 3), np.nan)
+    for m in range(M):
+        for k, (sign, config) in enumerate(((1.0, session.plus[m]), (-1.0, session.minus[m]))):
+            dq = session.joint_steps[m]
+            q = {j: q0[j] + sign * dq.get(j, 0.0) for j in JOINT_NAMES}
+            rp = rig_poses(config, q, sides)
+            light[m, k] = np.broadcast_to(rp.light_position, (P, 3))
+            cpos[m, k] = np.broadcast_to(rp.camera_position, (P, 3))
+            crot[m, k] = np.swapaxes(np.broadcast_to(rp.camera_rotation, (P, 3, 3)), -1, -2)
+    light[:, :, ~have] = np.nan
+    return RigShifts(light, cpos, crot)
 
 
 def pose_modes(
@@ -217,8 +306,7 @@ def pose_modes(
     *,
     source: str = "board",
     session: SessionModes | None = None,
-    joints: Mapping[str, float] | None = None,
-    approach: Mapping[str, int] | None = None,
+    shifts: tuple[Array, Array, Array] | None = None,
     K: Array | None = None,
 ) -> Array:
     """The geometric modes of one pose's regions: ``(n, M + 6, 6)``.
@@ -239,8 +327,10 @@ def pose_modes(
         modes) or ``"none"`` (no modes).
     session
         The session's modes (:func:`session_modes`); None: none.
-    joints, approach
-        The pose's journaled joint readings (rad) and approach sides.
+    shifts
+        This pose's light positions, camera positions and sample-to-camera rotations
+        under each session mode, ``(M, 2, 3)``, ``(M, 2, 3)``, ``(M, 2, 3, 3)``
+        (:meth:`RigShifts.at`); None: no session modes.
     K
         Camera matrix (px), for the intrinsics' part of the modes on ``"rig"`` poses.
 
@@ -263,30 +353,21 @@ def pose_modes(
     L = np.asarray(light_position, float)
     x = centroid_points(C, wo)
     d_cam = _unit((x - C) @ R.T)  # the centroid pixel's ray, camera frame
-    if M and joints:
-        from gonio.errors import GonioError
-
-        q = {k: float(v) for k, v in joints.items()}
-        appr = {k: int(v) for k, v in approach.items()} if approach else None
+    if M and shifts is not None and np.isfinite(shifts[0]).all():
+        Ls, Cs, Rs = shifts
         dK = session.intrinsic_steps()
         for j in range(M):
             pair = []
-            for sign, kin in ((1.0, session.plus[j]), (-1.0, session.minus[j])):
-                try:
-                    rp = kin.poses(q, appr)
-                except GonioError:
-                    pair = []
-                    break
-                Lp = np.asarray(rp.light_position, float)
+            for k, sign in enumerate((1.0, -1.0)):
+                Lp = Ls[j, k]
                 if source == "rig":
-                    Cp, Rp = _rig_camera(rp)
+                    Cp, Rp = Cs[j, k], Rs[j, k]
                     ray = d_cam if K is None else _ray_moved(d_cam, K, sign * dK[j])
                     xp = _plane_hit(Cp, ray @ Rp)
                     pair.append(np.concatenate([_unit(Lp - xp), _unit(Cp - xp)], axis=1))
                 else:
                     pair.append(np.concatenate([_unit(Lp - x), wo], axis=1))
-            if pair:
-                out[:, j] = 0.5 * (pair[0] - pair[1])
+            out[:, j] = 0.5 * (pair[0] - pair[1])
     cov = getattr(camera, "covariance", None)
     if source == "board" and cov is not None and np.all(np.isfinite(cov)):
         import cv2
@@ -488,3 +569,25 @@ def budget_rows(
         )
     rows.sort(key=lambda r: -(r["share"] if np.isfinite(r["share"]) else -1.0))
     return rows
+
+
+def budget_table(rows: Sequence[Mapping[str, Any]], *, top: int = 6) -> Any:
+    """A ``rich`` table of the budget's largest terms (:func:`budget_rows`, as stored in
+    ``reduction.json["budget"]["terms"]``): term, scope, median relative std, share of
+    the variance; terms with no share are left out."""
+    from rich.table import Table
+
+    table = Table(title="Uncertainty budget (largest terms)")
+    table.add_column("term")
+    table.add_column("scope")
+    table.add_column("median std / f", justify="right")
+    table.add_column("share of variance", justify="right")
+    shown = [r for r in rows if r.get("share") and r["share"] > 0][:top]
+    for r in shown:
+        table.add_row(
+            str(r["term"]),
+            str(r.get("scope", "")),
+            f"{r['median_rel_std']:.3%}",
+            f"{r['share']:.1%}",
+        )
+    return table

@@ -35,7 +35,6 @@ from gonio.radiometry.frames import angle_between as angle_between  # gonio.capt
 from gonio.radiometry.frames import rotation_angle
 
 
-
 @lru_cache(maxsize=8)
 def _cv_board(nx: int, ny: int, square: float, marker: float, dictionary: str) -> Any:
     # built once per board: a session detects it in every pose

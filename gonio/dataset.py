@@ -249,7 +249,10 @@ class BRDFSamples:
                 raise ValueError("geometry_modes holds infinite values")
             self.geometry_modes = m
             k = m.shape[1]
-            for name, allowed in (("geometry_mode_scope", MODE_SCOPES), ("geometry_mode_names", None)):
+            for name, allowed in (
+                ("geometry_mode_scope", MODE_SCOPES),
+                ("geometry_mode_names", None),
+            ):
                 v = getattr(self, name)
                 if v is None:
                     raise ValueError(f"{name} is required with geometry_modes")
@@ -403,9 +406,7 @@ def _save_budget(f: h5py.File, s: BRDFSamples) -> None:
         where.create_dataset(name, data=v, **opts).attrs["units"] = units
 
     def strings(name: str, v: NDArray) -> None:
-        f.create_dataset(name, data=v.astype(object), dtype=h5py.string_dtype()).attrs[
-            "units"
-        ] = ""
+        f.create_dataset(name, data=v.astype(object), dtype=h5py.string_dtype()).attrs["units"] = ""
 
     if s.budget is not None or s.shared_budget is not None:
         g = f.create_group("budget")
@@ -571,7 +572,9 @@ def _read_budget(path: Path, f: h5py.File) -> dict[str, Any]:
         for t in g:
             if t not in BUDGET_TERMS:
                 raise FileFormatError(
-                    path, f"unknown budget term; expected one of {list(BUDGET_TERMS)}", f"budget/{t}"
+                    path,
+                    f"unknown budget term; expected one of {list(BUDGET_TERMS)}",
+                    f"budget/{t}",
                 )
             budget[t] = numeric(f"budget/{t}", g[t])
         shared = {}

@@ -7,7 +7,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from gonio.capture.fiducials import BoardSpec, _solve
 

@@ -22,7 +22,10 @@ def make(n=30, c=3, m=5):
         brdf=rng.uniform(0.1, 1, (n, c)),
         brdf_std=np.sqrt(sum(np.nan_to_num(v) ** 2 for v in budget.values())),
         budget=budget,
-        shared_budget={"reference": np.array([0.01, 0.011, 0.012]), "light_scale": np.full(3, 1e-3)},
+        shared_budget={
+            "reference": np.array([0.01, 0.011, 0.012]),
+            "light_scale": np.full(3, 1e-3),
+        },
         geometry_modes=rng.normal(0, 1e-3, (n, m, 6)),
         geometry_mode_scope=(["session"] * 3 + ["pose"] * 2)[:m],
         geometry_mode_names=[f"mode {k}" for k in range(m)],
@@ -87,7 +90,10 @@ def _replace(name, value):
 @pytest.mark.parametrize(
     ("fn", "match"),
     [
-        (lambda f: f["budget"].create_dataset("sunspots", data=np.zeros((30, 3))), "budget/sunspots"),
+        (
+            lambda f: f["budget"].create_dataset("sunspots", data=np.zeros((30, 3))),
+            "budget/sunspots",
+        ),
         (_replace("budget/noise", np.zeros((29, 3))), "budget/noise"),
         (_replace("budget/noise", -np.ones((30, 3))), "budget/noise"),
         (_replace("budget/drift", np.full((30, 3), np.inf)), "budget/drift"),
