@@ -25,8 +25,8 @@ recomputed; perturbing the light changes ``wi`` only.
 
 The BRDF's response ``df/dw`` needs a model, and the capture layer has none: it is the
 gradient of a model-free local fit of the measured samples (:func:`local_log_gradient`:
-k-nearest-neighbour, tricube-weighted, ridge-regularised linear regression of ``log f``
-on the projected directions ``(wi_x, wi_y, wo_x, wo_y)``).  The marginal ``geometry``
+k-nearest-neighbour, tricube-weighted, ridge-regularised quadratic regression of
+``log f`` on the projected directions ``(wi_x, wi_y, wo_x, wo_y)``).  The marginal ``geometry``
 term is ``f sqrt(sum_j (grad . dX_j)^2)`` over all modes (:func:`geometry_std`).
 """
 
@@ -201,18 +201,22 @@ def session_modes(rig: Any, *, nominal_joint_std_deg: float = 0.1) -> SessionMod
         return SessionModes(warnings=[f"the rig's uncertainty cannot be propagated: {exc}"])
     if not len(names):
         return SessionModes(source=source)
-    lam, U = np.linalg.eigh(cov)
+    # The eigen-decomposition of the correlation, not of the covariance: the parameters
+    # are in deg, m and px (variances 1e-9 m^2 beside 1 px^2), which an eigen-solver's
+    # absolute accuracy would mix; steps D U sqrt(lam) still sum to D R D = C.
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    scale = np.where(sd > 0, sd, 1.0)
+    lam, U = np.linalg.eigh(cov / np.outer(scale, scale))
     order = np.argsort(lam)[::-1]
     lam, U = lam[order], U[:, order]
     keep = lam > 1e-12 * max(float(lam[0]), 1e-300)
-    steps = (U[:, keep] * np.sqrt(lam[keep])).T
+    steps = (U[:, keep] * np.sqrt(lam[keep])).T * scale
     rig_idx = [i for i, n in enumerate(names) if n in PARAMETER_NAMES]
     out = SessionModes(parameter_names=names, steps=steps, source=source)
     for j, step in enumerate(steps):
         # the name says which parameter the mode moves most (its share of the step,
         # each parameter scaled by its own standard deviation)
-        sd = np.sqrt(np.diag(cov))
-        share = np.abs(step) / np.where(sd > 0, sd, 1.0)
+        share = np.abs(step) / scale
         top = names[int(np.argmax(share))]
         out.names.append(f"nominal {top}" if source == "nominal" else f"rig {j + 1}: {top}")
         out.joint_steps.append(
@@ -420,16 +424,20 @@ def local_log_gradient(
     brdf: Array,
     usable: NDArray[np.bool_] | None = None,
     *,
-    k: int = 16,
-    ridge: float = 1e-3,
+    k: int = 32,
+    ridge: float = 1e-4,
+    curvature_ridge: float = 1e-4,
 ) -> Array:
     """The gradient of ``log f`` over :func:`direction_features`, from the samples alone.
 
     For every sample: its ``k`` nearest usable samples in feature space
-    (``scipy.spatial.cKDTree``), tricube weights over the ``k``-th distance, and the
-    weighted least-squares plane ``log f ~ a + g . (X - X_0)`` per channel, ridge
-    regularised (``ridge`` times the weight sum times the squared radius) so directions
-    the neighbourhood does not span get no slope rather than noise.
+    (``scipy.spatial.cKDTree``), tricube weights over the ``k``-th distance ``h``, and
+    the weighted least-squares quadratic ``log f ~ a + g . D + D^T H D / 2`` per channel
+    (``D = (X - X_0) / h``; LOESS of degree 2), ridge-regularised (``ridge`` on the
+    slopes, ``curvature_ridge`` on the curvatures, times the weight sum) and solved by
+    the pseudo-inverse, so directions the neighbourhood does not span get no slope
+    rather than noise.  The curvature terms matter on a narrow lobe: a linear fit there
+    gives the secant's slope, wrong at the neighbourhood's edges.
 
     Parameters
     ----------
@@ -442,8 +450,8 @@ def local_log_gradient(
         channel finite and positive are used.
     k
         Neighbours per fit (at least 6).
-    ridge
-        Relative ridge weight (dimensionless).
+    ridge, curvature_ridge
+        Relative ridge weights (dimensionless).
 
     Returns
     -------
@@ -470,18 +478,25 @@ def local_log_gradient(
     tree = cKDTree(X[pool])
     dist, idx = tree.query(X[q], k=kk)
     nb = pool[idx]  # (Q, k)
-    h = dist[:, -1:] * 1.0001 + 1e-12
-    w = (1.0 - (dist / h) ** 3) ** 3  # tricube
-    D = X[nb] - X[q][:, None, :]  # (Q, k, 4)
-    A = np.concatenate([np.ones(D.shape[:2] + (1,)), D], axis=2)  # (Q, k, 5)
+    h = dist[:, -1] * 1.0001 + 1e-12
+    w = (1.0 - (dist / h[:, None]) ** 3) ** 3  # tricube
+    D = (X[nb] - X[q][:, None, :]) / h[:, None, None]  # (Q, k, 4), scaled to the radius
+    quad = [D[..., a] * D[..., b] for a in range(4) for b in range(a, 4)]
+    A = np.stack([np.ones(D.shape[:2]), *np.moveaxis(D, -1, 0), *quad], axis=-1)
     AtW = A.transpose(0, 2, 1) * w[:, None, :]
-    N5 = AtW @ A
-    reg = ridge * w.sum(axis=1) * h[:, 0] ** 2
-    N5[:, 1:, 1:] += reg[:, None, None] * np.eye(4)
-    y = np.log(f[nb])  # (Q, k, C)
-    rhs = AtW @ y  # (Q, 5, C)
-    beta = np.linalg.solve(N5, rhs)
-    out[q] = beta[:, 1:, :].transpose(0, 2, 1)
+    normal = AtW @ A  # (Q, 15, 15)
+    reg = np.zeros(A.shape[-1])
+    reg[1:5] = ridge
+    reg[5:] = curvature_ridge
+    normal += w.sum(axis=1)[:, None, None] * np.diag(reg)
+    rhs = AtW @ np.log(f[nb])  # (Q, 15, C)
+    if ridge > 0 and curvature_ridge > 0:  # positive definite: a direct solve (5x faster)
+        beta = np.linalg.solve(normal, rhs)
+    else:
+        # the pseudo-inverse: a neighbourhood that spans fewer directions than the
+        # features gets the minimum-norm slope there, not an error
+        beta = np.linalg.pinv(normal) @ rhs
+    out[q] = beta[:, 1:5, :].transpose(0, 2, 1) / h[:, None, None]
     return out
 
 
