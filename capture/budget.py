@@ -548,8 +548,9 @@ def budget_rows(
     -------
     list of dict
         ``{"term", "median_rel_std", "share", "scope"}``: the median over samples and
-        channels of ``std / f``, and the term's share of the summed variance (per-sample
-        terms: ``sum std^2 / sum total^2`` over the usable samples and channels).
+        channels of ``std / f``, and the term's share of the summed relative variance
+        (over the usable samples and channels; a shared term counts once per value);
+        None where no sample is usable.
     """
     f = np.asarray(brdf, float)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -583,6 +584,10 @@ def budget_rows(
             }
         )
     rows.sort(key=lambda r: -(r["share"] if np.isfinite(r["share"]) else -1.0))
+    for r in rows:  # reduction.json is strict JSON: no NaN
+        for key in ("median_rel_std", "share"):
+            if not np.isfinite(r[key]):
+                r[key] = None
     return rows
 
 
@@ -598,11 +603,13 @@ def budget_table(rows: Sequence[Mapping[str, Any]], *, top: int = 6) -> Any:
     table.add_column("median std / f", justify="right")
     table.add_column("share of variance", justify="right")
     shown = [r for r in rows if r.get("share") and r["share"] > 0][:top]
+    if not shown:
+        table.caption = "no usable sample"
     for r in shown:
         table.add_row(
             str(r["term"]),
             str(r.get("scope", "")),
-            f"{r['median_rel_std']:.3%}",
+            "-" if r.get("median_rel_std") is None else f"{r['median_rel_std']:.3%}",
             f"{r['share']:.1%}",
         )
     return table

@@ -352,3 +352,33 @@ def test_budget_rows_are_the_hand_computed_shares():
     text = con.export_text()
     assert "noise" in text and "33.3%" in text and "1.000%" in text
     assert POSE_MODE_NAMES[0] == "board pose 1"
+
+
+@pytest.mark.parametrize("theta_deg", [85.0, 89.0, 89.9])
+def test_grazing_modes_and_budget_are_finite(theta_deg):
+    """Out to 89.9 deg the modes, the gradient and the geometry term stay finite."""
+    rig, values, names, cov = _calibrated_rig()
+    modes = session_modes(rig)
+    th = np.radians(theta_deg)
+    C = 0.45 * np.array([np.sin(th), 0.0, np.cos(th)])
+    z = _unit(-C)
+    xa = _unit(np.cross(z, [0.0, 0, 1]))
+    R = np.stack([xa, np.cross(z, xa), z])
+    cam = CameraPose(R, -R @ C, C, 0.1, 24, np.diag([1e-8] * 3 + [1e-8] * 3))
+    L = 0.5 * _unit(np.array([-np.sin(th), 0.0, np.cos(th)]))
+    x = _regions(C, R)
+    wi, wo = _unit(L - x), _unit(C - x)
+    shifts = rig_shifts(modes, [JOINTS], [APPROACH])
+    for source in ("board", "rig"):
+        m = pose_modes(wi, wo, cam, L, source=source, session=modes, shifts=shifts.at(0), K=K)
+        assert np.isfinite(m).all()
+    wi_all, wo_all = _measurement_pattern()
+    wi_all = np.concatenate([wi_all, wi])
+    wo_all = np.concatenate([wo_all, wo])
+    model = get_model("lambert+ggx")
+    f = model.eval(wi_all, wo_all, {"albedo": 0.5, "ks": 0.2, "alpha": 0.2})[:, None]
+    g = local_log_gradient(wi_all, wo_all, f)
+    modes_all = np.zeros((len(f), m.shape[1], 6))
+    modes_all[-9:] = m
+    geo = geometry_std(f, g, modes_all)
+    assert np.isfinite(geo).all() and np.isfinite(g[-9:]).all()
