@@ -25,10 +25,11 @@ import numpy as np
 
 BANDS_DEG = ((0, 30), (30, 50), (50, 70), (70, 80), (80, 90))
 SEEDS = (4242, 4243)
+DEFAULT_MATERIAL = "lambert+ggx albedo=0.50,0.40,0.30 ks=0.2 alpha=0.2"  # gonio demo's
 
 
 def _run_demo(out: Path, seed: int) -> Path:
-    subprocess.run(
+    res = subprocess.run(
         [
             sys.executable,
             "-m",
@@ -43,8 +44,10 @@ def _run_demo(out: Path, seed: int) -> Path:
             "--json",
         ],
         check=True,
-        stdout=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        text=True,
     )
+    (out / "demo.json").write_text(res.stdout)
     return out
 
 
@@ -67,8 +70,12 @@ def z_scores(demo_dir: Path) -> dict[str, np.ndarray]:
     from gonio.app.demo import parse_material
     from gonio.dataset import load_samples
 
-    doc = json.loads((demo_dir / "fit.json").read_text()) if (demo_dir / "fit.json").exists() else {}
-    spec = doc.get("material") or "lambert+ggx albedo=0.50,0.40,0.30 ks=0.2 alpha=0.2"
+    spec = DEFAULT_MATERIAL
+    for name in ("demo.json", "fit.json"):  # the demo's --json output names its material
+        p = demo_dir / name
+        if p.exists():
+            spec = json.loads(p.read_text()).get("material") or spec
+            break
     s = load_samples(demo_dir / "session" / "samples.h5")
     ok = s.valid
     truth = parse_material(spec).truth().eval(s.wi[ok], s.wo[ok])

@@ -43,14 +43,17 @@ from numpy.typing import NDArray
 from gonio.dataset import BUDGET_TERMS, SHARED_BUDGET_TERMS
 
 __all__ = [
+    "INTRINSICS",
     "MODE_WIDTH",
     "POSE_MODE_NAMES",
     "SHARED_TERMS",
     "TERMS",
+    "CameraModes",
     "RigShifts",
     "SessionModes",
     "budget_rows",
     "budget_table",
+    "camera_modes",
     "centroid_points",
     "direction_features",
     "geometry_std",
@@ -204,20 +207,12 @@ def session_modes(rig: Any, *, nominal_joint_std_deg: float = 0.1) -> SessionMod
     # The eigen-decomposition of the correlation, not of the covariance: the parameters
     # are in deg, m and px (variances 1e-9 m^2 beside 1 px^2), which an eigen-solver's
     # absolute accuracy would mix; steps D U sqrt(lam) still sum to D R D = C.
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    scale = np.where(sd > 0, sd, 1.0)
-    lam, U = np.linalg.eigh(cov / np.outer(scale, scale))
-    order = np.argsort(lam)[::-1]
-    lam, U = lam[order], U[:, order]
-    keep = lam > 1e-12 * max(float(lam[0]), 1e-300)
-    steps = (U[:, keep] * np.sqrt(lam[keep])).T * scale
+    steps, tops = _eigen_steps(cov, names)
     rig_idx = [i for i, n in enumerate(names) if n in PARAMETER_NAMES]
     out = SessionModes(parameter_names=names, steps=steps, source=source)
     for j, step in enumerate(steps):
-        # the name says which parameter the mode moves most (its share of the step,
-        # each parameter scaled by its own standard deviation)
-        share = np.abs(step) / scale
-        top = names[int(np.argmax(share))]
+        # the name says which parameter the mode moves most
+        top = tops[j]
         out.names.append(f"nominal {top}" if source == "nominal" else f"rig {j + 1}: {top}")
         out.joint_steps.append(
             {
@@ -232,6 +227,83 @@ def session_modes(rig: Any, *, nominal_joint_std_deg: float = 0.1) -> SessionMod
                 v[names[i]] = v[names[i]] + sign * float(step[i])
             dest.append(apply_parameters(nominal, v, validate=False))
     return out
+
+
+#: The camera intrinsics a camera mode moves (``CameraPose.intrinsics_sensitivity``'s
+#: columns): px, then OpenCV distortion coefficients.
+INTRINSICS: tuple[str, ...] = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+
+@dataclass
+class CameraModes:
+    """The camera calibration's modes: 1-sigma steps of the intrinsics the reduction
+    uses (``reduction.toml``'s camera, from ``gonio calibrate camera``).
+
+    Attributes
+    ----------
+    names
+        ``"camera k: <largest intrinsic>"`` per mode.
+    steps
+        (Mk, 9) steps of :data:`INTRINSICS`.
+    """
+
+    names: list[str] = field(default_factory=list)
+    steps: Array = field(default_factory=lambda: np.zeros((0, 9)))
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+def camera_modes(calibration: Mapping[str, Any] | None) -> CameraModes:
+    """The intrinsics' modes from a camera calibration's ``[camera.calibration]`` table.
+
+    Parameters
+    ----------
+    calibration
+        ``ReductionSetup.camera_calibration``: its ``covariance`` ((9, 9) over
+        :data:`INTRINSICS`) when present, else ``K_std`` (fx, fy, cx, cy, px) and
+        ``dist_std`` (k1, k2, p1, p2, k3), uncorrelated.  None: no modes (a camera given
+        as numbers, whose uncertainty nobody stated).
+
+    Returns
+    -------
+    CameraModes
+        From the eigen-decomposition of the correlation (as :func:`session_modes`).
+    """
+    if not calibration:
+        return CameraModes()
+    cov = None
+    raw = calibration.get("covariance")
+    if raw is not None:
+        a = np.asarray(raw, dtype=np.float64)
+        if a.shape == (9, 9) and np.all(np.isfinite(a)):
+            cov = 0.5 * (a + a.T)
+    if cov is None:
+        sd = np.zeros(9)
+        for key, sl in (("K_std", slice(0, 4)), ("dist_std", slice(4, 9))):
+            v = np.asarray(calibration.get(key) or [], dtype=np.float64).ravel()
+            n = min(len(v), sl.stop - sl.start)
+            sd[sl.start : sl.start + n] = np.nan_to_num(v[:n])
+        cov = np.diag(sd**2)
+    steps, names = _eigen_steps(cov, list(INTRINSICS))
+    return CameraModes([f"camera {j + 1}: {n}" for j, n in enumerate(names)], steps)
+
+
+def _eigen_steps(cov: Array, names: Sequence[str]) -> tuple[Array, list[str]]:
+    """1-sigma steps ``D U sqrt(lam)`` of the correlation's eigen-decomposition (mixed
+    units: the covariance's own would mix them), largest first, and per step the name of
+    the parameter it moves most (in its own standard deviations)."""
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    scale = np.where(sd > 0, sd, 1.0)
+    lam, U = np.linalg.eigh(cov / np.outer(scale, scale))
+    order = np.argsort(lam)[::-1]
+    lam, U = lam[order], U[:, order]
+    keep = (lam > 1e-12 * max(float(lam[0]), 1e-300)) & (lam > 0)
+    if not np.any(sd > 0):
+        keep[:] = False
+    steps = (U[:, keep] * np.sqrt(lam[keep])).T * scale
+    top = [names[int(np.argmax(np.abs(st) / scale))] for st in steps]
+    return steps, top
 
 
 @dataclass
@@ -312,8 +384,10 @@ def pose_modes(
     session: SessionModes | None = None,
     shifts: tuple[Array, Array, Array] | None = None,
     K: Array | None = None,
+    camera_modes: CameraModes | None = None,
+    dist: Array | None = None,
 ) -> Array:
-    """The geometric modes of one pose's regions: ``(n, M + 6, 6)``.
+    """The geometric modes of one pose's regions: ``(n, M + Mk + 6, 6)``.
 
     Parameters
     ----------
@@ -335,21 +409,28 @@ def pose_modes(
         This pose's light positions, camera positions and sample-to-camera rotations
         under each session mode, ``(M, 2, 3)``, ``(M, 2, 3)``, ``(M, 2, 3, 3)``
         (:meth:`RigShifts.at`); None: no session modes.
-    K
-        Camera matrix (px), for the intrinsics' part of the modes on ``"rig"`` poses.
+    K, dist
+        The intrinsics the reduction used (px; OpenCV distortion, None: none).
+    camera_modes
+        The camera calibration's modes (:func:`camera_modes`): on a ``"board"`` pose a
+        step of the intrinsics moves the board pose
+        (``camera.intrinsics_sensitivity``) and the centroid pixel's ray (undistorted
+        with the moved intrinsics); zeros on ``"rig"`` poses (the rig's covariance holds
+        the intrinsics it was calibrated with).
 
     Returns
     -------
     ndarray
-        (n, M + 6, 6) per region the 1-sigma change of ``(wi, wo)`` along each session
-        mode (central difference through the kinematics), then along the six board pose
-        modes (zeros where they do not apply).
+        (n, M + Mk + 6, 6) per region the 1-sigma change of ``(wi, wo)`` along each
+        session mode (central difference through the kinematics), each camera mode,
+        then along the six board pose modes (zeros where they do not apply).
     """
     wi = np.asarray(wi, float)
     wo = np.asarray(wo, float)
     n = len(wi)
     M = 0 if session is None else len(session)
-    out = np.zeros((n, M + 6, MODE_WIDTH))
+    Mk = 0 if camera_modes is None else len(camera_modes)
+    out = np.zeros((n, M + Mk + 6, MODE_WIDTH))
     if source == "none":
         return out
     C = np.asarray(camera.position, float)
@@ -389,7 +470,56 @@ def pose_modes(
                 Cp = -Rp.T @ tp
                 xp = _plane_hit(Cp, d_cam @ Rp)
                 pair.append(np.concatenate([_unit(L - xp), _unit(Cp - xp)], axis=1))
-            out[:, M + k] = 0.5 * (pair[0] - pair[1])
+            out[:, M + Mk + k] = 0.5 * (pair[0] - pair[1])
+    sens = getattr(camera, "intrinsics_sensitivity", None)
+    if source == "board" and Mk and K is not None and sens is not None and np.isfinite(sens).all():
+        out[:, M : M + Mk] = _camera_mode_shifts(x, L, camera, K, dist, camera_modes)
+    return out
+
+
+def _camera_mode_shifts(
+    x: Array, L: Array, camera: Any, K: Array, dist: Array | None, modes: CameraModes
+) -> Array:
+    """(n, Mk, 6): a board pose's ``(wi, wo)`` change along each camera mode: the pose
+    follows the intrinsics (``intrinsics_sensitivity``) and the centroid pixel's ray is
+    the one the moved intrinsics see."""
+    import cv2
+
+    R = np.asarray(camera.rotation, float)
+    t = np.asarray(camera.translation, float)
+    rvec = cv2.Rodrigues(R)[0].ravel()
+    d0 = np.zeros(5)
+    if dist is not None:
+        dd = np.asarray(dist, float).ravel()
+        d0[: min(len(dd), 5)] = dd[:5]
+    K = np.asarray(K, float)
+    good = np.isfinite(x).all(axis=1)
+    out = np.zeros((len(x), len(modes), MODE_WIDTH))
+    if not good.any():
+        return out
+    pix, _ = cv2.projectPoints(x[good], rvec, t, K, d0)
+    for j, step in enumerate(modes.steps):
+        pair = []
+        for sign in (1.0, -1.0):
+            dk = sign * step
+            dp = np.asarray(camera.intrinsics_sensitivity, float) @ dk
+            Rp = cv2.Rodrigues(rvec + dp[:3])[0]
+            tp = t + dp[3:]
+            Cp = -Rp.T @ tp
+            Kp = K.copy()
+            Kp[0, 0] += dk[0]
+            Kp[1, 1] += dk[1]
+            Kp[0, 2] += dk[2]
+            Kp[1, 2] += dk[3]
+            # the same pixel, seen with the moved intrinsics: its undistorted ray
+            crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-15)
+            xy = cv2.undistortPoints(
+                pix, Kp, d0 + dk[4:], R=np.eye(3), P=np.eye(3), criteria=crit
+            ).reshape(-1, 2)
+            ray = _unit(np.concatenate([xy, np.ones((len(xy), 1))], axis=1))
+            xp = _plane_hit(Cp, ray @ Rp)
+            pair.append(np.concatenate([_unit(L - xp), _unit(Cp - xp)], axis=1))
+        out[good, j] = 0.5 * (pair[0] - pair[1])
     return out
 
 

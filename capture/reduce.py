@@ -42,6 +42,7 @@ from gonio.capture.budget import (
     POSE_MODE_NAMES,
     TERMS,
     budget_rows,
+    camera_modes,
     geometry_std,
     local_log_gradient,
     pose_modes,
@@ -425,6 +426,7 @@ class _PoseRun:
         ``radiometric_rel_std`` (relative, (n, C): times f)."""
         kin_config = getattr(self.kin, "config", None)
         modes = session_modes(kin_config, nominal_joint_std_deg=self.setup.nominal_joint_std_deg)
+        cmodes = camera_modes(self.setup.camera_calibration)
         inputs = [self.pose_inputs.get(m.pose) for m in samples_m]
         shifts = rig_shifts(
             modes,
@@ -447,6 +449,8 @@ class _PoseRun:
                     session=modes,
                     shifts=shifts.at(k),
                     K=self.setup.K,
+                    camera_modes=cmodes,
+                    dist=self.setup.dist,
                 )
             )
             sources += [src] * n
@@ -476,12 +480,13 @@ class _PoseRun:
             ) * np.abs(brdf)
         fields = {
             "geometry_modes": gm,
-            "geometry_mode_scope": ["session"] * len(modes) + ["pose"] * len(POSE_MODE_NAMES),
-            "geometry_mode_names": list(modes.names) + list(POSE_MODE_NAMES),
+            "geometry_mode_scope": ["session"] * (len(modes) + len(cmodes))
+            + ["pose"] * len(POSE_MODE_NAMES),
+            "geometry_mode_names": list(modes.names) + list(cmodes.names) + list(POSE_MODE_NAMES),
             "pose": np.asarray(pose_idx, np.int32),
             "geometry_source": np.asarray(sources, str),
         }
-        return budget, {"fields": fields, "modes": modes}
+        return budget, {"fields": fields, "modes": modes, "camera_modes": cmodes}
 
     @staticmethod
     def _budget_summary(
@@ -497,6 +502,7 @@ class _PoseRun:
             "terms": budget_rows(budget, brdf, flags == 0, shared),
             "session_modes": len(modes),
             "session_mode_source": modes.source,
+            "camera_modes": len(geo["camera_modes"]),
             "geometry_source": dict(sorted(src.items())),
             "warnings": list(modes.warnings),
         }

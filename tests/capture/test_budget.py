@@ -382,3 +382,61 @@ def test_grazing_modes_and_budget_are_finite(theta_deg):
     modes_all[-9:] = m
     geo = geometry_std(f, g, modes_all)
     assert np.isfinite(geo).all() and np.isfinite(g[-9:]).all()
+
+
+def test_camera_modes_move_a_board_pose_as_a_resolved_pose_does():
+    """A board pose's camera modes (the camera calibration's intrinsics errors) against
+    the independent route: solve the board pose again with the moved intrinsics
+    (scipy least squares on cv2.projectPoints) and find the centroid pixel's sample point
+    through the moved homography; covariances compared as J C J^T."""
+    from scipy.optimize import least_squares
+
+    from gonio.capture.budget import camera_modes
+    from gonio.capture.fiducials import BoardSpec, _solve
+
+    board = BoardSpec()
+    obj_b = np.asarray(board.cv_board().getChessboardCorners(), float)
+    R_bs, t_bs = board.transform()
+    obj = obj_b @ R_bs.T + t_bs
+    C = np.array([0.05, -0.08, 0.42])  # 13 deg off the normal: nearly fronto-parallel
+    z = _unit(-C)
+    xa = _unit(np.cross(z, [0.0, 0, 1]))
+    R = np.stack([xa, np.cross(z, xa), z])
+    t = -R @ C
+    img, _ = cv2.projectPoints(obj, cv2.Rodrigues(R)[0], t, K, np.zeros(5))
+    img = img.reshape(-1, 2)
+    cam = _solve(board, img, np.arange(len(obj)), K, None)
+    cal = {"K_std": [2.0, 2.0, 4.5, 3.8], "dist_std": [0.0] * 5}
+    cm = camera_modes(cal)
+    assert len(cm) == 4 and all(n.startswith("camera ") for n in cm.names)
+    L = np.array([-0.1, 0.2, 0.4])
+    x = _regions(C, R)
+    wi, wo = _unit(L - x), _unit(C - x)
+    m = pose_modes(wi, wo, cam, L, source="board", K=K, camera_modes=cm, dist=None)
+    assert m.shape == (9, 4 + 6, 6)
+    got = np.einsum("nmi,nmj->nij", m[:, :4], m[:, :4])
+    pix = (x @ R.T + t) @ K.T
+    pix = pix[:, :2] / pix[:, 2:]
+
+    def resolve(Kc):
+        def res(p):
+            uv, _ = cv2.projectPoints(obj, p[:3], p[3:], Kc, np.zeros(5))
+            return (uv.reshape(-1, 2) - img).ravel()
+
+        x0 = np.concatenate([cv2.Rodrigues(R)[0].ravel(), t])
+        p = least_squares(res, x0, xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+        Rp = cv2.Rodrigues(p[:3])[0]
+        return _directions_via_homography(L, -Rp.T @ p[3:], Rp, Kc, pix)
+
+    J = np.zeros((9, 6, 4))
+    for k, name in enumerate(INTR):
+        h = 0.05
+        J[:, :, k] = (resolve(_K_moved(name, h)) - resolve(_K_moved(name, -h))) / (2 * h)
+    want = np.einsum("nik,k,njk->nij", J, np.array(cal["K_std"]) ** 2, J)
+    scale = np.max(np.abs(want))
+    # the principal point's error moves a near-normal camera's wo by ~ its angle
+    assert np.degrees(np.sqrt(scale)) > 0.05
+    np.testing.assert_allclose(got, want, atol=0.03 * scale)
+    # on a rig pose the camera modes are the rig covariance's business: zeros
+    m_rig = pose_modes(wi, wo, cam, L, source="rig", K=K, camera_modes=cm)
+    assert np.all(m_rig[:, :4] == 0)
