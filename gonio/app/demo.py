@@ -347,7 +347,9 @@ def run_demo(
     # the noise for alpha >= 0.1 while each region still has ~100 pixels.
     if calibration is None:
         setup = resolve_setup(session, load_manifest(session))
-        setup = dataclasses.replace(setup, geometry="rig", grid=6)  # = --geometry rig --grid 6
+        # = --geometry rig --grid 6; the perfect world's rig is exactly its configuration,
+        # so the budget's assumed joint tolerance (nominal_joint_std_deg) is 0 here
+        setup = dataclasses.replace(setup, geometry="rig", grid=6, nominal_joint_std_deg=0.0)
     else:
         # = --camera-calibration camera.toml --grid 6: the calibrated camera; each view's
         # pose from the board, the calibrated rig checking it (and giving the light).
