@@ -128,6 +128,15 @@ class CameraPose:
         RMS reprojection error of the board corners, pixels.
     n_corners
         Number of ChArUco corners used.
+    covariance
+        (6, 6) covariance of ``(rvec, tvec)``: the Rodrigues vector of ``rotation`` (rad)
+        and ``translation`` (m), from the corners' reprojection residuals
+        (:func:`pose_covariance`); None when the pose did not come from corners.
+    intrinsics_sensitivity
+        (6, 9) first-order change of ``(rvec, tvec)`` per unit change of the camera
+        intrinsics ``(fx, fy, cx, cy, k1, k2, p1, p2, k3)`` the pose was solved with
+        (:func:`pose_intrinsics_sensitivity`): how an error of the camera calibration
+        moves the board pose; None when the pose did not come from corners.
     """
 
     rotation: NDArray[np.float64]
@@ -135,6 +144,8 @@ class CameraPose:
     position: NDArray[np.float64]
     reprojection_rms: float
     n_corners: int
+    covariance: NDArray[np.float64] | None = None
+    intrinsics_sensitivity: NDArray[np.float64] | None = None
 
     def angle_to(self, rotation: ArrayLike) -> float:
         """Angle (rad) of the rotation between this pose and another world-to-camera one."""
@@ -416,7 +427,116 @@ def _solve(
     # p_cam = R_bc p_board + t_bc and p_board = R_bs^T (p_sample - t_bs)
     R = R_bc @ R_bs.T
     t = tvec.ravel() - R @ t_bs
-    return CameraPose(R, t, -R.T @ t, rms, len(ids))
+    obj_s = obj @ R_bs.T + t_bs
+    cov = pose_covariance(obj_s, img, R, t, K, dist)
+    sens = pose_intrinsics_sensitivity(obj_s, R, t, K, dist)
+    return CameraPose(R, t, -R.T @ t, rms, len(ids), cov, sens)
+
+
+def _pose_jacobian(
+    obj: NDArray[np.float64], rotation: ArrayLike, translation: ArrayLike, K: ArrayLike, dist
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Projections (n, 2) and ``cv2.projectPoints``' Jacobian (2n, 6 + 4 + 5): rvec, tvec,
+    fx, fy, cx, cy, then k1, k2, p1, p2, k3."""
+    rvec = cv2.Rodrigues(np.asarray(rotation, np.float64))[0]
+    tvec = np.asarray(translation, np.float64).reshape(3, 1)
+    d = np.zeros(5)
+    if dist is not None:
+        dd = np.asarray(dist, np.float64).ravel()
+        if len(dd) > 5:
+            d = dd
+        else:
+            d[: len(dd)] = dd
+    proj, jac = cv2.projectPoints(obj, rvec, tvec, np.asarray(K, np.float64), d)
+    return proj.reshape(-1, 2), jac[:, :15]
+
+
+def pose_intrinsics_sensitivity(
+    points: ArrayLike,
+    rotation: ArrayLike,
+    translation: ArrayLike,
+    K: ArrayLike,
+    dist: ArrayLike | None = None,
+) -> NDArray[np.float64]:
+    """How the least-squares pose follows an error of the intrinsics it was solved with.
+
+    At the solution the residuals' gradient vanishes; to first order a change ``dk`` of
+    the intrinsics moves the pose by ``-(J_p^T J_p)^-1 J_p^T J_k dk``, ``J_p`` and
+    ``J_k`` the projections' Jacobians (``cv2.projectPoints``) with respect to the pose
+    and to the intrinsics.
+
+    Parameters
+    ----------
+    points
+        (n, 3) object points (the frame the pose maps from), m.
+    rotation, translation
+        The solved pose (object -> camera).
+    K, dist
+        The intrinsics it was solved with (px; OpenCV distortion, None: none).
+
+    Returns
+    -------
+    ndarray
+        (6, 9) ``d(rvec, tvec) / d(fx, fy, cx, cy, k1, k2, p1, p2, k3)`` (rad or m per
+        px or per unit coefficient); NaN for a degenerate point set.
+    """
+    obj = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(obj) < 4:
+        return np.full((6, 9), np.nan)
+    _, jac = _pose_jacobian(obj, rotation, translation, K, dist)
+    Jp, Jk = jac[:, :6], jac[:, 6:15]
+    JtJ = Jp.T @ Jp
+    if not np.all(np.isfinite(JtJ)) or np.linalg.cond(JtJ) > 1e15:
+        return np.full((6, 9), np.nan)
+    return -np.linalg.solve(JtJ, Jp.T @ Jk)
+
+
+def pose_covariance(
+    points: ArrayLike,
+    image_points: ArrayLike,
+    rotation: ArrayLike,
+    translation: ArrayLike,
+    K: ArrayLike,
+    dist: ArrayLike | None = None,
+) -> NDArray[np.float64]:
+    """Covariance of a camera pose solved from point correspondences.
+
+    ``sigma^2 (J^T J)^-1``, with ``J`` the (2n, 6) Jacobian of the projections
+    (``cv2.projectPoints``) with respect to ``(rvec, tvec)`` and ``sigma^2`` the residuals'
+    sum of squares over their ``2n - 6`` degrees of freedom: the first-order covariance of
+    the least-squares pose when every coordinate has the same independent noise.
+
+    Parameters
+    ----------
+    points
+        (n, 3) object points in the frame the pose maps from (here: the sample frame), m.
+    image_points
+        (n, 2) detected image points, px.
+    rotation, translation
+        The solved pose: (3, 3) rotation and (3,) translation (object -> camera), m.
+    K, dist
+        Camera matrix (px) and OpenCV distortion coefficients (None: none).
+
+    Returns
+    -------
+    ndarray
+        (6, 6) covariance of ``(rvec, tvec)`` in rad^2, rad m, m^2 (NaN when the points
+        cannot determine the pose: fewer than 4, or a degenerate set).
+    """
+    obj = np.asarray(points, np.float64).reshape(-1, 3)
+    img = np.asarray(image_points, np.float64).reshape(-1, 2)
+    n = len(obj)
+    if n < 4:
+        return np.full((6, 6), np.nan)
+    proj, jac = _pose_jacobian(obj, rotation, translation, K, dist)
+    J = jac[:, :6]
+    res = proj - img
+    sigma2 = float(np.sum(res**2)) / (2 * n - 6)
+    JtJ = J.T @ J
+    if not np.all(np.isfinite(JtJ)) or np.linalg.cond(JtJ) > 1e15:
+        return np.full((6, 6), np.nan)
+    cov = sigma2 * np.linalg.inv(JtJ)
+    return 0.5 * (cov + cov.T)
 
 
 def detect_pose(

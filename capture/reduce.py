@@ -38,6 +38,17 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gonio.capture.budget import (
+    POSE_MODE_NAMES,
+    TERMS,
+    budget_rows,
+    camera_modes,
+    geometry_std,
+    local_log_gradient,
+    pose_modes,
+    rig_shifts,
+    session_modes,
+)
 from gonio.capture.frame_loader import PREFETCH_POSES, FrameLoader, default_threads, load_frame
 from gonio.capture.noise import NoiseModel
 from gonio.capture.output_set import output_set
@@ -229,6 +240,10 @@ class _PoseRun:
     # the radiometric calibration (issue 16): see _radiometric_calibration
     cal: _Radiometry = field(default_factory=lambda: _Radiometry())
     warnings: list[str] = field(default_factory=list)
+    #: pose -> (light position, journaled joints, approach): what the budget's geometry
+    #: modes move (:mod:`gonio.capture.budget`)
+    pose_inputs: dict[int, tuple[Any, Any, Any]] = field(default_factory=dict)
+    budget_summary: dict[str, Any] = field(default_factory=dict)
 
     def measure_all(self, threads: int, progress: Callable[[int, int], None] | None) -> None:
         """Decode and measure every sample and reference pose, in journal order."""
@@ -320,6 +335,7 @@ class _PoseRun:
         light_pos, light_n, cam_rep = _rig_pose(
             self.kin, last.get("joints"), wi_rep, wo_rep, last.get("approach")
         )
+        self.pose_inputs[p] = (light_pos, last.get("joints"), last.get("approach"))
         if not frames:
             why = "; ".join(self.frame_problems.get(r.get("file", ""), "?") for r in recs)
             self._fail(p, kind, f"no decodable frame: {why}")
@@ -383,6 +399,17 @@ class _PoseRun:
             for m, (It, _) in zip(samples_m, light_at, strict=True)
         ]
         self._radiometric_terms(samples_m, [u for _, u in light_at])
+        brdf = np.concatenate([x[0] for x in parts])
+        flags = np.concatenate([m.flags for m in samples_m])
+        budget, geo = self._budget(samples_m, parts, brdf, flags)
+        with np.errstate(invalid="ignore"):
+            rel_var = I_var / I**2
+            ref_rel = setup.reflectance_std / setup.reflectance
+        shared = {
+            "reference": ref_rel,
+            # what the reference shots' statistics add (I_var holds both)
+            "light_scale": np.sqrt(np.maximum(rel_var - ref_rel**2, 0.0)),
+        }
         for m in samples_m:
             for rs in m.reasons:
                 for r in rs:
@@ -407,18 +434,25 @@ class _PoseRun:
             "roi_fraction": setup.roi_fraction,
             "grid": setup.grid,
         }
+        # brdf_std: the root sum of squares of the per-sample terms (noise alone before
+        # issue 16); the shared terms stay apart (calibration_rel_std, budget attrs)
+        brdf_std = np.sqrt(sum(v**2 for v in budget.values()))
+        self.budget_summary = self._budget_summary(budget, brdf, flags, shared, geo)
         return BRDFSamples(
             wi=np.concatenate([m.wi for m in samples_m]),
             wo=np.concatenate([m.wo for m in samples_m]),
-            brdf=np.concatenate([x[0] for x in parts]),
-            brdf_std=np.concatenate([x[1] for x in parts]),
-            flags=np.concatenate([m.flags for m in samples_m]),
+            brdf=brdf,
+            brdf_std=brdf_std,
+            flags=flags,
             channels=CHANNELS,
             radiance=np.concatenate([m.radiance for m in samples_m]),
             irradiance=np.concatenate([x[2] for x in parts]),
             frames=np.array([";".join(m.frames) for m in samples_m for _ in range(len(m.flags))]),
             attrs=attrs,
             units={"radiance": RADIANCE_UNITS, "irradiance": IRRADIANCE_UNITS},
+            budget=budget,
+            shared_budget=shared,
+            **geo["fields"],
         )
 
     # -- the radiometric calibration (issue 16) ---------------------------------------
@@ -638,6 +672,101 @@ class _PoseRun:
                 f"stated [light] drift_rel_std = {100 * s.drift_rel_std:g} % for every sample"
             )
         return out
+    def _budget(
+        self,
+        samples_m: list[PoseMeasurement],
+        parts: list[tuple[NDArray, ...]],
+        brdf: NDArray[np.float64],
+        flags: NDArray[np.uint32],
+    ) -> tuple[dict[str, NDArray[np.float64]], dict[str, Any]]:
+        """The per-sample budget terms (N, C) in 1/sr, and the geometric modes' fields.
+
+        ``noise`` is today's std (photon, read, dark subtraction); ``geometry`` the
+        marginal std of the modes (:mod:`gonio.capture.budget`) through the local
+        gradient of the measured samples; the radiometric terms come from each pose's
+        ``radiometric_rel_std`` (relative, (n, C): times f)."""
+        kin_config = getattr(self.kin, "config", None)
+        modes = session_modes(kin_config, nominal_joint_std_deg=self.setup.nominal_joint_std_deg)
+        cmodes = camera_modes(self.setup.camera_calibration)
+        inputs = [self.pose_inputs.get(m.pose) for m in samples_m]
+        shifts = rig_shifts(
+            modes,
+            [None if x is None else x[1] for x in inputs],
+            [None if x is None else x[2] for x in inputs],
+        )
+        per_pose, sources, pose_idx = [], [], []
+        for k, m in enumerate(samples_m):
+            src = getattr(m, "geometry_source", None) or _geometry_source(m)
+            n = len(m.flags)
+            if m.camera is None or inputs[k] is None or m.kernel == "none":
+                src = "none"
+            per_pose.append(
+                pose_modes(
+                    m.wi,
+                    m.wo,
+                    m.camera,
+                    None if inputs[k] is None else inputs[k][0],
+                    source=src,
+                    session=modes,
+                    shifts=shifts.at(k),
+                    K=self.setup.K,
+                    camera_modes=cmodes,
+                    dist=self.setup.dist,
+                )
+            )
+            sources += [src] * n
+            pose_idx += [m.pose] * n
+        gm = np.concatenate(per_pose)
+        usable = flags == 0
+        grad = local_log_gradient(
+            np.concatenate([m.wi for m in samples_m]),
+            np.concatenate([m.wo for m in samples_m]),
+            brdf,
+            usable,
+        )
+        budget: dict[str, NDArray[np.float64]] = {
+            "noise": np.concatenate([x[1] for x in parts]),
+            "geometry": np.where(np.isfinite(brdf), geometry_std(brdf, grad, gm), np.nan),
+        }
+        for term in TERMS[2:]:
+            rel = [
+                np.asarray(getattr(m, "radiometric_rel_std", {}).get(term, 0.0), float)
+                for m in samples_m
+            ]
+            budget[term] = np.concatenate(
+                [
+                    np.broadcast_to(r, (len(m.flags), brdf.shape[1]))
+                    for r, m in zip(rel, samples_m, strict=True)
+                ]
+            ) * np.abs(brdf)
+        fields = {
+            "geometry_modes": gm,
+            "geometry_mode_scope": ["session"] * (len(modes) + len(cmodes))
+            + ["pose"] * len(POSE_MODE_NAMES),
+            "geometry_mode_names": list(modes.names) + list(cmodes.names) + list(POSE_MODE_NAMES),
+            "pose": np.asarray(pose_idx, np.int32),
+            "geometry_source": np.asarray(sources, str),
+        }
+        return budget, {"fields": fields, "modes": modes, "camera_modes": cmodes}
+
+    @staticmethod
+    def _budget_summary(
+        budget: Mapping[str, NDArray[np.float64]],
+        brdf: NDArray[np.float64],
+        flags: NDArray[np.uint32],
+        shared: Mapping[str, NDArray[np.float64]],
+        geo: Mapping[str, Any],
+    ) -> dict[str, Any]:
+        modes = geo["modes"]
+        src = Counter(geo["fields"]["geometry_source"][flags == 0].tolist())
+        return {
+            "terms": budget_rows(budget, brdf, flags == 0, shared),
+            "session_modes": len(modes),
+            "session_mode_source": modes.source,
+            "camera_modes": len(geo["camera_modes"]),
+            "geometry_source": dict(sorted(src.items())),
+            "warnings": list(modes.warnings),
+        }
 
     def summary(self, n_samples: int, n_kept: int, path: Path) -> dict[str, Any]:
         """The ``reduction.json`` document."""
@@ -651,6 +780,7 @@ class _PoseRun:
             "failed_poses": self.failed_poses,
             "frame_problems": dict(sorted(self.frame_problems.items())),
             "light_radiance_camera_units": self.light[0].tolist(),
+            "budget": self.budget_summary,
             "output": path.name,
             "radiometric": self.cal.summary(),
             "warnings": list(self.warnings),
@@ -839,6 +969,14 @@ def _kinematics(manifest: Mapping[str, Any]) -> Any | None:
         return Kinematics(rig_config_from_dict(dict(rig), "manifest.json: rig"))
     except (ImportError, GonioError):
         return None
+
+
+def _geometry_source(m: PoseMeasurement) -> str:
+    """Where a pose's camera came from when the measurement does not say: the board when
+    its pose has a covariance (solved from corners), else the rig's report."""
+    if m.camera is None:
+        return "none"
+    return "board" if getattr(m.camera, "covariance", None) is not None else "rig"
 
 
 def _shots_by_pose(records: list[dict[str, Any]]) -> tuple[dict[int, list[dict]], set[int]]:

@@ -197,6 +197,13 @@ def reduce_cmd(
     for reason, n in sorted(res.rejected.items()):
         table.add_row(f"rejected: {reason}", str(n))
     console.print(table)
+    budget = res.summary.get("budget") or {}
+    if budget.get("terms"):
+        from gonio.capture.budget import budget_table
+
+        console.print(budget_table(budget["terms"]))
+        for w in budget.get("warnings", []):
+            console.print(f"[yellow]budget: {w}", soft_wrap=True)
     for fp in res.summary["failed_poses"]:
         console.print(f"[yellow]pose {fp['pose']} ({fp['kind']}): {fp['reason']}", soft_wrap=True)
     for frame, why in res.summary.get("frame_problems", {}).items():

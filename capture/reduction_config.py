@@ -254,6 +254,9 @@ class ReductionSection(_Strict):
     max_board_obliquity_deg: Annotated[float, Field(gt=0, le=90, allow_inf_nan=False)] = 60.0
     min_board_corners: Annotated[int, Field(ge=4)] = 10
     max_region_spread_deg: Annotated[float, Field(gt=0, le=90, allow_inf_nan=False)] | None = None
+    #: Assumed std of each joint's zero offset (deg) when the rig has no calibration
+    #: covariance: the uncertainty budget's session geometry modes (issue 16, H3).
+    nominal_joint_std_deg: NonNegative = 0.1
 
 
 class ReductionConfig(_Strict):
@@ -346,6 +349,9 @@ class ReductionSetup:
         near-normal views (~2.3 mm of a 5 mm cell).
     min_snr
         Regions whose signal-to-noise ratio is lower are flagged UNDEREXPOSED.
+    nominal_joint_std_deg
+        Assumed standard deviation of every joint's zero offset, deg, for the budget's
+        geometry when the rig carries no calibration covariance (an assumption).
     camera_calibration
         The camera calibration's ``[camera.calibration]`` table (standard deviations,
         RMS, camera identity and digest) when the camera came from one, else None.
@@ -384,6 +390,7 @@ class ReductionSetup:
     max_board_obliquity_deg: float = 60.0
     min_board_corners: int = 10
     max_region_spread_deg: float | None = None
+    nominal_joint_std_deg: float = 0.1
     camera_calibration: dict[str, Any] | None = None
     camera_file: str | None = None
     light_profile: str | float = "none"
@@ -652,6 +659,7 @@ def setup_from_config(
         drift_rel_std=config.light.drift_rel_std,
         prnu=config.noise.prnu if config.noise is not None else 0.01,
         dsnu_e=config.noise.dsnu_e if config.noise is not None else 5.0,
+        nominal_joint_std_deg=red.nominal_joint_std_deg,
     )
     return _camera_setup(setup, cam, cam_file)
 

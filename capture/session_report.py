@@ -37,6 +37,9 @@ class SessionReport:
     retaken: list[str] = field(default_factory=list)
     superseded: list[str] = field(default_factory=list)
     stale_temporaries: list[str] = field(default_factory=list)
+    #: The last reduction's budget (``reduction.json["budget"]``: its largest terms), or
+    #: None when the session has not been reduced (or was reduced before budgets).
+    budget: dict[str, Any] | None = None
 
     @property
     def ok(self) -> bool:
@@ -60,6 +63,7 @@ class SessionReport:
             "retaken": self.retaken,
             "superseded": self.superseded,
             "stale_temporaries": self.stale_temporaries,
+            "budget": self.budget,
         }
 
 
@@ -127,4 +131,28 @@ def inspect_session(session_dir: str | Path, verify: bool = True) -> SessionRepo
         retaken=[s["file"] for shots in st.shots.values() for s in shots if s.get("retake")],
         superseded=superseded,
         stale_temporaries=stale_temporaries(d),
+        budget=_reduction_budget(d),
     )
+
+
+def _reduction_budget(d: Path) -> dict[str, Any] | None:
+    """``SESSION/reduction.json``'s budget, read only; None when absent or unreadable
+    (inspecting a session never fails on its reduction's summary)."""
+    import json
+
+    p = d / "reduction.json"
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    budget = doc.get("budget") if isinstance(doc, dict) else None
+    if not isinstance(budget, dict) or not isinstance(budget.get("terms"), list):
+        return None
+    terms = [
+        r
+        for r in budget["terms"]
+        if isinstance(r, dict)
+        and isinstance(r.get("term"), str)
+        and all(isinstance(r.get(k), int | float) for k in ("median_rel_std", "share"))
+    ]
+    return {**budget, "terms": terms}

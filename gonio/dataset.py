@@ -22,6 +22,25 @@ name            shape       units      meaning
 ``frames``      (N,)        str        optional: the RAW files a sample came from
 ==============  ==========  =========  ==================================================
 
+Optional: the uncertainty budget (written by ``gonio capture reduce``; files without
+it load as before, its fields None):
+
+=========================  ==========  =====  ==============================================
+name                       shape       units  meaning
+=========================  ==========  =====  ==============================================
+``budget/<term>``          (N, C)      1/sr   one std per term of :data:`BUDGET_TERMS`;
+                                              ``brdf_std`` is their root sum of squares
+``budget`` attributes      (C,)        1      shared terms (:data:`SHARED_BUDGET_TERMS`),
+                                              relative std common to every sample
+``geometry_modes``         (N, M, 6)   1      1-sigma change of ``(wi, wo)`` along mode j
+``geometry_mode_scope``    (M,)        str    ``"session"`` (one error for all samples)
+                                              or ``"pose"`` (one per journal pose)
+``geometry_mode_names``    (M,)        str    what each mode is
+``pose``                   (N,)        int32  journal pose index of each sample
+``geometry_source``        (N,)        str    ``"board"``, ``"rig"`` or ``"none"``: where
+                                              the sample's camera pose came from
+=========================  ==========  =====  ==============================================
+
 Root attributes: ``schema`` (``"gonio.samples"``), ``schema_version``, ``channels``, and
 free-form provenance (software version, session, creation time...).  Each dataset carries
 a ``units`` attribute.  Those of ``radiance`` and ``irradiance`` say what is stored
@@ -31,7 +50,9 @@ a ``units`` attribute.  Those of ``radiance`` and ``irradiance`` say what is sto
 What :func:`load_samples` refuses, naming the file and dataset: no samples (length 0),
 finite ``wi``/``wo`` rows whose length differs from 1 by more than
 :data:`UNIT_TOLERANCE`, ``flags`` that are not integers in [0, 2^32), non-numeric data,
-shapes that do not match.
+shapes that do not match; in the budget: unknown terms, negative or infinite standard
+deviations, modes whose scope or names do not match their count, scopes or geometry
+sources outside their values, pose indices that are not int32 integers.
 """
 
 from __future__ import annotations
@@ -59,6 +80,22 @@ SCHEMA_VERSION = 1
 #: accepts directions that went through float32 (~6e-8) while refusing scaled vectors,
 #: degrees or points mistaken for directions.
 UNIT_TOLERANCE = 1e-6
+
+#: Per-sample budget terms (std in 1/sr, (N, C)) a file may hold.
+BUDGET_TERMS: tuple[str, ...] = (
+    "noise",
+    "geometry",
+    "irradiance",
+    "drift",
+    "flat",
+    "dark",
+    "stray",
+)
+#: Budget terms shared by every sample (relative std per channel, (C,)).
+SHARED_BUDGET_TERMS: tuple[str, ...] = ("reference", "light_scale")
+#: Values of ``geometry_mode_scope`` and of ``geometry_source``.
+MODE_SCOPES: tuple[str, ...] = ("session", "pose")
+GEOMETRY_SOURCES: tuple[str, ...] = ("board", "rig", "none")
 
 #: Units of ``radiance`` and ``irradiance`` when the writer does not say (calibrated).
 DEFAULT_UNITS = {"radiance": "W/(sr m^2)", "irradiance": "W/m^2"}
@@ -117,6 +154,19 @@ class BRDFSamples:
         Units of what ``radiance`` and ``irradiance`` hold (keys ``"radiance"``,
         ``"irradiance"``; missing keys take :data:`DEFAULT_UNITS`), e.g.
         ``{"radiance": "camera DN/s", ...}`` for an uncalibrated reduction.
+    budget
+        Optional per-sample uncertainty budget: term (:data:`BUDGET_TERMS`) -> (N, C)
+        std in 1/sr.
+    shared_budget
+        Optional shared terms (:data:`SHARED_BUDGET_TERMS`) -> (C,) relative std.
+    geometry_modes
+        Optional (N, M, 6) 1-sigma perturbations of ``(wi, wo)`` along M modes.
+    geometry_mode_scope, geometry_mode_names
+        (M,) each mode's scope (:data:`MODE_SCOPES`) and name; required with the modes.
+    pose
+        Optional (N,) int32 journal pose index of each sample.
+    geometry_source
+        Optional (N,) where each sample's camera pose came from (:data:`GEOMETRY_SOURCES`).
     """
 
     wi: NDArray[np.float64]
@@ -130,6 +180,13 @@ class BRDFSamples:
     frames: NDArray[np.str_] | None = None
     attrs: dict[str, Any] = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)
+    budget: dict[str, NDArray[np.float64]] | None = None
+    shared_budget: dict[str, NDArray[np.float64]] | None = None
+    geometry_modes: NDArray[np.float64] | None = None
+    geometry_mode_scope: NDArray[np.str_] | None = None
+    geometry_mode_names: NDArray[np.str_] | None = None
+    pose: NDArray[np.int32] | None = None
+    geometry_source: NDArray[np.str_] | None = None
 
     def __post_init__(self) -> None:
         unknown = set(self.units) - set(DEFAULT_UNITS)
@@ -160,6 +217,70 @@ class BRDFSamples:
                 setattr(self, name, _per_channel(v, n, name, c))
         if self.frames is not None:
             self.frames = np.asarray(self.frames, dtype=str).reshape(n)
+        self._check_budget(n, c)
+
+    def _check_budget(self, n: int, c: int) -> None:
+        if self.budget is not None:
+            unknown = sorted(set(self.budget) - set(BUDGET_TERMS))
+            if unknown:
+                raise ValueError(f"budget: unknown term(s) {unknown}; known: {list(BUDGET_TERMS)}")
+            self.budget = {
+                t: _std(_per_channel(v, n, f"budget/{t}", c), f"budget/{t}")
+                for t, v in self.budget.items()
+            }
+        if self.shared_budget is not None:
+            unknown = sorted(set(self.shared_budget) - set(SHARED_BUDGET_TERMS))
+            if unknown:
+                raise ValueError(
+                    f"budget: unknown shared term(s) {unknown}; known: {list(SHARED_BUDGET_TERMS)}"
+                )
+            out = {}
+            for t, v in self.shared_budget.items():
+                a = np.asarray(v, dtype=np.float64).reshape(-1)
+                if a.shape != (c,):
+                    raise ValueError(f"budget.{t} must have {c} values, got shape {a.shape}")
+                out[t] = _std(a, f"budget.{t}")
+            self.shared_budget = out
+        if self.geometry_modes is not None:
+            m = np.asarray(self.geometry_modes, dtype=np.float64)
+            if m.ndim != 3 or m.shape[0] != n or m.shape[2] != 6:
+                raise ValueError(f"geometry_modes must have shape ({n}, M, 6), got {m.shape}")
+            if np.isinf(m).any():
+                raise ValueError("geometry_modes holds infinite values")
+            self.geometry_modes = m
+            k = m.shape[1]
+            for name, allowed in (
+                ("geometry_mode_scope", MODE_SCOPES),
+                ("geometry_mode_names", None),
+            ):
+                v = getattr(self, name)
+                if v is None:
+                    raise ValueError(f"{name} is required with geometry_modes")
+                a = np.asarray(v, dtype=str).reshape(-1)
+                if a.shape != (k,):
+                    raise ValueError(f"{name} must have {k} entries (one per mode), got {a.size}")
+                if allowed is not None and not np.isin(a, allowed).all():
+                    bad = sorted(set(a.tolist()) - set(allowed))
+                    raise ValueError(f"{name}: {bad} not among {list(allowed)}")
+                setattr(self, name, a)
+        elif self.geometry_mode_scope is not None or self.geometry_mode_names is not None:
+            raise ValueError("geometry_mode_scope/geometry_mode_names given without geometry_modes")
+        if self.pose is not None:
+            a = np.asarray(self.pose)
+            if a.shape not in ((n,), (n, 1)) or a.dtype.kind not in "iu":
+                raise ValueError(f"pose must be ({n},) integers, got {a.dtype} {a.shape}")
+            lo, hi = np.iinfo(np.int32).min, np.iinfo(np.int32).max
+            if a.size and (a.min() < lo or a.max() > hi):
+                raise ValueError(f"pose must fit int32, found {a.min()} .. {a.max()}")
+            self.pose = a.reshape(n).astype(np.int32)
+        if self.geometry_source is not None:
+            a = np.asarray(self.geometry_source, dtype=str).reshape(-1)
+            if a.shape != (n,):
+                raise ValueError(f"geometry_source must have shape ({n},), got {a.shape}")
+            if not np.isin(a, GEOMETRY_SOURCES).all():
+                bad = sorted(set(a.tolist()) - set(GEOMETRY_SOURCES))[:5]
+                raise ValueError(f"geometry_source: {bad} not among {list(GEOMETRY_SOURCES)}")
+            self.geometry_source = a
 
     def __len__(self) -> int:
         return self.wi.shape[0]
@@ -201,6 +322,13 @@ class BRDFSamples:
             frames=pick(self.frames),
             attrs=dict(self.attrs),
             units=dict(self.units),
+            budget=None if self.budget is None else {t: v[idx] for t, v in self.budget.items()},
+            shared_budget=None if self.shared_budget is None else dict(self.shared_budget),
+            geometry_modes=pick(self.geometry_modes),
+            geometry_mode_scope=self.geometry_mode_scope,
+            geometry_mode_names=self.geometry_mode_names,
+            pose=pick(self.pose),
+            geometry_source=pick(self.geometry_source),
         )
 
 
@@ -208,6 +336,13 @@ def _vec3(v: ArrayLike, name: str) -> NDArray[np.float64]:
     a = np.asarray(v, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 3:
         raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
+    return a
+
+
+def _std(a: NDArray[np.float64], name: str) -> NDArray[np.float64]:
+    """A standard deviation array: NaN (unknown) allowed, negative or infinite not."""
+    if (a < 0).any() or np.isinf(a).any():
+        raise ValueError(f"{name}: standard deviations must be >= 0 and finite (or NaN)")
     return a
 
 
@@ -260,7 +395,34 @@ def save_samples(path: str | os.PathLike, samples: BRDFSamples) -> Path:
                 "frames", data=samples.frames.astype(object), dtype=h5py.string_dtype()
             )
             ds.attrs["units"] = ""
+        _save_budget(f, samples)
     return path
+
+
+def _save_budget(f: h5py.File, s: BRDFSamples) -> None:
+    def numbers(name: str, v: NDArray, units: str, where: Any = f) -> None:
+        # an empty dataset cannot be chunked (compressed); the byte shuffle lets deflate
+        # see the modes' many small floats of similar exponent (the largest dataset)
+        opts = {"compression": "gzip", "compression_opts": 4, "shuffle": True} if v.size else {}
+        where.create_dataset(name, data=v, **opts).attrs["units"] = units
+
+    def strings(name: str, v: NDArray) -> None:
+        f.create_dataset(name, data=v.astype(object), dtype=h5py.string_dtype()).attrs["units"] = ""
+
+    if s.budget is not None or s.shared_budget is not None:
+        g = f.create_group("budget")
+        for t, v in (s.budget or {}).items():
+            numbers(t, v, "1/sr", g)
+        for t, v in (s.shared_budget or {}).items():
+            g.attrs[t] = v
+    if s.geometry_modes is not None:
+        numbers("geometry_modes", s.geometry_modes, "1")
+        strings("geometry_mode_scope", s.geometry_mode_scope)
+        strings("geometry_mode_names", s.geometry_mode_names)
+    if s.pose is not None:
+        numbers("pose", s.pose.astype(np.int32), "journal pose index")
+    if s.geometry_source is not None:
+        strings("geometry_source", s.geometry_source)
 
 
 def _attr_value(v: Any) -> Any:
@@ -367,6 +529,7 @@ def _read(path: Path, f: h5py.File) -> tuple[dict[str, Any], tuple, dict, dict]:
             raise FileFormatError(path, f"expected strings, found {ds.dtype}", "frames")
         _check_size(path, ds, "frames")
         out["frames"] = ds.asstr()[()]
+    out.update(_read_budget(path, f))
     raw_channels = f.attrs.get("channels", ())
     if isinstance(raw_channels, str | bytes) or np.ndim(raw_channels) != 1:
         raise FileFormatError(
@@ -381,6 +544,65 @@ def _read(path: Path, f: h5py.File) -> tuple[dict[str, Any], tuple, dict, dict]:
         if k not in ("schema", "schema_version", "channels")
     }
     return out, channels, attrs, units
+
+
+def _read_budget(path: Path, f: h5py.File) -> dict[str, Any]:
+    """The optional budget datasets, type-checked (shapes are checked by BRDFSamples)."""
+    out: dict[str, Any] = {}
+
+    def numeric(name: str, obj: Any, kinds: str = "iuf") -> NDArray:
+        if not isinstance(obj, h5py.Dataset):
+            raise FileFormatError(path, f"expected a dataset, found {type(obj).__name__}", name)
+        if obj.dtype.kind not in kinds:
+            raise FileFormatError(path, f"expected numbers, found {obj.dtype}", name)
+        _check_size(path, obj, name)
+        return obj[()]
+
+    def strings(name: str) -> NDArray:
+        ds = _dataset(path, f, name)
+        if ds.dtype.kind not in "SOU" or ds.ndim != 1:
+            raise FileFormatError(path, f"expected a list of strings, found {ds.dtype}", name)
+        _check_size(path, ds, name)
+        return ds.asstr()[()]
+
+    if "budget" in f:
+        g = f["budget"]
+        if not isinstance(g, h5py.Group):
+            raise FileFormatError(path, f"expected a group, found {type(g).__name__}", "budget")
+        budget = {}
+        for t in g:
+            if t not in BUDGET_TERMS:
+                raise FileFormatError(
+                    path,
+                    f"unknown budget term; expected one of {list(BUDGET_TERMS)}",
+                    f"budget/{t}",
+                )
+            budget[t] = numeric(f"budget/{t}", g[t])
+        shared = {}
+        for t, v in g.attrs.items():
+            if t not in SHARED_BUDGET_TERMS:
+                raise FileFormatError(
+                    path,
+                    f"unknown shared budget term; expected one of {list(SHARED_BUDGET_TERMS)}",
+                    f"budget.{t}",
+                )
+            a = np.asarray(v)
+            if a.dtype.kind not in "iuf":
+                raise FileFormatError(path, f"expected numbers, found {a.dtype}", f"budget.{t}")
+            shared[t] = a
+        out["budget"] = budget
+        out["shared_budget"] = shared
+    if "geometry_modes" in f:
+        out["geometry_modes"] = numeric("geometry_modes", f["geometry_modes"], "f")
+        for name in ("geometry_mode_scope", "geometry_mode_names"):
+            if name not in f:
+                raise FileFormatError(path, "required with geometry_modes, missing", name)
+            out[name] = strings(name)
+    if "pose" in f:
+        out["pose"] = numeric("pose", f["pose"], "iu")
+    if "geometry_source" in f:
+        out["geometry_source"] = strings("geometry_source")
+    return out
 
 
 # deflate, the strongest compression HDF5 applies here, packs at most ~1032:1.

@@ -45,6 +45,7 @@ from gonio.rig.calibration_data import BoardObservation, SpotObservation
 from gonio.rig.calibration_record import (
     CalibrationError,
     CalibrationRecord,
+    ParameterCovariance,
     ParameterEstimate,
     rig_digest,
 )
@@ -914,6 +915,7 @@ def calibrate_rig(
         intrinsics=intr,
         rejected=rejected,
         not_observable=dict(NOT_OBSERVABLE),
+        covariance=_covariance_record(problem.names, cov, std),
         # exclude_none: the record is written into the rig TOML, which has no null
         nominal=nominal.model_dump(mode="json", exclude={"calibration"}, exclude_none=True),
     )
@@ -941,6 +943,17 @@ def calibrate_rig(
         nfev=nfev,
         record=record,
         estimates={n: (float(x[i]), float(std[i])) for i, n in enumerate(problem.names)},
+    )
+
+
+def _covariance_record(names: Sequence[str], cov: Array, std: Array) -> ParameterCovariance:
+    """The record's covariance table over the parameters with a finite std (the others
+    are not in the record's estimates either); exactly symmetric, as TOML keeps it."""
+    keep = np.flatnonzero(np.isfinite(std))
+    sub = cov[np.ix_(keep, keep)]
+    sub = 0.5 * (sub + sub.T)
+    return ParameterCovariance(
+        names=[names[i] for i in keep], matrix=[[float(v) for v in row] for row in sub]
     )
 
 

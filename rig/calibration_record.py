@@ -21,7 +21,9 @@ import hashlib
 import json
 from typing import TYPE_CHECKING, Any
 
-from pydantic import BaseModel, ConfigDict, Field
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from gonio.errors import GonioError
 
@@ -31,6 +33,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "CalibrationError",
     "CalibrationRecord",
+    "ParameterCovariance",
     "ParameterEstimate",
     "check_camera_digest",
     "check_rig_digest",
@@ -55,6 +58,78 @@ class ParameterEstimate(_Strict):
     value: float
     std: float = Field(ge=0)
     unit: str
+
+
+#: Relative asymmetry and negative-eigenvalue slack a covariance table may show: TOML
+#: keeps float64 to the bit, so anything larger is a hand edit or another program's
+#: rounding, not the calibration's matrix.
+COVARIANCE_TOLERANCE = 1e-9
+
+
+class ParameterCovariance(_Strict):
+    """The ``[calibration.covariance]`` table: the joint covariance of the fitted
+    parameters, so their correlations reach the uncertainty budget.
+
+    Attributes
+    ----------
+    names
+        Parameter names (rows and columns, in order): canonical rig parameter names
+        (``gonio.rig.calibration.PARAMETER_NAMES``) and camera intrinsics
+        (``INTRINSIC_NAMES``), each once.
+    matrix
+        Square, symmetric, positive semi-definite matrix in the parameters' units
+        squared (deg^2, m^2, px^2, 1).
+    """
+
+    names: list[str]
+    matrix: list[list[float]]
+
+    @model_validator(mode="after")
+    def _valid(self) -> ParameterCovariance:
+        from gonio.rig.calibration import INTRINSIC_NAMES, PARAMETER_NAMES
+
+        known = set(PARAMETER_NAMES) | set(INTRINSIC_NAMES)
+        unknown = [n for n in self.names if n not in known]
+        if unknown:
+            raise ValueError(
+                f"names: unknown parameter(s) {unknown}; expected rig calibration parameters "
+                "or camera intrinsics (gonio.rig.calibration.PARAMETER_NAMES, INTRINSIC_NAMES)"
+            )
+        dup = sorted({n for n in self.names if self.names.count(n) > 1})
+        if dup:
+            raise ValueError(f"names: parameter(s) {dup} given more than once")
+        n = len(self.names)
+        rows = [len(r) for r in self.matrix]
+        if len(rows) != n or any(r != n for r in rows):
+            raise ValueError(
+                f"matrix: expected {n} x {n} (one row and column per name), got "
+                f"{len(rows)} rows of lengths {sorted(set(rows))}"
+            )
+        m = np.asarray(self.matrix, dtype=np.float64).reshape(n, n)
+        scale = float(np.max(np.abs(np.diag(m)), initial=0.0))
+        if np.any(np.diag(m) < 0):
+            k = int(np.argmin(np.diag(m)))
+            raise ValueError(f"matrix: negative variance {m[k, k]:g} of {self.names[k]}")
+        asym = float(np.max(np.abs(m - m.T), initial=0.0))
+        if asym > COVARIANCE_TOLERANCE * max(scale, 1e-300):
+            i, j = np.unravel_index(int(np.argmax(np.abs(m - m.T))), m.shape)
+            raise ValueError(
+                f"matrix: not symmetric ({self.names[i]}, {self.names[j]}: "
+                f"{m[i, j]:g} vs {m[j, i]:g})"
+            )
+        if n:
+            d = np.sqrt(np.where(np.diag(m) > 0, np.diag(m), 1.0))
+            low = float(np.linalg.eigvalsh(m / np.outer(d, d)).min())
+            if low < -1e-6:
+                raise ValueError(
+                    f"matrix: not positive semi-definite (correlation eigenvalue {low:.3g})"
+                )
+        return self
+
+    def array(self) -> NDArray[np.float64]:
+        """The matrix as a (n, n) float64 array."""
+        n = len(self.names)
+        return np.asarray(self.matrix, dtype=np.float64).reshape(n, n)
 
 
 class CalibrationRecord(_Strict):
@@ -86,6 +161,9 @@ class CalibrationRecord(_Strict):
     nominal
         The nominal rig configuration itself (a rig TOML's tables): what was calibrated,
         so a calibration can be redone from it and a simulated rig knows its drawing.
+    covariance
+        The joint covariance of the fitted parameters (:class:`ParameterCovariance`);
+        None in records written before it was kept.
     """
 
     created: str
@@ -98,6 +176,7 @@ class CalibrationRecord(_Strict):
     rejected: dict[str, str] = {}
     not_observable: dict[str, str] = {}
     nominal: dict[str, Any] | None = None
+    covariance: ParameterCovariance | None = None
 
 
 def _digest(data: Any) -> str:

@@ -594,6 +594,10 @@ def inspect_cmd(session_dir: Path, verify: bool, as_json: bool) -> None:
         left = info["poses_total"] - info["poses_done"]
         if left:
             con.print(f"left: {left} poses; continue with 'gonio capture resume {session_dir}'")
+        if info.get("budget") and info["budget"]["terms"]:
+            from gonio.capture.budget import budget_table
+
+            con.print(budget_table(info["budget"]["terms"]))
     if info["bad_files"]:
         raise SessionError(
             f"{session_dir}: {len(info['bad_files'])} RAW file(s) missing or "

@@ -365,9 +365,16 @@ def run_demo(
     # cell along the tilt of a grazing view), keep that below the noise for alpha >= 0.1.
     if calibration is None:
         setup = resolve_setup(session, load_manifest(session))
-        # = --geometry rig --grid 6 --max-region-spread-deg 0.3
+        # = --geometry rig --grid 6 --max-region-spread-deg 0.3; the perfect world's rig is
+        # exactly its configuration (the demo's own statement about its simulated rig, a
+        # self-consistency case), so the budget's assumed joint tolerance
+        # (nominal_joint_std_deg) is 0 here
         setup = dataclasses.replace(
-            setup, geometry="rig", grid=6, max_region_spread_deg=REGION_SPREAD_DEG
+            setup,
+            geometry="rig",
+            grid=6,
+            max_region_spread_deg=REGION_SPREAD_DEG,
+            nominal_joint_std_deg=0.0,
         )
     else:
         # = --camera-calibration camera.toml --grid 6 --max-region-spread-deg 0.3: the

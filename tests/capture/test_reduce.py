@@ -535,3 +535,45 @@ def test_a_camera_calibration_of_another_camera_is_refused_and_nothing_written(
     args = ("capture", "reduce", str(s), "--quiet", "--no-plot", "--out", str(out))
     assert run(*args, "--camera-calibration", str(cal)) == 0
     np.testing.assert_array_equal(load_samples(out).brdf, plain.brdf)
+
+
+def test_the_budget_is_stored_summed_and_printed(session, tmp_path, capsys):
+    """samples.h5 holds the budget (issue 16): brdf_std is the root sum of squares of the
+    per-sample terms, the modes have their scopes and the samples their poses; reduce
+    and inspect print the largest terms."""
+    from gonio.dataset import BUDGET_TERMS
+
+    s = copy_session(session, tmp_path / "S")
+    capsys.readouterr()
+    assert run("capture", "reduce", str(s)) == 0
+    err = capsys.readouterr().err
+    assert "Uncertainty budget" in err and "noise" in err
+    samples = load_samples(s / "samples.h5")
+    n = len(samples)
+    assert set(samples.budget) == set(BUDGET_TERMS)
+    rss = np.sqrt(sum(v**2 for v in samples.budget.values()))
+    np.testing.assert_allclose(samples.brdf_std, rss, rtol=1e-12)
+    # a Lambertian sample has no gradient: the geometry term is far below the noise, and
+    # the noise term alone is still honest against the closed form
+    assert np.all(samples.budget["geometry"] < 0.3 * samples.budget["noise"])
+    z = (samples.brdf - ALBEDO / np.pi) / samples.budget["noise"]
+    assert 0.8 <= z.std() <= 1.25
+    m = samples.geometry_modes.shape[1]
+    assert samples.geometry_modes.shape == (n, m, 6)
+    assert list(samples.geometry_mode_scope).count("pose") == 6
+    # no calibration record: the nominal joint tolerance, one mode per joint offset
+    assert list(samples.geometry_mode_scope).count("session") == 4
+    assert all(x.startswith("nominal ") for x in samples.geometry_mode_names[:4])
+    assert set(samples.geometry_source) == {"board"}
+    assert len(set(samples.pose)) == 4 and np.all(np.bincount(samples.pose)[samples.pose] == 9)
+    # a 0.1 deg joint offset moves the light by about that much: the modes' size
+    lam = np.degrees(np.linalg.norm(samples.geometry_modes[:, :4, :3], axis=2))
+    assert 0.02 < np.max(lam) < 0.2
+    np.testing.assert_array_equal(samples.shared_budget["reference"], 0.0)
+    summary = json.loads((s / "reduction.json").read_text())
+    terms = {r["term"]: r for r in summary["budget"]["terms"]}
+    assert terms["noise"]["share"] > 0.5
+    assert summary["budget"]["session_mode_source"] == "nominal"
+    assert run("capture", "inspect", str(s), "--no-verify") == 0
+    out = capsys.readouterr().out
+    assert "Uncertainty budget" in out and "noise" in out

@@ -28,7 +28,25 @@ SETTINGS = settings(
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
 
-DATASETS = ("wi", "wo", "theta_i", "brdf", "brdf_std", "flags", "radiance", "frames")
+DATASETS = (
+    "wi",
+    "wo",
+    "theta_i",
+    "brdf",
+    "brdf_std",
+    "flags",
+    "radiance",
+    "frames",
+    # the uncertainty budget (issue 16)
+    "budget",
+    "budget/noise",
+    "budget/geometry",
+    "geometry_modes",
+    "geometry_mode_scope",
+    "geometry_mode_names",
+    "pose",
+    "geometry_source",
+)
 
 
 @pytest.fixture(scope="module")
@@ -45,6 +63,13 @@ def valid_file(tmp_path_factory) -> Path:
         frames=[f"raw/p{k:04d}.dng" for k in range(n)],
         attrs={"session": "S"},
         units={"radiance": "camera DN/s"},
+        budget={t: rng.uniform(0, 0.01, (n, 3)) for t in ("noise", "geometry", "drift")},
+        shared_budget={"reference": np.full(3, 0.01)},
+        geometry_modes=rng.normal(0, 1e-3, (n, 4, 6)),
+        geometry_mode_scope=["session", "session", "pose", "pose"],
+        geometry_mode_names=["rig 1", "rig 2", "board pose 1", "board pose 2"],
+        pose=np.arange(n) // 9,
+        geometry_source=np.where(np.arange(n) % 3 == 0, "rig", "board"),
     )
     return save_samples(tmp_path_factory.mktemp("fuzz") / "valid.h5", s)
 
@@ -59,6 +84,18 @@ def _load_is_clean(path) -> None:
     assert isinstance(s, BRDFSamples)
     n = len(s)
     assert n > 0 and s.wo.shape == (n, 3) and s.brdf.shape[0] == n and s.flags.shape == (n,)
+    c = s.brdf.shape[1]
+    for v in (s.budget or {}).values():
+        assert v.shape == (n, c) and not (v < 0).any() and not np.isinf(v).any()
+    for v in (s.shared_budget or {}).values():
+        assert v.shape == (c,)
+    if s.geometry_modes is not None:
+        m = s.geometry_modes.shape[1]
+        assert s.geometry_modes.shape == (n, m, 6)
+        assert s.geometry_mode_scope.shape == s.geometry_mode_names.shape == (m,)
+        assert set(s.geometry_mode_scope) <= {"session", "pose"}
+    assert s.pose is None or (s.pose.shape == (n,) and s.pose.dtype == np.int32)
+    assert s.geometry_source is None or set(s.geometry_source) <= {"board", "rig", "none"}
 
 
 @SETTINGS
@@ -112,6 +149,9 @@ def test_structural_damage(valid_file, tmp_path, data):
         for _ in range(data.draw(st.integers(1, 3))):
             what = data.draw(st.sampled_from(["replace", "delete", "group", "attr", "values"]))
             name = data.draw(st.sampled_from(DATASETS))
+            parent = name.rpartition("/")[0]
+            if parent and not isinstance(f.get(parent), h5py.Group):
+                continue  # "budget/x" under a "budget" that an earlier damage replaced
             if what == "replace":
                 if name in f:
                     del f[name]
@@ -125,7 +165,17 @@ def test_structural_damage(valid_file, tmp_path, data):
             elif what == "attr":
                 key = data.draw(st.sampled_from(["schema", "schema_version", "channels", "x"]))
                 target = f if data.draw(st.booleans()) or name not in f else f[name]
-                target.attrs[key if target is f else "units"] = data.draw(_attr_values)
+                if target is f:
+                    k = key
+                elif name == "budget":  # the shared terms live in its attributes
+                    k = data.draw(st.sampled_from(["reference", "light_scale", "other"]))
+                else:
+                    k = "units"
+                value = data.draw(_attr_values)
+                try:
+                    target.attrs[k] = value
+                except ValueError:  # a value HDF5 cannot store (a NUL byte): nothing written
+                    pass
             elif (
                 what == "values"
                 and isinstance(f.get(name), h5py.Dataset)

@@ -1,0 +1,442 @@
+"""The uncertainty budget's pieces (:mod:`gonio.capture.budget`) against independent
+references.
+
+- The geometric modes: their summed outer products must be the covariance of ``(wi, wo)``
+  that first-order propagation gives, ``J C J^T``, with ``J`` a per-parameter finite
+  difference through the rig's kinematics (one parameter at a time, not the modes'
+  eigen-steps) and the moved camera's sample-plane point from the homography
+  ``K [r1 r2 t]`` (not the budget's ray intersection).
+- The model-free gradient: on samples of an analytic model (a measurement's pattern: 3 x
+  3 regions per pose on a 10 degree pose grid), the BRDF change it predicts along random
+  modes against the model's own central difference (``gonio.brdf`` eval), for a
+  moderate and a near-mirror lobe.
+- The budget's summary rows against a hand computation.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from gonio.brdf import get_model
+from gonio.capture.budget import (
+    POSE_MODE_NAMES,
+    budget_rows,
+    budget_table,
+    centroid_points,
+    geometry_std,
+    local_log_gradient,
+    pose_modes,
+    rig_shifts,
+    session_modes,
+)
+from gonio.capture.fiducials import CameraPose
+from gonio.rig.asbuilt import rig_poses
+from gonio.rig.calibration import PARAMETER_NAMES, PARAMETERS, apply_parameters
+from gonio.rig.calibration_record import (
+    CalibrationRecord,
+    ParameterCovariance,
+    ParameterEstimate,
+    rig_digest,
+)
+from gonio.rig.config import JOINT_NAMES, default_rig_config
+
+NOMINAL = default_rig_config()
+K = np.array([[900.0, 0, 320], [0, 900.0, 240], [0, 0, 1]])
+INTR = ("fx", "fy", "cx", "cy")
+INTR_STD = np.array([1.5, 1.5, 1.0, 1.0])
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _calibrated_rig(seed=3):
+    """A calibrated rig: as-built values, and a random (correlated) covariance over every
+    rig parameter and fx, fy, cx, cy at a few percent of the parameters' magnitudes."""
+    rng = np.random.default_rng(seed)
+    values = {n: rng.normal(0, 0.3 * PARAMETERS[n].magnitude) for n in PARAMETER_NAMES}
+    for j in JOINT_NAMES:
+        values[f"{j}.backlash"] = abs(values[f"{j}.backlash"])
+    g = NOMINAL.geometry
+    values["light_elevation"] += g.light_elevation_deg
+    values["camera_elevation"] += g.camera_elevation_deg
+    values["camera_radius"] += g.camera_radius_m
+    names = list(PARAMETER_NAMES) + list(INTR)
+    sd = np.array([0.03 * PARAMETERS[n].magnitude for n in PARAMETER_NAMES] + list(INTR_STD))
+    A = rng.normal(size=(len(names), len(names)))
+    S = A @ A.T + len(names) * np.eye(len(names))
+    corr = S / np.sqrt(np.outer(np.diag(S), np.diag(S)))
+    cov = corr * np.outer(sd, sd)
+    rec = CalibrationRecord(
+        created="2026-01-01T00:00:00+00:00",
+        nominal_digest=rig_digest(NOMINAL),
+        parameters={
+            n: ParameterEstimate(value=values[n], std=sd[i], unit=PARAMETERS[n].unit)
+            for i, n in enumerate(PARAMETER_NAMES)
+        },
+        covariance=ParameterCovariance(names=names, matrix=cov.tolist()),
+        nominal=NOMINAL.model_dump(mode="json", exclude={"calibration"}, exclude_none=True),
+    )
+    rig = apply_parameters(NOMINAL, values).model_copy(update={"calibration": rec})
+    return rig, values, names, cov
+
+
+JOINTS = {"light_azimuth": -0.6, "camera_azimuth": 0.9, "stage_tilt": 0.35, "stage_spin": 1.2}
+APPROACH = {"light_azimuth": 1, "camera_azimuth": -1, "stage_tilt": 1, "stage_spin": 1}
+
+
+def _rig_at(values, joints, name=None, h=0.0):
+    """Light centre, camera centre and sample->camera rotation with one parameter moved:
+    joints read with the rig's zeros sit at reading + offset step."""
+    v = dict(values)
+    q = dict(joints)
+    if name is not None and name in v:
+        v[name] += h
+        if name.endswith(".offset"):
+            q[name.split(".")[0]] += math.radians(h)
+    rp = rig_poses(apply_parameters(NOMINAL, v, validate=False), q, APPROACH)
+    return rp.light_position, rp.camera_position, rp.camera_rotation.T
+
+
+def _regions(C, R):
+    """3 x 3 region centroids on the sample and their measured directions."""
+    g = np.linspace(-0.012, 0.012, 3)
+    X, Y = np.meshgrid(g, g)
+    return np.stack([X.ravel(), Y.ravel(), np.zeros(9)], axis=1)
+
+
+def _directions_via_homography(L, C, R, Kc, pix):
+    """(wi, wo) of the sample points the pixels ``pix`` see, from the plane homography."""
+    t = -R @ C
+    H = Kc @ np.stack([R[:, 0], R[:, 1], t], axis=1)
+    xy = np.linalg.solve(H, np.concatenate([pix, np.ones((len(pix), 1))], axis=1).T).T
+    x = np.concatenate([xy[:, :2] / xy[:, 2:], np.zeros((len(pix), 1))], axis=1)
+    return np.concatenate([_unit(L - x), _unit(C - x)], axis=1)
+
+
+def _K_moved(name, h):
+    Kc = K.copy()
+    i, j = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}[name]
+    Kc[i, j] += h
+    return Kc
+
+
+@pytest.mark.parametrize("source", ["board", "rig"])
+def test_session_modes_give_the_propagated_covariance(source):
+    rig, values, names, cov = _calibrated_rig()
+    modes = session_modes(rig)
+    assert modes.source == "calibration" and len(modes) == len(names)
+    L, C, R = _rig_at(values, JOINTS)
+    x = _regions(C, R)
+    wi, wo = _unit(L - x), _unit(C - x)
+    cam = CameraPose(R, -R @ C, C, 0.1, 24)
+    shifts = rig_shifts(modes, [JOINTS], [APPROACH])
+    m = pose_modes(wi, wo, cam, L, source=source, session=modes, shifts=shifts.at(0), K=K)
+    assert m.shape == (9, len(names) + 6, 6)
+    assert np.all(m[:, len(names) :] == 0)  # no board covariance given: no pose modes
+    got = np.einsum("nmi,nmj->nij", m[:, : len(names)], m[:, : len(names)])
+    # the reference: d(wi, wo)/d(parameter), one parameter at a time (central, small step)
+    pix = (x @ R.T + (-R @ C)) @ K.T
+    pix = pix[:, :2] / pix[:, 2:]
+    J = np.zeros((9, 6, len(names)))
+    for k, name in enumerate(names):
+        h = 1e-4 * (PARAMETERS[name].magnitude if name in PARAMETERS else 1.0)
+        side = []
+        for s in (1.0, -1.0):
+            Lp, Cp, Rp = _rig_at(values, JOINTS, name, s * h)
+            if source == "board":  # the camera is the board's: only the light moves
+                side.append(np.concatenate([_unit(Lp - x), wo], axis=1))
+            else:
+                Kc = _K_moved(name, s * h) if name in INTR else K
+                side.append(_directions_via_homography(Lp, Cp, Rp, Kc, pix))
+        J[:, :, k] = (side[0] - side[1]) / (2 * h)
+    want = np.einsum("nik,kl,njl->nij", J, cov, J)
+    scale = np.max(np.abs(want))
+    assert scale > 1e-9  # the rig's uncertainty does move the directions
+    np.testing.assert_allclose(got, want, atol=0.02 * scale)
+    if source == "board":
+        assert np.all(m[:, :, 3:] == 0)  # wo is the board's
+    else:  # the intrinsics move the camera's rays: wo changes too
+        assert np.max(np.abs(m[:, :, 3:])) > 1e-6
+
+
+def test_without_a_record_the_nominal_joint_tolerance_moves_each_joint():
+    modes = session_modes(NOMINAL, nominal_joint_std_deg=0.2)
+    assert modes.source == "nominal" and len(modes) == len(JOINT_NAMES)
+    shifts = rig_shifts(modes, [JOINTS], [APPROACH])
+    L0 = rig_poses(NOMINAL, JOINTS, APPROACH).light_position
+    # the light moves by 0.2 deg of its azimuth on the light's own mode (arc length)
+    k = [n.endswith("light_azimuth.offset") for n in modes.names].index(True)
+    step = np.linalg.norm(shifts.light[k, 0, 0] - L0)
+    ang = math.degrees(step / np.linalg.norm(L0))
+    assert 0.02 < ang <= 0.2 + 1e-9
+    # a pose without joints gets no session modes, not an error
+    shifts = rig_shifts(modes, [None], [None])
+    assert np.isnan(shifts.light).all()
+
+
+def test_board_pose_modes_give_the_pose_covariance_propagated():
+    rng = np.random.default_rng(5)
+    C = np.array([0.15, -0.2, 0.35])
+    z = _unit(-C)
+    xa = _unit(np.cross(z, [0.0, 0, 1]))
+    R = np.stack([xa, np.cross(z, xa), z])
+    A = rng.normal(size=(6, 6))
+    cov = (A @ A.T + 6 * np.eye(6)) * np.array([1e-4] * 3 + [3e-4] * 3) ** 2 / 6
+    cov = 0.5 * (cov + cov.T)
+    t = -R @ C
+    cam = CameraPose(R, t, C, 0.1, 24, cov)
+    L = np.array([-0.1, 0.2, 0.4])
+    x = _regions(C, R)
+    wi, wo = _unit(L - x), _unit(C - x)
+    m = pose_modes(wi, wo, cam, L, source="board")
+    assert m.shape == (9, 6, 6)
+    got = np.einsum("nmi,nmj->nij", m, m)
+    pix = (x @ R.T + t) @ K.T
+    pix = pix[:, :2] / pix[:, 2:]
+    rvec = cv2.Rodrigues(R)[0].ravel()
+    J = np.zeros((9, 6, 6))
+    for k in range(6):
+        h = 1e-7
+        side = []
+        for s in (1.0, -1.0):
+            dp = np.zeros(6)
+            dp[k] = s * h
+            Rp = cv2.Rodrigues(rvec + dp[:3])[0]
+            Cp = -Rp.T @ (t + dp[3:])
+            side.append(_directions_via_homography(L, Cp, Rp, K, pix))
+        J[:, :, k] = (side[0] - side[1]) / (2 * h)
+    want = np.einsum("nik,kl,njl->nij", J, cov, J)
+    np.testing.assert_allclose(got, want, atol=0.02 * np.max(np.abs(want)))
+    # a rig-sourced pose has no board modes; "none" has no modes at all
+    assert np.all(pose_modes(wi, wo, cam, L, source="rig") == 0)
+    assert np.all(pose_modes(wi, wo, cam, L, source="none") == 0)
+
+
+def test_centroid_points_see_the_camera_along_wo():
+    C = np.array([0.1, 0.2, 0.4])
+    x = np.array([[0.01, -0.02, 0.0], [0.0, 0.0, 0.0]])
+    np.testing.assert_allclose(centroid_points(C, _unit(C - x)), x, atol=1e-15)
+
+
+# ------------------------------------------------------------------ the local gradient
+def _sph(t, p):
+    return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
+
+
+def _measurement_pattern():
+    """3 x 3 regions (2.4 cm) per pose, light at 0.5 m, camera at 0.45 m, on a grid of
+    theta_i 0..70, theta_o 0..80 (10 deg) and four azimuth differences."""
+    g = np.linspace(-0.012, 0.012, 3)
+    X, Y = np.meshgrid(g, g)
+    pts = np.stack([X.ravel(), Y.ravel(), 0 * X.ravel()], 1)
+    wi, wo = [], []
+    for ti in range(0, 71, 10):
+        for to in range(0, 81, 10):
+            for dp in (180, 150, 120, 90):
+                L = 0.5 * _sph(np.radians(ti), 0.0)
+                C = 0.45 * _sph(np.radians(to), np.radians(dp))
+                wi.append(_unit(L - pts))
+                wo.append(_unit(C - pts))
+    return np.concatenate(wi), np.concatenate(wo)
+
+
+@pytest.mark.parametrize(
+    ("alpha", "iqr", "corr"),
+    # The stated accuracy of the model-free gradient on this pattern: the median ratio
+    # of predicted to true marginal geometric std within 10 %, the middle half of the
+    # samples within [0.85, 1.15] (alpha 0.2) or [0.8, 1.25] (alpha 0.05: the lobe is as
+    # narrow as the pose spacing, only a pose's own regions resolve it), and the signed
+    # change along each mode correlated with the model's by > 0.95 or > 0.75.
+    [(0.2, (0.85, 1.15), 0.95), (0.05, (0.8, 1.25), 0.75)],
+)
+def test_the_local_gradient_predicts_the_models_change_along_modes(alpha, iqr, corr):
+    wi, wo = _measurement_pattern()
+    model = get_model("lambert+ggx")
+    p = {"albedo": 0.5, "ks": 0.2, "alpha": alpha}
+    f = model.eval(wi, wo, p)[:, None]
+    rng = np.random.default_rng(1)
+    M = 8
+    d = rng.normal(size=(len(wi), M, 6)) * np.radians(0.1)
+    d[..., :3] -= (d[..., :3] * wi[:, None]).sum(-1, keepdims=True) * wi[:, None]
+    d[..., 3:] -= (d[..., 3:] * wo[:, None]).sum(-1, keepdims=True) * wo[:, None]
+    grad = local_log_gradient(wi, wo, f)
+    got = geometry_std(f, grad, d)[:, 0]
+    df = np.stack(
+        [
+            0.5
+            * (
+                model.eval(_unit(wi + d[:, j, :3]), _unit(wo + d[:, j, 3:]), p)
+                - model.eval(_unit(wi - d[:, j, :3]), _unit(wo - d[:, j, 3:]), p)
+            )
+            for j in range(M)
+        ],
+        axis=1,
+    )
+    want = np.sqrt((df**2).sum(1))
+    big = want / f[:, 0] > 0.002  # where geometry matters (0.2 % of f or more)
+    assert big.sum() > 500
+    r = got[big] / want[big]
+    q25, q50, q75 = np.percentile(r, [25, 50, 75])
+    print(f"alpha {alpha}: ratio quartiles {q25:.2f} {q50:.2f} {q75:.2f}")
+    assert 0.9 <= q50 <= 1.1
+    assert iqr[0] <= q25 and q75 <= iqr[1]
+    # signed, mode by mode: the prediction follows the model's change
+    pred = np.einsum("nf,nmf->nm", grad[:, 0], d[..., [0, 1, 3, 4]]) * f
+    rho = np.corrcoef(pred[big].ravel(), df[big].ravel())[0, 1]
+    print(f"alpha {alpha}: correlation with the model's change {rho:.3f}")
+    assert rho > corr
+
+
+def _random_pairs(n, seed):
+    rng = np.random.default_rng(seed)
+    wi = _unit(rng.normal(size=(n, 3)) * [1, 1, 0.6] + [0, 0, 1.2])
+    wo = _unit(rng.normal(size=(n, 3)) * [1, 1, 0.6] + [0, 0, 1.2])
+    return wi, wo
+
+
+def test_the_local_gradient_of_a_quadratic_in_log_f_is_exact():
+    """log f quadratic in the features: the local fit returns its gradient (no ridge)."""
+    wi, wo = _random_pairs(3000, 2)
+    slope = np.array([0.3, -0.2, 0.5, 0.1])
+    X = np.concatenate([wi[:, :2], wo[:, :2]], axis=1)
+    f = np.exp(X @ slope + 2.0 * X[:, 0] * X[:, 2] - X[:, 1] ** 2)[:, None]
+    want = slope + np.stack([2 * X[:, 2], -2 * X[:, 1], 2 * X[:, 0], 0 * X[:, 0]], axis=1)
+    g = local_log_gradient(wi, wo, f, ridge=0.0, curvature_ridge=0.0)
+    np.testing.assert_allclose(g[:, 0, :], want, atol=1e-6)
+    # non-positive samples are no neighbours; too few neighbours give NaN
+    f2 = f.copy()
+    f2[::2] = -1.0
+    g2 = local_log_gradient(wi, wo, f2, ridge=0.0, curvature_ridge=0.0)
+    np.testing.assert_allclose(g2[1::2, 0], want[1::2], atol=1e-6)
+    assert np.isnan(local_log_gradient(wi[:5], wo[:5], f[:5])).all()
+
+
+def test_noise_alone_gives_a_small_geometry_term():
+    """A Lambertian surface measured with 0.5 % noise: the fitted gradient is noise, and
+    the geometry term it gives for 0.05 deg modes stays far below the noise."""
+    wi, wo = _measurement_pattern()
+    rng = np.random.default_rng(4)
+    f = (0.5 / np.pi) * (1 + 0.005 * rng.normal(size=(len(wi), 3)))
+    d = rng.normal(size=(len(wi), 10, 6)) * np.radians(0.05)
+    geo = geometry_std(f, local_log_gradient(wi, wo, f), d)
+    assert np.median(geo / f) < 0.1 * 0.005
+
+
+# ------------------------------------------------------------------ summary
+def test_budget_rows_are_the_hand_computed_shares():
+    f = np.array([[1.0, 2.0], [2.0, 4.0], [1.0, np.nan]])
+    budget = {
+        "noise": np.array([[0.01, 0.02], [0.02, 0.04], [0.01, 0.01]]),  # 1 % everywhere
+        "geometry": np.array([[0.02, 0.0], [0.0, 0.0], [0.0, 0.0]]),  # 2 % on one
+    }
+    rows = budget_rows(budget, f, shared={"reference": [0.01, 0.01]})
+    by = {r["term"]: r for r in rows}
+    # usable: the first two samples (the third has a NaN channel); 4 values
+    # relative variances: noise 4 x 1e-4, geometry 4e-4, shared 1e-4 per value (4 values)
+    total = 4e-4 + 4e-4 + 4e-4
+    assert by["noise"]["share"] == pytest.approx(4e-4 / total)
+    assert by["geometry"]["share"] == pytest.approx(4e-4 / total)
+    assert by["reference"]["share"] == pytest.approx(4e-4 / total)
+    assert by["noise"]["median_rel_std"] == pytest.approx(0.01)
+    assert by["geometry"]["median_rel_std"] == pytest.approx(0.0)
+    assert by["reference"]["scope"] == "shared"
+    from rich.console import Console
+
+    con = Console(width=100, record=True)
+    con.print(budget_table(rows))
+    text = con.export_text()
+    assert "noise" in text and "33.3%" in text and "1.000%" in text
+    assert POSE_MODE_NAMES[0] == "board pose 1"
+
+
+@pytest.mark.parametrize("theta_deg", [85.0, 89.0, 89.9])
+def test_grazing_modes_and_budget_are_finite(theta_deg):
+    """Out to 89.9 deg the modes, the gradient and the geometry term stay finite."""
+    rig, values, names, cov = _calibrated_rig()
+    modes = session_modes(rig)
+    th = np.radians(theta_deg)
+    C = 0.45 * np.array([np.sin(th), 0.0, np.cos(th)])
+    z = _unit(-C)
+    xa = _unit(np.cross(z, [0.0, 0, 1]))
+    R = np.stack([xa, np.cross(z, xa), z])
+    cam = CameraPose(R, -R @ C, C, 0.1, 24, np.diag([1e-8] * 3 + [1e-8] * 3))
+    L = 0.5 * _unit(np.array([-np.sin(th), 0.0, np.cos(th)]))
+    x = _regions(C, R)
+    wi, wo = _unit(L - x), _unit(C - x)
+    shifts = rig_shifts(modes, [JOINTS], [APPROACH])
+    for source in ("board", "rig"):
+        m = pose_modes(wi, wo, cam, L, source=source, session=modes, shifts=shifts.at(0), K=K)
+        assert np.isfinite(m).all()
+    wi_all, wo_all = _measurement_pattern()
+    wi_all = np.concatenate([wi_all, wi])
+    wo_all = np.concatenate([wo_all, wo])
+    model = get_model("lambert+ggx")
+    f = model.eval(wi_all, wo_all, {"albedo": 0.5, "ks": 0.2, "alpha": 0.2})[:, None]
+    g = local_log_gradient(wi_all, wo_all, f)
+    modes_all = np.zeros((len(f), m.shape[1], 6))
+    modes_all[-9:] = m
+    geo = geometry_std(f, g, modes_all)
+    assert np.isfinite(geo).all() and np.isfinite(g[-9:]).all()
+
+
+def test_camera_modes_move_a_board_pose_as_a_resolved_pose_does():
+    """A board pose's camera modes (the camera calibration's intrinsics errors) against
+    the independent route: solve the board pose again with the moved intrinsics
+    (scipy least squares on cv2.projectPoints) and find the centroid pixel's sample point
+    through the moved homography; covariances compared as J C J^T."""
+    from scipy.optimize import least_squares
+
+    from gonio.capture.budget import camera_modes
+    from gonio.capture.fiducials import BoardSpec, _solve
+
+    board = BoardSpec()
+    obj_b = np.asarray(board.cv_board().getChessboardCorners(), float)
+    R_bs, t_bs = board.transform()
+    obj = obj_b @ R_bs.T + t_bs
+    C = np.array([0.05, -0.08, 0.42])  # 13 deg off the normal: nearly fronto-parallel
+    z = _unit(-C)
+    xa = _unit(np.cross(z, [0.0, 0, 1]))
+    R = np.stack([xa, np.cross(z, xa), z])
+    t = -R @ C
+    img, _ = cv2.projectPoints(obj, cv2.Rodrigues(R)[0], t, K, np.zeros(5))
+    img = img.reshape(-1, 2)
+    cam = _solve(board, img, np.arange(len(obj)), K, None)
+    cal = {"K_std": [2.0, 2.0, 4.5, 3.8], "dist_std": [0.0] * 5}
+    cm = camera_modes(cal)
+    assert len(cm) == 4 and all(n.startswith("camera ") for n in cm.names)
+    L = np.array([-0.1, 0.2, 0.4])
+    x = _regions(C, R)
+    wi, wo = _unit(L - x), _unit(C - x)
+    m = pose_modes(wi, wo, cam, L, source="board", K=K, camera_modes=cm, dist=None)
+    assert m.shape == (9, 4 + 6, 6)
+    got = np.einsum("nmi,nmj->nij", m[:, :4], m[:, :4])
+    pix = (x @ R.T + t) @ K.T
+    pix = pix[:, :2] / pix[:, 2:]
+
+    def resolve(Kc):
+        def res(p):
+            uv, _ = cv2.projectPoints(obj, p[:3], p[3:], Kc, np.zeros(5))
+            return (uv.reshape(-1, 2) - img).ravel()
+
+        x0 = np.concatenate([cv2.Rodrigues(R)[0].ravel(), t])
+        p = least_squares(res, x0, xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+        Rp = cv2.Rodrigues(p[:3])[0]
+        return _directions_via_homography(L, -Rp.T @ p[3:], Rp, Kc, pix)
+
+    J = np.zeros((9, 6, 4))
+    for k, name in enumerate(INTR):
+        h = 0.05
+        J[:, :, k] = (resolve(_K_moved(name, h)) - resolve(_K_moved(name, -h))) / (2 * h)
+    want = np.einsum("nik,k,njk->nij", J, np.array(cal["K_std"]) ** 2, J)
+    scale = np.max(np.abs(want))
+    # the principal point's error moves a near-normal camera's wo by ~ its angle
+    assert np.degrees(np.sqrt(scale)) > 0.05
+    np.testing.assert_allclose(got, want, atol=0.03 * scale)
+    # on a rig pose the camera modes are the rig covariance's business: zeros
+    m_rig = pose_modes(wi, wo, cam, L, source="rig", K=K, camera_modes=cm)
+    assert np.all(m_rig[:, :4] == 0)
