@@ -672,6 +672,7 @@ class _PoseRun:
                 f"stated [light] drift_rel_std = {100 * s.drift_rel_std:g} % for every sample"
             )
         return out
+
     def _budget(
         self,
         samples_m: list[PoseMeasurement],
