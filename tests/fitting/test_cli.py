@@ -191,13 +191,6 @@ def test_fit_prints_the_variance_split_of_samples_with_geometric_modes(
     import dataclasses
 
     import gonio.fitting.cli as fit_cli
-    from gonio.dataset import BRDFSamples
-
-    @dataclasses.dataclass
-    class WithModes(BRDFSamples):
-        geometry_modes: np.ndarray | None = None
-        geometry_mode_scope: np.ndarray | None = None
-        pose: np.ndarray | None = None
 
     s = make_samples("lambert+ggx", {"albedo": [0.2, 0.4, 0.6], "ks": [0.1, 0.2, 0.3],
                      "alpha": 0.2}, n=200, seed=1, noise=1e-4, read=1e-3)  # fmt: skip
@@ -206,11 +199,12 @@ def test_fit_prints_the_variance_split_of_samples_with_geometric_modes(
     modes = np.zeros((n, 1, 6))
     modes[:, 0, 3] = 0.005 * s.wo[:, 2]  # the camera arm tilted (x), 1 sigma
     modes[:, 0, 5] = -0.005 * s.wo[:, 0]
-    fields = {f.name: getattr(s, f.name) for f in dataclasses.fields(BRDFSamples)}
     src = save_samples(tmp_path / "samples.h5", s)
     for with_modes in (True, False):
-        m = WithModes(**fields, geometry_modes=modes, geometry_mode_scope=np.array(["session"]),
-                      pose=np.zeros(n, np.int32)) if with_modes else s  # fmt: skip
+        m = dataclasses.replace(
+            s, geometry_modes=modes, geometry_mode_scope=np.array(["session"]),
+            geometry_mode_names=np.array(["arm tilt"]), pose=np.zeros(n, np.int32),
+        ) if with_modes else s  # fmt: skip
         monkeypatch.setattr(fit_cli, "_load_input", lambda path, m=m: (m, "samples"))
         out = tmp_path / f"fit{with_modes}"
         res = CliRunner().invoke(
