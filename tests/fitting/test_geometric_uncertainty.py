@@ -242,8 +242,11 @@ def test_samples_without_modes_fit_bit_for_bit_as_before(make_samples):
     for empty in (
         WithModes(**fields),  # the fields absent (None)
         WithModes(
-            **{**fields, "geometry_modes": np.zeros((len(s), 0, 6))},
-            geometry_mode_scope=np.array([], str),
+            **{
+                **fields,
+                "geometry_modes": np.zeros((len(s), 0, 6)),
+                "geometry_mode_scope": np.array([], str),
+            }
         ),  # M = 0
     ):
         r = fit(empty, "lambert+ggx")
