@@ -781,6 +781,7 @@ class _PoseRun:
             "failed_poses": self.failed_poses,
             "frame_problems": dict(sorted(self.frame_problems.items())),
             "light_radiance_camera_units": self.light[0].tolist(),
+            "camera_intrinsics": self.setup.intrinsics_source,
             "budget": self.budget_summary,
             "output": path.name,
             "radiometric": self.cal.summary(),

@@ -370,6 +370,9 @@ class ReductionSetup:
     prnu, dsnu_e
         ``[noise]``: PRNU (relative rms) and DSNU (e- rms) per pixel, the budget's
         ``flat`` and ``dark`` terms without flats or darks.
+    intrinsics_source
+        Where ``K`` and ``dist`` come from: ``"camera"`` (reduction.toml or the camera
+        calibration) or ``"rig calibration"`` (:func:`rig_refined_camera`).
     """
 
     K: NDArray[np.float64]
@@ -398,6 +401,7 @@ class ReductionSetup:
     light_profile_n_std: float = 1.0
     stray_fraction: float = 5e-4
     drift_rel_std: float = 0.01
+    intrinsics_source: str = "camera"
     prnu: float = 0.01
     dsnu_e: float = 5.0
 
@@ -714,4 +718,51 @@ def resolve_setup(
         cam_file = Path(camera_calibration)
         setup = _camera_setup(setup, load_camera_file(cam_file), cam_file)
     check_camera_identity(setup, manifest)
-    return setup
+    return rig_refined_camera(setup, manifest)
+
+
+#: The intrinsics a rig calibration refines (``CalibrationRecord.intrinsics``), in the
+#: order of OpenCV's K and distortion vector.
+_RIG_INTRINSICS = ("fx", "fy", "cx", "cy")
+_RIG_DISTORTION = ("k1", "k2", "p1", "p2", "k3")
+
+
+def rig_refined_camera(setup: ReductionSetup, manifest: Mapping[str, Any]) -> ReductionSetup:
+    """The camera with the intrinsics the session's rig calibration refined, when that
+    calibration was made with this session's camera.
+
+    ``gonio calibrate rig`` solves the intrinsics together with the rig, starting from the
+    camera calibration and tied to it by its uncertainties; with more views (and the rig's
+    constraints) it pins the principal point a camera calibration of a ring of board
+    corners leaves loose (1.5 px against 0.75 px on the realistic world).  A camera pose
+    from the rig's kinematics is only right with the intrinsics it was calibrated with:
+    with the camera calibration's cx 2.5 px away the camera turns by ~0.15 deg.  So when
+    the manifest's rig carries a record whose ``camera_digest`` is the session camera's
+    identity digest, its fx, fy, cx, cy (and the distortion terms it refined) replace the
+    setup's, and ``setup.intrinsics_source`` says ``"rig calibration"``; otherwise the
+    setup is returned unchanged.
+    """
+    rec = (manifest.get("rig") or {}).get("calibration") or {}
+    intr = rec.get("intrinsics") or {}
+    if not isinstance(intr, Mapping) or not all(k in intr for k in _RIG_INTRINSICS):
+        return setup
+    size = None if setup.signature is None else tuple(reversed(setup.signature.shape))
+    session = camera_identity(manifest.get("camera") or {}, size)
+    if session is None or rec.get("camera_digest") != identity_digest(session):
+        return setup
+
+    def value(name: str) -> float:
+        v = intr[name]
+        return float(v["value"] if isinstance(v, Mapping) else v)
+
+    fx, fy, cx, cy = (value(k) for k in _RIG_INTRINSICS)
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    dist = np.zeros(5) if setup.dist is None else np.asarray(setup.dist, float).copy()
+    if dist.size < 5:
+        dist = np.concatenate([dist, np.zeros(5 - dist.size)])
+    for i, name in enumerate(_RIG_DISTORTION):
+        if name in intr:
+            dist[i] = value(name)
+    if not np.all(np.isfinite(K)) or not np.all(np.isfinite(dist)):
+        return setup
+    return setup.replace(K=K, dist=dist, intrinsics_source="rig calibration")
