@@ -274,15 +274,20 @@ def _fit_and_write(
     return r, written
 
 
-def variance_split_rows(r) -> list[tuple[str, float, tuple[float, float, float]]]:
-    """``(label, std, (noise, geometry, calibration) shares)`` per free parameter of a fit
-    whose samples carried geometric modes (``diagnostics["variance_split"]``), else []."""
+def variance_split_rows(r) -> list[tuple[str, float, tuple[float, ...]]]:
+    """``(label, std, (noise, geometry, systematic, calibration) shares)`` per free
+    parameter of a fit whose samples carried geometric modes
+    (``diagnostics["variance_split"]``; ``systematic``: the correlated radiometric budget
+    terms, 0 in fits from before it), else []."""
     split = r.diagnostics.get("variance_split")
     if not split:
         return []
     rows = []
     for i, label in enumerate(split["labels"]):
-        parts = tuple(float(split[k][i]) for k in ("noise", "geometry", "calibration"))
+        parts = tuple(
+            float(split[k][i]) if k in split else 0.0
+            for k in ("noise", "geometry", "systematic", "calibration")
+        )
         total = sum(parts)
         if not (math.isfinite(total) and total > 0):
             continue  # at a bound (0) or undetermined (inf): no split to show
@@ -308,9 +313,9 @@ def _report(console, r, source: Path, kind: str, written: list[Path]) -> None:
     if split:
         vt = Table(
             title="share of each parameter's variance (correlated errors: geometry modes, "
-            "calibration scale)"
+            "stray light, calibration scale)"
         )
-        for col in ("parameter", "std", "noise", "geometry", "calibration"):
+        for col in ("parameter", "std", "noise", "geometry", "systematic", "calibration"):
             vt.add_column(col, justify="left" if col == "parameter" else "right")
         for label, std, shares in split:
             vt.add_row(label, f"{std:.2g}", *[f"{x:.0%}" for x in shares])

@@ -608,10 +608,10 @@ def _energy_stage(prob: Problem, x: np.ndarray, maxeval: int, path: list[str]):
 def _add_geometry(prob: Problem, x: np.ndarray, unc: Any, modes: GeometricModes, absolute_sigma):
     """The covariance with the correlated geometric errors (sandwich), and the variance
     split per parameter for the diagnostics."""
-    noise, geometry, info = sandwich_covariance(
+    noise, geometry, systematic, info = sandwich_covariance(
         prob, x, unc.h_inverse, unc.covariance, modes, absolute_sigma
     )
-    cov = noise + geometry
+    cov = noise + geometry + systematic
     # an undetermined parameter (std inf) stays undetermined; one at a bound stays at 0
     std = np.where(np.isfinite(unc.std), np.sqrt(np.clip(np.diag(cov), 0.0, None)), unc.std)
     std = np.where(unc.free, std, 0.0)
@@ -620,6 +620,7 @@ def _add_geometry(prob: Problem, x: np.ndarray, unc: Any, modes: GeometricModes,
             "labels": list(prob.labels),
             "noise": np.diag(noise).tolist(),
             "geometry": np.diag(geometry).tolist(),
+            "systematic": np.diag(systematic).tolist(),
             "calibration": [0.0] * prob.n_params,
         },
         "geometry_modes": info,

@@ -23,6 +23,13 @@ the residuals, :mod:`gonio.fitting.uncertainty`), the covariance of the paramete
   along the mode, directions renormalised; one-sided where a perturbed direction leaves
   the upper hemisphere), a mode of scope ``"pose"`` giving one column per pose.
 
+Radiometric terms of the budget that are one error shared by every sample
+(:data:`CORRELATED_TERMS`: the stray light, whose stated bound the reduction turns into
+``budget["stray"]`` with the same sign everywhere -- it only ever adds light) enter the
+same way, one column each, ``dr/df * budget[term]``, as the ``systematic`` part, and leave
+``var_u`` too.  Averaged as if independent, a 0.05 % stray-light bias on the diffuse part
+of every sample would be reported as 0.003 % on the albedo.
+
 The fit itself (its weights, hence its parameters) does not change: only its covariance.
 Samples without modes (older files, no budget) skip all of this.
 """
@@ -38,9 +45,11 @@ from gonio.errors import FitError
 from gonio.fitting.losses import robust_rho
 from gonio.fitting.objective import Problem
 
-__all__ = ["GeometricModes", "geometric_modes_of", "sandwich_covariance"]
+__all__ = ["CORRELATED_TERMS", "GeometricModes", "geometric_modes_of", "sandwich_covariance"]
 
 SCOPES = ("session", "pose")
+#: Budget terms that are one error of one sign shared by all samples of a session.
+CORRELATED_TERMS = ("stray",)
 
 
 @dataclass(frozen=True)
@@ -59,6 +68,8 @@ class GeometricModes:
         Pose index of each sample (needed when a mode has scope ``"pose"``).
     geometry_std : ndarray, shape (N, C) or None
         ``budget["geometry"]``: the marginal std of the modes that ``brdf_std`` holds, 1/sr.
+    correlated : dict of str to ndarray (N, C)
+        The budget's :data:`CORRELATED_TERMS` present in the samples, 1/sr.
     """
 
     modes: np.ndarray
@@ -66,6 +77,7 @@ class GeometricModes:
     names: tuple[str, ...]
     pose: np.ndarray | None
     geometry_std: np.ndarray | None
+    correlated: dict[str, np.ndarray] | None = None
 
     def subset(self, keep: np.ndarray) -> GeometricModes:
         """The modes of the samples selected by the boolean mask ``keep``."""
@@ -75,6 +87,7 @@ class GeometricModes:
             names=self.names,
             pose=None if self.pose is None else self.pose[keep],
             geometry_std=None if self.geometry_std is None else self.geometry_std[keep],
+            correlated={k: v[keep] for k, v in (self.correlated or {}).items()},
         )
 
 
@@ -138,7 +151,18 @@ def geometric_modes_of(samples: Any) -> GeometricModes | None:
         geo = np.asarray(geo, dtype=np.float64)
         if geo.shape != (n, c):
             raise FitError(f"samples.budget['geometry'] has shape {geo.shape}, expected {(n, c)}")
-    return GeometricModes(modes=modes, scope=scope, names=names, pose=pose, geometry_std=geo)
+    correlated = {}
+    for term in CORRELATED_TERMS:
+        v = budget.get(term) if isinstance(budget, dict) else None
+        if v is None:
+            continue
+        v = np.asarray(v, dtype=np.float64)
+        if v.shape != (n, c):
+            raise FitError(f"samples.budget[{term!r}] has shape {v.shape}, expected {(n, c)}")
+        correlated[term] = np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0)
+    return GeometricModes(
+        modes=modes, scope=scope, names=names, pose=pose, geometry_std=geo, correlated=correlated
+    )
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -220,8 +244,9 @@ def sandwich_covariance(
 
     Returns
     -------
-    noise, geometry, info
-        The two covariance parts and a summary (mode counts, columns).
+    noise, geometry, systematic, info
+        The covariance parts (uncorrelated noise; geometric modes; the correlated
+        radiometric terms) and a summary (mode counts, columns).
     """
     r, js, jl = prob.jacobian_blocks(x, natural=True)
     theta, a = prob.unpack(x)
@@ -247,12 +272,20 @@ def sandwich_covariance(
     G = _columns(per_sample(e), modes)
     AG = h_inverse @ G
     geometry = AG @ AG.T
+    corr = modes.correlated or {}
+    systematic = np.zeros_like(geometry)
+    if corr:
+        # one column per term: every sample's error of the same sign, 1 sigma
+        e_sys = np.stack([drdf * corr[t] for t in corr], axis=-1)  # (N, C, T)
+        AS = h_inverse @ per_sample(e_sys).sum(axis=0)
+        systematic = AS @ AS.T
     noise = noise_covariance
     use_uncorrelated = (
         prob.loss.name == "weighted_l2" and absolute_sigma and modes.geometry_std is not None
     )
     if use_uncorrelated:
-        var_u = np.clip(prob.sigma**2 - modes.geometry_std**2, 0.0, None)
+        removed = modes.geometry_std**2 + sum(v**2 for v in corr.values())
+        var_u = np.clip(prob.sigma**2 - removed, 0.0, None)
         v = (drho * drdf) ** 2 * var_u  # variance of rho' r per residual
         meat = np.zeros((P, P))
         meat[:S, :S] = np.einsum("ncs,nct,nc->st", js, js, v)
@@ -271,5 +304,6 @@ def sandwich_covariance(
         "pose_modes": int(modes.scope.size - n_sess),
         "columns": int(G.shape[1]),
         "noise_from_uncorrelated_variance": bool(use_uncorrelated),
+        "correlated_terms": sorted(corr),
     }
-    return noise, geometry, info
+    return noise, geometry, systematic, info

@@ -322,6 +322,37 @@ def test_lambert_albedo_has_no_geometric_share_and_the_uncorrelated_noise_varian
     np.testing.assert_allclose(plain.std["albedo"], np.pi / np.sqrt(np.sum(w, axis=0)), rtol=1e-9)
 
 
+def test_stray_light_is_one_shared_error_of_the_albedo():
+    """``budget["stray"]`` is one error of one sign shared by every sample: for f =
+    albedo / pi with a stray term of a fixed fraction s of f, the albedo's systematic
+    variance is exactly (s albedo)^2 (the weighted mean of samples all shifted by s f
+    shifts by s albedo), and the noise part loses the stray variance (closed forms)."""
+    wi, wo, pose, modes = tilted_layout()
+    rng = np.random.default_rng(16)
+    n = len(wi)
+    s_u = 1e-3 * (1 + rng.random((n, 3)))
+    frac = 4e-4
+    f_true = np.broadcast_to(ALBEDO / np.pi, (n, 3))
+    stray = frac * f_true
+    std = np.hypot(s_u, stray)
+    y = f_true + s_u * rng.standard_normal((n, 3))
+    s = WithModes(
+        wi=wi, wo=wo, brdf=y, brdf_std=std, geometry_modes=modes,
+        geometry_mode_scope=np.array(["session", "pose"]), pose=pose,
+        budget={"noise": s_u, "geometry": np.zeros((n, 3)), "stray": stray},
+    )  # fmt: skip
+    r = fit(s, "lambert")
+    split = r.diagnostics["variance_split"]
+    a = r.params["albedo"]
+    np.testing.assert_allclose(split["systematic"], (frac * ALBEDO) ** 2, rtol=1e-6)
+    w = 1.0 / std**2
+    noise = np.pi**2 * np.sum(w * w * s_u**2, axis=0) / np.sum(w, axis=0) ** 2
+    np.testing.assert_allclose(split["noise"], noise, rtol=1e-9)
+    np.testing.assert_allclose(r.std["albedo"] ** 2, noise + (frac * ALBEDO) ** 2, rtol=1e-6)
+    assert r.diagnostics["geometry_modes"]["correlated_terms"] == ["stray"]
+    assert np.all(a > 0)
+
+
 def test_model_selection_gives_the_chosen_model_the_same_sandwich(make_samples):
     """model='auto' ranks the candidates without the modes, then the chosen fit gets the
     covariance a direct fit of that model with the modes reports."""
