@@ -23,10 +23,12 @@ the residuals, :mod:`gonio.fitting.uncertainty`), the covariance of the paramete
   along the mode, directions renormalised; one-sided where a perturbed direction leaves
   the upper hemisphere), a mode of scope ``"pose"`` giving one column per pose.
 
-Radiometric terms of the budget that are one error shared by every sample
+Radiometric terms of the budget that are one error of one sign shared by every sample
 (:data:`CORRELATED_TERMS`: the stray light, whose stated bound the reduction turns into
-``budget["stray"]`` with the same sign everywhere -- it only ever adds light) enter the
-same way, one column each, ``dr/df * budget[term]``, as the ``systematic`` part, and leave
+``budget["stray"]`` -- it only ever adds light; and the drift's interpolation error: a
+warm-up decays monotonically and convexly, so a straight line between two reference
+groups lies on the same side of it in every interval and every channel) enter the same
+way, one column each, ``dr/df * budget[term]``, as the ``systematic`` part, and leave
 ``var_u`` too.  Averaged as if independent, a 0.05 % stray-light bias on the diffuse part
 of every sample would be reported as 0.003 % on the albedo.
 
@@ -48,8 +50,9 @@ from gonio.fitting.objective import Problem
 __all__ = ["CORRELATED_TERMS", "GeometricModes", "geometric_modes_of", "sandwich_covariance"]
 
 SCOPES = ("session", "pose")
-#: Budget terms that are one error of one sign shared by all samples of a session.
-CORRELATED_TERMS = ("stray",)
+#: Budget terms that are one error of one sign shared by all samples of a session
+#: (see the module docstring for why each is).
+CORRELATED_TERMS = ("stray", "drift")
 
 
 @dataclass(frozen=True)
