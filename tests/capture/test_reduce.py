@@ -160,10 +160,15 @@ def test_reduce_cli_gives_calibrated_lambertian_samples(session, tmp_path):
     assert len(samples) == 4 * 9 and samples.valid.all()
     truth = ALBEDO / np.pi  # a Lambertian BRDF, closed form
     rel = np.abs(samples.brdf / truth - 1)
-    z = (samples.brdf - truth) / samples.brdf_std
+    # the noise term against the closed form; the whole budget holds the type-B terms of
+    # what this session did not shoot (no flats: the stated 1 % PRNU per pixel), so it
+    # may only be wider than the error, never narrower
+    z = (samples.brdf - truth) / samples.budget["noise"]
+    z_all = (samples.brdf - truth) / samples.brdf_std
     print(f"median rel err {np.median(rel):.2e}, z mean {z.mean():+.2f} std {z.std():.2f}")
     assert np.median(rel) <= 0.01
     assert 0.8 <= z.std() <= 1.25
+    assert z_all.std() <= 1.25
     # the directions reported are those of the regions, close to the rig's
     recs = [r for r in read_journal(s / "journal.jsonl") if r.get("kind") == "sample"]
     wo_rig = np.array([r["wo_achieved"] for r in recs])
@@ -572,7 +577,11 @@ def test_the_budget_is_stored_summed_and_printed(session, tmp_path, capsys):
     np.testing.assert_array_equal(samples.shared_budget["reference"], 0.0)
     summary = json.loads((s / "reduction.json").read_text())
     terms = {r["term"]: r for r in summary["budget"]["terms"]}
-    assert terms["noise"]["share"] > 0.5
+    # no flats and one reference group: the stated PRNU and drift (type B) are the
+    # largest terms, as the warnings say
+    assert max(terms, key=lambda t: terms[t]["share"]) in ("flat", "drift")
+    assert any("no flat fields" in w for w in summary["warnings"])
+    assert any("one group" in w for w in summary["warnings"])
     assert summary["budget"]["session_mode_source"] == "nominal"
     assert run("capture", "inspect", str(s), "--no-verify") == 0
     out = capsys.readouterr().out

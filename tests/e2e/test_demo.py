@@ -99,9 +99,21 @@ def test_demo_with_a_measured_rgl_material(tmp_path, rgl_file):
     d = json.loads(r.stdout)
     assert d["truth"] is None and d["rel_error"] == {}
     # a glossy vinyl film: a specular model is chosen, and it describes the measured
-    # material at the measured directions to within a few tens of percent (median)
+    # material at the measured directions to within a few tens of percent (median; the
+    # analytic model's misfit of the film, larger since the demo's plan reaches 80 deg:
+    # 0.33 there against < 0.3 up to 70 deg -- not a measurement error, that is below)
     assert "+" in d["model"], d["model"]
-    assert 0 < d["brdf_rel_error_median"] < 0.3
+    assert 0 < d["brdf_rel_error_median"] < 0.5
+    # the measurement itself against the measured file (the independent reference):
+    # the session's samples at their reported directions
+    from gonio.brdf import load
+    from gonio.dataset import load_samples
+
+    s = load_samples(out / "session" / "samples.h5")
+    ok = s.valid
+    truth = load(path).eval(s.wi[ok], s.wo[ok])
+    rel = np.abs(s.brdf[ok] / truth - 1)
+    assert ok.any() and np.median(rel) < 0.02, (ok.sum(), np.median(rel))
 
 
 def test_bad_material_and_existing_out_dir(tmp_path):
