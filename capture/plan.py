@@ -307,6 +307,15 @@ class ReferenceShots(_Strict):
     #: ``when``), so the reduction can follow the light's drift; 0: only at ``when``.
     every_poses: int = Field(default=0, ge=0)
 
+    @model_validator(mode="after")
+    def _repeats_need_poses(self) -> ReferenceShots:
+        if self.every_poses and not self.poses:
+            raise ValueError(
+                f"every_poses = {self.every_poses} repeats the reference group, but the "
+                "plan names no reference poses ([reference] poses = [...])"
+            )
+        return self
+
 
 class SimulationSettings(_Strict):
     """Used only with ``--camera simulated``: the scene the simulator renders."""

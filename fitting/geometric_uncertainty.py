@@ -27,8 +27,10 @@ Radiometric terms of the budget that are one error of one sign shared by every s
 (:data:`CORRELATED_TERMS`: the stray light, whose stated bound the reduction turns into
 ``budget["stray"]`` -- it only ever adds light; and the drift's interpolation error: a
 warm-up decays monotonically and convexly, so a straight line between two reference
-groups lies on the same side of it in every interval and every channel) enter the same
-way, one column each, ``dr/df * budget[term]``, as the ``systematic`` part, and leave
+groups lies on the same side of it in every interval and every channel; and the light
+profile's: one exponent n for the whole session, its stated or fitted uncertainty moving
+every sample's irradiance together -- the budget keeps its size, not its sign, so one
+same-signed column is the conservative reading) enter the same way, one column each, ``dr/df * budget[term]``, as the ``systematic`` part, and leave
 ``var_u`` too.  Averaged as if independent, a 0.05 % stray-light bias on the diffuse part
 of every sample would be reported as 0.003 % on the albedo.
 
@@ -52,7 +54,7 @@ __all__ = ["CORRELATED_TERMS", "GeometricModes", "geometric_modes_of", "sandwich
 SCOPES = ("session", "pose")
 #: Budget terms that are one error of one sign shared by all samples of a session
 #: (see the module docstring for why each is).
-CORRELATED_TERMS = ("stray", "drift")
+CORRELATED_TERMS = ("stray", "drift", "irradiance")
 
 
 @dataclass(frozen=True)

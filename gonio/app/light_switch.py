@@ -15,6 +15,8 @@ switches its own light.  A lab rig has one of
 
 from __future__ import annotations
 
+import math
+
 import time
 from collections.abc import Callable
 from typing import Any
@@ -174,10 +176,12 @@ def parse_light_spec(spec: str) -> dict[str, Any]:
                 out[key] = bytes.fromhex(val.strip())
             elif key == "baud":
                 out["baud"] = int(val)
+                if out["baud"] <= 0:
+                    raise ValueError("must be a positive baud rate")
             elif key == "settle":
                 out["settle"] = float(val)
-                if not out["settle"] >= 0:
-                    raise ValueError("must be >= 0 s")
+                if not (math.isfinite(out["settle"]) and 0 <= out["settle"] <= 600):
+                    raise ValueError("must be a finite time in [0, 600] s")
             else:
                 raise ValueError("unknown key (on, off, baud, settle)")
         except ValueError as exc:

@@ -110,7 +110,9 @@ def test_the_example_session_plans_runs_inspects_reduces_and_fits(tmp_path):
 #: over its expected magnitude, correlation -0.99 with stage_tilt.offset; seed 1689067085)
 LAB_SIZE = (480, 360)
 BOARD_EXPOSURE_S = 2.0
-#: the measurement grid: 23 poses (isotropic, reciprocity-reduced), 2 reference poses
+#: the measurement grid: 23 poses (isotropic, reciprocity-reduced), 2 reference poses shot
+#: again after every 8 sample poses (the light warms up over the session: README, "Flats,
+#: darks, drift and the light switch"), dark frames and flat fields
 LAB_PLAN = {
     "name": "lab walkthrough",
     "seed": 0,
@@ -131,9 +133,11 @@ LAB_PLAN = {
         "f_number": 8.0,
         "max_frames": 4,
     },  # fmt: skip
-    "darks": {"count": 0},
+    "darks": {"count": 2},
+    "flats": {"count": 4},
     "reference": {
         "when": "start",
+        "every_poses": 8,
         "reflectance": 0.99,
         "poses": [
             {"theta_i_deg": 0, "theta_o_deg": 40, "phi_o_deg": 180},
