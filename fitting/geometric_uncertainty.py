@@ -30,7 +30,8 @@ warm-up decays monotonically and convexly, so a straight line between two refere
 groups lies on the same side of it in every interval and every channel; and the light
 profile's: one exponent n for the whole session, its stated or fitted uncertainty moving
 every sample's irradiance together -- the budget keeps its size, not its sign, so one
-same-signed column is the conservative reading) enter the same way, one column each, ``dr/df * budget[term]``, as the ``systematic`` part, and leave
+same-signed column is the conservative reading) enter the same way, one column each,
+``dr/df * budget[term]``, as the ``systematic`` part, and leave
 ``var_u`` too.  Averaged as if independent, a 0.05 % stray-light bias on the diffuse part
 of every sample would be reported as 0.003 % on the albedo.
 

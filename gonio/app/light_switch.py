@@ -16,7 +16,6 @@ switches its own light.  A lab rig has one of
 from __future__ import annotations
 
 import math
-
 import time
 from collections.abc import Callable
 from typing import Any
