@@ -697,7 +697,7 @@ class _PoseRun:
         )
         per_pose, sources, pose_idx = [], [], []
         for k, m in enumerate(samples_m):
-            src = getattr(m, "geometry_source", None) or _geometry_source(m)
+            src = m.geometry_source
             n = len(m.flags)
             if m.camera is None or inputs[k] is None or m.kernel == "none":
                 src = "none"
@@ -971,14 +971,6 @@ def _kinematics(manifest: Mapping[str, Any]) -> Any | None:
         return Kinematics(rig_config_from_dict(dict(rig), "manifest.json: rig"))
     except (ImportError, GonioError):
         return None
-
-
-def _geometry_source(m: PoseMeasurement) -> str:
-    """Where a pose's camera came from when the measurement does not say: the board when
-    its pose has a covariance (solved from corners), else the rig's report."""
-    if m.camera is None:
-        return "none"
-    return "board" if getattr(m.camera, "covariance", None) is not None else "rig"
 
 
 def _shots_by_pose(records: list[dict[str, Any]]) -> tuple[dict[int, list[dict]], set[int]]:

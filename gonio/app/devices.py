@@ -182,7 +182,9 @@ def open_session_devices(
                 request.seed,
                 **({"reference_albedo": refl} if refl is not None else {}),
                 **simulated_camera_kwargs(world),
-                **_clock_kwargs(SimulatedRigCamera, rig_clock, sleep if bus is not None else None),
+                clock=rig_clock,
+                # frames take rig time on a virtual bus (a wall clock passes by itself)
+                sleep=sleep if bus is not None else None,
             )
             stack.callback(camera.close)
             from gonio.app.sim_reduction import CONFIG_FILE, reduction_document, reduction_toml_text
@@ -215,23 +217,6 @@ def open_session_devices(
         yield SessionDevices(
             rig, camera, light=light, target=target, kinematics=kin, sleep=sleep, clock=rig_clock
         )
-
-
-def _clock_kwargs(
-    camera_class: Any, clock: Callable[[], float], sleep: Callable[[float], None] | None
-) -> dict[str, Any]:
-    """``{"clock": clock, "sleep": sleep}`` for the keywords the simulated camera takes: a
-    rig clock (its light drifts with rig time) and the rig's ``sleep`` (each frame spends
-    its exposure and download in rig time: on a virtual bus only, a wall clock passes by
-    itself); nothing for a simulator without them."""
-    import inspect
-
-    try:
-        params = inspect.signature(camera_class).parameters
-    except (TypeError, ValueError):
-        return {}
-    given = {"clock": clock, "sleep": sleep}
-    return {k: v for k, v in given.items() if k in params and v is not None}
 
 
 def _nominal_of(cfg: Any) -> Any:
