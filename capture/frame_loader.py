@@ -7,7 +7,9 @@ reduction's output does not depend on the number of threads.
 
 from __future__ import annotations
 
+import ctypes
 import os
+import sys
 from collections.abc import Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -19,10 +21,37 @@ from gonio.capture.journal import frame_problem, session_file
 from gonio.capture.raw import CameraSignature, RawFrame, read_file, read_raw
 from gonio.errors import FileFormatError, GonioError
 
-__all__ = ["PREFETCH_POSES", "FrameLoader", "default_threads", "load_frame"]
+__all__ = ["PREFETCH_POSES", "FrameLoader", "default_threads", "keep_freed_frames", "load_frame"]
 
 #: Completed poses whose frames are decoded ahead of the one being measured.
 PREFETCH_POSES = 2
+
+
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters
+_malloc_tuned = False
+
+
+def keep_freed_frames() -> None:
+    """Have glibc's malloc keep freed frame-sized buffers for reuse (once per process).
+
+    A reduction allocates every frame's bytes (and LibRaw's buffer) afresh.  By default
+    glibc serves buffers that large with ``mmap`` and hands them back to the kernel when
+    freed, or trims the heap when a pose's frames are freed together, so the next frame
+    faults every page in again: measured 675 page faults and +6 ms per 1600x1200 frame
+    (on this VM ~10 us a fault), a fifth of the reduction.  Buffers up to 32 MiB now come
+    from the heap and up to 512 MiB of free heap is kept.  The process's memory stays at
+    its peak instead of shrinking after a reduction; other platforms are left alone.
+    """
+    global _malloc_tuned
+    if _malloc_tuned or not sys.platform.startswith("linux"):
+        return
+    _malloc_tuned = True
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(_M_MMAP_THRESHOLD, 32 << 20)  # glibc's largest heap allocation
+        libc.mallopt(_M_TRIM_THRESHOLD, 512 << 20)
+    except (OSError, AttributeError):  # not glibc (musl): nothing to tune
+        pass
 
 
 def default_threads() -> int:
@@ -80,6 +109,7 @@ class FrameLoader:
     """
 
     def __init__(self, session: Path, signature: CameraSignature | None, threads: int) -> None:
+        keep_freed_frames()
         self._args = (session, signature)
         # ``threads`` counts this thread: the pool has the others
         self._pool = ThreadPoolExecutor(threads - 1, "gonio-reduce") if threads > 1 else None
