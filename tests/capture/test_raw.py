@@ -299,3 +299,134 @@ def test_tiff_data_end_walks_strips_tiles_and_subifds():
     damaged[4:8] = (len(data) + 10).to_bytes(4, "big")  # the first IFD past the end
     with pytest.raises(FileFormatError, match="x.dng.*damaged TIFF structure"):
         read_raw(bytes(damaged), name="x.dng")
+
+
+# ---- plain DNGs read in place (read_plain_dng) against LibRaw ---------------------------
+
+
+def _sim_dng(shape=(24, 36), pattern="RGGB", *, tags=None, exif=True, seed=0, **imwrite):
+    """A DNG the way the simulator writes it, its IFD0 tags edited by ``tags(list)``."""
+    import io
+
+    import tifffile
+
+    import gonio.simulator.dng as dng
+    from gonio.simulator.sensor import RawFrame as SimFrame
+
+    mosaic = np.random.default_rng(seed).integers(0, 16383, shape).astype(np.uint16)
+    frame = SimFrame(mosaic, pattern, 512, 16383, np.eye(3), np.ones(3), 0.0037, 5.6, 200.0, 0.035)
+    extratags = dng._tags(frame)
+    if tags is not None:
+        extratags = tags(extratags)
+    if not exif:
+        extratags = [t for t in extratags if t[0] != dng._PLACEHOLDER]
+    buf = io.BytesIO()
+    tifffile.imwrite(
+        buf,
+        mosaic,
+        photometric=32803,
+        extratags=extratags,
+        metadata=None,
+        subfiletype=0,
+        software=False,
+        **imwrite,
+    )
+    data = buf.getvalue()
+    return bytes(dng._append_exif(bytearray(data), frame)) if exif else data
+
+
+def _set(tag, typ, count, value):
+    return lambda ts: [t for t in ts if t[0] != tag] + [(tag, typ, count, value, True)]
+
+
+def _assert_same_frame(a, b):
+    for k in ("white_level", "cfa_pattern", "shape"):
+        assert getattr(a, k) == getattr(b, k), k
+    for k in ("exposure_time", "iso", "f_number"):  # NaN where the file does not say
+        assert getattr(a, k) == getattr(b, k) or (
+            np.isnan(getattr(a, k)) and np.isnan(getattr(b, k))
+        ), k
+    for k in ("raw", "cell_black", "cell_channel", "cell_saturation"):
+        x, y = getattr(a, k), getattr(b, k)
+        assert x.dtype == y.dtype and np.array_equal(x, y), k
+    np.testing.assert_array_equal(a.linear, b.linear)
+    np.testing.assert_array_equal(a.saturated, b.saturated)
+
+
+PLAIN_VARIANTS = {
+    "simulator": {},
+    "GRBG": {"pattern": "GRBG"},
+    "BGGR": {"pattern": "BGGR"},
+    "GBRG odd size": {"pattern": "GBRG", "shape": (25, 37)},
+    "black per CFA position": {"tags": _set(50714, 4, 4, (500, 510, 520, 530))},
+    "one black level": {
+        "tags": lambda ts: _set(50714, 3, 1, 777)(_set(50713, 3, 2, (1, 1))(ts))
+    },
+    "no EXIF (no ISO)": {"exif": False},
+    "white level 4095": {"tags": _set(50717, 3, 1, 4095)},
+    "many strips": {"rowsperstrip": 3},
+}
+
+
+@pytest.mark.parametrize("variant", list(PLAIN_VARIANTS))
+def test_plain_dng_gives_libraws_numbers(variant):
+    """Every field of a frame read in place equals LibRaw's, on the simulator's DNG and
+    on each variation the plain reader accepts."""
+    data = _sim_dng(**PLAIN_VARIANTS[variant])
+    fast = read_raw(data, decoder="auto")
+    ref = read_raw(data, decoder="libraw")
+    assert (fast.decoder, ref.decoder) == ("dng", "libraw")
+    _assert_same_frame(fast, ref)
+    assert not fast.raw.flags.writeable  # a view of the file's bytes
+
+
+FALLBACK_VARIANTS = {
+    # LibRaw crops to the active area: the plain reader must not take it
+    "ActiveArea": {"tags": _set(50829, 4, 4, (2, 2, 22, 34))},
+    "LinearizationTable": {"tags": _set(50712, 3, 4096, tuple(range(0, 16384, 4)))},
+    "Orientation": {"tags": _set(274, 3, 1, 6)},
+    "compressed": {"compression": "zlib"},
+    "tiled": {"tile": (16, 16), "shape": (32, 48)},
+    "big-endian": {"byteorder": ">", "exif": False},
+}
+
+
+@pytest.mark.parametrize("variant", list(FALLBACK_VARIANTS))
+def test_other_dngs_go_to_libraw(variant):
+    """What the plain reader does not fully understand is LibRaw's; the frame is then
+    LibRaw's (or LibRaw's error) whatever the decoder setting."""
+    from gonio.capture.raw import read_plain_dng
+
+    data = _sim_dng(**FALLBACK_VARIANTS[variant])
+    assert read_plain_dng(data) is None
+    try:
+        ref = read_raw(data, decoder="libraw")
+    except FileFormatError as exc:
+        with pytest.raises(FileFormatError, match=str(exc).split(":")[-1].strip()[:20]):
+            read_raw(data)
+        return
+    fast = read_raw(data)
+    assert fast.decoder == "libraw"
+    _assert_same_frame(fast, ref)
+
+
+def test_camera_files_and_the_decoder_switch(refdata, monkeypatch):
+    """A camera's DNG with a linearisation table goes to LibRaw; GONIO_RAW_DECODER=libraw
+    sends plain DNGs there too; an unknown decoder is refused."""
+    assert read_raw(refdata / "raw" / "Blackmagic.dng").decoder == "libraw"
+    data = _sim_dng()
+    assert read_raw(data).decoder == "dng"
+    monkeypatch.setenv("GONIO_RAW_DECODER", "libraw")
+    assert read_raw(data).decoder == "libraw"
+    with pytest.raises(ValueError, match="decoder"):
+        read_raw(data, decoder="fast")
+
+
+def test_plain_dng_checks_the_camera_and_the_file():
+    data = _sim_dng(pattern="GRBG")
+    with pytest.raises(FileFormatError, match="CFA pattern is GRBG.*RGGB"):
+        read_raw(data, expect=CameraSignature("RGGB", (24, 36)))
+    with pytest.raises(FileFormatError, match="ImageSize.*24x36"):
+        read_raw(data, expect=CameraSignature("GRBG", (20, 36)))
+    with pytest.raises(FileFormatError, match="truncated"):
+        read_raw(data[:-200])
