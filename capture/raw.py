@@ -658,13 +658,13 @@ def read_raw(
     data = _read_bytes(source, nm)
     if len(data) == 0:
         raise FileFormatError(nm, "empty file")
-    _check_tiff_strips(data, nm)
     if not 0.0 <= saturation_margin < 1.0:
         raise ValueError(f"saturation_margin must be in [0, 1), got {saturation_margin}")
     plain = read_plain_dng(data) if decoder == "auto" else None
-    if plain is not None:
+    if plain is not None:  # its strips lie within the file (read_plain_dng checks)
         _check_signature(nm, plain["pattern"], plain["mosaic"].shape, expect)
         return _frame(nm, plain, saturation_margin, "dng")
+    _check_tiff_strips(data, nm)
     # The handle is not closed here: the mosaic below is a view of LibRaw's buffer (which
     # keeps the handle alive and frees it with the last view), so the full frame is never
     # copied.  A copy of a fresh 4-bytes-per-2-pixels buffer costs half an unpack.
