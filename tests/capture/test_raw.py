@@ -359,9 +359,7 @@ PLAIN_VARIANTS = {
     "BGGR": {"pattern": "BGGR"},
     "GBRG odd size": {"pattern": "GBRG", "shape": (25, 37)},
     "black per CFA position": {"tags": _set(50714, 4, 4, (500, 510, 520, 530))},
-    "one black level": {
-        "tags": lambda ts: _set(50714, 3, 1, 777)(_set(50713, 3, 2, (1, 1))(ts))
-    },
+    "one black level": {"tags": lambda ts: _set(50714, 3, 1, 777)(_set(50713, 3, 2, (1, 1))(ts))},
     "no EXIF (no ISO)": {"exif": False},
     "white level 4095": {"tags": _set(50717, 3, 1, 4095)},
     "many strips": {"rowsperstrip": 3},
