@@ -80,8 +80,8 @@ class CameraSignature:
 class RawFrame:
     """One decoded RAW frame on its mosaic.
 
-    Decoded frames keep the camera's uint16 mosaic (a read-only view of the file's bytes
-    or of LibRaw's own buffer, never copied) and compute float64 values lazily, for the whole frame
+    Decoded frames keep the camera's uint16 mosaic (a read-only view of LibRaw's own
+    buffer, never copied) and compute float64 values lazily, for the whole frame
     (:attr:`linear`) or only for a crop (:meth:`region`): a reduction needs the sample's
     region of a large sensor, not all of it.
 
@@ -106,9 +106,6 @@ class RawFrame:
         Exposure settings (s, ISO speed, f-number); NaN where the file does not say.
     camera
         Camera model as reported by the file, if any.
-    decoder
-        What decoded it: ``"dng"`` (:func:`read_plain_dng`, a plain uncompressed DNG
-        read in place), ``"libraw"`` (rawpy), ``""`` (built from arrays).
     """
 
     def __init__(
@@ -130,10 +127,8 @@ class RawFrame:
         cell_channel: NDArray[np.int8] | None = None,
         cell_black: NDArray[np.float64] | None = None,
         saturation_threshold: NDArray[np.float64] | None = None,
-        decoder: str = "",
     ) -> None:
         self.name = name
-        self.decoder = decoder
         self.white_level = float(white_level)
         self.cfa_pattern = cfa_pattern
         self.exposure_time = float(exposure_time)
@@ -452,175 +447,12 @@ def cfa_pattern_of(raw: rawpy.RawPy) -> str:
     return "".join(desc[i] for i in pat.ravel())
 
 
-#: Environment variable: ``libraw`` decodes every file with LibRaw (rawpy), plain DNGs
-#: included (see :func:`read_plain_dng`).
-DECODER_ENV = "GONIO_RAW_DECODER"
-
-# IFD0 tags a plain DNG may carry: the image's layout, what read_plain_dng reads, and
-# tags that only describe colour or the camera (not used on the mosaic).  Any other tag
-# (ActiveArea, DefaultCrop, LinearizationTable, BlackLevelDelta, opcode lists, SubIFDs,
-# Orientation, ...) might change what LibRaw reports, so such files go to LibRaw.
-_PLAIN_DNG_TAGS = frozenset(
-    {
-        254, 256, 257, 258, 259, 262, 271, 272, 273, 277, 278, 279, 282, 283, 284, 296,
-        305, 306, 33421, 33422, 33434, 33437, 34665, 37386, 50706, 50707, 50708, 50710,
-        50711, 50713, 50714, 50717, 50721, 50722, 50728, 50778, 50779,
-    }
-)  # fmt: skip
-_TIFF_TYPES = {
-    **{1: "u1", 2: "u1", 3: "u2", 4: "u4", 5: "u4", 6: "i1", 7: "u1", 8: "i2", 9: "i4"},
-    **{10: "i4", 11: "f4", 12: "f8", 13: "u4"},
-}
-
-
-def _ifd_entries(data: bytes, off: int) -> tuple[dict[int, tuple[int, NDArray]], int]:
-    """The tags of the little-endian IFD at ``off`` as ``tag -> (type, values)`` (a
-    RATIONAL as its numerators and denominators interleaved) and the next IFD's offset.
-
-    Raises
-    ------
-    ValueError
-        A tag of a type this reader does not know, or values outside the file.
-    """
-    if off + 2 > len(data):
-        raise ValueError(f"an IFD at byte {off} is past the end")
-    n = struct.unpack_from("<H", data, off)[0]
-    if off + 2 + 12 * n + 4 > len(data):
-        raise ValueError(f"the IFD at byte {off} runs past the end")
-    out: dict[int, tuple[int, NDArray]] = {}
-    for k in range(n):
-        tag, typ, cnt = struct.unpack_from("<HHI", data, off + 2 + 12 * k)
-        if typ not in _TIFF_TYPES:
-            raise ValueError(f"tag {tag} has TIFF type {typ}")
-        dt = np.dtype("<" + _TIFF_TYPES[typ])
-        cnt_v = cnt * (2 if typ in (5, 10) else 1)  # (S)RATIONAL: two numbers
-        at = off + 2 + 12 * k + 8
-        if cnt_v * dt.itemsize > 4:  # the field holds the values' offset
-            at = struct.unpack_from("<I", data, at)[0]
-            if at + cnt_v * dt.itemsize > len(data):
-                raise ValueError(f"tag {tag}'s values run past the end")
-        out[tag] = (typ, np.frombuffer(data, dt, cnt_v, at))
-    return out, struct.unpack_from("<I", data, off + 2 + 12 * n)[0]
-
-
-def _single(tags: Mapping[int, tuple[int, NDArray]], tag: int, default: int | None = None):
-    """An integer tag's one value (``default`` when absent; None when not one integer)."""
-    if tag not in tags:
-        return default
-    typ, v = tags[tag]
-    return int(v[0]) if typ in (3, 4) and v.size == 1 else None
-
-
-def read_plain_dng(data: bytes) -> dict[str, Any] | None:
-    """What LibRaw reports for a *plain* DNG, read in place; None for any other file.
-
-    A plain DNG is what the simulator writes (:mod:`gonio.simulator.dng`) and what a
-    camera writes uncompressed: one little-endian IFD holding a 16-bit uncompressed CFA
-    image in contiguous strips, a 2x2 CFA of the colours R, G, B, black levels per CFA
-    position, a white level, no linearisation table, no active area or crop, and the
-    exposure in the IFD or its EXIF IFD.  LibRaw copies such an image pixel by pixel
-    into a buffer of its own (through the identity curve): 9 ms of a 1600x1200 frame,
-    which is most of a reduction's time per frame.  Here the mosaic is a read-only view
-    of ``data`` itself.  ``tests/capture/test_raw.py`` holds every field equal to
-    LibRaw's on simulated frames and on DNGs written with each variation this reader
-    accepts; anything else (compressed, tiled, big-endian, SubIFDs, opcodes, ...) returns
-    None and goes to LibRaw.
-
-    Returns
-    -------
-    dict or None
-        ``mosaic`` (H, W) uint16 view, ``pattern`` (e.g. ``"RGGB"``), ``cell_channel`` and
-        ``cell_black`` (2, 2), ``white``, and ``exposure_time``, ``iso``, ``f_number``
-        (LibRaw's single-precision values; NaN when absent).
-    """
-    if len(data) < 8 or data[:4] != b"II*\x00":
-        return None
-    try:
-        tags, nxt = _ifd_entries(data, struct.unpack_from("<I", data, 4)[0])
-        if nxt != 0 or not tags.keys() <= _PLAIN_DNG_TAGS or 50706 not in tags:
-            return None
-        w, h = _single(tags, 256), _single(tags, 257)
-        layout = (
-            _single(tags, 254, 0),
-            _single(tags, 258),
-            _single(tags, 259),
-            _single(tags, 262),
-            _single(tags, 277, 1),
-            _single(tags, 284, 1),
-        )
-        if not w or not h or layout != (0, 16, 1, 32803, 1, 1):
-            return None
-        planes = tags.get(50710, (1, np.arange(3)))[1]
-        if tags[33421][1].tolist() != [2, 2] or planes.tolist() != [0, 1, 2]:
-            return None
-        codes = tags[33422][1]
-        if codes.size != 4 or codes.max() > 2:
-            return None
-        offs, counts = (tags[t][1].astype(np.int64) for t in (273, 279))
-        if (
-            offs.size != counts.size
-            or offs[0] % 2
-            or np.any(offs[1:] != offs[:-1] + counts[:-1])
-            or counts.sum() != 2 * w * h
-            or offs[0] + 2 * w * h > len(data)
-        ):
-            return None
-        dim = tags.get(50713, (3, np.array([1, 1])))[1].tolist()
-        btyp, blev = tags.get(50714, (4, np.zeros(1, np.uint32)))
-        if btyp not in (3, 4) or dim not in ([1, 1], [2, 2]) or blev.size != dim[0] * dim[1]:
-            return None
-        white = _single(tags, 50717)
-        if white is None:
-            return None
-        exif: dict[int, tuple[int, NDArray]] = {}
-        if 34665 in tags:
-            exif, _ = _ifd_entries(data, int(tags[34665][1][0]))
-    except (ValueError, KeyError, struct.error):
-        return None
-
-    def rational(tag: int) -> float | None:
-        vals = {
-            (int(v[0]), int(v[1]))
-            for t in (tags, exif)
-            if tag in t and t[tag][0] == 5 and (v := t[tag][1]).size == 2
-        }
-        if len(vals) > 1:  # the IFD and EXIF disagree: which one LibRaw takes is its own
-            raise ValueError
-        if not vals:
-            return math.nan
-        num, den = vals.pop()
-        # LibRaw keeps these as C floats
-        return float(np.float32(num / den)) if den else math.nan
-
-    try:
-        t_exp, f_num = rational(33434), rational(33437)
-    except ValueError:
-        return None
-    iso = _single(exif, 34855)
-    if iso is None and 34855 in exif:
-        return None
-    cell_channel = codes.reshape(2, 2).astype(np.int8)
-    cell_black = np.broadcast_to(blev.astype(np.float64).reshape(dim), (2, 2)).copy()
-    mosaic = np.frombuffer(data, np.uint16, w * h, int(offs[0])).reshape(h, w)
-    return {
-        "mosaic": mosaic,
-        "pattern": "".join(CHANNELS[c] for c in cell_channel.ravel()),
-        "cell_channel": cell_channel,
-        "cell_black": cell_black,
-        "white": float(white),
-        "exposure_time": t_exp or math.nan,
-        "iso": float(iso) if iso else math.nan,
-        "f_number": f_num or math.nan,
-    }
-
-
 def read_raw(
     source: RawSource,
     *,
     name: str | None = None,
     expect: CameraSignature | None = None,
     saturation_margin: float = DEFAULT_SATURATION_MARGIN,
-    decoder: str | None = None,
 ) -> RawFrame:
     """Decode a RAW file to a linear mosaic without demosaicing.
 
@@ -635,10 +467,6 @@ def read_raw(
     saturation_margin
         Fraction of the (white - black) range below the clip level from which pixels are
         marked saturated (0 marks only pixels at the clip level).
-    decoder
-        ``"auto"``: a plain uncompressed DNG (:func:`read_plain_dng`) is read in place,
-        the same numbers as LibRaw's without its copy, and any other file by LibRaw;
-        ``"libraw"``: every file by LibRaw.  None: ``$GONIO_RAW_DECODER``, else auto.
 
     Returns
     -------
@@ -652,18 +480,9 @@ def read_raw(
         ``ImageSize``) a frame that does not match ``expect``.
     """
     nm = _name_of(source, name)
-    decoder = decoder or os.environ.get(DECODER_ENV) or "auto"
-    if decoder not in ("auto", "libraw"):
-        raise ValueError(f"decoder must be 'auto' or 'libraw', got {decoder!r}")
     data = _read_bytes(source, nm)
     if len(data) == 0:
         raise FileFormatError(nm, "empty file")
-    if not 0.0 <= saturation_margin < 1.0:
-        raise ValueError(f"saturation_margin must be in [0, 1), got {saturation_margin}")
-    plain = read_plain_dng(data) if decoder == "auto" else None
-    if plain is not None:  # its strips lie within the file (read_plain_dng checks)
-        _check_signature(nm, plain["pattern"], plain["mosaic"].shape, expect)
-        return _frame(nm, plain, saturation_margin, "dng")
     _check_tiff_strips(data, nm)
     # The handle is not closed here: the mosaic below is a view of LibRaw's buffer (which
     # keeps the handle alive and frees it with the last view), so the full frame is never
@@ -687,6 +506,8 @@ def read_raw(
                 for i in range(2)
             ]
         )
+        cell_channel = lut[colors]
+        cell_black = np.asarray(raw.black_level_per_channel, dtype=np.float64)[colors]
         white = float(raw.white_level)
         # With a linearisation table LibRaw maps codes through it; its ceiling, not the
         # nominal white level, is where the sensor clipped.
@@ -694,49 +515,37 @@ def read_raw(
         if curve is not None and curve.size and int(curve.max()) > 0:
             white = min(white, float(curve.max()))
         other = raw.other
+        exp = dict(
+            exposure_time=float(other.shutter_speed) or math.nan,
+            iso=float(other.iso_speed) or math.nan,
+            f_number=float(other.aperture) or math.nan,
+        )
         mosaic = raw.raw_image_visible
         if mosaic.dtype != np.uint16:  # pragma: no cover (LibRaw's mosaic is uint16)
             mosaic = mosaic.astype(np.uint16)
         mosaic.flags.writeable = False  # a view of LibRaw's buffer: read-only by contract
-        fields = {
-            "mosaic": mosaic,
-            "pattern": pattern,
-            "cell_channel": lut[colors],
-            "cell_black": np.asarray(raw.black_level_per_channel, dtype=np.float64)[colors],
-            "white": white,
-            "exposure_time": float(other.shutter_speed) or math.nan,
-            "iso": float(other.iso_speed) or math.nan,
-            "f_number": float(other.aperture) or math.nan,
-        }
-        _check_signature(nm, pattern, mosaic.shape, expect)
     except BaseException:
         raw.close()
         raise
-    return _frame(nm, fields, saturation_margin, "libraw")
-
-
-def _check_signature(
-    nm: str, pattern: str, shape: tuple[int, ...], expect: CameraSignature | None
-) -> None:
-    if expect is None:
-        return
-    if pattern != expect.cfa_pattern:
-        raise FileFormatError(
-            nm,
-            f"CFA pattern is {pattern}, the session's camera has {expect.cfa_pattern}",
-            "CFAPattern",
-        )
-    if tuple(shape) != tuple(expect.shape):
-        raise FileFormatError(
-            nm,
-            f"mosaic is {shape[0]}x{shape[1]}, the "
-            f"session's camera gives {expect.shape[0]}x{expect.shape[1]}",
-            "ImageSize",
-        )
-
-
-def _frame(nm: str, f: Mapping[str, Any], saturation_margin: float, decoder: str) -> RawFrame:
-    white, cell_black = f["white"], f["cell_black"]
+    if expect is not None:
+        if pattern != expect.cfa_pattern:
+            raw.close()
+            raise FileFormatError(
+                nm,
+                f"CFA pattern is {pattern}, the session's camera has {expect.cfa_pattern}",
+                "CFAPattern",
+            )
+        if tuple(mosaic.shape) != tuple(expect.shape):
+            raw.close()
+            raise FileFormatError(
+                nm,
+                f"mosaic is {mosaic.shape[0]}x{mosaic.shape[1]}, the "
+                f"session's camera gives {expect.shape[0]}x{expect.shape[1]}",
+                "ImageSize",
+            )
+    if not 0.0 <= saturation_margin < 1.0:
+        raise ValueError(f"saturation_margin must be in [0, 1), got {saturation_margin}")
+    threshold = white - saturation_margin * (white - cell_black)
     return RawFrame(
         nm,
         None,
@@ -744,15 +553,12 @@ def _frame(nm: str, f: Mapping[str, Any], saturation_margin: float, decoder: str
         None,
         None,
         white,
-        f["pattern"],
-        exposure_time=f["exposure_time"],
-        iso=f["iso"],
-        f_number=f["f_number"],
-        raw=f["mosaic"],
-        cell_channel=f["cell_channel"],
+        pattern,
+        **exp,
+        raw=mosaic,
+        cell_channel=cell_channel,
         cell_black=cell_black,
-        saturation_threshold=white - saturation_margin * (white - cell_black),
-        decoder=decoder,
+        saturation_threshold=threshold,
     )
 
 

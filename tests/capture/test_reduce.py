@@ -232,28 +232,6 @@ def test_threads_give_the_same_file_and_a_changed_byte_is_caught(session, tmp_pa
         assert not rows
 
 
-def test_plain_dngs_read_in_place_give_libraws_samples(session, tmp_path, monkeypatch):
-    """The session's frames (darks included) are plain DNGs, read in place; LibRaw
-    decoding every frame gives the same samples.h5, byte for byte, on the fused kernel
-    and on the numpy path."""
-    from gonio.capture.raw import read_raw
-    from gonio.capture.reduce import reduce_session
-
-    s = copy_session(session, tmp_path / "S")
-    files, _ = sample_files(s)
-    assert read_raw(s / files[0]).decoder == "dng"
-    reduce_session(s, out=tmp_path / "auto.h5", plot=False, threads=2)
-    monkeypatch.setenv("GONIO_RAW_DECODER", "libraw")
-    reduce_session(s, out=tmp_path / "libraw.h5", plot=False, threads=1)
-    assert (tmp_path / "auto.h5").read_bytes() == (tmp_path / "libraw.h5").read_bytes()
-    monkeypatch.setenv("GONIO_NUMBA", "0")
-    a = load_samples(reduce_session(s, out=tmp_path / "np_lr.h5", plot=False).path)
-    monkeypatch.delenv("GONIO_RAW_DECODER")
-    b = load_samples(reduce_session(s, out=tmp_path / "np_auto.h5", plot=False).path)
-    assert (tmp_path / "np_lr.h5").read_bytes() == (tmp_path / "np_auto.h5").read_bytes()
-    assert (a.flags == 0).sum() > 0 and np.array_equal(a.brdf, b.brdf, equal_nan=True)
-
-
 def test_bad_frames_are_reported_and_their_samples_flagged(session, tmp_path, capsys):
     s = copy_session(session, tmp_path / "S")
     files_a, pose_a = sample_files(s)
