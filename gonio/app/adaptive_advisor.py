@@ -1,0 +1,241 @@
+"""The advisor of an adaptive session: reduce the new poses, fit, choose the next batch.
+
+Capture may not import fitting, so the composition root wires them:
+:class:`FitAdvisor` implements :class:`gonio.capture.adaptive.Advisor` with the
+session's :class:`gonio.capture.reduce.IncrementalReduction`, a fit of every candidate
+model of the plan (:func:`gonio.fitting.fit`, their BIC giving the model weights, the
+lowest BIC the winner, as ``gonio fit --model auto`` ranks them) and the design
+criterion of :mod:`gonio.fitting.design` (``score_candidates``, ``choose_batch``,
+``stopping``).  While that module is absent, a placeholder stands behind the same call:
+the batch is the farthest-point choice in ``(wi, wo)`` from what was measured, and the
+stop is the target relative sigma of the winning fit's parameters.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from gonio.capture.adaptive import AdaptiveState, Decision
+from gonio.capture.adaptive_pool import farthest_point, pool_features
+from gonio.capture.plan import Plan
+from gonio.errors import GonioError
+
+__all__ = ["FitAdvisor", "STOP_TARGET"]
+
+STOP_TARGET = "target precision reached"
+#: How many scored candidates a round's journal record lists.
+TOP_SCORED = 20
+
+
+def _design() -> Any:
+    try:
+        from gonio.fitting import design
+    except ImportError:
+        return None
+    return design
+
+
+def _rel_sigma(fit: Any) -> dict[str, float]:
+    """Parameter -> relative 1-sigma (the largest over the channels)."""
+    out = {}
+    for name, v in fit.params.items():
+        v = np.asarray(v, float)
+        s = np.asarray(fit.std.get(name, np.full_like(v, np.nan)), float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.abs(s / v)
+        r = r[np.isfinite(r)] if np.isfinite(r).any() else np.array([math.inf])
+        out[name] = float(np.max(r))
+    return out
+
+
+def _json_float(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+class FitAdvisor:
+    """Implements :class:`gonio.capture.adaptive.Advisor` (see the module docstring).
+
+    Parameters
+    ----------
+    plan
+        The session's plan (its ``[adaptive]`` table: candidates, targets, weights).
+    reduction_setup
+        The reduction facts; None: the session's ``reduction.toml``, read at the first
+        round (a simulated session writes it at creation).
+    fit_options
+        Passed to :func:`gonio.fitting.fit` for every candidate.
+    """
+
+    def __init__(
+        self,
+        plan: Plan,
+        reduction_setup: Any = None,
+        *,
+        fit_options: dict[str, Any] | None = None,
+    ) -> None:
+        if plan.adaptive is None:
+            raise GonioError(f"plan {plan.name!r} has no [adaptive] table")
+        self.plan = plan
+        self.setup = reduction_setup
+        self.fit_options = dict(fit_options or {})
+        self._reduction: Any = None
+
+    # -- the parts ---------------------------------------------------------------------
+    def _samples(self, state: AdaptiveState) -> Any:
+        from gonio.capture.reduce import IncrementalReduction
+
+        if self._reduction is None:
+            self._reduction = IncrementalReduction(state.session_dir, self.setup)
+        return self._reduction.add(state.measured_steps)
+
+    def _fits(self, samples: Any) -> tuple[list[Any], np.ndarray, list[dict[str, Any]]]:
+        from gonio.fitting import fit
+        from gonio.fitting.select import format_model_spec, information_criterion
+
+        fits, bics, rows = [], [], []
+        for spec in self.plan.adaptive.candidates:  # type: ignore[union-attr]
+            try:
+                r = fit(samples, spec, **self.fit_options)
+            except GonioError as exc:
+                rows.append({"model": spec, "error": str(exc)})
+                continue
+            bic = information_criterion(r, "bic")
+            if not (r.success and math.isfinite(bic)):
+                rows.append({"model": spec, "error": r.message or "no finite fit"})
+                continue
+            fits.append(r)
+            bics.append(bic)
+            rows.append(
+                {
+                    "model": format_model_spec(r.model, r.model_options),
+                    "params": {k: np.asarray(v, float).tolist() for k, v in r.params.items()},
+                    "rel_sigma": {k: _json_float(v) for k, v in _rel_sigma(r).items()},
+                    "bic": float(bic),
+                }
+            )
+        b = np.asarray(bics, float)
+        w = np.exp(-0.5 * (b - b.min())) if len(b) else b
+        w = w / w.sum() if len(w) else w
+        k = 0
+        for row in rows:
+            if "bic" in row:
+                row["weight"] = float(w[k])
+                k += 1
+        return fits, w, rows
+
+    def _stop(self, fits: list[Any], w: np.ndarray, design: Any) -> tuple[bool, dict[str, Any]]:
+        a = self.plan.adaptive
+        assert a is not None
+        if not fits:
+            return False, {"reached": False, "why": "no candidate could be fitted yet"}
+        if design is not None:
+            ev_wi, ev_wo = design.hemisphere_directions(a.max_theta_deg)
+            reached, status = design.stopping(
+                fits, w, dict(a.target_rel_sigma), a.target_brdf_rel_sigma, ev_wi, ev_wo
+            )
+            return bool(reached), dict(status)
+        best = fits[int(np.argmax(w))]
+        rel = _rel_sigma(best)
+        if not a.target_rel_sigma:
+            why = "no target_rel_sigma (target_brdf_rel_sigma needs gonio.fitting.design)"
+            return False, {"reached": False, "why": why}
+        missing = [p for p in a.target_rel_sigma if p not in rel]
+        reached = not missing and all(rel[p] <= t for p, t in a.target_rel_sigma.items())
+        return reached, {
+            "reached": reached,
+            "rel_sigma": {p: _json_float(rel.get(p, math.inf)) for p in a.target_rel_sigma},
+            "target_rel_sigma": dict(a.target_rel_sigma),
+            "not_in_winner": missing,
+        }
+
+    def _choose(
+        self, state: AdaptiveState, samples: Any, fits: list[Any], w: np.ndarray, design: Any
+    ) -> tuple[list[int], dict[str, Any]]:
+        a = self.plan.adaptive
+        assert a is not None
+        n = min(a.batch_poses, len(state.pool_ids))
+        if design is not None and fits:
+            ok = (samples.flags == 0) & np.all(np.isfinite(samples.brdf), axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rel = samples.brdf_std[ok] / np.abs(samples.brdf[ok])
+            rel = rel[np.isfinite(rel)]
+            sample_rel = float(np.median(rel)) if rel.size else 0.01
+            scores = design.score_candidates(
+                fits,
+                w,
+                samples,
+                state.pool_wi,
+                state.pool_wo,
+                sample_rel_std=sample_rel,
+                weights=a.weights.model_dump(),
+            )
+            idx = design.choose_batch(
+                scores, fits, state.pool_wi, state.pool_wo, n, min_separation_deg=a.separation_deg
+            )
+            top = np.argsort(-np.asarray(scores.total), kind="stable")[:TOP_SCORED]
+            scored = [
+                {
+                    "id": int(state.pool_ids[i]),
+                    "total": float(scores.total[i]),
+                    "d_optimal": float(scores.d_optimal[i]),
+                    "discrimination": float(scores.discrimination[i]),
+                    "model_free": float(scores.model_free[i]),
+                }
+                for i in top
+            ]
+            why = (
+                f"greedy by expected information (weights {a.weights.model_dump()}), "
+                f"sample rel sigma {sample_rel:.3g}, min separation {a.separation_deg:g} deg"
+            )
+            return [int(state.pool_ids[i]) for i in idx], {"scored": scored, "why": why}
+        # placeholder: farthest from what was measured, in (wi, wo)
+        feats = pool_features(state.pool_wi, state.pool_wo)
+        measured = pool_features(samples_wi_wo(samples)[0], samples_wi_wo(samples)[1])
+        both = np.concatenate([measured, feats])
+        idx = farthest_point(both, n, chosen=list(range(len(measured))))
+        idx = [i - len(measured) for i in idx]
+        why = "farthest-point in (wi, wo) from the measured poses (gonio.fitting.design absent)"
+        return [int(state.pool_ids[i]) for i in idx], {"scored": [], "why": why}
+
+    # -- the protocol ------------------------------------------------------------------
+    def advise(self, state: AdaptiveState) -> Decision:
+        """Reduce the new poses, fit the candidates, stop or choose the next batch."""
+        design = _design()
+        t0 = time.perf_counter()
+        samples = self._samples(state)
+        t1 = time.perf_counter()
+        fits, w, rows = self._fits(samples)
+        t2 = time.perf_counter()
+        reached, status = self._stop(fits, w, design)
+        record: dict[str, Any] = {"fits": rows, "stopping": status, "samples": len(samples)}
+        if fits:
+            best = fits[int(np.argmax(w))]
+            from gonio.fitting.select import format_model_spec
+
+            record["fit"] = {
+                "model": format_model_spec(best.model, best.model_options),
+                "rel_sigma": {k: _json_float(v) for k, v in _rel_sigma(best).items()},
+            }
+        if reached:
+            record["why"] = "every target reached: " + str(status)
+            record["timing"] = {"reduce_s": t1 - t0, "fit_s": t2 - t1}
+            return Decision([], STOP_TARGET, record)
+        chosen, extra = self._choose(state, samples, fits, w, design)
+        record.update(extra)
+        record["design"] = "gonio.fitting.design" if design is not None else "placeholder"
+        record["timing"] = {
+            "reduce_s": t1 - t0,
+            "fit_s": t2 - t1,
+            "choose_s": time.perf_counter() - t2,
+        }
+        return Decision(chosen, None, record)
+
+
+def samples_wi_wo(samples: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The measured poses' nominal directions: one (wi, wo) per sample (regions of a
+    pose lie close together, so the farthest-point choice sees the poses)."""
+    return np.asarray(samples.wi, float), np.asarray(samples.wo, float)
