@@ -345,8 +345,11 @@ def seed_design(plan: Plan, pool: CandidatePool) -> list[int]:
     plane = _in_plane(pool, a.in_plane_poses, retro)
     chosen = retro + plane
     rest = a.seed_poses - len(chosen)
-    start = int(np.random.default_rng([plan.seed, 17]).integers(len(pool)))
-    chosen += farthest_point(pool_features(pool.wi, pool.wo), rest, chosen=chosen, start=start)
+    if rest > 0:
+        # the space-filling part starts at an entry the seed draws, then spreads out
+        free = np.setdiff1d(np.arange(len(pool)), chosen)
+        chosen.append(int(free[np.random.default_rng([plan.seed, 17]).integers(len(free))]))
+        chosen += farthest_point(pool_features(pool.wi, pool.wo), rest - 1, chosen=chosen)
     return chosen
 
 

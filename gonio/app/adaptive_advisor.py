@@ -8,7 +8,8 @@ lowest BIC the winner, as ``gonio fit --model auto`` ranks them) and the design
 criterion of :mod:`gonio.fitting.design` (``score_candidates``, ``choose_batch``,
 ``stopping``).  While that module is absent, a placeholder stands behind the same call:
 the batch is the farthest-point choice in ``(wi, wo)`` from what was measured, and the
-stop is the target relative sigma of the winning fit's parameters.
+stop is the target relative sigma of the winning fit's parameters.  The placeholder's
+choice depends on the poses taken alone, not on what was measured there.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from gonio.capture.adaptive import AdaptiveState, Decision
-from gonio.capture.adaptive_pool import farthest_point, pool_features
+from gonio.capture.adaptive_pool import farthest_point, pool_features, read_pool
 from gonio.capture.plan import Plan
 from gonio.errors import GonioError
 
@@ -83,6 +84,7 @@ class FitAdvisor:
         self.setup = reduction_setup
         self.fit_options = dict(fit_options or {})
         self._reduction: Any = None
+        self._pool: Any = None
 
     # -- the parts ---------------------------------------------------------------------
     def _samples(self, state: AdaptiveState) -> Any:
@@ -192,26 +194,35 @@ class FitAdvisor:
                 f"sample rel sigma {sample_rel:.3g}, min separation {a.separation_deg:g} deg"
             )
             return [int(state.pool_ids[i]) for i in idx], {"scored": scored, "why": why}
-        # placeholder: farthest from what was measured, in (wi, wo)
-        feats = pool_features(state.pool_wi, state.pool_wo)
-        measured = pool_features(samples_wi_wo(samples)[0], samples_wi_wo(samples)[1])
-        both = np.concatenate([measured, feats])
-        idx = farthest_point(both, n, chosen=list(range(len(measured))))
-        idx = [i - len(measured) for i in idx]
-        why = "farthest-point in (wi, wo) from the measured poses (gonio.fitting.design absent)"
-        return [int(state.pool_ids[i]) for i in idx], {"scored": [], "why": why}
+        # placeholder: farthest in (wi, wo) from every pose taken so far (the seed and
+        # the earlier rounds), whatever was measured there
+        if self._pool is None:
+            self._pool = read_pool(state.session_dir)
+        pool = self._pool
+        allowed = np.zeros(len(pool), bool)
+        allowed[state.pool_ids] = True
+        taken = np.flatnonzero(~allowed).tolist()
+        idx = farthest_point(pool_features(pool.wi, pool.wo), n, chosen=taken, allowed=allowed)
+        why = "farthest-point in (wi, wo) from the poses taken (placeholder: no design)"
+        return [int(i) for i in idx], {"scored": [], "why": why}
 
     # -- the protocol ------------------------------------------------------------------
     def advise(self, state: AdaptiveState) -> Decision:
         """Reduce the new poses, fit the candidates, stop or choose the next batch."""
         design = _design()
         t0 = time.perf_counter()
-        samples = self._samples(state)
+        record: dict[str, Any] = {}
+        try:
+            samples = self._samples(state)
+        except GonioError as exc:  # nothing to fit yet (e.g. no pose could be reduced)
+            samples, record["reduction_error"] = None, str(exc)
         t1 = time.perf_counter()
-        fits, w, rows = self._fits(samples)
+        fits, w, rows = self._fits(samples) if samples is not None else ([], np.zeros(0), [])
         t2 = time.perf_counter()
         reached, status = self._stop(fits, w, design)
-        record: dict[str, Any] = {"fits": rows, "stopping": status, "samples": len(samples)}
+        record.update(
+            {"fits": rows, "stopping": status, "samples": 0 if samples is None else len(samples)}
+        )
         if fits:
             best = fits[int(np.argmax(w))]
             from gonio.fitting.select import format_model_spec
@@ -233,9 +244,3 @@ class FitAdvisor:
             "choose_s": time.perf_counter() - t2,
         }
         return Decision(chosen, None, record)
-
-
-def samples_wi_wo(samples: Any) -> tuple[np.ndarray, np.ndarray]:
-    """The measured poses' nominal directions: one (wi, wo) per sample (regions of a
-    pose lie close together, so the farthest-point choice sees the poses)."""
-    return np.asarray(samples.wi, float), np.asarray(samples.wo, float)

@@ -161,8 +161,9 @@ def _rounds_table(rounds):
     from rich.table import Table
 
     t = Table(
-        "round", "poses chosen", "poses before", "model", "rel sigma", "advise s",
-        "batch s (rig)", "stop", title="adaptive rounds",
+        "round", "chosen", "before", "model", "rel sigma", "advise s", "batch s (rig)", "stop",
+        title="adaptive rounds (chosen: poses; before: poses measured; batch s: its estimated "
+        "capture time on the rig)",
     )  # fmt: skip
     for r in rounds:
         rel = r.get("rel_sigma") or {}
