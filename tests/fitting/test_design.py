@@ -27,8 +27,8 @@ def _noisy(name: str, params: dict, n: int, seed: int, rel: float) -> BRDFSample
     clean = model_samples(name, params, n=n, seed=seed)
     rng = np.random.default_rng(seed + 1)
     sig = rel * clean.brdf
-    return BRDFSamples(wi=clean.wi, wo=clean.wo, brdf=clean.brdf + sig * rng.standard_normal(sig.shape),
-                       brdf_std=sig)  # fmt: skip
+    y = clean.brdf + sig * rng.standard_normal(sig.shape)
+    return BRDFSamples(wi=clean.wi, wo=clean.wo, brdf=y, brdf_std=sig)
 
 
 @pytest.fixture(scope="module")
