@@ -57,6 +57,23 @@ def _json_float(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
+def _jsonable(x: Any) -> Any:
+    """``x`` with numpy scalars and arrays made plain, non-finite floats None (journal)."""
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, np.bool_ | bool):
+        return bool(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, float | np.floating):
+        return _json_float(float(x))
+    return x
+
+
 class FitAdvisor:
     """Implements :class:`gonio.capture.adaptive.Advisor` (see the module docstring).
 
@@ -85,6 +102,7 @@ class FitAdvisor:
         self.fit_options = dict(fit_options or {})
         self._reduction: Any = None
         self._pool: Any = None
+        self._eval: Any = None
 
     # -- the parts ---------------------------------------------------------------------
     def _samples(self, state: AdaptiveState) -> Any:
@@ -135,11 +153,13 @@ class FitAdvisor:
         if not fits:
             return False, {"reached": False, "why": "no candidate could be fitted yet"}
         if design is not None:
-            ev_wi, ev_wo = design.hemisphere_directions(a.max_theta_deg)
+            if self._eval is None:  # the fixed evaluation set of the predicted-f target
+                self._eval = design.hemisphere_directions(a.max_theta_deg)
+            ev_wi, ev_wo = self._eval
             reached, status = design.stopping(
                 fits, w, dict(a.target_rel_sigma), a.target_brdf_rel_sigma, ev_wi, ev_wo
             )
-            return bool(reached), dict(status)
+            return bool(reached), _jsonable(status)
         best = fits[int(np.argmax(w))]
         rel = _rel_sigma(best)
         if not a.target_rel_sigma:
@@ -165,7 +185,12 @@ class FitAdvisor:
             with np.errstate(divide="ignore", invalid="ignore"):
                 rel = samples.brdf_std[ok] / np.abs(samples.brdf[ok])
             rel = rel[np.isfinite(rel)]
-            sample_rel = float(np.median(rel)) if rel.size else 0.01
+            # a pose measures R regions about its direction: the design wants the
+            # per-sample figure over sqrt(R)
+            poses = getattr(samples, "pose", None)
+            n_poses = len(np.unique(poses)) if poses is not None and len(poses) else 1
+            per_pose = max(1.0, len(samples) / max(n_poses, 1))
+            sample_rel = (float(np.median(rel)) if rel.size else 0.01) / math.sqrt(per_pose)
             scores = design.score_candidates(
                 fits,
                 w,
@@ -234,7 +259,7 @@ class FitAdvisor:
         if reached:
             record["why"] = "every target reached: " + str(status)
             record["timing"] = {"reduce_s": t1 - t0, "fit_s": t2 - t1}
-            return Decision([], STOP_TARGET, record)
+            return Decision([], STOP_TARGET, _jsonable(record))
         chosen, extra = self._choose(state, samples, fits, w, design)
         record.update(extra)
         record["design"] = "gonio.fitting.design" if design is not None else "placeholder"
@@ -243,4 +268,4 @@ class FitAdvisor:
             "fit_s": t2 - t1,
             "choose_s": time.perf_counter() - t2,
         }
-        return Decision(chosen, None, record)
+        return Decision(chosen, None, _jsonable(record))
