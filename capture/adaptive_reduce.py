@@ -25,12 +25,21 @@ from gonio.capture.reduction_config import ReductionSetup, resolve_setup
 __all__ = ["IncrementalReduction", "with_round_steps"]
 
 
-def with_round_steps(manifest: Mapping[str, Any], records: list[dict[str, Any]]) -> dict[str, Any]:
+def with_round_steps(
+    manifest: Mapping[str, Any], records: list[dict[str, Any]], journal: Any = "journal.jsonl"
+) -> dict[str, Any]:
     """The manifest document with its ``schedule`` extended by an adaptive session's
-    journaled rounds (unchanged for any other session)."""
-    from gonio.capture.adaptive import adaptive_steps
+    journaled rounds (unchanged for any other session).
 
-    extra = adaptive_steps(records)
+    Raises
+    ------
+    FileFormatError
+        A round record is damaged (:func:`gonio.capture.adaptive.round_records`).
+    """
+    from gonio.capture.adaptive import adaptive_steps, round_records
+
+    n = len(manifest.get("schedule") or [])
+    extra = adaptive_steps(round_records(records, journal, n))
     if not extra:
         return dict(manifest)
     return {**manifest, "schedule": list(manifest.get("schedule") or []) + extra}

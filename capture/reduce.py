@@ -197,7 +197,7 @@ def reduce_session(
     manifest = load_manifest(session)
     refuse_calibration_session(session, manifest)
     records = read_journal(session / "journal.jsonl")
-    manifest = with_round_steps(manifest, records)  # an adaptive session's rounds
+    manifest = with_round_steps(manifest, records, session / "journal.jsonl")  # adaptive
     for rec in records:  # a journal naming a file outside the session is refused outright
         if rec.get("type") == "shot":
             session_file(session, rec)

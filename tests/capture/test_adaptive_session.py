@@ -446,3 +446,35 @@ def test_realistic_world_through_the_cli(tmp_path):
             got = shots[k]["joints"]
             # one pulse of a 4096-pulse servo is 1.5 mrad
             assert max(abs(got[j] - s["joints"][j]) for j in got) < 0.01
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("adaptive_finished")
+    _run(d, "S", Stub())
+    return d / "S"
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("first_step", "x"), ("round", 5), ("steps", "dark"), ("chosen_ids", [-1])],
+)
+def test_a_damaged_round_record_is_named(tmp_path, finished, field, value):
+    import shutil
+
+    from gonio.capture.reduce import reduce_session
+    from gonio.capture.sessions import inspect_session
+    from gonio.errors import FileFormatError
+
+    S = tmp_path / "S"
+    shutil.copytree(finished, S)
+    lines = (S / "journal.jsonl").read_text().splitlines()
+    k = next(i for i, x in enumerate(lines) if '"adaptive_round"' in x)
+    rec = json.loads(lines[k])
+    rec[field] = value
+    lines[k] = json.dumps(rec)
+    (S / "journal.jsonl").write_text("\n".join(lines) + "\n")
+    for call in (lambda: inspect_session(S), lambda: reduce_session(S), lambda: _resume(S, Stub())):
+        with pytest.raises(FileFormatError) as e:
+            call()
+        assert "journal.jsonl" in str(e.value) and field in str(e.value), str(e.value)
