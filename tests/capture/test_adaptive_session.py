@@ -103,10 +103,22 @@ def _journal(session: Path) -> list[dict]:
     return read_journal(session / "journal.jsonl")
 
 
-def test_rounds_are_journaled_before_their_poses_and_stop_at_max_poses(tmp_path):
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory):
+    """One session of the plan with the stub advisor: (session, stub, result)."""
+    d = tmp_path_factory.mktemp("adaptive_finished")
     stub = Stub()
-    res = _run(tmp_path, "S", stub)
-    S = tmp_path / "S"
+    res = _run(d, "S", stub)
+    return d / "S", stub, res
+
+
+@pytest.fixture
+def finished(finished_run) -> Path:
+    return finished_run[0]
+
+
+def test_rounds_are_journaled_before_their_poses_and_stop_at_max_poses(finished_run):
+    S, stub, res = finished_run
     recs = _journal(S)
     manifest = json.loads((S / "manifest.json").read_text())
     rounds = round_records(recs, n_schedule=len(manifest["schedule"]))
@@ -234,36 +246,30 @@ def _strip(x):
     return x
 
 
-def test_two_runs_of_one_seed_are_identical(tmp_path):
-    _run(tmp_path, "A", Stub())
+def test_two_runs_of_one_seed_are_identical(tmp_path, finished):
+    A, B = finished, tmp_path / "B"
     _run(tmp_path, "B", Stub())
-    ja, jb = (_strip(_journal(tmp_path / n)) for n in "AB")
+    ja, jb = _strip(_journal(A)), _strip(_journal(B))
     assert ja == jb
-    raw_a = sorted((tmp_path / "A" / "raw").iterdir())
-    assert [p.read_bytes() for p in raw_a] == [
-        (tmp_path / "B" / "raw" / p.name).read_bytes() for p in raw_a
-    ]
-    assert (tmp_path / "A" / "adaptive_pool.json").read_bytes() == (
-        tmp_path / "B" / "adaptive_pool.json"
-    ).read_bytes()
+    raw_a = sorted((A / "raw").iterdir())
+    assert [p.name for p in raw_a] == sorted(p.name for p in (B / "raw").iterdir())
+    assert [p.read_bytes() for p in raw_a] == [(B / "raw" / p.name).read_bytes() for p in raw_a]
+    assert (A / "adaptive_pool.json").read_bytes() == (B / "adaptive_pool.json").read_bytes()
 
 
-def test_inspect_shows_the_rounds(tmp_path):
+def test_inspect_shows_the_rounds(finished):
     from click.testing import CliRunner
 
     from gonio.cli import cli
 
-    _run(tmp_path, "S", Stub())
-    out = CliRunner().invoke(cli, ["capture", "inspect", str(tmp_path / "S"), "--json"])
+    out = CliRunner().invoke(cli, ["capture", "inspect", str(finished), "--json"])
     assert out.exit_code == 0, out.output
     info = json.loads(out.output)
     assert [(r["round"], r["poses"], r["stop"]) for r in info["rounds"]] == [
         (0, 3, None), (1, 3, None), (2, 0, "max_poses")
     ]  # fmt: skip
     assert info["poses_done"] == info["poses_total"] == 12
-    table = CliRunner().invoke(
-        cli, ["capture", "inspect", str(tmp_path / "S")], env={"COLUMNS": "160"}
-    )
+    table = CliRunner().invoke(cli, ["capture", "inspect", str(finished)], env={"COLUMNS": "160"})
     assert "adaptive rounds" in table.output and "max_poses" in table.output
 
 
@@ -446,13 +452,6 @@ def test_realistic_world_through_the_cli(tmp_path):
             got = shots[k]["joints"]
             # one pulse of a 4096-pulse servo is 1.5 mrad
             assert max(abs(got[j] - s["joints"][j]) for j in got) < 0.01
-
-
-@pytest.fixture(scope="module")
-def finished(tmp_path_factory) -> Path:
-    d = tmp_path_factory.mktemp("adaptive_finished")
-    _run(d, "S", Stub())
-    return d / "S"
 
 
 @pytest.mark.parametrize(

@@ -134,6 +134,7 @@ def warm():
     import gonio.fitting  # noqa: F401
 
 
+@pytest.mark.slow
 def test_sigkill_during_an_adaptive_session_then_resume(tmp_path, warm):
     (tmp_path / "rig.toml").write_text(virtual_rig_document())
     (tmp_path / "plan.toml").write_text(PLAN)
