@@ -195,6 +195,8 @@ class RunResult:
         Files of the frames this run shot again (``retake``).
     finalizer
         What the finalizer reported (``parked``, ``torque_off``, ...).
+    adaptive_stop
+        An adaptive session's stop (its last round: ``round``, ``stop``, ``poses_done``).
     """
 
     session: Path
@@ -205,6 +207,9 @@ class RunResult:
     skipped: list[SkippedPose] = field(default_factory=list)
     retaken: list[str] = field(default_factory=list)
     finalizer: dict[str, Any] = field(default_factory=dict)
+    #: An adaptive session's stop: ``{"round", "stop", "poses_done"}`` of its last round
+    #: (None before it stopped, or for a grid).
+    adaptive_stop: dict[str, Any] | None = None
 
 
 class SessionStopped(SessionError):
@@ -543,11 +548,14 @@ def _run(
     closed = set(state.done)
 
     n_round_steps = [len(adaptive_steps(state.records))]
+    stops = [r for r in state.records if r.get("type") == ROUND and r.get("stop") is not None]
 
     def tally(doc: dict[str, Any]) -> None:
         t = doc.get("type")
         if t == ROUND:
             n_round_steps[0] += len(doc.get("steps") or [])
+            if doc.get("stop") is not None:
+                stops.append(doc)
         if t == "shot":
             counts["shots"] += 1
             if doc.get("retake"):
@@ -607,6 +615,7 @@ def _run(
         skipped,
         retaken,
         outcome.finalizer,
+        {k: stops[-1].get(k) for k in ("round", "stop", "poses_done")} if stops else None,
     )
     fin, error = outcome.finalizer, outcome.error
     if outcome.status == "fault":

@@ -252,9 +252,15 @@ class FitAdvisor:
             best = fits[int(np.argmax(w))]
             from gonio.fitting.select import format_model_spec
 
+            rel = _rel_sigma(best)
+            a = self.plan.adaptive
+            # sigma ~ 1/sqrt(poses): what max_poses would give if the next poses were
+            # worth the ones so far (a target far below it is not reachable in the budget)
+            scale = math.sqrt(max(state.poses_done, 1) / a.max_poses)  # type: ignore[union-attr]
             record["fit"] = {
                 "model": format_model_spec(best.model, best.model_options),
-                "rel_sigma": {k: _json_float(v) for k, v in _rel_sigma(best).items()},
+                "rel_sigma": {k: _json_float(v) for k, v in rel.items()},
+                "forecast_at_max_poses": {k: _json_float(v * scale) for k, v in rel.items()},
             }
         if reached:
             record["why"] = "every target reached: " + str(status)

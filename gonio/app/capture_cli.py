@@ -114,7 +114,18 @@ def plan_cmd(
         f"{len(ex.excluded)} excluded -> [bold]{n_sample}[/] sample poses"
         + (f" + {n_ref} reference" if n_ref else "")
     )
-    if ex.excluded:
+    if ex.excluded and plan.adaptive is not None:
+        # the candidate pool's exclusions: thousands at a fine pool step; counted by code
+        from collections import Counter
+
+        counts = Counter(e.code for e in ex.excluded)
+        con.print(
+            f"adaptive: {summary['adaptive']['pool']} candidate poses, seed design "
+            f"{n_sample}, batches of {plan.adaptive.batch_poses} up to "
+            f"{plan.adaptive.max_poses} poses; excluded from the pool: "
+            + ", ".join(f"{n} {code}" for code, n in counts.most_common())
+        )
+    elif ex.excluded:
         t = Table(
             "theta_i", "phi_i", "theta_o", "phi_o", "code", "reason", title="excluded poses"
         )  # fmt: skip
@@ -307,6 +318,13 @@ def _report(result) -> None:
         click.echo(f"session {result.session} completed")
     if result.retaken:
         click.echo(f"{len(result.retaken)} frame(s) shot again: {', '.join(result.retaken)}")
+    st = getattr(result, "adaptive_stop", None)
+    if st:
+        click.echo(
+            f"adaptive: stopped after round {st['round']} ({st['stop']}) with "
+            f"{st['poses_done']} sample poses; the rounds: 'gonio capture inspect "
+            f"{result.session}'"
+        )
 
 
 def _light_option(spec: str, camera_backend: str | None) -> str | None:

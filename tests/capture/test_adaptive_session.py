@@ -129,6 +129,7 @@ def test_rounds_are_journaled_before_their_poses_and_stop_at_max_poses(finished_
     ]
     steps = session_steps(manifest["schedule"], recs)
     assert res.poses_total == len(steps) == 1 + 4 + 6 + 1 and res.status == "completed"
+    assert res.adaptive_stop == {"round": 2, "stop": "max_poses", "poses_done": 10}
     assert [s["kind"] for s in steps] == ["reference"] + ["sample"] * 10 + ["dark"]
     # the advisor was offered only poses not yet taken, and the pool shrank by each batch
     pool = json.loads((S / "adaptive_pool.json").read_text())
