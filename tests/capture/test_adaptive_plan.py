@@ -193,3 +193,13 @@ def test_seed_larger_than_the_pool_is_refused():
     pool, _ = candidate_pool(plan, None)
     with pytest.raises(ConfigError, match="fewer than adaptive.seed_poses = 200"):
         seed_design(plan, pool)
+
+
+def test_the_example_adaptive_plan_loads():
+    from pathlib import Path
+
+    from gonio.capture.plan import load_plan
+
+    ex = Path(__file__).resolve().parents[2] / "examples" / "adaptive_plan.toml"
+    p = load_plan(ex)
+    assert p.adaptive.target_rel_sigma == {"alpha": 0.01} and p.adaptive.max_time_s == 3600
