@@ -581,7 +581,7 @@ def _run(
             session_dir=d,
             records=state.records,
             pool=read_pool(d),
-            advisor=advisor if hasattr(advisor, "advise") else advisor(plan),
+            advisor=_advisor_for(advisor, plan),
             kinematics=devices.kinematics,
             start_joints=manifest.rig.park_rad,
             skipped={int(r["pose"]) for r in state.skipped},
@@ -644,6 +644,14 @@ def _check_advisor(plan: Plan, advisor: Any) -> None:
             "root's gonio.app.adaptive_advisor.FitAdvisor; gonio capture run/resume wire it) "
             "(nothing was moved or written)"
         )
+
+
+def _advisor_for(advisor: Any, plan: Plan) -> Any:
+    """An advisor, or what makes one: ``advisor(plan)`` (a class such as FitAdvisor, or a
+    factory)."""
+    if isinstance(advisor, type) or not hasattr(advisor, "advise"):
+        return advisor(plan)
+    return advisor
 
 
 def _pool_file(dry: DryRun) -> dict[str, bytes]:

@@ -307,6 +307,21 @@ def test_bad_input_is_refused_before_anything_moves(tmp_path, capsys, edit, word
     assert not (tmp_path / "S").exists()
 
 
+def test_the_advisor_may_be_a_class_or_a_factory(tmp_path):
+    made = []
+
+    class Made(Stub):
+        def __init__(self, plan):
+            super().__init__(stop_at=0)
+            made.append(plan.name)
+
+    _run(tmp_path, "C", Made)
+    _run(tmp_path, "F", lambda plan: Made(plan))
+    assert made == ["adaptive-test", "adaptive-test"]
+    for name in "CF":
+        assert round_records(_journal(tmp_path / name))[0]["stop"] == "enough"
+
+
 def test_adaptive_plan_without_advisor_is_refused(tmp_path):
     from gonio.capture.sessions import run_session
 
