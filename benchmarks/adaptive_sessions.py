@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,9 +23,22 @@ from typing import Any
 
 import numpy as np
 
-RGL = Path(__file__).resolve().parents[1].parent.parent / "shared" / "data" / "rgl"
-if not RGL.is_dir():
-    RGL = Path("/work/shared/data/rgl")
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _refdata() -> Path:
+    """``$GONIO_REFDATA``, else ``shared/data`` beside the repository (or beside the
+    folder of its work trees)."""
+    env = os.environ.get("GONIO_REFDATA")
+    if env:
+        return Path(env)
+    for base in (REPO.parent, REPO.parent.parent):
+        if (base / "shared" / "data").is_dir():
+            return base / "shared" / "data"
+    return REPO.parent / "shared" / "data"
+
+
+RGL = _refdata() / "rgl"
 
 SIZE = (160, 120)
 #: the dense grid (deg): theta_i, theta_o to 80 in 10 deg, phi_o in 22.5 deg
@@ -125,8 +139,23 @@ def dense_session(root: Path, m: Material, seed: int = 0, size: tuple[int, int] 
         import shutil
 
         shutil.rmtree(session)
-    run_simulated_session(session, d / "plan.toml", d / "rig.toml", "virtual",
-                          world="perfect", world_seed=seed, quiet=True)  # fmt: skip
+    from gonio.app.devices import device_opener
+    from gonio.capture.sessions import SessionStopped, resume_session
+    from gonio.errors import GonioError
+
+    try:
+        run_simulated_session(session, d / "plan.toml", d / "rig.toml", "virtual",
+                              world="perfect", world_seed=seed, quiet=True)  # fmt: skip
+    except SessionStopped:
+        # a loaded machine can starve the virtual bus (no status packet): the rig parks
+        # and the session resumes, as in a lab
+        for attempt in range(8):
+            try:
+                resume_session(session, device_opener(time_scale="virtual"))
+                break
+            except GonioError:
+                if attempt == 7:
+                    raise
     setup = dataclasses.replace(resolve_setup(session, load_manifest(session)), grid=6)
     reduce_session(session, setup=setup, plot=False)
     return session
