@@ -204,7 +204,11 @@ def check_journal_fits(
     FileFormatError
         Naming the manifest, its ``schedule`` field and the first pose beyond it.
     """
+    from gonio.capture.adaptive import adaptive_steps, round_records
+
+    # an adaptive session's rounds add their steps after the schedule's
     n = len(manifest.schedule)
+    n += len(adaptive_steps(round_records(records, _path(session_dir).parent / "journal.jsonl", n)))
     for r in records:
         pose = r.get("pose")
         if r.get("type") in ("shot", "pose_done", "pose_skipped") and isinstance(pose, int):

@@ -53,6 +53,8 @@ from gonio.radiometry import (
 )
 
 __all__ = [
+    "AdaptivePlan",
+    "AdaptiveWeights",
     "BracketPolicy",
     "DarkFrames",
     "Exclusions",
@@ -337,6 +339,116 @@ class SimulationSettings(_Strict):
         return data
 
 
+#: The ``gonio fit --model auto`` candidates (``gonio.fitting.select.DEFAULT_CANDIDATES``;
+#: capture may not import fitting, so the tuple is repeated here and a test holds the two
+#: equal).
+AUTO_CANDIDATES = ("lambert", "oren-nayar", "lambert+ggx", "lambert+beckmann")
+
+
+def _model_params(spec: str) -> tuple[str, ...]:
+    """Parameter names of a model spec ``name[key=value,...]`` (``gonio fit --candidates``);
+    a ValueError naming the spec when gonio.brdf does not know it."""
+    from gonio.brdf import get_model
+    from gonio.errors import GonioError
+
+    s = spec.strip()
+    name, opts = s, {}
+    if "[" in s or "]" in s:
+        if not (s.endswith("]") and s.count("[") == 1 and s.count("]") == 1 and s.index("[") > 0):
+            raise ValueError(
+                f"model spec {spec!r}: expected 'name' or 'name[key=value,...]', e.g. "
+                "'lambert+ggx[fresnel=schlick]'"
+            )
+        name, body = s[:-1].split("[", 1)
+        for item in filter(None, (x.strip() for x in body.split(","))):
+            key, eq, value = item.partition("=")
+            if not eq or not key.strip() or not value.strip():
+                raise ValueError(f"model spec {spec!r}: option {item!r} is not written key=value")
+            opts[key.strip()] = value.strip()
+    try:
+        return tuple(get_model(name.strip(), **opts).param_names)
+    except GonioError as exc:  # UnknownNameError is a KeyError: pydantic wants ValueError
+        raise ValueError(f"unknown candidate model {spec!r}: {str(exc).strip(chr(34))}") from None
+
+
+class AdaptiveWeights(_Strict):
+    """Weights of the three terms of the expected information of a candidate pose
+    (``gonio.fitting.design.score_candidates``)."""
+
+    d_optimal: float = Field(default=1.0, ge=0)
+    discrimination: float = Field(default=1.0, ge=0)
+    model_free: float = Field(default=1.0, ge=0)
+
+
+class AdaptivePlan(_Strict):
+    """``[adaptive]``: measure a seed design, then batches chosen by expected information.
+
+    The candidate pool is every pose with ``wi`` and ``wo`` on rings ``pool_step_deg``
+    apart up to ``max_theta_deg`` (the isotropic/reciprocity reductions applied), less the
+    plan's exclusions and what the rig refuses.  ``seed_poses`` of them are always
+    measured (``retro_poses`` nearest to retro-reflection, ``in_plane_poses`` in one
+    incidence plane, the rest space-filling, from the plan's ``seed``); then rounds of
+    ``batch_poses`` until every parameter named in ``target_rel_sigma`` (relative 1-sigma)
+    and ``target_brdf_rel_sigma`` (median predicted relative sigma of f) is reached, or
+    ``max_poses`` sample poses (seed included), or the estimated session time reaches
+    ``max_time_s`` (travel + exposures + download, as ``gonio capture plan`` estimates
+    it), or the pool is empty.
+    """
+
+    seed_poses: int = Field(default=24, ge=1, le=10_000)
+    retro_poses: int = Field(default=4, ge=0)
+    in_plane_poses: int = Field(default=8, ge=0)
+    batch_poses: int = Field(default=8, ge=1, le=1000)
+    candidates: tuple[str, ...] = AUTO_CANDIDATES
+    target_rel_sigma: dict[str, Annotated[float, Field(gt=0, lt=1)]] = {}
+    target_brdf_rel_sigma: float | None = Field(default=None, gt=0, lt=1)
+    max_poses: int = Field(default=120, ge=1)
+    max_time_s: float | None = Field(default=None, gt=0)
+    pool_step_deg: float = Field(default=5.0, ge=1, le=45)
+    max_theta_deg: float = Field(default=80.0, gt=0, le=89)
+    #: Smallest angle between two poses of one batch (6-D distance of (wi, wo), deg);
+    #: None: ``pool_step_deg``.
+    batch_separation_deg: float | None = Field(default=None, ge=0, le=180)
+    weights: AdaptiveWeights = AdaptiveWeights()
+
+    @field_validator("candidates")
+    @classmethod
+    def _known_models(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        if not v:
+            raise ValueError("at least one candidate model (e.g. ['lambert', 'lambert+ggx'])")
+        for spec in v:
+            _model_params(spec)
+        return v
+
+    @model_validator(mode="after")
+    def _consistent(self) -> AdaptivePlan:
+        if self.retro_poses + self.in_plane_poses > self.seed_poses:
+            raise ValueError(
+                f"retro_poses ({self.retro_poses}) + in_plane_poses ({self.in_plane_poses}) "
+                f"exceed seed_poses ({self.seed_poses}): the seed design includes both"
+            )
+        if self.max_poses < self.seed_poses:
+            raise ValueError(
+                f"max_poses = {self.max_poses} is smaller than the seed design (seed_poses = "
+                f"{self.seed_poses}), which is always measured: raise max_poses or lower "
+                "seed_poses"
+            )
+        params = {p for spec in self.candidates for p in _model_params(spec)}
+        unknown = sorted(set(self.target_rel_sigma) - params)
+        if unknown:
+            raise ValueError(
+                f"target_rel_sigma names {unknown}, which no candidate model "
+                f"({', '.join(self.candidates)}) has; their parameters: {', '.join(sorted(params))}"
+            )
+        return self
+
+    @property
+    def separation_deg(self) -> float:
+        """``batch_separation_deg``, or ``pool_step_deg`` when not given."""
+        sep = self.batch_separation_deg
+        return self.pool_step_deg if sep is None else sep
+
+
 def _physical_memory() -> float:
     try:
         return float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
@@ -377,8 +489,10 @@ class Plan(_Strict):
     limits: Limits = Limits()
     # Where the plan came from (its file), for messages; not part of the plan's content.
     _source: str = PrivateAttr(default="plan")
-    # joint_poses before grid: grid's validator sees them (and names 'grid' in errors).
+    # joint_poses and adaptive before grid: grid's validator sees them (and names 'grid'
+    # in errors).
     joint_poses: tuple[JointPose, ...] = ()
+    adaptive: AdaptivePlan | None = None
     grid: Grid | None = Field(default=None, validate_default=True)
     reductions: Reductions = Reductions()
     exclusions: Exclusions = Exclusions()
@@ -401,10 +515,20 @@ class Plan(_Strict):
         if "joint_poses" not in info.data:  # joint_poses invalid: that error is enough
             return v
         n = len(info.data["joint_poses"])
+        if info.data.get("adaptive") is not None:
+            if v is not None or n:
+                has = "a [grid]" if v is not None else f"{n} [[joint_poses]]"
+                raise ValueError(
+                    f"an [adaptive] plan chooses its own poses: it has no [grid] or "
+                    f"[[joint_poses]] (this one has [adaptive] and {has}); remove one of them"
+                )
+            return v
+        if "adaptive" not in info.data:  # adaptive invalid: that error is enough
+            return v
         if v is None and not n:
             raise ValueError(
-                "required: a [grid] of directions or a list of [[joint_poses]] (the plan "
-                "has neither)"
+                "required: a [grid] of directions, a list of [[joint_poses]] or an "
+                "[adaptive] table (the plan has none)"
             )
         if v is not None and n:
             raise ValueError(
@@ -412,6 +536,33 @@ class Plan(_Strict):
                 f"grid and {n} joint poses)"
             )
         return v
+
+    @model_validator(mode="after")
+    def _adaptive_needs_reference(self) -> Plan:
+        if self.adaptive is None:
+            return self
+        if not self.reference.poses:
+            raise ValueError(
+                "[adaptive] reduces each batch as it is captured, which needs the light "
+                "calibrated from the reference target at the start: give [reference] poses "
+                "(e.g. poses = [{ theta_i_deg = 0, theta_o_deg = 45, phi_o_deg = 180 }])"
+            )
+        if self.reference.when != "start":
+            raise ValueError(
+                "[adaptive] needs the reference group at the start ([reference] when = "
+                f"'start', not {self.reference.when!r}): the rounds are reduced with it"
+            )
+        if self.reference.every_poses:
+            raise ValueError(
+                f"[reference] every_poses = {self.reference.every_poses} is not supported "
+                "with [adaptive] yet (the reference group is shot once, at the start)"
+            )
+        return self
+
+    @property
+    def is_adaptive(self) -> bool:
+        """Whether the plan chooses its poses as it goes (``[adaptive]``)."""
+        return self.adaptive is not None
 
     @property
     def is_joint_pose_plan(self) -> bool:
@@ -431,6 +582,8 @@ class Plan(_Strict):
                 data.pop("joint_poses", None)
             if self.grid is None:
                 data.pop("grid", None)
+            if self.adaptive is None:
+                data.pop("adaptive", None)
             # The same for the flats and the repeated references (issue 16).
             if self.flats == FlatFrames():
                 data.pop("flats", None)
@@ -470,15 +623,30 @@ def plan_from_dict(data: dict, source: str = "<plan>") -> Plan:
     return plan
 
 
-def load_plan(path: str | Path) -> Plan:
+def load_plan(path: str | Path, *, adaptive: bool = False) -> Plan:
     """Read and validate a plan TOML file (see ``examples/plan.toml``).
+
+    ``adaptive``: ``gonio capture run --adaptive``: add the default ``[adaptive]`` table
+    to a plan that names no poses (one with its own ``[adaptive]`` keeps it).
 
     Raises
     ------
     ConfigError
-        If the file is missing, is not TOML, or a field is invalid.
+        If the file is missing, is not TOML, or a field is invalid; with ``adaptive``,
+        a plan that has a ``[grid]`` or ``[[joint_poses]]``.
     """
-    return plan_from_dict(read_toml(path, "plan"), str(path))
+    data = read_toml(path, "plan")
+    if adaptive and "adaptive" not in data:
+        from gonio.errors import ConfigError
+
+        has = [k for k in ("grid", "joint_poses") if k in data]
+        if has:
+            raise ConfigError(
+                f"{path}: --adaptive chooses the poses, but the plan has [{has[0]}]; remove "
+                "it, or run without --adaptive"
+            )
+        data["adaptive"] = {}
+    return plan_from_dict(data, str(path))
 
 
 def plan_digest(obj: BaseModel | dict) -> str:
@@ -505,6 +673,8 @@ class Pose:
     kind: str = "sample"
     joints: dict[str, float] | None = None
     label: str | None = None
+    #: An adaptive plan's pose: its id in the candidate pool.
+    pool_id: int | None = None
 
     def angles_deg(self) -> dict[str, float]:
         ti, pi = direction_to_spherical(np.array(self.wi))
@@ -523,6 +693,8 @@ class Pose:
             d["joints"] = dict(self.joints)
         if self.label is not None:
             d["label"] = self.label
+        if self.pool_id is not None:
+            d["pool_id"] = self.pool_id
         return d
 
 
@@ -550,6 +722,8 @@ class ExpandedPlan:
     n_grid: int
     n_reduced: int
     notes: list[str] = field(default_factory=list)
+    #: An adaptive plan's candidate pool (:class:`gonio.capture.adaptive_pool.CandidatePool`).
+    pool: Any = None
 
 
 def _grid_directions(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
@@ -703,7 +877,12 @@ def estimate_plan(plan: Plan) -> PlanEstimate:
     PlanEstimate
         Upper bounds (see its attributes).
     """
-    if plan.grid is None:  # joint poses: each one is measured, none reduced
+    if plan.adaptive is not None:  # the pool's size; at most max_poses are measured
+        from gonio.capture.adaptive_pool import pool_size
+
+        a = b = c = d = [0.0]
+        n_grid = pool_size(plan)
+    elif plan.grid is None:  # joint poses: each one is measured, none reduced
         a = b = c = d = [0.0]
         n_grid = len(plan.joint_poses)
     else:
@@ -717,6 +896,8 @@ def estimate_plan(plan: Plan) -> PlanEstimate:
     else:
         n_sample = len(a) * len(c) * len(d)  # phi_h is a rotation about the normal
     n_sample_poses = min(n_grid, n_sample)
+    if plan.adaptive is not None:
+        n_sample_poses = min(n_grid, plan.adaptive.max_poses)
     n_poses = n_sample_poses + len(plan.reference.poses) * plan.reference_repeats(n_sample_poses)
     br = plan.bracket
     per_pose = len(br.exposures_s) if br.policy == "fixed" else br.max_frames
@@ -820,6 +1001,10 @@ def expand_plan(
         before anything is allocated.
     """
     check_limits(plan, source or plan._source)
+    if plan.adaptive is not None:
+        from gonio.capture.adaptive_pool import expand_adaptive
+
+        return expand_adaptive(plan, rig_check, progress, _reference_poses)
     if plan.grid is None:
         return _expand_joint_poses(plan, rig_check, kinematics, source or plan._source)
     wi_all, wo_all = _grid_directions(plan.grid)

@@ -85,6 +85,7 @@ __all__ = [
     "IRRADIANCE_UNITS",
     "SAMPLES_FILE",
     "SUMMARY_FILE",
+    "IncrementalReduction",
     "ReductionResult",
     "ReductionSetup",
     "default_threads",
@@ -196,6 +197,7 @@ def reduce_session(
     manifest = load_manifest(session)
     refuse_calibration_session(session, manifest)
     records = read_journal(session / "journal.jsonl")
+    manifest = with_round_steps(manifest, records, session / "journal.jsonl")  # adaptive
     for rec in records:  # a journal naming a file outside the session is refused outright
         if rec.get("type") == "shot":
             session_file(session, rec)
@@ -1041,3 +1043,8 @@ def _version() -> str:
         return str(__version__)
     except ImportError:  # pragma: no cover
         return "unknown"
+
+
+# An adaptive session reduces as it goes (issue 17): the class lives in its own module,
+# on top of _PoseRun's per-pose path.
+from gonio.capture.adaptive_reduce import IncrementalReduction, with_round_steps  # noqa: E402

@@ -35,6 +35,7 @@ __all__ = [
     "StageProgress",
     "build_schedule",
     "dry_run",
+    "estimate_duration",
     "with_calibration_steps",
     "with_reference_groups",
 ]
@@ -67,6 +68,9 @@ class Schedule:
     estimated_duration_s: float
     refused: list[Refusal] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    #: An adaptive plan's candidate pool (its steps are the seed design; the rounds'
+    #: steps are journaled as they are chosen: :mod:`gonio.capture.adaptive`).
+    pool: Any = None
 
 
 class DryRunRig:
@@ -163,6 +167,9 @@ def dry_run(
     kinematics: Any,
     start_joints: Mapping[str, float],
     approach_out: dict[int, dict[str, int]] | None = None,
+    *,
+    start_approach: Mapping[str, int] | None = None,
+    first_step: int = 0,
 ) -> tuple[dict[int, dict[str, float]], list[Refusal]]:
     """Execute the session plan against a :class:`DryRunRig`.
 
@@ -170,6 +177,11 @@ def dry_run(
     ----------
     approach_out
         When given, filled with step -> the approach signs after its move.
+    start_approach
+        The joints' approach signs at ``start_joints`` (default: unknown, as after
+        connecting).
+    first_step
+        Journal number of ``steps[0]`` (an adaptive round's batch continues the session).
 
     Returns
     -------
@@ -177,6 +189,8 @@ def dry_run(
         Step -> joints the dry run moved to (rad), and the refused steps.
     """
     rig = DryRunRig(kinematics, start_joints)
+    if start_approach is not None:
+        rig.approach.update({k: int(v) for k, v in start_approach.items()})
     nothing = _Dark()
     devices = SessionDevices(
         rig,
@@ -201,7 +215,9 @@ def dry_run(
             refused.append(Refusal(int(doc["pose"]), str(doc["code"]), str(doc["reason"])))
 
     engine = Engine(devices, None, [watch], handlers={Move: move, Shoot: lambda msg: None})
-    engine.execute(session_plan(steps, plan, PlanState(), kinematics.forward, 2.0))
+    engine.execute(
+        session_plan(steps, plan, PlanState(), kinematics.forward, 2.0, first_step=first_step)
+    )
     return joints, refused
 
 
@@ -313,7 +329,8 @@ def build_schedule(
     for k in order:
         p: Pose = expanded.poses[k]
         steps.append(p.to_json())
-    steps = with_calibration_steps(steps, plan)
+    # an adaptive plan's calibration steps "at the end" follow its last round
+    steps = with_calibration_steps(steps, plan, ends=not plan.is_adaptive)
 
     tell("order", 1, 1)
     tell("dry run", 0, len(steps))
@@ -326,7 +343,18 @@ def build_schedule(
         steps[r.step]["refused"] = {"code": r.code, "message": r.message}
 
     est = _estimated_duration(plan, len(expanded.poses), travel)
-    return Schedule(steps, expanded, travel, raster, est, refused)
+    if plan.adaptive is not None and plan.adaptive.max_time_s is not None:
+        if est > plan.adaptive.max_time_s:
+            from gonio.errors import ConfigError
+
+            raise ConfigError(
+                f"{plan._source}: plan {plan.name!r}: adaptive.max_time_s = "
+                f"{plan.adaptive.max_time_s:g} s is smaller than the seed design's estimated "
+                f"{est:.0f} s ({len(expanded.poses)} poses: travel {travel:.0f} s + "
+                "exposures and downloads), which is always measured: raise max_time_s or "
+                "lower seed_poses (nothing was moved)"
+            )
+    return Schedule(steps, expanded, travel, raster, est, refused, pool=expanded.pool)
 
 
 def with_reference_groups(samples: list[Any], group: list[Any], plan: Plan) -> list[Any]:
@@ -350,18 +378,35 @@ def with_reference_groups(samples: list[Any], group: list[Any], plan: Plan) -> l
     return out
 
 
-def with_calibration_steps(steps: list[dict[str, Any]], plan: Plan) -> list[dict[str, Any]]:
+def with_calibration_steps(
+    steps: list[dict[str, Any]], plan: Plan, *, starts: bool = True, ends: bool = True
+) -> list[dict[str, Any]]:
     """``steps`` with the flat-field step and the dark step at their ``when``: at the
     start darks first, at the end darks last (the light is off for the least time
-    between the light-on frames)."""
+    between the light-on frames).  ``starts``/``ends``: add those at that end only."""
     steps = list(steps)
     if plan.flats.count:
         flat = {"kind": "flat", "wi": None, "wo": None}
-        steps.insert(0, flat) if plan.flats.when == "start" else steps.append(flat)
+        if plan.flats.when == "start" and starts:
+            steps.insert(0, flat)
+        elif plan.flats.when == "end" and ends:
+            steps.append(flat)
     if plan.darks.count:
         dark = {"kind": "dark", "wi": None, "wo": None}
-        steps.insert(0, dark) if plan.darks.when == "start" else steps.append(dark)
+        if plan.darks.when == "start" and starts:
+            steps.insert(0, dark)
+        elif plan.darks.when == "end" and ends:
+            steps.append(dark)
     return steps
+
+
+def estimate_duration(plan: Plan, n_poses: int, travel_s: float) -> float:
+    """The plan estimator: travel plus, per pose, the settle time and the expected frames'
+    exposures and downloads (``bracket.shot_overhead_s``), plus the darks and flats, s.
+
+    ``n_poses`` counts sample poses and the reference group once (its repeats are
+    added); ``travel_s`` is the servo travel of the visiting order, s."""
+    return _estimated_duration(plan, n_poses, travel_s)
 
 
 def _estimated_duration(plan: Plan, n_pose: int, travel: float) -> float:

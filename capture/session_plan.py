@@ -36,7 +36,7 @@ from gonio.capture.plan import Plan
 from gonio.devices import RigState
 from gonio.errors import CameraError, GonioError, PoseRefused
 
-__all__ = ["RAW_DIR", "PlanState", "session_plan"]
+__all__ = ["RAW_DIR", "PlanState", "PoseSteps", "session_plan"]
 
 RAW_DIR = "raw"
 
@@ -182,6 +182,8 @@ def session_plan(
     state: PlanState,
     forward: Forward,
     read_noise_dn: float,
+    *,
+    first_step: int = 0,
 ) -> Generator[Any, Any, None]:
     """The messages of a session (see the module docstring).
 
@@ -198,50 +200,75 @@ def session_plan(
         ``Kinematics.forward``: achieved directions from read-back joints.
     read_noise_dn
         The camera's noise floor for the bracket decisions, DN rms.
+    first_step
+        Journal number of ``steps[0]``.
     """
-    prev_verdicts: list[FrameVerdict] | None = None
-    prev_cos: float | None = None
-    target = "sample"
-    used = set(state.used_exposures)
-    iso, f_number = plan.bracket.camera_iso(), plan.bracket.camera_f_number()
-    adaptive = plan.bracket.policy == "adaptive"
+    poses = PoseSteps(plan, state, forward, read_noise_dn)
+    for k, step in enumerate(steps, first_step):
+        yield from poses.step(k, step)
 
-    for k, step in enumerate(steps):
+
+class PoseSteps:
+    """The per-step machinery of a session plan: one step's messages at a time, with
+    what carries from step to step (the previous pose's bracket, the target in place,
+    the exposures used).  :func:`session_plan` runs a schedule through it; an adaptive
+    plan (:mod:`gonio.capture.adaptive`) runs its rounds' steps through the same one."""
+
+    def __init__(
+        self, plan: Plan, state: PlanState, forward: Forward, read_noise_dn: float
+    ) -> None:
+        self.plan, self.state, self.forward = plan, state, forward
+        self.read_noise_dn = read_noise_dn
+        self.prev_verdicts: list[FrameVerdict] | None = None
+        self.prev_cos: float | None = None
+        self.target = "sample"
+        self.used = set(state.used_exposures)
+        self.iso, self.f_number = plan.bracket.camera_iso(), plan.bracket.camera_f_number()
+        self.adaptive = plan.bracket.policy == "adaptive"
+        #: Steps this run closed as skipped (the rig refused them).
+        self.skipped: set[int] = set()
+
+    def step(self, k: int, step: Mapping[str, Any]) -> Generator[Any, Any, None]:
+        """The messages of step ``k`` (journal number) of the schedule."""
+        plan, state, forward = self.plan, self.state, self.forward
+        read_noise_dn = self.read_noise_dn
+        iso, f_number, adaptive = self.iso, self.f_number, self.adaptive
         kind = step["kind"]
         done_shots = list(state.shots.get(k, []))
         retake = sorted(state.retake.get(k, ()))
         if k in state.done and not retake:
             if kind not in ("dark", "flat"):
-                prev_verdicts = _verdicts(done_shots)
-                prev_cos = float(step["wi"][2])
-            continue
+                self.prev_verdicts = _verdicts(done_shots)
+                self.prev_cos = float(step["wi"][2])
+            return
         if kind == "dark":
-            yield from _darks(k, plan, state, done_shots, retake, sorted(used), iso, f_number)
+            yield from _darks(k, plan, state, done_shots, retake, sorted(self.used), iso, f_number)
             if k not in state.done:
                 yield Checkpoint({"type": "pose_done", "pose": k})
-            continue
+            return
         if kind == "flat":
             yield SetTarget("flat")
             yield from _flats(k, plan, state, done_shots, retake, f_number)
             # the sample back in place (the next step swaps again if it needs to)
             yield SetTarget("sample")
-            target = "sample"
+            self.target = "sample"
             if k not in state.done:
                 yield Checkpoint({"type": "pose_done", "pose": k})
-            continue
-        if kind != target:
+            return
+        if kind != self.target:
             yield SetTarget(kind)
-            target = kind
+            self.target = kind
         wi, wo = tuple(step["wi"]), tuple(step["wo"])
         try:
             yield Move(k, wi, wo, step.get("joints"))
         except PoseRefused as exc:
             # Checked and refused before anything moved: the pose is closed as skipped
             # (inspect lists it) and the session goes on.
+            self.skipped.add(k)
             yield Checkpoint(
                 {"type": "pose_skipped", "pose": k, "reason": str(exc), "code": exc.reason.value}
             )
-            continue
+            return
         if plan.settle_s > 0:
             yield Settle(plan.settle_s)
         rig_state: RigState = yield Read()
@@ -263,13 +290,13 @@ def session_plan(
             yield Emit(rec)
             done_shots[frame] = rec
         if k in state.done:
-            prev_verdicts, prev_cos = _verdicts(done_shots), float(wi[2])
-            continue
+            self.prev_verdicts, self.prev_cos = _verdicts(done_shots), float(wi[2])
+            return
 
         verdicts = _verdicts(done_shots)
         frame = len(done_shots)
         if frame == 0:
-            t = _first_exposure(plan, prev_verdicts, prev_cos, float(wi[2]))
+            t = _first_exposure(plan, self.prev_verdicts, self.prev_cos, float(wi[2]))
         else:
             t = _continue_exposure(plan, verdicts, done_shots)
         while t is not None:
@@ -284,11 +311,11 @@ def session_plan(
                 verdicts.append(verdict)
             yield Emit(rec)
             done_shots.append(rec)
-            used.add(t)
+            self.used.add(t)
             frame += 1
             t = _continue_exposure(plan, verdicts, done_shots)
         yield Checkpoint({"type": "pose_done", "pose": k, "frames": frame})
-        prev_verdicts, prev_cos = verdicts, float(wi[2])
+        self.prev_verdicts, self.prev_cos = verdicts, float(wi[2])
 
 
 def _flats(k, plan, state, done_shots, retake, f_number):

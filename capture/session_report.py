@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from gonio.capture.adaptive import adaptive_steps, rounds_summary
 from gonio.capture.journal import read_journal, stale_temporaries
 from gonio.capture.manifest import check_journal_fits, read_manifest
 from gonio.capture.session_dir import JOURNAL, session_state, verify_frames
@@ -40,6 +41,8 @@ class SessionReport:
     #: The last reduction's budget (``reduction.json["budget"]``: its largest terms), or
     #: None when the session has not been reduced (or was reduced before budgets).
     budget: dict[str, Any] | None = None
+    #: An adaptive session's rounds (:func:`gonio.capture.adaptive.rounds_summary`).
+    rounds: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -64,6 +67,7 @@ class SessionReport:
             "superseded": self.superseded,
             "stale_temporaries": self.stale_temporaries,
             "budget": self.budget,
+            "rounds": self.rounds,
         }
 
 
@@ -119,7 +123,7 @@ def inspect_session(session_dir: str | Path, verify: bool = True) -> SessionRepo
         plan=manifest.plan.name,
         camera=manifest.camera.backend,
         status=str(status),
-        poses_total=len(manifest.schedule),
+        poses_total=len(manifest.schedule) + len(adaptive_steps(records)),
         poses_done=len(st.done),
         partial_poses=sorted(set(st.shots) - st.done),
         shots=st.n_shots,
@@ -132,6 +136,7 @@ def inspect_session(session_dir: str | Path, verify: bool = True) -> SessionRepo
         superseded=superseded,
         stale_temporaries=stale_temporaries(d),
         budget=_reduction_budget(d),
+        rounds=rounds_summary(records),
     )
 
 

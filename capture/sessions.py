@@ -33,6 +33,8 @@ from pathlib import Path
 from typing import Any
 
 from gonio import __version__
+from gonio.capture.adaptive import ROUND, adaptive_session_plan, adaptive_steps
+from gonio.capture.adaptive_pool import POOL_FILE, read_pool
 from gonio.capture.engine import Engine, SessionDevices, Subscriber, run_plan
 from gonio.capture.journal import Journal, read_journal, session_file, write_atomic
 from gonio.capture.manifest import Manifest, check_journal_fits, read_manifest
@@ -141,6 +143,18 @@ class DryRun:
                 {"step": r.step, "code": r.code, "reason": r.message} for r in sched.refused
             ],
         }
+        if self.plan.adaptive is not None and sched.pool is not None:
+            a = self.plan.adaptive
+            out["adaptive"] = {
+                "pool": len(sched.pool),
+                "seed_poses": a.seed_poses,
+                "batch_poses": a.batch_poses,
+                "max_poses": a.max_poses,
+                "max_time_s": a.max_time_s,
+                "candidates": list(a.candidates),
+                "target_rel_sigma": dict(a.target_rel_sigma),
+                "target_brdf_rel_sigma": a.target_brdf_rel_sigma,
+            }
         if self.plan.is_joint_pose_plan:
             out["joint_poses"] = len(self.plan.joint_poses)
             out["mirror_poses"] = sum(1 for s in sched.steps if s["kind"] == "mirror")
@@ -181,6 +195,8 @@ class RunResult:
         Files of the frames this run shot again (``retake``).
     finalizer
         What the finalizer reported (``parked``, ``torque_off``, ...).
+    adaptive_stop
+        An adaptive session's stop (its last round: ``round``, ``stop``, ``poses_done``).
     """
 
     session: Path
@@ -191,6 +207,9 @@ class RunResult:
     skipped: list[SkippedPose] = field(default_factory=list)
     retaken: list[str] = field(default_factory=list)
     finalizer: dict[str, Any] = field(default_factory=dict)
+    #: An adaptive session's stop: ``{"round", "stop", "poses_done"}`` of its last round
+    #: (None before it stopped, or for a grid).
+    adaptive_stop: dict[str, Any] | None = None
 
 
 class SessionStopped(SessionError):
@@ -298,6 +317,7 @@ def run_session(
     simulation: Mapping[str, Any] | None = None,
     attachments: Mapping[str, str | Path] | None = None,
     subscribers: Sequence[Subscriber] = (),
+    advisor: Any = None,
 ) -> RunResult:
     """Create the session ``out`` and run it.
 
@@ -319,18 +339,22 @@ def run_session(
         Path inside the session -> file, copied in at creation (a scene's files).
     subscribers
         Called with every document after the journal has it.
+    advisor
+        An ``[adaptive]`` plan's :class:`gonio.capture.adaptive.Advisor`, or a callable
+        ``advisor(plan) -> Advisor`` (required for such a plan, ignored otherwise).
 
     Raises
     ------
     SessionError
-        ``out`` holds something, the plan needs a light the devices lack (nothing is
-        written), or the run stopped on a fault or an interrupt
-        (:class:`SessionStopped`, after the finalizer; resume it).
+        ``out`` holds something, the plan needs a light the devices lack, an adaptive
+        plan has no advisor (nothing is written), or the run stopped on a fault or an
+        interrupt (:class:`SessionStopped`, after the finalizer; resume it).
     LockedError
         Another process is creating a session at ``out``.
     """
     out = Path(out)
     check_new_session_dir(out)  # before anything slow or physical
+    _check_advisor(plan, advisor)
     dry = dry_run if dry_run is not None else plan_session(plan, rig_config)
     out.parent.mkdir(parents=True, exist_ok=True)
     beside = out.parent / f".{out.name}{LOCK_NAME}"
@@ -360,10 +384,12 @@ def run_session(
                 simulation=simulation,
                 attachments=attachments,
                 hold=locks,
-                files=dev.files,
+                files={**dev.files, **_pool_file(dry)},
             )
             manifest = read_manifest(out)
-            return _run(out, manifest, plan, dev, session_state([]), False, {}, subscribers)
+            return _run(
+                out, manifest, plan, dev, session_state([]), False, {}, subscribers, advisor=advisor
+            )
 
 
 def resume_session(
@@ -377,6 +403,7 @@ def resume_session(
     subscribers: Sequence[Subscriber] = (),
     plan_source: str = "the given plan",
     rig_source: str = "the given rig",
+    advisor: Any = None,
 ) -> RunResult:
     """Continue a session after a fault, a crash or Ctrl-C.
 
@@ -401,6 +428,8 @@ def resume_session(
         Called with every document after the journal has it.
     plan_source, rig_source
         How to name ``plan`` and ``rig_config`` in messages (e.g. their files).
+    advisor
+        As :func:`run_session` (an adaptive session's rounds not yet journaled).
 
     Raises
     ------
@@ -416,6 +445,7 @@ def resume_session(
     read_manifest(d)  # not a session, or a damaged one: refused before any lock file
     with hold_lock(d / LOCK_NAME, f"session {d}"):
         manifest = read_manifest(d)
+        _check_advisor(manifest.plan, advisor)
         jp = d / JOURNAL
         records = read_journal(jp) if jp.exists() else []
         check_journal_fits(d, manifest, records)
@@ -473,7 +503,17 @@ def resume_session(
             # solves each pose anew (its own limits and path rules decide).
             planned = cfg is manifest.rig
             return _run(
-                d, manifest, manifest.plan, dev, state, True, retakes, subscribers, bad, planned
+                d,
+                manifest,
+                manifest.plan,
+                dev,
+                state,
+                True,
+                retakes,
+                subscribers,
+                bad,
+                planned,
+                advisor=advisor,
             )
 
 
@@ -488,6 +528,7 @@ def _run(
     subscribers: Sequence[Subscriber],
     bad: Sequence[BadFrame] = (),
     planned_joints: bool = True,
+    advisor: Any = None,
 ) -> RunResult:
     steps = [s.model_dump() for s in manifest.schedule]
     if not planned_joints:
@@ -506,8 +547,15 @@ def _run(
     retaken: list[str] = []
     closed = set(state.done)
 
+    n_round_steps = [len(adaptive_steps(state.records))]
+    stops = [r for r in state.records if r.get("type") == ROUND and r.get("stop") is not None]
+
     def tally(doc: dict[str, Any]) -> None:
         t = doc.get("type")
+        if t == ROUND:
+            n_round_steps[0] += len(doc.get("steps") or [])
+            if doc.get("stop") is not None:
+                stops.append(doc)
         if t == "shot":
             counts["shots"] += 1
             if doc.get("retake"):
@@ -523,13 +571,29 @@ def _run(
             "rig reached, which takes its forward kinematics"
         )
     engine = Engine(devices, d, [journal.append, tally, *subscribers])
-    gen = session_plan(
-        steps,
-        plan,
-        state.plan_state(retake),
-        devices.kinematics.forward,
-        devices.noise_floor_dn(plan.bracket.camera_iso()),
-    )
+    if plan.adaptive is not None:
+        gen = adaptive_session_plan(
+            steps,
+            plan,
+            state.plan_state(retake),
+            devices.kinematics.forward,
+            devices.noise_floor_dn(plan.bracket.camera_iso()),
+            session_dir=d,
+            records=state.records,
+            pool=read_pool(d),
+            advisor=advisor if hasattr(advisor, "advise") else advisor(plan),
+            kinematics=devices.kinematics,
+            start_joints=manifest.rig.park_rad,
+            skipped={int(r["pose"]) for r in state.skipped},
+        )
+    else:
+        gen = session_plan(
+            steps,
+            plan,
+            state.plan_state(retake),
+            devices.kinematics.forward,
+            devices.noise_floor_dn(plan.bracket.camera_iso()),
+        )
     start = {
         "type": "start",
         "resumed": resumed,
@@ -545,12 +609,13 @@ def _run(
     result = RunResult(
         d,
         outcome.status,
-        len(steps),
+        len(steps) + n_round_steps[0],
         len(closed),
         counts["shots"],
         skipped,
         retaken,
         outcome.finalizer,
+        {k: stops[-1].get(k) for k in ("round", "stop", "poses_done")} if stops else None,
     )
     fin, error = outcome.finalizer, outcome.error
     if outcome.status == "fault":
@@ -570,6 +635,25 @@ def _run(
             result,
         )
     return result
+
+
+def _check_advisor(plan: Plan, advisor: Any) -> None:
+    if plan.adaptive is not None and advisor is None:
+        raise SessionError(
+            f"plan {plan.name!r} is [adaptive]: its rounds need an advisor (the composition "
+            "root's gonio.app.adaptive_advisor.FitAdvisor; gonio capture run/resume wire it) "
+            "(nothing was moved or written)"
+        )
+
+
+def _pool_file(dry: DryRun) -> dict[str, bytes]:
+    """An adaptive plan's candidate pool, as the session stores it."""
+    import json
+
+    pool = dry.schedule.pool
+    if pool is None:
+        return {}
+    return {POOL_FILE: json.dumps(pool.to_json(), separators=(",", ":")).encode()}
 
 
 def _diff_keys(a: dict, b: dict, prefix: str = "") -> str:

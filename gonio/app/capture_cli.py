@@ -114,7 +114,18 @@ def plan_cmd(
         f"{len(ex.excluded)} excluded -> [bold]{n_sample}[/] sample poses"
         + (f" + {n_ref} reference" if n_ref else "")
     )
-    if ex.excluded:
+    if ex.excluded and plan.adaptive is not None:
+        # the candidate pool's exclusions: thousands at a fine pool step; counted by code
+        from collections import Counter
+
+        counts = Counter(e.code for e in ex.excluded)
+        con.print(
+            f"adaptive: {summary['adaptive']['pool']} candidate poses, seed design "
+            f"{n_sample}, batches of {plan.adaptive.batch_poses} up to "
+            f"{plan.adaptive.max_poses} poses; excluded from the pool: "
+            + ", ".join(f"{n} {code}" for code, n in counts.most_common())
+        )
+    elif ex.excluded:
         t = Table(
             "theta_i", "phi_i", "theta_o", "phi_o", "code", "reason", title="excluded poses"
         )  # fmt: skip
@@ -154,6 +165,33 @@ def plan_cmd(
         f"estimated duration [bold]{_fmt_duration(sched.estimated_duration_s)}[/] "
         f"(bracket policy {plan.bracket.policy!r}; nothing was moved)"
     )
+
+
+def _rounds_table(rounds):
+    """An adaptive session's rounds: poses chosen, the winning fit's rel sigma, stop."""
+    from rich.table import Table
+
+    t = Table(
+        "round", "chosen", "before", "model", "rel sigma", "advise s", "batch s (rig)", "stop",
+        title="adaptive rounds (chosen: poses; before: poses measured; batch s: its estimated "
+        "capture time on the rig)",
+    )  # fmt: skip
+    for r in rounds:
+        rel = r.get("rel_sigma") or {}
+        rel_s = ", ".join(
+            f"{k} {100 * v:.3g} %" for k, v in rel.items() if isinstance(v, int | float)
+        )
+        t.add_row(
+            str(r.get("round")),
+            str(r.get("poses")),
+            str(r.get("poses_done", "")),
+            str(r.get("model") or ""),
+            rel_s,
+            f"{r['advise_s']:.2f}" if isinstance(r.get("advise_s"), int | float) else "",
+            f"{r['batch_time_s']:.0f}" if isinstance(r.get("batch_time_s"), int | float) else "",
+            str(r.get("stop") or ""),
+        )
+    return t
 
 
 class _DryRunProgress:
@@ -280,6 +318,13 @@ def _report(result) -> None:
         click.echo(f"session {result.session} completed")
     if result.retaken:
         click.echo(f"{len(result.retaken)} frame(s) shot again: {', '.join(result.retaken)}")
+    st = getattr(result, "adaptive_stop", None)
+    if st:
+        click.echo(
+            f"adaptive: stopped after round {st['round']} ({st['stop']}) with "
+            f"{st['poses_done']} sample poses; the rounds: 'gonio capture inspect "
+            f"{result.session}'"
+        )
 
 
 def _light_option(spec: str, camera_backend: str | None) -> str | None:
@@ -379,6 +424,13 @@ def _common(f):
     default=None,
     help="Seed the world's errors are drawn from (a realistic world) [default: 0].",
 )
+@click.option(
+    "--adaptive",
+    is_flag=True,
+    help="Choose the poses as the session goes: add the default [adaptive] table to a "
+    "plan that names no poses (a seed design, then batches by expected information until "
+    "the targets or budgets of [adaptive] are met; needs [reference] poses).",
+)
 @_CAMERA
 @_common
 def run_cmd(
@@ -388,6 +440,7 @@ def run_cmd(
     scene_file: str | None,
     world: str | None,
     world_seed: int | None,
+    adaptive: bool,
     camera_backend: str,
     camera_port: str | None,
     sim_speed: float | str | None,
@@ -421,7 +474,7 @@ def run_cmd(
     check_new_session_dir(out)  # before anything slow or physical
     if (world is not None or world_seed is not None) and camera_backend != "simulated":
         raise click.UsageError("--world and --world-seed need --camera simulated")
-    plan = load_plan(plan_file)
+    plan = load_plan(plan_file, adaptive=adaptive)
     light = _light_option(light_spec, camera_backend)
     if camera_backend != "simulated":  # before the rig or the camera is opened
         check_calibration_devices(plan, light is not None, True)
@@ -444,8 +497,16 @@ def run_cmd(
             simulation=simulation,
             attachments=attachments,
             subscribers=[progress],
+            advisor=_advisor,
         )
     _report(result)
+
+
+def _advisor(plan):
+    """An adaptive session's advisor (gonio.app.adaptive_advisor), for run and resume."""
+    from gonio.app.adaptive_advisor import FitAdvisor
+
+    return FitAdvisor(plan)
 
 
 @capture.command("resume")
@@ -538,6 +599,7 @@ def resume_cmd(
             subscribers=[progress],
             plan_source=str(plan_file),
             rig_source=str(rig_file),
+            advisor=_advisor,
         )
     _report(result)
 
@@ -594,6 +656,8 @@ def inspect_cmd(session_dir: Path, verify: bool, as_json: bool) -> None:
         left = info["poses_total"] - info["poses_done"]
         if left:
             con.print(f"left: {left} poses; continue with 'gonio capture resume {session_dir}'")
+        if info.get("rounds"):
+            con.print(_rounds_table(info["rounds"]))
         if info.get("budget") and info["budget"]["terms"]:
             from gonio.capture.budget import budget_table
 
