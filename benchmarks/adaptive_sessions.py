@@ -294,3 +294,50 @@ if __name__ == "__main__":
         s = dense_session(root, m)
         p = load_pool(s)
         print(m.name, len(p.pose_ids), "poses", len(p.samples.wi), "samples", flush=True)
+
+
+def adaptive_session(root: Path, m: Material, *, seed_poses: int = 24, batch_poses: int = 8,
+                     max_poses: int = 48, seed: int = 0,
+                     size: tuple[int, int] = SIZE) -> Path:  # fmt: skip
+    """A real adaptive session of ``m`` (A1's engine, ``run_session`` with an
+    ``[adaptive]`` plan and :class:`gonio.app.adaptive_advisor.FitAdvisor`, whose choices
+    are :mod:`gonio.fitting.design`'s), reduced as the dense sessions are."""
+    import tomli_w
+
+    from gonio.app.adaptive_advisor import FitAdvisor
+    from gonio.app.simulation import simulated_run
+    from gonio.capture.manifest import load_manifest
+    from gonio.capture.plan import load_plan
+    from gonio.capture.reduce import reduce_session
+    from gonio.capture.reduction_config import resolve_setup
+    from gonio.capture.sessions import run_session
+    from gonio.rig.config import load_rig_config, virtual_rig_document
+
+    d = root / ("adaptive_" + slug(m.name))
+    session = d / "session"
+    if (session / "samples.h5").is_file():
+        return session
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "rig.toml").write_text(virtual_rig_document())
+    (d / "scene.toml").write_text(tomli_w.dumps(_scene(m, size)))
+    plan = plan_document(DENSE_THETA, DENSE_PHI, seed, size)
+    del plan["grid"]
+    plan["adaptive"] = {
+        "seed_poses": seed_poses,
+        "batch_poses": batch_poses,
+        "max_poses": max_poses,
+        "pool_step_deg": 10.0,
+    }
+    (d / "plan.toml").write_text(tomli_w.dumps(plan))
+    if session.exists():
+        import shutil
+
+        shutil.rmtree(session)
+    p = load_plan(d / "plan.toml")
+    sim = simulated_run(p, d / "plan.toml", None, "virtual", "perfect", seed)
+    run_session(session, p, load_rig_config(d / "rig.toml"), sim.opener,
+                camera_backend="simulated", simulation=sim.simulation,
+                attachments=sim.attachments, advisor=FitAdvisor)  # fmt: skip
+    setup = dataclasses.replace(resolve_setup(session, load_manifest(session)), grid=6)
+    reduce_session(session, setup=setup, plot=False)
+    return session
