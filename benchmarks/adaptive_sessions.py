@@ -337,7 +337,7 @@ def adaptive_session(root: Path, m: Material, *, seed_poses: int = 24, batch_pos
     sim = simulated_run(p, d / "plan.toml", None, "virtual", "perfect", seed)
     run_session(session, p, load_rig_config(d / "rig.toml"), sim.opener,
                 camera_backend="simulated", simulation=sim.simulation,
-                attachments=sim.attachments, advisor=FitAdvisor)  # fmt: skip
+                attachments=sim.attachments, advisor=lambda plan: FitAdvisor(plan))  # fmt: skip
     setup = dataclasses.replace(resolve_setup(session, load_manifest(session)), grid=6)
     reduce_session(session, setup=setup, plot=False)
     return session
