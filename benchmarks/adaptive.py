@@ -59,7 +59,9 @@ TARGET = 5.0
 # --------------------------------------------------------------------------------------
 # Fits and error
 def fit_candidates(samples: Any, candidates: Sequence[str] = CANDIDATES) -> tuple[list, np.ndarray]:
-    """Every candidate fitted (weighted L2, the samples' sigmas) and the BIC weights."""
+    """Every candidate fitted (weighted L2, the samples' sigmas) and the models' weights:
+    the BIC posterior, with the model ``gonio fit --model auto`` would report (the BIC's
+    best unless its lobe is matte, :func:`chosen`) given the largest weight."""
     from gonio.fitting.fit import fit_model
 
     fits = []
@@ -72,7 +74,33 @@ def fit_candidates(samples: Any, candidates: Sequence[str] = CANDIDATES) -> tupl
             fits.append(r)
     if not fits:
         raise FitError("no candidate model could be fitted")
-    return fits, design.bic_weights(fits)
+    w = design.bic_weights(fits)
+    k = chosen(fits, w)
+    if w[k] < w.max():  # the matte rule's prior: the reported model is the one designed for
+        w = w.copy()
+        w[k] = w.max() * (1.0 + 1e-9)
+        w = w / w.sum()
+    return fits, w
+
+
+def chosen(fits: Sequence[Any], w: np.ndarray) -> int:
+    """The model :func:`gonio.fitting.select.select_model` reports among ``fits``: the
+    lowest BIC, unless that lobe is matte (< ``MIN_GLOSS`` GU at 60 deg) and a diffuse
+    candidate's cost is within ``MAX_DIFFUSE_COST_RATIO`` of it (select's rule, applied
+    to fits already made instead of fitting every candidate twice)."""
+    from gonio.fitting.select import DIFFUSE_MODELS, MAX_DIFFUSE_COST_RATIO, MIN_GLOSS, gloss_units
+
+    best = int(np.argmax(w))
+    if fits[best].model in DIFFUSE_MODELS:
+        return best
+    if float(np.mean(gloss_units(fits[best].bind()))) >= MIN_GLOSS:
+        return best
+    diffuse = [
+        i
+        for i, r in enumerate(fits)
+        if r.model in DIFFUSE_MODELS and r.cost <= MAX_DIFFUSE_COST_RATIO * fits[best].cost
+    ]
+    return max(diffuse, key=lambda i: w[i]) if diffuse else best
 
 
 class Truth:
@@ -128,18 +156,20 @@ def _farthest(wi, wo, chosen: list[int], among: np.ndarray, n: int) -> list[int]
 
 
 def seed_design(wi: np.ndarray, wo: np.ndarray, n: int = 24, retro: int = 4,
-                in_plane: int = 8) -> list[int]:  # fmt: skip
-    """The seed poses (positions): ``retro`` near-retro-reflection poses (the smallest
-    angles between wi and wo the pool has), ``in_plane`` poses in the incidence plane,
-    the rest space-filling (farthest point in pose distance)."""
+                in_plane: int = 8, base: Sequence[int] = ()) -> list[int]:  # fmt: skip
+    """The seed poses (positions): ``base`` first (the coarsest regular grid: what the
+    run can never be worse than at its time), then ``retro`` near-retro-reflection poses
+    (the smallest angles between wi and wo the pool has), poses in the incidence plane
+    up to ``in_plane`` in all, the rest space-filling (farthest point in pose distance)."""
+    chosen = [int(k) for k in base][:n]
+    retro, in_plane = min(retro, n // 6), min(in_plane, n // 3)  # a small seed: scaled
     sep = np.degrees(np.arccos(np.clip(np.sum(wi * wo, axis=1), -1, 1)))
-    near_retro = np.flatnonzero(sep <= np.min(sep) + 1e-6)
-    if len(near_retro) < retro:
-        near_retro = np.argsort(sep, kind="stable")[: 3 * retro]
-    chosen = _farthest(wi, wo, [], near_retro, retro)
+    near_retro = np.argsort(sep, kind="stable")[: 3 * retro]
+    chosen += _farthest(wi, wo, chosen, near_retro, min(retro, n - len(chosen)))
     cross = np.cross(wi, wo)[:, 2]  # wo in the plane of wi and the normal: (wi x wo).z = 0
     plane = np.flatnonzero(np.abs(cross) < 1e-6)
-    chosen += _farthest(wi, wo, chosen, plane, in_plane)
+    have = int(np.isin(chosen, plane).sum())
+    chosen += _farthest(wi, wo, chosen, plane, max(0, min(in_plane - have, n - len(chosen))))
     chosen += _farthest(wi, wo, chosen, np.arange(len(wi)), n - len(chosen))
     return chosen
 
@@ -162,7 +192,8 @@ def adaptive_run(pool: Any, truth: Truth, *, seed_poses: int = 24, batch: int = 
                  target_rel_sigma: dict | None = None,
                  stop_on_target: bool = False) -> list[dict]:  # fmt: skip
     """Rounds of the adaptive loop on the measured pool; one record per round."""
-    measured = seed_design(pool.wi, pool.wo, seed_poses)
+    base = sessions.grid_positions(pool, *sessions.GRIDS[0])
+    measured = seed_design(pool.wi, pool.wo, seed_poses, base=base)
     batches = [list(measured)]
     rounds = []
     ewi, ewo = truth.wi[:1024], truth.wo[:1024]
@@ -201,6 +232,17 @@ def adaptive_run(pool: Any, truth: Truth, *, seed_poses: int = 24, batch: int = 
     return rounds
 
 
+def noise_sigma(ev: dict, truth: Truth, n: int = 512) -> float:
+    """The chosen fit's median predicted relative sigma of f over the evaluation set from
+    the samples' noise alone: the statistical resolution of its error figure."""
+    best = ev["fits"][int(np.argmax(ev["weights"]))]
+    cov = design.noise_covariance(best, ev["samples"])
+    f, v = design.predictive(best, truth.wi[:n], truth.wo[:n], cov)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.sqrt(v) / np.abs(f)
+    return float(np.nanmedian(np.nanmax(np.where(np.isfinite(rel), rel, np.nan), axis=1)))
+
+
 def grid_runs(pool: Any, truth: Truth, candidates=CANDIDATES) -> list[dict]:
     out = []
     for th, ph in sessions.GRIDS:
@@ -212,6 +254,7 @@ def grid_runs(pool: Any, truth: Truth, candidates=CANDIDATES) -> list[dict]:
             "time_s": sessions.session_time_s(pool, [pos]),
             "error": ev["error"],
             "model": ev["model"],
+            "noise_sigma": noise_sigma(ev, truth),
         })  # fmt: skip
     return out
 
@@ -254,6 +297,8 @@ def ratios(grids: list[dict], adaptive: list[dict]) -> dict[str, Any]:
         n_g = poses_to_reach(grids, final["error"])
         pose_ratio = (n_g if n_g is not None else float("nan")) / final["poses"]
         how = "the densest grid's error is not reached: grid poses for the adaptive final error"
+    tol = dense["error"] + 2.0 * dense["noise_sigma"]
+    n_tol = poses_to_reach(adaptive, tol)
     per_level = []
     for g in grids:
         n = poses_to_reach(adaptive, g["error"])
@@ -269,6 +314,9 @@ def ratios(grids: list[dict], adaptive: list[dict]) -> dict[str, Any]:
     return {
         "pose_ratio": pose_ratio,
         "pose_ratio_basis": how,
+        # equal within the error figure's resolution: the densest grid's error + twice its
+        # fit's noise-only predicted sigma of f
+        "pose_ratio_within_noise": None if n_tol is None else dense["poses"] / n_tol,
         "error_ratio_at_equal_time": min(er) if er else None,
         "error_ratio_at_dense_time": per_level[-1]["error_ratio"],
         "never_worse_at_equal_time": all(r >= 1.0 for r in er),
@@ -328,6 +376,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "weights": weights or design.DEFAULT_WEIGHTS,
         "materials": per,
         "pose_ratio": {k: v["pose_ratio"] for k, v in per.items()},
+        "pose_ratio_within_noise": {k: v["pose_ratio_within_noise"] for k, v in per.items()},
         "error_ratio_at_equal_time": {k: v["error_ratio_at_equal_time"] for k, v in per.items()},
         "ratio": ratio,
         "target": TARGET,

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,9 +23,22 @@ from typing import Any
 
 import numpy as np
 
-RGL = Path(__file__).resolve().parents[1].parent.parent / "shared" / "data" / "rgl"
-if not RGL.is_dir():
-    RGL = Path("/work/shared/data/rgl")
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _refdata() -> Path:
+    """``$GONIO_REFDATA``, else ``shared/data`` beside the repository (or beside the
+    folder of its work trees)."""
+    env = os.environ.get("GONIO_REFDATA")
+    if env:
+        return Path(env)
+    for base in (REPO.parent, REPO.parent.parent):
+        if (base / "shared" / "data").is_dir():
+            return base / "shared" / "data"
+    return REPO.parent / "shared" / "data"
+
+
+RGL = _refdata() / "rgl"
 
 SIZE = (160, 120)
 #: the dense grid (deg): theta_i, theta_o to 80 in 10 deg, phi_o in 22.5 deg
@@ -125,8 +139,23 @@ def dense_session(root: Path, m: Material, seed: int = 0, size: tuple[int, int] 
         import shutil
 
         shutil.rmtree(session)
-    run_simulated_session(session, d / "plan.toml", d / "rig.toml", "virtual",
-                          world="perfect", world_seed=seed, quiet=True)  # fmt: skip
+    from gonio.app.devices import device_opener
+    from gonio.capture.sessions import SessionStopped, resume_session
+    from gonio.errors import GonioError
+
+    try:
+        run_simulated_session(session, d / "plan.toml", d / "rig.toml", "virtual",
+                              world="perfect", world_seed=seed, quiet=True)  # fmt: skip
+    except SessionStopped:
+        # a loaded machine can starve the virtual bus (no status packet): the rig parks
+        # and the session resumes, as in a lab
+        for attempt in range(8):
+            try:
+                resume_session(session, device_opener(time_scale="virtual"))
+                break
+            except GonioError:
+                if attempt == 7:
+                    raise
     setup = dataclasses.replace(resolve_setup(session, load_manifest(session)), grid=6)
     reduce_session(session, setup=setup, plot=False)
     return session
@@ -265,3 +294,50 @@ if __name__ == "__main__":
         s = dense_session(root, m)
         p = load_pool(s)
         print(m.name, len(p.pose_ids), "poses", len(p.samples.wi), "samples", flush=True)
+
+
+def adaptive_session(root: Path, m: Material, *, seed_poses: int = 24, batch_poses: int = 8,
+                     max_poses: int = 48, seed: int = 0,
+                     size: tuple[int, int] = SIZE) -> Path:  # fmt: skip
+    """A real adaptive session of ``m`` (A1's engine, ``run_session`` with an
+    ``[adaptive]`` plan and :class:`gonio.app.adaptive_advisor.FitAdvisor`, whose choices
+    are :mod:`gonio.fitting.design`'s), reduced as the dense sessions are."""
+    import tomli_w
+
+    from gonio.app.adaptive_advisor import FitAdvisor
+    from gonio.app.simulation import simulated_run
+    from gonio.capture.manifest import load_manifest
+    from gonio.capture.plan import load_plan
+    from gonio.capture.reduce import reduce_session
+    from gonio.capture.reduction_config import resolve_setup
+    from gonio.capture.sessions import run_session
+    from gonio.rig.config import load_rig_config, virtual_rig_document
+
+    d = root / ("adaptive_" + slug(m.name))
+    session = d / "session"
+    if (session / "samples.h5").is_file():
+        return session
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "rig.toml").write_text(virtual_rig_document())
+    (d / "scene.toml").write_text(tomli_w.dumps(_scene(m, size)))
+    plan = plan_document(DENSE_THETA, DENSE_PHI, seed, size)
+    del plan["grid"]
+    plan["adaptive"] = {
+        "seed_poses": seed_poses,
+        "batch_poses": batch_poses,
+        "max_poses": max_poses,
+        "pool_step_deg": 10.0,
+    }
+    (d / "plan.toml").write_text(tomli_w.dumps(plan))
+    if session.exists():
+        import shutil
+
+        shutil.rmtree(session)
+    p = load_plan(d / "plan.toml")
+    sim = simulated_run(p, d / "plan.toml", None, "virtual", "perfect", seed)
+    run_session(session, p, load_rig_config(d / "rig.toml"), sim.opener,
+                camera_backend="simulated", simulation=sim.simulation,
+                attachments=sim.attachments, advisor=lambda plan: FitAdvisor(plan))  # fmt: skip
+    setup = dataclasses.replace(resolve_setup(session, load_manifest(session)), grid=6)
+    reduce_session(session, setup=setup, plot=False)
+    return session

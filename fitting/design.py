@@ -293,11 +293,14 @@ def noise_covariance(fit: FitResult, samples: Any) -> np.ndarray:
     return unc.covariance
 
 
-def predictive(fit: FitResult, wi: np.ndarray, wo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def predictive(
+    fit: FitResult, wi: np.ndarray, wo: np.ndarray, covariance: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """The fit's prediction f (K, C) at ``(wi, wo)`` and its variance ``J Sigma J^T``
-    (K, C) from the fit's covariance (1/sr and 1/sr^2)."""
+    (K, C) (1/sr and 1/sr^2), ``Sigma`` the fit's covariance or ``covariance`` (e.g.
+    :func:`noise_covariance`)."""
     f, J = sensitivities(fit, wi, wo)
-    free, cov = _free_covariance(fit)
+    free, cov = _free_covariance(fit, covariance)
     Jf = J[:, :, free]
     v = np.einsum("kcp,pq,kcq->kc", Jf, cov, Jf)
     return f, np.clip(v, 0.0, None)
