@@ -307,10 +307,10 @@ def ggx_hot_serial(wi, wo, ks, alpha, out):
 #   (angles -> VNDF cell -> gathers -> sample-space cell -> gathers) is longer than the
 #   CPU's reorder window, so a loop over whole pairs waited for every cache miss in turn,
 #   while a loop that only gathers keeps a dozen misses in flight;
-# - the tables hold what the file holds in float32 (VNDF corners, RGB corners) as float32
-#   (exact; the normalisation is applied per slice on the fly, the same product the numpy
-#   path stores), the float64 conditional CDFs next to them, and the two theta_i slices one
-#   look-up blends side by side: one or two cache lines per pair instead of four to six.
+# - the tables hold what the file holds in float32 (VNDF, RGB corners) as float32 (exact;
+#   the normalisation is applied per slice on the fly, the same product the numpy path
+#   stores), unpacked (1.5 MB instead of the numpy path's 9 MB of packed patches, mostly
+#   in L2), the two theta_i slices one look-up blends side by side.
 
 _RGL_BLOCK = 64
 # prange iterations (each with its scratch): get_num_threads() would keep the code uncached
@@ -445,18 +445,20 @@ def _rgl_block(
     for j in range(nb):
         s0 = k[0, j]
         c = k[2, j]
-        g[0, j] = vndf[c, s0, 4]
-        g[1, j] = vndf[c, s0, 5]
-        g[2, j] = vndf[c, s0, 6]
-        g[3, j] = vndf[c, s0, 7]
-        g[4, j] = cdf[c, s0, 0]
-        g[5, j] = cdf[c, s0, 1]
-        g[6, j] = vndf[c, s0 + 1, 4]
-        g[7, j] = vndf[c, s0 + 1, 5]
-        g[8, j] = vndf[c, s0 + 1, 6]
-        g[9, j] = vndf[c, s0 + 1, 7]
-        g[10, j] = cdf[c, s0 + 1, 0]
-        g[11, j] = cdf[c, s0 + 1, 1]
+        y = k[3, j]
+        x = c - y * (vw - 1)
+        g[0, j] = vndf[y, x, s0]
+        g[6, j] = vndf[y, x, s0 + 1]
+        g[1, j] = vndf[y, x + 1, s0]
+        g[7, j] = vndf[y, x + 1, s0 + 1]
+        g[2, j] = vndf[y + 1, x, s0]
+        g[8, j] = vndf[y + 1, x, s0 + 1]
+        g[3, j] = vndf[y + 1, x + 1, s0]
+        g[9, j] = vndf[y + 1, x + 1, s0 + 1]
+        g[4, j] = cdf[y, x, s0]
+        g[10, j] = cdf[y, x, s0 + 1]
+        g[5, j] = cdf[y + 1, x, s0]
+        g[11, j] = cdf[y + 1, x, s0 + 1]
     # 4. inverse VNDF warp (_invert_vndf) -> the sample-space cell
     for j in range(nb):
         s0 = k[0, j]
@@ -478,17 +480,19 @@ def _rgl_block(
         marg_prev = w0 * rows[cy, s0, 2] + w1 * rows[cy, s0 + 1, 2]
         if n_p > 1:
             s2 = k[1, j]
-            c = k[2, j]
+            x = k[2, j] - cy * (vw - 1)
             w2 = f[9, j]
             w3 = f[10, j]
             n2 = rows[cy, s2, 3]
             n3 = rows[cy, s2 + 1, 3]
-            v00 = v00 + w2 * (vndf[c, s2, 4] * n2) + w3 * (vndf[c, s2 + 1, 4] * n3)
-            v10 = v10 + w2 * (vndf[c, s2, 5] * n2) + w3 * (vndf[c, s2 + 1, 5] * n3)
-            v01 = v01 + w2 * (vndf[c, s2, 6] * n2) + w3 * (vndf[c, s2 + 1, 6] * n3)
-            v11 = v11 + w2 * (vndf[c, s2, 7] * n2) + w3 * (vndf[c, s2 + 1, 7] * n3)
-            prev0 = prev0 + w2 * cdf[c, s2, 0] + w3 * cdf[c, s2 + 1, 0]
-            prev1 = prev1 + w2 * cdf[c, s2, 1] + w3 * cdf[c, s2 + 1, 1]
+            v00 = v00 + w2 * (vndf[cy, x, s2] * n2) + w3 * (vndf[cy, x, s2 + 1] * n3)
+            v10 = v10 + w2 * (vndf[cy, x + 1, s2] * n2) + w3 * (vndf[cy, x + 1, s2 + 1] * n3)
+            v01 = v01 + w2 * (vndf[cy + 1, x, s2] * n2) + w3 * (vndf[cy + 1, x, s2 + 1] * n3)
+            v11 = v11 + w2 * (vndf[cy + 1, x + 1, s2] * n2) + w3 * (
+                vndf[cy + 1, x + 1, s2 + 1] * n3
+            )
+            prev0 = prev0 + w2 * cdf[cy, x, s2] + w3 * cdf[cy, x, s2 + 1]
+            prev1 = prev1 + w2 * cdf[cy + 1, x, s2] + w3 * cdf[cy + 1, x, s2 + 1]
             r0 = r0 + w2 * rows[cy, s2, 0] + w3 * rows[cy, s2 + 1, 0]
             r1 = r1 + w2 * rows[cy, s2, 1] + w3 * rows[cy, s2 + 1, 1]
             marg_prev = marg_prev + w2 * rows[cy, s2, 2] + w3 * rows[cy, s2 + 1, 2]
@@ -546,13 +550,14 @@ def rgl_eval(
 ):  # fmt: skip
     """``f_r`` (1/sr) of an RGL measured BRDF for ``(N, 3)`` pairs above the horizon.
 
-    The tables are :meth:`gonio.brdf.rgl.RGLBRDF.kernel_tables`: per (cell, slice) of the
-    VNDF the conditional CDF before the cell in its two rows (``cdf``, float64, 4 wide)
-    whose last two float64 hold the four float32 corner densities (``vndf``, a float32
-    view of the same memory, entries 4..7); per (VNDF row, slice) the two row totals, the
-    marginal CDF before the row and the slice's normalisation (``rows``); per (RGB cell,
-    slice) the four corners of every channel (``spec``, float32, corner-major);
-    ``n_t2`` slices per phi_i (theta_i padded to two, so that slice ``s + 1`` exists);
+    The tables are :meth:`gonio.brdf.rgl.RGLBRDF.kernel_tables`, slices last so that the
+    two theta_i slices a pair blends are adjacent: the file's VNDF (``vndf[y, x, slice]``,
+    float32 as stored), the normalised conditional CDF before each VNDF column
+    (``cdf[y, x, slice]``, float64); per (VNDF row, slice) the two row totals of the row's
+    patches, the marginal CDF before the row and the slice's normalisation (``rows``);
+    per (RGB cell, slice) the four corners of every channel (``spec``, float32,
+    corner-major); ``n_t2`` slices per phi_i (theta_i padded to two, so that slice
+    ``s + 1`` exists).
     ``atan_table`` is :data:`gonio.brdf.rgl.ATAN_TABLE` (an argument: a global array would
     keep numba from caching the machine code); ``out`` is ``(N, channels)``.  Bit for bit
     the numpy path.

@@ -375,27 +375,26 @@ class RGLBRDF:
     def kernel_tables(self) -> tuple[Any, ...]:
         """The tables of :func:`gonio.brdf.kernels.rgl_eval`, built from the numpy path's.
 
-        Laid out for one look-up to touch few cache lines: the entries of one cell for all
-        slices side by side, so that the two theta_i slices a pair blends are adjacent
-        (slice ``s`` and ``s + 1``; theta_i is padded to two slices when the file has
-        one); values the file holds in float32 stay float32 (exact), the derived CDFs
-        float64.  Returns ``(n_t2, cdf, vndf, rows, spec, ndf, sigma)``, see ``rgl_eval``.
+        Slices last, so that the two theta_i slices a pair blends are adjacent (slice
+        ``s`` and ``s + 1``; theta_i is padded to two slices when the file has one);
+        values the file holds in float32 stay float32 (exact), the derived CDFs float64.
+        Returns ``(n_t2, cdf, vndf, rows, spec, ndf, sigma)``, see ``rgl_eval``.
         """
         n_p, n_t = self.phi_i.size, self.theta_i.size
         n_t2 = max(n_t, 2)
         # slice index of the kernel's tables -> slice of the numpy tables
         src = (np.arange(n_p)[:, None] * n_t + np.minimum(np.arange(n_t2), n_t - 1)).ravel()
-        k_rows, _, n_cells = self._patch.shape
         h, w = self._vndf_shape
-        cdf = np.zeros((n_cells, src.size, 4))
-        cdf[:, :, 0] = self._patch[4][src].T
-        cdf[:, :, 1] = self._patch[5][src].T
-        vndf = cdf.view(np.float32)  # (cells, slices, 8): entries 4..7 share cdf[..., 2:4]
         raw = self._vndf_raw.reshape(n_p * n_t, h, w)[src]
-        corners = (raw[:, :-1, :-1], raw[:, :-1, 1:], raw[:, 1:, :-1], raw[:, 1:, 1:])
-        for j, c in enumerate(corners):
-            vndf[:, :, 4 + j] = c.reshape(src.size, -1).T
-        first = np.arange(h - 1) * (w - 1)  # the first cell of each VNDF row
+        vndf = np.ascontiguousarray(raw.transpose(1, 2, 0))  # (h, w, slices) float32
+        # conditional CDF before each column: the packed patches' lower rows, and the
+        # upper row of the last patch row for the top VNDF row
+        lower = self._patch[4][src].reshape(src.size, h - 1, w - 1)
+        upper = self._patch[5][src].reshape(src.size, h - 1, w - 1)
+        cdf = np.empty((h, w - 1, src.size))
+        cdf[:-1] = lower.transpose(1, 2, 0)
+        cdf[-1] = upper[:, -1].T
+        first = np.arange(h - 1) * (w - 1)  # the first patch of each VNDF row
         rows = np.empty((h - 1, src.size, 4))
         for j, r in enumerate((6, 7, 8)):
             rows[:, :, j] = self._patch[r][src][:, first].T
