@@ -400,6 +400,16 @@ def _rgl_block(
     for j in range(nb):
         wix, wiy, wiz = wi[b0 + j, 0], wi[b0 + j, 1], wi[b0 + j, 2]
         wox, woy, woz = wo[b0 + j, 0], wo[b0 + j, 1], wo[b0 + j, 2]
+        # RGLBRDF.eval_channels' masks: non-finite input -> NaN, the horizon -> 0; such
+        # pairs go through the arithmetic as the normal (table indices stay in range)
+        finite = (
+            math.isfinite(wix) and math.isfinite(wiy) and math.isfinite(wiz)
+            and math.isfinite(wox) and math.isfinite(woy) and math.isfinite(woz)
+        )  # fmt: skip
+        k[5, j] = 0 if finite and wiz > 0 and woz > 0 else (1 if finite else 2)
+        if k[5, j] != 0:
+            wix = wiy = wox = woy = 0.0
+            wiz = woz = 1.0
         if reduction >= 2:
             sy = -1.0 if wiy >= 0 else 1.0
             sx = sy
@@ -521,6 +531,10 @@ def _rgl_block(
         scale = 1.0
         if jacobian:
             scale = _bilinear(ndf, f[4, j], f[5, j]) / (4.0 * _bilinear(sigma, f[2, j], f[3, j]))
+        if k[5, j] != 0:
+            for ch in range(n_ch):
+                out[b0 + j, ch] = 0.0 if k[5, j] == 1 else np.nan
+            continue
         for ch in range(n_ch):
             a0 = w0 * spec[c, s0, ch] + w1 * spec[c, s0 + 1, ch]
             a1 = w0 * spec[c, s0, n_ch + ch] + w1 * spec[c, s0 + 1, n_ch + ch]
@@ -548,7 +562,8 @@ def rgl_eval(
     wi, wo, phi_vals, theta_vals, n_t2, cdf, vndf, rows, spec, ndf, sigma,
     vh, vw, ry, rx, reduction, isotropic, jacobian, atan_table, out,
 ):  # fmt: skip
-    """``f_r`` (1/sr) of an RGL measured BRDF for ``(N, 3)`` pairs above the horizon.
+    """``f_r`` (1/sr) of an RGL measured BRDF for ``(N, 3)`` pairs: 0 where either
+    direction is at or below the horizon, NaN where any component is NaN or infinite.
 
     The tables are :meth:`gonio.brdf.rgl.RGLBRDF.kernel_tables`, slices last so that the
     two theta_i slices a pair blends are adjacent: the file's VNDF (``vndf[y, x, slice]``,
@@ -567,7 +582,7 @@ def rgl_eval(
     n_chunks = min(n_blocks, _RGL_CHUNKS)  # static shares for numba's threads
     for chunk in prange(n_chunks):
         f = np.empty((13, _RGL_BLOCK))
-        k = np.empty((5, _RGL_BLOCK), np.intp)
+        k = np.empty((6, _RGL_BLOCK), np.intp)
         g = np.empty((12, _RGL_BLOCK))
         for blk in range(chunk * n_blocks // n_chunks, (chunk + 1) * n_blocks // n_chunks):
             b0 = blk * _RGL_BLOCK

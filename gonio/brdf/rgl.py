@@ -258,7 +258,8 @@ class RGLBRDF:
         Returns
         -------
         ndarray, shape ``broadcast(wi, wo)[:-1] + (3,)``
-            0 where either direction is at or below the horizon; NaN for NaN input.
+            0 where either direction is at or below the horizon; NaN for NaN (or
+            infinite) input.
 
         Raises
         ------
@@ -278,8 +279,10 @@ class RGLBRDF:
         """``f_r`` for every stored channel (3 for RGB files, one per wavelength otherwise)."""
         wi, wo, shape = flat_pairs(wi, wo)
         n_ch = self._n_ch
+        if (fused := self._eval_fused(wi, wo)) is not None:  # the horizon and NaN included
+            return fused.reshape(*shape, n_ch)
         out = np.zeros((wi.shape[0], n_ch))
-        nan = np.isnan(wi).any(-1) | np.isnan(wo).any(-1)
+        nan = ~(np.isfinite(wi).all(-1) & np.isfinite(wo).all(-1))
         active = (wi[:, 2] > 0) & (wo[:, 2] > 0) & ~nan
         if active.size and active.all():  # common: no copies of the inputs or the result
             out = self._eval_active(wi, wo)
@@ -289,8 +292,6 @@ class RGLBRDF:
         return out.reshape(*shape, n_ch)
 
     def _eval_active(self, wi: Array, wo: Array) -> Array:
-        if (f := self._eval_fused(wi, wo)) is not None:
-            return f
         wi = wi.copy()
         wo = wo.copy()
         if self.reduction >= 2:
@@ -338,8 +339,9 @@ class RGLBRDF:
         return spec / wo[:, 2:3]
 
     def _eval_fused(self, wi: Array, wo: Array) -> Array | None:
-        """``_eval_active`` by the numba kernel of :mod:`gonio.brdf.kernels` (same
-        arithmetic, one pass per pair), or None for small batches or ``GONIO_NUMBA=0``.
+        """``eval_channels`` of flat pairs by the numba kernel of :mod:`gonio.brdf.kernels`
+        (same arithmetic; it also gives the horizon's 0 and the NaN of non-finite input, so
+        no masks or copies are made here), or None for small batches or ``GONIO_NUMBA=0``.
 
         Same lazy rule as the microfacet lobes: numba is first imported by a batch of
         ``_FIRST_FUSED`` pairs, so that small evaluations never pay its load time."""

@@ -338,12 +338,18 @@ def test_rgl_kernel_matches_numpy(monkeypatch, rgl_calls, rgl_file, tmp_path, ma
     wi, wo = _rgl_pairs(np.random.default_rng(17), 6000)
     wi[5000] = [0.6, 0.0, -0.8]  # below the horizon: 0
     wo[5001] = [np.nan, 0.0, 0.5]  # NaN in: NaN out
+    wi[5002] = [np.inf, 0.0, 0.5]  # infinite in: NaN out
+    wo[5003] = [0.0, 0.6, -0.8]  # wo below the horizon: 0
+    wi[5004], wo[5004] = [0.0, 0.6, -0.8], [0.3, np.nan, 0.5]  # NaN wins over the horizon
+    wi[5005] = [1.0, 0.0, 0.0]  # on the horizon: 0
     fast = b.eval(wi, wo)
     assert rgl_calls["n"] == 1
     ref = _numpy_path(monkeypatch, lambda: b.eval(wi, wo))
     assert rgl_calls["n"] == 1
     np.testing.assert_array_equal(np.isnan(fast), np.isnan(ref))
-    assert np.all(fast[5000] == 0.0) and np.all(np.isnan(fast[5001]))
+    assert np.all(fast[[5000, 5003, 5005]] == 0.0)
+    assert np.all(np.isnan(fast[[5001, 5002, 5004]]))
+    assert np.isfinite(np.delete(fast, [5001, 5002, 5004], axis=0)).all()
     assert np.count_nonzero(np.isfinite(ref) & (ref != 0)) > 5000 * b._n_ch  # not trivial
     # the same IEEE operations in the same order (the angles included: both paths take
     # them from gonio.brdf.rgl's arctangent), so the two agree bit for bit
