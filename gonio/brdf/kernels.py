@@ -390,7 +390,7 @@ def _bilinear(table, u, v):
 @njit(**_JIT)
 def _rgl_block(
     wi, wo, b0, b1, phi_vals, theta_vals, n_t2, cdf, vndf, rows, spec, ndf, sigma,
-    vh, vw, ry, rx, reduction, isotropic, jacobian, atan_table, out, f, k, g,
+    vh, vw, ry, rx, reduction, isotropic, relative_only, jacobian, atan_table, out, f, k, g,
 ):  # fmt: skip
     """Pairs ``b0 .. b1`` (at most _RGL_BLOCK); ``f``, ``k``, ``g`` are scratch."""
     nb = b1 - b0
@@ -423,10 +423,16 @@ def _rgl_block(
         my = wiy + woy
         mz = wiz + woz
         theta_i = _elevation(wix, wiy, wiz, atan_table)
-        phi_i = _atan2(wiy, wix, atan_table)
         theta_m = _atan2_pos(math.sqrt(mx * mx + my * my), mz, atan_table)
-        phi_m = _atan2(my, mx, atan_table)
-        rel = phi_m - phi_i if isotropic else phi_m
+        if relative_only and (wix != 0.0 or wiy != 0.0):
+            phi_i = 0.0
+            rel = _atan2(my * wix - mx * wiy, mx * wix + my * wiy, atan_table)
+        else:
+            phi_i = _atan2(wiy, wix, atan_table)
+            phi_m = _atan2(my, mx, atan_table)
+            rel = phi_m - phi_i if isotropic else phi_m
+            if relative_only:
+                phi_i = 0.0
         um_y = (rel + math.pi) / (2 * math.pi)
         um_y -= math.floor(um_y)
         f[0, j] = theta_i
@@ -560,7 +566,7 @@ def _rgl_block(
 @njit(**_JIT, parallel=True)
 def rgl_eval(
     wi, wo, phi_vals, theta_vals, n_t2, cdf, vndf, rows, spec, ndf, sigma,
-    vh, vw, ry, rx, reduction, isotropic, jacobian, atan_table, out,
+    vh, vw, ry, rx, reduction, isotropic, relative_only, jacobian, atan_table, out,
 ):  # fmt: skip
     """``f_r`` (1/sr) of an RGL measured BRDF for ``(N, 3)`` pairs: 0 where either
     direction is at or below the horizon, NaN where any component is NaN or infinite.
@@ -573,8 +579,10 @@ def rgl_eval(
     per (RGB cell, slice) the four corners of every channel (``spec``, float32,
     corner-major); ``n_t2`` slices per phi_i (theta_i padded to two, so that slice
     ``s + 1`` exists).
-    ``atan_table`` is :data:`gonio.brdf.rgl.ATAN_TABLE` (an argument: a global array would
-    keep numba from caching the machine code); ``out`` is ``(N, channels)``.  Bit for bit
+    ``relative_only`` is :attr:`gonio.brdf.rgl.RGLBRDF._relative_only` (one arctangent for
+    the relative azimuth, phi_i = 0 for sigma); ``atan_table`` is
+    :data:`gonio.brdf.rgl.ATAN_TABLE` (an argument: a global array would keep numba from
+    caching the machine code); ``out`` is ``(N, channels)``.  Bit for bit
     the numpy path.
     """
     n = wi.shape[0]
@@ -588,6 +596,6 @@ def rgl_eval(
             b0 = blk * _RGL_BLOCK
             _rgl_block(
                 wi, wo, b0, min(b0 + _RGL_BLOCK, n), phi_vals, theta_vals, n_t2, cdf, vndf,
-                rows, spec, ndf, sigma, vh, vw, ry, rx, reduction, isotropic, jacobian,
-                atan_table, out, f, k, g,
+                rows, spec, ndf, sigma, vh, vw, ry, rx, reduction, isotropic, relative_only,
+                jacobian, atan_table, out, f, k, g,
             )  # fmt: skip

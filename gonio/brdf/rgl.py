@@ -203,6 +203,11 @@ class RGLBRDF:
             self.reduction = int(np.rint(2 * np.pi / span))
         self._ndf = f64["ndf"]
         self._sigma = f64["sigma"]
+        # Isotropic files with one phi_i and a projected area that does not vary with
+        # phi_i (all rows equal: every file seen) need no incident azimuth at all: only
+        # the half vector's azimuth relative to it, one arctangent instead of two.
+        sig = self._sigma.reshape(-1, self._sigma.shape[-1])
+        self._relative_only = self.phi_i.size == 1 and bool(np.all(sig == sig[:1]))
         vndf = f64["vndf"]
         n_phi, n_theta, h, w = vndf.shape
         self._vndf_shape = (h, w)
@@ -306,12 +311,24 @@ class RGLBRDF:
         # the half vector's angles need no normalisation of wi + wo
         m = wi + wo
         theta_i = _elevation(wi)
-        phi_i = _atan2(wi[:, 1], wi[:, 0])
         theta_m = _atan2_pos(np.sqrt(m[:, 0] * m[:, 0] + m[:, 1] * m[:, 1]), m[:, 2])
-        phi_m = _atan2(m[:, 1], m[:, 0])
+        if self._relative_only:
+            # phi_m - phi_i as the azimuth of m in the frame of wi's azimuth; at normal
+            # incidence (no azimuth) the convention phi_i = atan2(wi_y, wi_x) stays
+            phi_i = np.zeros(len(wi))  # sigma's rows are equal: any phi_i gives the same
+            rel = _atan2(
+                m[:, 1] * wi[:, 0] - m[:, 0] * wi[:, 1], m[:, 0] * wi[:, 0] + m[:, 1] * wi[:, 1]
+            )
+            normal = (wi[:, 0] == 0) & (wi[:, 1] == 0)
+            if normal.any():
+                mn, wn = m[normal], wi[normal]
+                rel[normal] = _atan2(mn[:, 1], mn[:, 0]) - _atan2(wn[:, 1], wn[:, 0])
+        else:
+            phi_i = _atan2(wi[:, 1], wi[:, 0])
+            phi_m = _atan2(m[:, 1], m[:, 0])
+            rel = phi_m - phi_i if self.isotropic else phi_m
 
         u_wi = (np.sqrt(theta_i / _HALF_PI), (phi_i + np.pi) / (2 * np.pi))
-        rel = phi_m - phi_i if self.isotropic else phi_m
         um_y = (rel + np.pi) / (2 * np.pi)
         um_y -= np.floor(um_y)
         u_m = (np.sqrt(theta_m / _HALF_PI), um_y)
@@ -368,6 +385,7 @@ class RGLBRDF:
             rx,
             self.reduction,
             self.isotropic,
+            self._relative_only,
             self.jacobian,
             ATAN_TABLE,
             out,

@@ -308,6 +308,17 @@ def _one_theta_file(rgl_file, tmp_path):
     return path
 
 
+def _sigma_rows_file(rgl_file, tmp_path):
+    from gonio.brdf.tensor_file import read_tensor_file, write_tensor_file
+
+    # a projected area that varies with phi_i: the isotropic path with both azimuths
+    f = dict(read_tensor_file(rgl_file("paper_white")))
+    f["sigma"] = (f["sigma"] * np.array([[1.0], [1.25]])).astype(np.float32)
+    path = tmp_path / "sigma_rows.bsdf"
+    write_tensor_file(path, f)
+    return path
+
+
 @pytest.fixture
 def rgl_calls(monkeypatch):
     counts = {"n": 0}
@@ -322,7 +333,8 @@ def rgl_calls(monkeypatch):
 
 
 @pytest.mark.parametrize(
-    "material", ["paper_white", "vch_golden_yellow", "aniso1", "aniso2", "aniso4", "one_theta"]
+    "material",
+    ["paper_white", "vch_golden_yellow", "aniso1", "aniso2", "aniso4", "one_theta", "sigma_rows"],
 )
 def test_rgl_kernel_matches_numpy(monkeypatch, rgl_calls, rgl_file, tmp_path, material):
     from gonio.brdf import rgl
@@ -330,11 +342,15 @@ def test_rgl_kernel_matches_numpy(monkeypatch, rgl_calls, rgl_file, tmp_path, ma
     if material.startswith("aniso"):
         b = rgl.read_rgl(_anisotropic_file(rgl_file, tmp_path, int(material[-1])))
         assert not b.isotropic
+    elif material == "sigma_rows":
+        b = rgl.read_rgl(_sigma_rows_file(rgl_file, tmp_path))
+        assert b.isotropic and not b._relative_only
     elif material == "one_theta":
         b = rgl.read_rgl(_one_theta_file(rgl_file, tmp_path))
         assert b.theta_i.size == 1
     else:
         b = rgl.read_rgl(rgl_file(material))
+        assert b._relative_only  # every shared file: one arctangent for the azimuths
     wi, wo = _rgl_pairs(np.random.default_rng(17), 6000)
     wi[5000] = [0.6, 0.0, -0.8]  # below the horizon: 0
     wo[5001] = [np.nan, 0.0, 0.5]  # NaN in: NaN out
