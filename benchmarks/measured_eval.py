@@ -1,14 +1,17 @@
-"""Evaluations per second of gonio's RGL evaluator vs Mitsuba 3's ``measured`` plugin.
+"""RGL evaluation: gonio's evaluator against Mitsuba 3's ``measured`` BSDF at equal threads.
 
-Same file, same random direction pairs, same process.  Mitsuba runs in its vectorised
-``llvm_ad_rgb`` variant when libLLVM 19 works (one thread), else ``scalar_rgb`` (a Python
-loop over single evaluations); the variant is named in the output.  Prints ONE JSON
-object: ``figure`` (gonio evals/s, the default path, the numba kernel of
-``gonio.brdf.kernels``, on one thread like Mitsuba), ``baseline`` (Mitsuba evals/s),
-``ratio``; for context also gonio on numba's threads and the numpy reference path
-(``GONIO_NUMBA=0``).
+For every RGL file (default: all of ``$GONIO_REFDATA/rgl``), the same random direction
+pairs go through ``gonio.brdf.load(file).eval`` (float64; the default path, the numba
+kernel of ``gonio.brdf.kernels``) and Mitsuba's ``measured`` plugin (``llvm_ad_rgb``, its
+vectorised JIT variant; results brought back to numpy, as gonio returns them), timed by
+``benchmarks/equal_threads.compare``: interleaved repetitions, every thread pool pinned,
+once at one thread each (the top-level ``ratio``) and once at all cores each (numba's
+threads against Dr.Jit's pool).  Prints ONE JSON object (issue 19's shape): per file the
+two settings with their statistics and the agreement with Mitsuba; at the top level the
+file with the smallest one-thread ratio, and ``ratio`` / ``ratio_worst`` its median and
+worst-case ratios (Mitsuba's time over gonio's: >= 1 means gonio is at least as fast).
 
-    python benchmarks/measured_eval.py [--n 200000] [--file paper_white_rgb.bsdf]
+    python benchmarks/measured_eval.py [--n 200000] [--repeats 7] [--file F.bsdf ...]
 """
 
 from __future__ import annotations
@@ -18,15 +21,19 @@ import json
 import os
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from equal_threads import all_cores, compare, machine, speedup  # noqa: E402
+
 REPO = Path(__file__).resolve().parent.parent
+TARGET = 1.0  # issue 19: RGL evaluation >= 1x Mitsuba's measured at equal threads
 
 
 def _pairs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Uniform hemisphere pairs, rounded to float32 so both sides see the same directions."""
     rng = np.random.default_rng(seed)
 
     def hemi(m: int) -> np.ndarray:
@@ -38,106 +45,120 @@ def _pairs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return hemi(n).astype(np.float32), hemi(n).astype(np.float32)
 
 
-def _best_of(fn, repeats: int) -> float:
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
+def _round(s: dict) -> dict:
+    return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in s.items()}
+
+
+def _one_file(path: Path, mi, wi: np.ndarray, wo: np.ndarray, repeats: int) -> dict:
+    import drjit as dr
+
+    from gonio.brdf import load
+
+    n = wi.shape[0]
+    wi64, wo64 = wi.astype(np.float64), wo.astype(np.float64)
+    brdf = load(path)
+    ours = brdf.eval(wi64, wo64) * wo64[:, 2:3]  # warm-up: numba import + cache load
+    fused = "gonio.brdf.kernels" in sys.modules
+
+    os.environ["GONIO_NUMBA"] = "0"  # the numpy reference path, for the agreement
+    try:
+        ours_np = brdf.eval(wi64, wo64) * wo64[:, 2:3]
+    finally:
+        del os.environ["GONIO_NUMBA"]
+    both = np.isfinite(ours_np) & (ours_np != 0)
+    numba_vs_numpy = np.abs(ours[both] - ours_np[both]) / np.abs(ours_np[both])
+
+    bsdf = mi.load_dict({"type": "measured", "filename": str(path)})
+    ctx = mi.BSDFContext()
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.wi = mi.Vector3f(wi[:, 0], wi[:, 1], wi[:, 2])
+    wo_mi = mi.Vector3f(wo[:, 0], wo[:, 1], wo[:, 2])
+
+    def run_mitsuba() -> np.ndarray:
+        v = bsdf.eval(ctx, si, wo_mi)
+        dr.eval(v)
+        return np.array(v)
+
+    def run_gonio() -> np.ndarray:
+        return brdf.eval(wi64, wo64)
+
+    ref = run_mitsuba().T  # JIT compilation is not part of the figures
+    sel = ref > 1e-3 * ref.max()
+    rel = np.abs(ours - ref)[sel] / ref[sel]
+
+    fns = {"gonio": run_gonio, "baseline": run_mitsuba}
+    one = compare(fns, repeats=repeats, threads=1)
+    cores = all_cores()
+    every = compare(fns, repeats=repeats, threads=cores)
+    s1 = speedup(one["gonio"], one["baseline"])
+    sa = speedup(every["gonio"], every["baseline"])
+    return {
+        "file": path.name,
+        "pairs": n,
+        "one_thread": {
+            "gonio": _round(one["gonio"]),
+            "baseline": _round(one["baseline"]),
+            "speedup": _round(s1),
+            "gonio_evals_per_s": round(n / one["gonio"]["median"]),
+            "baseline_evals_per_s": round(n / one["baseline"]["median"]),
+        },
+        "all_cores": {
+            "gonio": _round(every["gonio"]),
+            "baseline": _round(every["baseline"]),
+            "speedup": _round(sa),
+            "threads": cores,
+            "gonio_evals_per_s": round(n / every["gonio"]["median"]),
+            "baseline_evals_per_s": round(n / every["baseline"]["median"]),
+        },
+        "ratio": round(s1["median"], 4),
+        "ratio_worst": round(s1["worst"], 4),
+        "numba_path_used": fused,
+        "agreement_median_rel": float(np.median(rel)),
+        "agreement_p99_rel": float(np.percentile(rel, 99)),
+        "max_rel_diff_numba_vs_numpy": float(numba_vs_numpy.max(initial=0.0)),
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     data = Path(os.environ.get("GONIO_REFDATA", REPO.parent / "shared" / "data"))
-    ap.add_argument("--file", default=str(data / "rgl" / "vch_golden_yellow_rgb.bsdf"))
+    ap.add_argument("--file", nargs="*", default=None, help="RGL files (default: all)")
     ap.add_argument("--n", type=int, default=200_000, help="direction pairs per timing")
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=7, help="interleaved repetitions (>= 5)")
     args = ap.parse_args()
+    files = [Path(f) for f in args.file] if args.file else sorted((data / "rgl").glob("*.bsdf"))
+    if not files:
+        sys.exit(f"error: no RGL files in {data / 'rgl'} (set GONIO_REFDATA or --file)")
     os.environ.setdefault("DRJIT_CACHE_DIR", tempfile.mkdtemp(prefix="drjit"))
 
-    from gonio.brdf import load
     from gonio.mitsuba_oracle import load_mitsuba
 
-    wi, wo = _pairs(args.n)
-    wi64, wo64 = wi.astype(np.float64), wo.astype(np.float64)
-    brdf = load(args.file)
-    t0 = time.perf_counter()
-    ours = brdf.eval(wi64, wo64) * wo64[:, 2:3]  # warm-up: numba import + cache load
-    t_first = time.perf_counter() - t0
-    t_gonio = _best_of(lambda: brdf.eval(wi64, wo64), args.repeats)
-    fused = "gonio.brdf.kernels" in sys.modules
-    import numba
-
-    n_threads = numba.get_num_threads()
-    numba.set_num_threads(1)  # like for like with Mitsuba's one thread
-    t_gonio_1 = _best_of(lambda: brdf.eval(wi64, wo64), args.repeats)
-    numba.set_num_threads(n_threads)
-    os.environ["GONIO_NUMBA"] = "0"  # the numpy reference path, for context
-    ours_np = brdf.eval(wi64, wo64) * wo64[:, 2:3]
-    t_numpy = _best_of(lambda: brdf.eval(wi64, wo64), args.repeats)
-    del os.environ["GONIO_NUMBA"]
-    both = np.isfinite(ours_np) & (ours_np != 0)
-    numba_vs_numpy = np.abs(ours[both] - ours_np[both]) / ours_np[both]
-
     mi, variant = load_mitsuba("llvm")
-    import drjit as dr
-
-    dr.set_thread_count(1)
-    bsdf = mi.load_dict({"type": "measured", "filename": str(args.file)})
-    ctx = mi.BSDFContext()
-    if variant.startswith("llvm"):
-        n_mi = args.n
-        si = dr.zeros(mi.SurfaceInteraction3f, n_mi)
-        si.wi = mi.Vector3f(wi[:, 0], wi[:, 1], wi[:, 2])
-        wo_mi = mi.Vector3f(wo[:, 0], wo[:, 1], wo[:, 2])
-
-        def run_mi():
-            v = bsdf.eval(ctx, si, wo_mi)
-            dr.eval(v)
-            return np.array(v)
-
-        run_mi()  # JIT compilation is not part of the figure
-        t_mi = _best_of(run_mi, args.repeats)
-        ref = run_mi().T
-    else:
-        n_mi = min(args.n, 20_000)
-        si = mi.SurfaceInteraction3f()
-
-        def run_mi():
-            out = np.empty((n_mi, 3))
-            for j in range(n_mi):
-                si.wi = mi.Vector3f(*wi[j].tolist())
-                out[j] = list(bsdf.eval(ctx, si, mi.Vector3f(*wo[j].tolist())))
-            return out
-
-        t_mi = _best_of(run_mi, 1)
-        ref = run_mi()
-    sel = ref > 1e-3 * ref.max()
-    rel = np.abs(ours[:n_mi] - ref)[sel[: len(ref)]] / ref[sel]
-    figure = args.n / t_gonio_1
-    baseline = n_mi / t_mi
+    if not variant.startswith("llvm"):
+        sys.exit(f"error: Mitsuba's vectorised variant is unavailable (got {variant})")
+    wi, wo = _pairs(args.n)
+    per_file = [_one_file(f, mi, wi, wo, args.repeats) for f in files]
+    worst = min(per_file, key=lambda r: r["ratio"])
     print(
         json.dumps(
             {
                 "benchmark": "measured_eval",
-                "file": Path(args.file).name,
-                "pairs": args.n,
-                "figure": round(figure),
-                "figure_unit": "RGL evaluations/s (gonio float64, numba kernel, 1 thread)",
-                "baseline": round(baseline),
-                "baseline_name": f"Mitsuba {mi.__version__} measured, {variant}, 1 thread",
-                "ratio": round(figure / baseline, 3),
-                "numba_path_used": fused,
-                "gonio_numba_threads": n_threads,
-                "gonio_all_threads": round(args.n / t_gonio),
-                "ratio_all_threads_vs_mitsuba_1thread": round(args.n / t_gonio / baseline, 3),
-                "gonio_numpy": round(args.n / t_numpy),
-                "ratio_numpy": round(args.n / t_numpy / baseline, 3),
-                "numba_first_call_s": round(t_first, 3),
-                "max_rel_diff_numba_vs_numpy": float(numba_vs_numpy.max(initial=0.0)),
-                "agreement_median_rel": float(np.median(rel)),
-                "load_average_1min": round(os.getloadavg()[0], 2),
+                "case": f"RGL evaluation, {args.n} uniform hemisphere pairs, float64 gonio "
+                f"vs Mitsuba {mi.__version__} measured ({variant}, float32 SIMD); "
+                f"top level: the file with the smallest one-thread ratio ({worst['file']})",
+                "machine": machine(),
+                "one_thread": worst["one_thread"],
+                "all_cores": worst["all_cores"],
+                "ratio": worst["ratio"],
+                "ratio_worst": min(r["ratio_worst"] for r in per_file),
+                "ratio_all_cores": round(
+                    min(r["all_cores"]["speedup"]["median"] for r in per_file), 4
+                ),
+                "target": TARGET,
+                "target_met": worst["ratio"] >= TARGET,
+                "smallest_ratio_file": worst["file"],
+                "ratio_by_file": {r["file"]: r["ratio"] for r in per_file},
+                "files": per_file,
             }
         )
     )

@@ -29,9 +29,11 @@ from __future__ import annotations
 import cmath
 import math
 
+import numpy as np
 from numba import njit, prange
 
 from gonio.brdf.base import Array
+from gonio.brdf.rgl import ATAN_C3, ATAN_C5, ATAN_C7, ATAN_NODES
 
 __all__ = [
     "FRESNEL_CODES",
@@ -297,27 +299,71 @@ def ggx_hot_serial(wi, wo, ks, alpha, out):
 
 # ---------------------------------------------------------------------------------------
 # RGL-EPFL measured BRDFs: the per-pair form of gonio.brdf.rgl.RGLBRDF._eval_active, in
-# the same operation order (see there for the mathematics and the why of each step).
+# the same operation order (see there for the mathematics and the why of each step), so
+# the two paths agree bit for bit.  Why it is shaped as it is (benchmarks/measured_eval.py):
+# - the angles come from the table-plus-series arctangent of gonio.brdf.rgl (libm's atan2
+#   cost ~60 ns a call here, four calls a pair, more than Mitsuba's whole evaluation);
+# - pairs go through in blocks of _RGL_BLOCK, one short loop per stage: one pair's chain
+#   (angles -> VNDF cell -> gathers -> sample-space cell -> gathers) is longer than the
+#   CPU's reorder window, so a loop over whole pairs waited for every cache miss in turn,
+#   while a loop that only gathers keeps a dozen misses in flight;
+# - the tables hold what the file holds in float32 (VNDF, RGB corners) as float32 (exact;
+#   the normalisation is applied per slice on the fly, the same product the numpy path
+#   stores), unpacked (1.5 MB instead of the numpy path's 9 MB of packed patches, mostly
+#   in L2), the two theta_i slices one look-up blends side by side.
+
+_RGL_BLOCK = 64
+# prange iterations (each with its scratch): get_num_threads() would keep the code uncached
+_RGL_CHUNKS = 64
 
 
 @njit(**_JIT, inline="always")
-def _param_lerp(values, x):
+def _atan01(t, table):
+    # gonio.brdf.rgl._atan01: table node + series of the remainder, for t in [0, 1]
+    k = int(t * ATAN_NODES + 0.5)
+    t0 = k * (1.0 / ATAN_NODES)
+    d = (t - t0) / (1.0 + t * t0)
+    z = d * d
+    return table[k] + (d + d * z * (ATAN_C3 + z * (ATAN_C5 + z * ATAN_C7)))
+
+
+@njit(**_JIT, inline="always")
+def _atan2_pos(y, x, table):
+    # gonio.brdf.rgl._atan2_pos (y, x >= 0)
+    hi = max(x, y)
+    t = min(x, y) / hi if hi > 0.0 else 0.0
+    a = _atan01(t, table)
+    return _HALF_PI - a if y > x else a
+
+
+@njit(**_JIT, inline="always")
+def _atan2(y, x, table):
+    # gonio.brdf.rgl._atan2
+    a = _atan2_pos(abs(y), abs(x), table)
+    a = math.pi - a if math.copysign(1.0, x) < 0.0 else a
+    return math.copysign(a, y)
+
+
+@njit(**_JIT, inline="always")
+def _elevation(x, y, z, table):
+    # gonio.brdf.rgl._elevation: 2 asin(|v - z| / 2), the asin as an arctangent
+    s = _clip01(0.5 * math.sqrt(x * x + y * y + (z - 1.0) * (z - 1.0)))
+    return 2.0 * _atan2_pos(s, math.sqrt((1.0 - s) * (1.0 + s)), table)
+
+
+@njit(**_JIT, inline="always")
+def _lerp_index(values, x):
+    # gonio.brdf.rgl._param_lerp: searchsorted(side="left") as a count, without branches
     n = values.size
     if n == 1:
         return 0, 0.0
-    i = 0  # searchsorted(values, x, side="left")
-    while i < n and values[i] < x:
-        i += 1
+    i = 0
+    for k in range(n):
+        i += values[k] < x
     i = min(max(i - 1, 0), n - 2)
     p0 = values[i]
     p1 = values[i + 1]
     return i, _clip01((x - p0) / (p1 - p0))
-
-
-@njit(**_JIT, inline="always")
-def _elevation(x, y, z):
-    d = math.sqrt(x * x + y * y + (z - 1.0) * (z - 1.0))
-    return 2.0 * math.asin(_clip01(0.5 * d))
 
 
 @njit(**_JIT, inline="always")
@@ -341,128 +387,215 @@ def _bilinear(table, u, v):
     return (1 - fy) * ((1 - fx) * v00 + fx * v10) + fy * ((1 - fx) * v01 + fx * v11)
 
 
-@njit(**_JIT, inline="always")
-def _take(rows, j, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3):
-    # _Slices.take: 0 + w0 v0 + w1 v1 (+ w2 v2 + w3 v3), in that order.
-    v = 0.0
-    v += w0 * rows[s0, cell, j]
-    v += w1 * rows[s1, cell, j]
-    if ns == 4:
-        v += w2 * rows[s2, cell, j]
-        v += w3 * rows[s3, cell, j]
-    return v
-
-
-@njit(**_JIT, inline="always")
-def _rgl_pair(
-    ix_, iy_, iz_, ox_, oy_, oz_, phi_vals, theta_vals, patch, spec, ndf, sigma,
-    vh, vw, ry, rx, reduction, isotropic, jacobian, out,
+@njit(**_JIT)
+def _rgl_block(
+    wi, wo, b0, b1, phi_vals, theta_vals, n_t2, cdf, vndf, rows, spec, ndf, sigma,
+    vh, vw, ry, rx, reduction, isotropic, relative_only, jacobian, atan_table, out, f, k, g,
 ):  # fmt: skip
-    wix, wiy, wox, woy = ix_, iy_, ox_, oy_
-    if reduction >= 2:
-        sy = -1.0 if wiy >= 0 else 1.0
-        sx = sy
-        if reduction == 4:
-            sx = -1.0 if wix >= 0 else 1.0
-        wix *= sx
-        wiy *= sy
-        wox *= sx
-        woy *= sy
-    mx = wix + wox
-    my = wiy + woy
-    mz = iz_ + oz_
-    norm = math.sqrt(mx * mx + my * my + mz * mz)
-    mx /= norm
-    my /= norm
-    mz /= norm
-    theta_i = _elevation(wix, wiy, iz_)
-    phi_i = math.atan2(wiy, wix)
-    theta_m = _elevation(mx, my, mz)
-    phi_m = math.atan2(my, mx)
-    u_wi_x = math.sqrt(theta_i / _HALF_PI)
-    u_wi_y = (phi_i + math.pi) / (2 * math.pi)
-    rel = phi_m - phi_i if isotropic else phi_m
-    um_y = (rel + math.pi) / (2 * math.pi)
-    um_y -= math.floor(um_y)
-    um_x = math.sqrt(theta_m / _HALF_PI)
-
-    # (phi_i, theta_i) corner slices and weights (_Slices)
-    ip, wp = _param_lerp(phi_vals, phi_i)
-    it, wt = _param_lerp(theta_vals, theta_i)
-    n_t = theta_vals.size
-    it1 = min(it + 1, n_t - 1)
-    s0 = ip * n_t + it
-    s1 = ip * n_t + it1
-    w0 = (1 - wp) * (1 - wt)
-    w1 = (1 - wp) * wt
-    ns = 2
-    s2 = s3 = 0
-    w2 = w3 = 0.0
-    if phi_vals.size > 1:
-        ip1 = min(ip + 1, phi_vals.size - 1)
-        s2 = ip1 * n_t + it
-        s3 = ip1 * n_t + it1
-        w2 = wp * (1 - wt)
-        w3 = wp * wt
-        ns = 4
-
-    # inverse VNDF warp (_invert_vndf)
-    cx, cy, fx, fy = _cell(um_x, um_y, vw, vh)
-    cell = cy * (vw - 1) + cx
-    v00 = _take(patch, 0, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
-    v10 = _take(patch, 1, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
-    v01 = _take(patch, 2, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
-    v11 = _take(patch, 3, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
-    prev0 = _take(patch, 4, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
-    prev1 = _take(patch, 5, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
-    r0 = _take(patch, 6, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
-    r1 = _take(patch, 7, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
-    marg_prev = _take(patch, 8, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
-    c0 = v00 + (v01 - v00) * fy
-    c1 = v10 + (v11 - v10) * fy
-    s_x = fx * (c0 + (c1 - c0) * 0.5 * fx) / (vw - 1) + prev0 + (prev1 - prev0) * fy
-    row = r0 + (r1 - r0) * fy
-    s_x = s_x / row if row > 0 else fx
-    s_y = fy * (r0 + (r1 - r0) * 0.5 * fy) / (vh - 1) + marg_prev
-
-    # bilinear over the sample-space position, multilinear over (phi_i, theta_i)
-    cx, cy, fx, fy = _cell(s_x, s_y, rx, ry)
-    cell = cy * (rx - 1) + cx
-    c00 = (1 - fx) * (1 - fy)
-    c10 = fx * (1 - fy)
-    c01 = (1 - fx) * fy
-    c11 = fx * fy
-    n_ch = out.shape[0]
-    scale = 1.0
-    if jacobian:
-        scale = _bilinear(ndf, um_x, um_y) / (4.0 * _bilinear(sigma, u_wi_x, u_wi_y))
-    for c in range(n_ch):
-        f = c00 * _take(spec, c, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
-        f += c10 * _take(spec, n_ch + c, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
-        f += c01 * _take(spec, 2 * n_ch + c, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
-        f += c11 * _take(spec, 3 * n_ch + c, cell, ns, s0, s1, s2, s3, w0, w1, w2, w3)
+    """Pairs ``b0 .. b1`` (at most _RGL_BLOCK); ``f``, ``k``, ``g`` are scratch."""
+    nb = b1 - b0
+    n_p = phi_vals.size
+    n_ch = out.shape[1]
+    # 1. directions -> angles -> unit-square coordinates
+    for j in range(nb):
+        wix, wiy, wiz = wi[b0 + j, 0], wi[b0 + j, 1], wi[b0 + j, 2]
+        wox, woy, woz = wo[b0 + j, 0], wo[b0 + j, 1], wo[b0 + j, 2]
+        # RGLBRDF.eval_channels' masks: non-finite input -> NaN, the horizon -> 0; such
+        # pairs go through the arithmetic as the normal (table indices stay in range)
+        finite = (
+            math.isfinite(wix) and math.isfinite(wiy) and math.isfinite(wiz)
+            and math.isfinite(wox) and math.isfinite(woy) and math.isfinite(woz)
+        )  # fmt: skip
+        k[5, j] = 0 if finite and wiz > 0 and woz > 0 else (1 if finite else 2)
+        if k[5, j] != 0:
+            wix = wiy = wox = woy = 0.0
+            wiz = woz = 1.0
+        if reduction >= 2:
+            sy = -1.0 if wiy >= 0 else 1.0
+            sx = sy
+            if reduction == 4:
+                sx = -1.0 if wix >= 0 else 1.0
+            wix *= sx
+            wiy *= sy
+            wox *= sx
+            woy *= sy
+        mx = wix + wox
+        my = wiy + woy
+        mz = wiz + woz
+        theta_i = _elevation(wix, wiy, wiz, atan_table)
+        theta_m = _atan2_pos(math.sqrt(mx * mx + my * my), mz, atan_table)
+        if relative_only and (wix != 0.0 or wiy != 0.0):
+            phi_i = 0.0
+            rel = _atan2(my * wix - mx * wiy, mx * wix + my * wiy, atan_table)
+        else:
+            phi_i = _atan2(wiy, wix, atan_table)
+            phi_m = _atan2(my, mx, atan_table)
+            rel = phi_m - phi_i if isotropic else phi_m
+            if relative_only:
+                phi_i = 0.0
+        um_y = (rel + math.pi) / (2 * math.pi)
+        um_y -= math.floor(um_y)
+        f[0, j] = theta_i
+        f[1, j] = phi_i
+        f[2, j] = math.sqrt(theta_i / _HALF_PI)  # u_wi
+        f[3, j] = (phi_i + math.pi) / (2 * math.pi)
+        f[4, j] = math.sqrt(theta_m / _HALF_PI)  # u_m
+        f[5, j] = um_y
+        f[6, j] = woz
+    # 2. (phi_i, theta_i) slices and weights (_Slices); the VNDF cell
+    for j in range(nb):
+        it, wt = _lerp_index(theta_vals, f[0, j])
+        ip, wp = _lerp_index(phi_vals, f[1, j])
+        k[0, j] = ip * n_t2 + it
+        k[1, j] = min(ip + 1, n_p - 1) * n_t2 + it
+        f[7, j] = (1 - wp) * (1 - wt)
+        f[8, j] = (1 - wp) * wt
+        f[9, j] = wp * (1 - wt)
+        f[10, j] = wp * wt
+        cx, cy, fx, fy = _cell(f[4, j], f[5, j], vw, vh)
+        k[2, j] = cy * (vw - 1) + cx
+        k[3, j] = cy
+        f[11, j] = fx
+        f[12, j] = fy
+    # 3. gather the patch entries of the two theta_i slices (a loop of loads only)
+    for j in range(nb):
+        s0 = k[0, j]
+        c = k[2, j]
+        y = k[3, j]
+        x = c - y * (vw - 1)
+        g[0, j] = vndf[y, x, s0]
+        g[6, j] = vndf[y, x, s0 + 1]
+        g[1, j] = vndf[y, x + 1, s0]
+        g[7, j] = vndf[y, x + 1, s0 + 1]
+        g[2, j] = vndf[y + 1, x, s0]
+        g[8, j] = vndf[y + 1, x, s0 + 1]
+        g[3, j] = vndf[y + 1, x + 1, s0]
+        g[9, j] = vndf[y + 1, x + 1, s0 + 1]
+        g[4, j] = cdf[y, x, s0]
+        g[10, j] = cdf[y, x, s0 + 1]
+        g[5, j] = cdf[y + 1, x, s0]
+        g[11, j] = cdf[y + 1, x, s0 + 1]
+    # 4. inverse VNDF warp (_invert_vndf) -> the sample-space cell
+    for j in range(nb):
+        s0 = k[0, j]
+        cy = k[3, j]
+        w0 = f[7, j]
+        w1 = f[8, j]
+        fx = f[11, j]
+        fy = f[12, j]
+        n0 = rows[cy, s0, 3]
+        n1 = rows[cy, s0 + 1, 3]
+        v00 = w0 * (g[0, j] * n0) + w1 * (g[6, j] * n1)
+        v10 = w0 * (g[1, j] * n0) + w1 * (g[7, j] * n1)
+        v01 = w0 * (g[2, j] * n0) + w1 * (g[8, j] * n1)
+        v11 = w0 * (g[3, j] * n0) + w1 * (g[9, j] * n1)
+        prev0 = w0 * g[4, j] + w1 * g[10, j]
+        prev1 = w0 * g[5, j] + w1 * g[11, j]
+        r0 = w0 * rows[cy, s0, 0] + w1 * rows[cy, s0 + 1, 0]
+        r1 = w0 * rows[cy, s0, 1] + w1 * rows[cy, s0 + 1, 1]
+        marg_prev = w0 * rows[cy, s0, 2] + w1 * rows[cy, s0 + 1, 2]
+        if n_p > 1:
+            s2 = k[1, j]
+            x = k[2, j] - cy * (vw - 1)
+            w2 = f[9, j]
+            w3 = f[10, j]
+            n2 = rows[cy, s2, 3]
+            n3 = rows[cy, s2 + 1, 3]
+            v00 = v00 + w2 * (vndf[cy, x, s2] * n2) + w3 * (vndf[cy, x, s2 + 1] * n3)
+            v10 = v10 + w2 * (vndf[cy, x + 1, s2] * n2) + w3 * (vndf[cy, x + 1, s2 + 1] * n3)
+            v01 = v01 + w2 * (vndf[cy + 1, x, s2] * n2) + w3 * (vndf[cy + 1, x, s2 + 1] * n3)
+            v11 = v11 + w2 * (vndf[cy + 1, x + 1, s2] * n2) + w3 * (
+                vndf[cy + 1, x + 1, s2 + 1] * n3
+            )
+            prev0 = prev0 + w2 * cdf[cy, x, s2] + w3 * cdf[cy, x, s2 + 1]
+            prev1 = prev1 + w2 * cdf[cy + 1, x, s2] + w3 * cdf[cy + 1, x, s2 + 1]
+            r0 = r0 + w2 * rows[cy, s2, 0] + w3 * rows[cy, s2 + 1, 0]
+            r1 = r1 + w2 * rows[cy, s2, 1] + w3 * rows[cy, s2 + 1, 1]
+            marg_prev = marg_prev + w2 * rows[cy, s2, 2] + w3 * rows[cy, s2 + 1, 2]
+        c0 = v00 + (v01 - v00) * fy
+        c1 = v10 + (v11 - v10) * fy
+        s_x = fx * (c0 + (c1 - c0) * 0.5 * fx) / (vw - 1) + prev0 + (prev1 - prev0) * fy
+        row = r0 + (r1 - r0) * fy
+        s_x = s_x / row if row > 0 else fx
+        s_y = fy * (r0 + (r1 - r0) * 0.5 * fy) / (vh - 1) + marg_prev
+        cx, cy, fx, fy = _cell(s_x, s_y, rx, ry)
+        k[4, j] = cy * (rx - 1) + cx
+        f[11, j] = fx
+        f[12, j] = fy
+    # 5. bilinear over the sample-space position, multilinear over (phi_i, theta_i)
+    for j in range(nb):
+        s0 = k[0, j]
+        c = k[4, j]
+        w0 = f[7, j]
+        w1 = f[8, j]
+        fx = f[11, j]
+        fy = f[12, j]
+        c00 = (1 - fx) * (1 - fy)
+        c10 = fx * (1 - fy)
+        c01 = (1 - fx) * fy
+        c11 = fx * fy
+        scale = 1.0
         if jacobian:
-            f = f * scale
-        out[c] = f / oz_
+            scale = _bilinear(ndf, f[4, j], f[5, j]) / (4.0 * _bilinear(sigma, f[2, j], f[3, j]))
+        if k[5, j] != 0:
+            for ch in range(n_ch):
+                out[b0 + j, ch] = 0.0 if k[5, j] == 1 else np.nan
+            continue
+        for ch in range(n_ch):
+            a0 = w0 * spec[c, s0, ch] + w1 * spec[c, s0 + 1, ch]
+            a1 = w0 * spec[c, s0, n_ch + ch] + w1 * spec[c, s0 + 1, n_ch + ch]
+            a2 = w0 * spec[c, s0, 2 * n_ch + ch] + w1 * spec[c, s0 + 1, 2 * n_ch + ch]
+            a3 = w0 * spec[c, s0, 3 * n_ch + ch] + w1 * spec[c, s0 + 1, 3 * n_ch + ch]
+            if n_p > 1:
+                s2 = k[1, j]
+                w2 = f[9, j]
+                w3 = f[10, j]
+                a0 = a0 + w2 * spec[c, s2, ch] + w3 * spec[c, s2 + 1, ch]
+                a1 = a1 + w2 * spec[c, s2, n_ch + ch] + w3 * spec[c, s2 + 1, n_ch + ch]
+                a2 = a2 + w2 * spec[c, s2, 2 * n_ch + ch] + w3 * spec[c, s2 + 1, 2 * n_ch + ch]
+                a3 = a3 + w2 * spec[c, s2, 3 * n_ch + ch] + w3 * spec[c, s2 + 1, 3 * n_ch + ch]
+            v = c00 * a0
+            v += c10 * a1
+            v += c01 * a2
+            v += c11 * a3
+            if jacobian:
+                v = v * scale
+            out[b0 + j, ch] = v / f[6, j]
 
 
 @njit(**_JIT, parallel=True)
 def rgl_eval(
-    wi, wo, phi_vals, theta_vals, patch, spec, ndf, sigma,
-    vh, vw, ry, rx, reduction, isotropic, jacobian, out,
+    wi, wo, phi_vals, theta_vals, n_t2, cdf, vndf, rows, spec, ndf, sigma,
+    vh, vw, ry, rx, reduction, isotropic, relative_only, jacobian, atan_table, out,
 ):  # fmt: skip
-    """``f_r`` (1/sr) of an RGL measured BRDF for ``(N, 3)`` pairs above the horizon.
+    """``f_r`` (1/sr) of an RGL measured BRDF for ``(N, 3)`` pairs: 0 where either
+    direction is at or below the horizon, NaN where any component is NaN or infinite.
 
-    The arguments are the tables of :class:`gonio.brdf.rgl.RGLBRDF` (``_patch`` and
-    ``_spec`` transposed to ``(slices, cells, rows)``, so that the rows one look-up reads
-    share a cache line; ``_ndf``, ``_sigma``, grid sizes and flags); ``out`` is
-    ``(N, channels)``.
-    Bit for bit the numpy path where numpy's and libm's ``arctan2``/``arcsin`` agree (they
-    differ in the last bit for ~8% of arguments; see tests/brdf/test_kernels.py).
+    The tables are :meth:`gonio.brdf.rgl.RGLBRDF.kernel_tables`, slices last so that the
+    two theta_i slices a pair blends are adjacent: the file's VNDF (``vndf[y, x, slice]``,
+    float32 as stored), the normalised conditional CDF before each VNDF column
+    (``cdf[y, x, slice]``, float64); per (VNDF row, slice) the two row totals of the row's
+    patches, the marginal CDF before the row and the slice's normalisation (``rows``);
+    per (RGB cell, slice) the four corners of every channel (``spec``, float32,
+    corner-major); ``n_t2`` slices per phi_i (theta_i padded to two, so that slice
+    ``s + 1`` exists).
+    ``relative_only`` is :attr:`gonio.brdf.rgl.RGLBRDF._relative_only` (one arctangent for
+    the relative azimuth, phi_i = 0 for sigma); ``atan_table`` is
+    :data:`gonio.brdf.rgl.ATAN_TABLE` (an argument: a global array would keep numba from
+    caching the machine code); ``out`` is ``(N, channels)``.  Bit for bit
+    the numpy path.
     """
-    for i in prange(wi.shape[0]):
-        _rgl_pair(
-            wi[i, 0], wi[i, 1], wi[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], phi_vals,
-            theta_vals, patch, spec, ndf, sigma, vh, vw, ry, rx, reduction, isotropic,
-            jacobian, out[i],
-        )  # fmt: skip
+    n = wi.shape[0]
+    n_blocks = (n + _RGL_BLOCK - 1) // _RGL_BLOCK
+    n_chunks = min(n_blocks, _RGL_CHUNKS)  # static shares for numba's threads
+    for chunk in prange(n_chunks):
+        f = np.empty((13, _RGL_BLOCK))
+        k = np.empty((6, _RGL_BLOCK), np.intp)
+        g = np.empty((12, _RGL_BLOCK))
+        for blk in range(chunk * n_blocks // n_chunks, (chunk + 1) * n_blocks // n_chunks):
+            b0 = blk * _RGL_BLOCK
+            _rgl_block(
+                wi, wo, b0, min(b0 + _RGL_BLOCK, n), phi_vals, theta_vals, n_t2, cdf, vndf,
+                rows, spec, ndf, sigma, vh, vw, ry, rx, reduction, isotropic, relative_only,
+                jacobian, atan_table, out, f, k, g,
+            )  # fmt: skip

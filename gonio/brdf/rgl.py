@@ -31,6 +31,7 @@ the result of the inversion), as the reference does.
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 from pathlib import Path
@@ -52,11 +53,50 @@ _MIN_FUSED = 4096
 _FIRST_FUSED = 100_000
 
 
+# The arctangent of the angles: libm's atan2 costs ~60 ns a call on the benchmark machine
+# (four calls a pair: more than Mitsuba's whole evaluation), so both paths compute it as
+# atan(t) = atan(t0) + atan(d), t0 = k / ATAN_NODES the nearest table node and
+# d = (t - t0) / (1 + t t0), |d| <= 1 / (2 ATAN_NODES), by its series to d^7 (the next term
+# is below 1e-22 of d).  Within 2 ulp of the correctly rounded value (tests/brdf/
+# test_rgl_eval.py holds it to libm), and the same IEEE operations in numpy and numba, so
+# the two paths agree bit for bit.
+ATAN_NODES = 256
+ATAN_TABLE = np.array([math.atan(k / ATAN_NODES) for k in range(ATAN_NODES + 1)])
+ATAN_C3, ATAN_C5, ATAN_C7 = -1.0 / 3.0, 1.0 / 5.0, -1.0 / 7.0
+
+
+def _atan01(t: Array) -> Array:
+    """``arctan(t)`` for ``t`` in [0, 1]."""
+    k = (t * ATAN_NODES + 0.5).astype(np.intp)
+    t0 = k * (1.0 / ATAN_NODES)
+    d = (t - t0) / (1.0 + t * t0)
+    z = d * d
+    return ATAN_TABLE[k] + (d + d * z * (ATAN_C3 + z * (ATAN_C5 + z * ATAN_C7)))
+
+
+def _atan2_pos(y: Array, x: Array) -> Array:
+    """``arctan2(y, x)`` for ``y, x >= 0`` (0 for 0, 0)."""
+    hi = np.maximum(x, y)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(hi > 0.0, np.minimum(x, y) / hi, 0.0)
+    a = _atan01(t)
+    return np.where(y > x, _HALF_PI - a, a)
+
+
+def _atan2(y: Array, x: Array) -> Array:
+    """``arctan2(y, x)`` with libm's signs of zero (atan2(+-0, -0) = +-pi)."""
+    a = _atan2_pos(np.abs(y), np.abs(x))
+    a = np.where(np.signbit(x), np.pi - a, a)
+    return np.copysign(a, y)
+
+
 def _elevation(v: Array) -> Array:
     # 2 asin(|v - z| / 2) instead of acos(v_z): accurate near the normal, where acos of a
-    # value close to 1 loses half the digits (and sqrt(theta) magnifies that error).
-    d = np.sqrt(v[..., 0] ** 2 + v[..., 1] ** 2 + (v[..., 2] - 1.0) ** 2)
-    return 2.0 * np.arcsin(np.clip(0.5 * d, 0.0, 1.0))
+    # value close to 1 loses half the digits (and sqrt(theta) magnifies that error).  It is
+    # Mitsuba's formula, which matters for directions that are unit only to float32
+    # precision.  The asin is taken as the arctangent of s / sqrt(1 - s^2).
+    s = np.clip(0.5 * np.sqrt(v[..., 0] ** 2 + v[..., 1] ** 2 + (v[..., 2] - 1.0) ** 2), 0.0, 1.0)
+    return 2.0 * _atan2_pos(s, np.sqrt((1.0 - s) * (1.0 + s)))
 
 
 def _param_lerp(values: Array, x: Array) -> tuple[NDArray[np.intp], Array]:
@@ -163,10 +203,17 @@ class RGLBRDF:
             self.reduction = int(np.rint(2 * np.pi / span))
         self._ndf = f64["ndf"]
         self._sigma = f64["sigma"]
+        # Isotropic files with one phi_i and a projected area that does not vary with
+        # phi_i (all rows equal: every file seen) need no incident azimuth at all: only
+        # the half vector's azimuth relative to it, one arctangent instead of two.
+        sig = self._sigma.reshape(-1, self._sigma.shape[-1])
+        self._relative_only = self.phi_i.size == 1 and bool(np.all(sig == sig[:1]))
         vndf = f64["vndf"]
         n_phi, n_theta, h, w = vndf.shape
         self._vndf_shape = (h, w)
-        patch = _patch_table(*_marginal_tables(vndf.reshape(-1, h, w)))
+        vndf_n, cond, marg, self._vndf_norm = _marginal_tables(vndf.reshape(-1, h, w))
+        self._vndf_raw = np.asarray(fields["vndf"], dtype=np.float32)  # for the kernel
+        patch = _patch_table(vndf_n, cond, marg)
         # rows = packed quantities, then (slice, patch) flattened: see _Slices.take
         self._patch = np.ascontiguousarray(
             patch.reshape(patch.shape[0], -1, patch.shape[-1]).transpose(2, 0, 1)
@@ -216,7 +263,8 @@ class RGLBRDF:
         Returns
         -------
         ndarray, shape ``broadcast(wi, wo)[:-1] + (3,)``
-            0 where either direction is at or below the horizon; NaN for NaN input.
+            0 where either direction is at or below the horizon; NaN for NaN (or
+            infinite) input.
 
         Raises
         ------
@@ -236,8 +284,10 @@ class RGLBRDF:
         """``f_r`` for every stored channel (3 for RGB files, one per wavelength otherwise)."""
         wi, wo, shape = flat_pairs(wi, wo)
         n_ch = self._n_ch
+        if (fused := self._eval_fused(wi, wo)) is not None:  # the horizon and NaN included
+            return fused.reshape(*shape, n_ch)
         out = np.zeros((wi.shape[0], n_ch))
-        nan = np.isnan(wi).any(-1) | np.isnan(wo).any(-1)
+        nan = ~(np.isfinite(wi).all(-1) & np.isfinite(wo).all(-1))
         active = (wi[:, 2] > 0) & (wo[:, 2] > 0) & ~nan
         if active.size and active.all():  # common: no copies of the inputs or the result
             out = self._eval_active(wi, wo)
@@ -247,8 +297,6 @@ class RGLBRDF:
         return out.reshape(*shape, n_ch)
 
     def _eval_active(self, wi: Array, wo: Array) -> Array:
-        if (f := self._eval_fused(wi, wo)) is not None:
-            return f
         wi = wi.copy()
         wo = wo.copy()
         if self.reduction >= 2:
@@ -260,15 +308,27 @@ class RGLBRDF:
             wi[:, 1] *= sy
             wo[:, 0] *= sx
             wo[:, 1] *= sy
+        # the half vector's angles need no normalisation of wi + wo
         m = wi + wo
-        m /= np.linalg.norm(m, axis=-1, keepdims=True)
         theta_i = _elevation(wi)
-        phi_i = np.arctan2(wi[:, 1], wi[:, 0])
-        theta_m = _elevation(m)
-        phi_m = np.arctan2(m[:, 1], m[:, 0])
+        theta_m = _atan2_pos(np.sqrt(m[:, 0] * m[:, 0] + m[:, 1] * m[:, 1]), m[:, 2])
+        if self._relative_only:
+            # phi_m - phi_i as the azimuth of m in the frame of wi's azimuth; at normal
+            # incidence (no azimuth) the convention phi_i = atan2(wi_y, wi_x) stays
+            phi_i = np.zeros(len(wi))  # sigma's rows are equal: any phi_i gives the same
+            rel = _atan2(
+                m[:, 1] * wi[:, 0] - m[:, 0] * wi[:, 1], m[:, 0] * wi[:, 0] + m[:, 1] * wi[:, 1]
+            )
+            normal = (wi[:, 0] == 0) & (wi[:, 1] == 0)
+            if normal.any():
+                mn, wn = m[normal], wi[normal]
+                rel[normal] = _atan2(mn[:, 1], mn[:, 0]) - _atan2(wn[:, 1], wn[:, 0])
+        else:
+            phi_i = _atan2(wi[:, 1], wi[:, 0])
+            phi_m = _atan2(m[:, 1], m[:, 0])
+            rel = phi_m - phi_i if self.isotropic else phi_m
 
         u_wi = (np.sqrt(theta_i / _HALF_PI), (phi_i + np.pi) / (2 * np.pi))
-        rel = phi_m - phi_i if self.isotropic else phi_m
         um_y = (rel + np.pi) / (2 * np.pi)
         um_y -= np.floor(um_y)
         u_m = (np.sqrt(theta_m / _HALF_PI), um_y)
@@ -296,8 +356,9 @@ class RGLBRDF:
         return spec / wo[:, 2:3]
 
     def _eval_fused(self, wi: Array, wo: Array) -> Array | None:
-        """``_eval_active`` by the numba kernel of :mod:`gonio.brdf.kernels` (same
-        arithmetic, one pass per pair), or None for small batches or ``GONIO_NUMBA=0``.
+        """``eval_channels`` of flat pairs by the numba kernel of :mod:`gonio.brdf.kernels`
+        (same arithmetic; it also gives the horizon's 0 and the NaN of non-finite input, so
+        no masks or copies are made here), or None for small batches or ``GONIO_NUMBA=0``.
 
         Same lazy rule as the microfacet lobes: numba is first imported by a batch of
         ``_FIRST_FUSED`` pairs, so that small evaluations never pay its load time."""
@@ -309,14 +370,7 @@ class RGLBRDF:
         from gonio.brdf import kernels
 
         if self._kernel_tables is None:
-            # (slices, cells, rows): the rows one look-up reads share a cache line, where
-            # numpy's (rows, slices, cells) would cost a cache miss per row.
-            self._kernel_tables = (
-                np.ascontiguousarray(self._patch.transpose(1, 2, 0)),
-                np.ascontiguousarray(self._spec.transpose(1, 2, 0)),
-                np.ascontiguousarray(self._ndf.reshape(self._ndf.shape[-2:])),
-                np.ascontiguousarray(self._sigma.reshape(self._sigma.shape[-2:])),
-            )
+            self._kernel_tables = self.kernel_tables()
         out = np.empty((n, self._n_ch))
         (h, w), (ry, rx) = self._vndf_shape, self._spec_grid
         kernels.rgl_eval(
@@ -331,10 +385,44 @@ class RGLBRDF:
             rx,
             self.reduction,
             self.isotropic,
+            self._relative_only,
             self.jacobian,
+            ATAN_TABLE,
             out,
         )
         return out
+
+    def kernel_tables(self) -> tuple[Any, ...]:
+        """The tables of :func:`gonio.brdf.kernels.rgl_eval`, built from the numpy path's.
+
+        Slices last, so that the two theta_i slices a pair blends are adjacent (slice
+        ``s`` and ``s + 1``; theta_i is padded to two slices when the file has one);
+        values the file holds in float32 stay float32 (exact), the derived CDFs float64.
+        Returns ``(n_t2, cdf, vndf, rows, spec, ndf, sigma)``, see ``rgl_eval``.
+        """
+        n_p, n_t = self.phi_i.size, self.theta_i.size
+        n_t2 = max(n_t, 2)
+        # slice index of the kernel's tables -> slice of the numpy tables
+        src = (np.arange(n_p)[:, None] * n_t + np.minimum(np.arange(n_t2), n_t - 1)).ravel()
+        h, w = self._vndf_shape
+        raw = self._vndf_raw.reshape(n_p * n_t, h, w)[src]
+        vndf = np.ascontiguousarray(raw.transpose(1, 2, 0))  # (h, w, slices) float32
+        # conditional CDF before each column: the packed patches' lower rows, and the
+        # upper row of the last patch row for the top VNDF row
+        lower = self._patch[4][src].reshape(src.size, h - 1, w - 1)
+        upper = self._patch[5][src].reshape(src.size, h - 1, w - 1)
+        cdf = np.empty((h, w - 1, src.size))
+        cdf[:-1] = lower.transpose(1, 2, 0)
+        cdf[-1] = upper[:, -1].T
+        first = np.arange(h - 1) * (w - 1)  # the first patch of each VNDF row
+        rows = np.empty((h - 1, src.size, 4))
+        for j, r in enumerate((6, 7, 8)):
+            rows[:, :, j] = self._patch[r][src][:, first].T
+        rows[:, :, 3] = self._vndf_norm[src][None, :]
+        spec = np.ascontiguousarray(self._spec[:, src, :].transpose(2, 1, 0).astype(np.float32))
+        ndf = np.ascontiguousarray(self._ndf.reshape(self._ndf.shape[-2:]))
+        sigma = np.ascontiguousarray(self._sigma.reshape(self._sigma.shape[-2:]))
+        return n_t2, cdf, vndf, rows, spec, ndf, sigma
 
     def _invert_vndf(self, sl: _Slices, ux: Array, uy: Array) -> tuple[Array, Array]:
         """Inverse of the continuous marginal/conditional warp of the VNDF table.
@@ -385,8 +473,9 @@ class RGLBRDF:
         return f"RGLBRDF({str(self.path)!r}, {self.description!r})"
 
 
-def _marginal_tables(vndf: Array) -> tuple[Array, Array, Array]:
-    """Per-slice normalised VNDF, conditional CDFs (rows) and marginal CDF (over rows).
+def _marginal_tables(vndf: Array) -> tuple[Array, Array, Array, Array]:
+    """Per-slice normalised VNDF, conditional CDFs (rows), marginal CDF (over rows) and the
+    normalisation factor of each slice.
 
     ``vndf`` has shape (slices, h, w) with x (theta_m) along the last axis.  Integrals are
     trapezoidal over the bilinear interpolant on the unit square (patch sizes 1/(w-1) and
@@ -399,7 +488,7 @@ def _marginal_tables(vndf: Array) -> tuple[Array, Array, Array]:
     total = marg[:, -1]
     with np.errstate(divide="ignore"):
         norm = np.where(total > 0, 1.0 / total, 0.0)
-    return vndf * norm[:, None, None], cond * norm[:, None, None], marg * norm[:, None]
+    return vndf * norm[:, None, None], cond * norm[:, None, None], marg * norm[:, None], norm
 
 
 def _patch_table(vndf: Array, cond: Array, marg: Array) -> Array:
