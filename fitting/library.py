@@ -1,0 +1,927 @@
+"""Material libraries: ``gonio fit DIR_OR_GLOB --model auto --out LIB/``.
+
+Every samples file (``samples.h5``) and measured BRDF file (RGL ``.bsdf``, MERL ``.binary``)
+found under a folder, or matched by a glob, is fitted with the fit of the single-input
+``gonio fit`` (:func:`gonio.fitting.fit`, model selection included), one material per
+task on dask.distributed (:mod:`gonio.distributed`), and written to its own folder::
+
+    LIB/
+      .gonio.lock            one writer at a time (gonio.locks)
+      paper_white_rgb/       fit.json, material.xml, slices.png, residuals.png (as
+                             `gonio fit`), input.json (source, content digest, options)
+      ...
+      summary.csv            one row per material: status, source, digest, model,
+      summary.parquet        parameters and sigmas, cost, BIC, the selection, the error
+
+Who does what: the client (this process) finds the inputs, digests them (XXH3-64 of the
+bytes) and skips a material whose ``input.json`` records the same digest and the same fit
+options; the workers read and fit the others and send back the files' bytes; the client
+writes each material's folder once, atomically (:func:`gonio.atomic.atomic_directory`), as
+its result arrives.  So a task redone after a worker was killed is still written once,
+only the client needs write access to ``LIB/``, and only paths travel to the workers.
+
+A file that cannot be read (or fitted) is reported by name, the others are fitted, the
+summary lists the failure and the command ends with exit code 1.  Ctrl-C stops the
+workers; the materials written so far stay and are skipped by the next run.
+
+Per-texel fits (issue 18, SVBRDF) will use the same engine: a task is then a block of
+texels of one chunked samples file (``(path, texel range)`` as the item), the worker
+reads its chunk and returns the parameter block; see DEVELOPING.md, "Libraries and Dask".
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import glob
+import json
+import math
+import os
+import shutil
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import click
+
+from gonio.errors import FitError, GonioError
+
+__all__ = [
+    "FIT_SOURCE",
+    "INPUT_RECORD",
+    "SAMPLINGS",
+    "FitOptions",
+    "LibraryReport",
+    "Material",
+    "file_digest",
+    "find_materials",
+    "fit_library",
+    "fit_material",
+    "is_library_source",
+    "library_dispatch",
+    "read_summary_rows",
+]
+
+#: Per-material record of what was fitted (source, digest, options): the skip test.
+INPUT_RECORD = "input.json"
+#: The files of one single-input ``gonio fit`` (the same set per material).
+FIT_OUTPUTS = ("fit.json", "material.xml", "slices.png", "residuals.png")
+SUMMARY_NAMES = ("summary.csv", "summary.parquet")
+_MEASURED_SUFFIXES = (".bsdf", ".binary")
+_SAMPLES_SUFFIXES = (".h5", ".hdf5")
+_SAMPLES_NAME = "samples.h5"
+
+#: Direction grids a measured file is sampled on before fitting
+#: (:func:`gonio.fitting.sampling.direction_grid` keyword arguments).  ``standard`` is
+#: the grid of the single-input ``gonio fit`` (9 x 18 x 36 = 5832 pairs); ``coarse``
+#: (5 x 9 x 18 = 810 pairs) is for quick looks and the tests.
+SAMPLINGS: dict[str, dict[str, Any]] = {
+    "standard": {},
+    "coarse": {"theta_i_deg": (0.0, 20.0, 40.0, 60.0, 80.0), "n_theta_o": 9, "n_phi_o": 18},
+}
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """Everything that changes a material's result folder (part of the skip test).
+
+    Attributes mirror the options of ``gonio fit``: ``model`` (a name or ``"auto"``),
+    ``model_options`` (sorted ``(key, value)`` pairs), ``candidates`` (model specs for
+    ``auto``, None for the default set), ``loss``, ``robust``, ``f_scale`` (residual
+    units), ``algorithm``, ``energy_conservation``, ``plots``, and ``sampling`` (a key of
+    :data:`SAMPLINGS`, for measured files).
+    """
+
+    model: str = "auto"
+    model_options: tuple[tuple[str, str], ...] = ()
+    candidates: tuple[str, ...] | None = None
+    loss: str = "auto"
+    robust: str | None = None
+    f_scale: float = 1.0
+    algorithm: str = "auto"
+    energy_conservation: bool = True
+    plots: bool = True
+    sampling: str = "standard"
+
+    def __post_init__(self) -> None:
+        if self.sampling not in SAMPLINGS:
+            raise GonioError(
+                f"unknown sampling {self.sampling!r}; expected one of {', '.join(SAMPLINGS)}"
+            )
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready form (what ``input.json`` records)."""
+        d = dataclasses.asdict(self)
+        d["model_options"] = dict(self.model_options)
+        d["candidates"] = None if self.candidates is None else list(self.candidates)
+        return d
+
+    def digest(self) -> str:
+        """XXH3-64 of the canonical JSON of :meth:`as_dict` (hex)."""
+        import xxhash
+
+        text = json.dumps(self.as_dict(), sort_keys=True, separators=(",", ":"))
+        return xxhash.xxh3_64_hexdigest(text.encode())
+
+
+@dataclasses.dataclass(frozen=True)
+class Material:
+    """One input of a library.
+
+    Attributes
+    ----------
+    name
+        The result folder's name: the input's path below the search root, ``/`` as
+        ``__``, without the suffix (measured files) or the ``samples.h5`` (sessions).
+    path
+        The input file (absolute).
+    kind
+        ``"samples"`` or ``"measured"``.
+    """
+
+    name: str
+    path: Path
+    kind: str
+
+
+@dataclasses.dataclass(frozen=True)
+class _Task:
+    """What travels to a worker: one material and the options (a few hundred bytes)."""
+
+    material: Material
+    options: FitOptions
+
+
+def file_digest(path: str | os.PathLike) -> str:
+    """XXH3-64 of a file's bytes, hex (read in 4 MiB blocks).
+
+    Raises
+    ------
+    OSError
+        The file cannot be read.
+    """
+    import xxhash
+
+    h = xxhash.xxh3_64()
+    with open(path, "rb") as fh:
+        for block in iter(functools.partial(fh.read, 1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def is_library_source(source: str | os.PathLike) -> bool:
+    """True for a folder, or a glob pattern that is not itself an existing file."""
+    p = Path(source)
+    return p.is_dir() or (glob.has_magic(str(source)) and not p.exists())
+
+
+class _FitSourceType(click.ParamType):
+    """``gonio fit``'s SOURCE: an existing file, a folder, or a glob pattern (quoted)."""
+
+    name = "path"
+
+    def convert(self, value: Any, param: Any, ctx: Any) -> Path:
+        if isinstance(value, Path):
+            return value
+        p = Path(value)
+        if p.exists() or glob.has_magic(str(value)):
+            return p
+        self.fail(f"Path {str(value)!r} does not exist.", param, ctx)
+
+
+#: The click type of ``gonio fit``'s SOURCE argument.
+FIT_SOURCE = _FitSourceType()
+
+
+def _kind_of(path: Path) -> str | None:
+    suffix = path.suffix.lower()
+    if suffix in _MEASURED_SUFFIXES:
+        return "measured"
+    if suffix in _SAMPLES_SUFFIXES:
+        return "samples"
+    return None
+
+
+def _glob_root(pattern: str) -> Path:
+    """The folder a glob pattern's matches are named relative to: its literal prefix."""
+    parts = Path(pattern).parts
+    lit = []
+    for part in parts:
+        if glob.has_magic(part):
+            break
+        lit.append(part)
+    return Path(*lit) if lit else Path(".")
+
+
+def _walk(folder: Path, skip: Path | None) -> list[Path]:
+    found = []
+    for dirpath, dirnames, filenames in os.walk(folder):
+        d = Path(dirpath)
+        # hidden folders (temporaries of atomic writes) and the library itself
+        dirnames[:] = sorted(
+            n
+            for n in dirnames
+            if not n.startswith(".") and (skip is None or (d / n).resolve() != skip)
+        )
+        for n in sorted(filenames):
+            if n.startswith("."):
+                continue
+            if n == _SAMPLES_NAME or Path(n).suffix.lower() in _MEASURED_SUFFIXES:
+                found.append(d / n)
+    return found
+
+
+def _material_name(path: Path, root: Path, kind: str) -> str:
+    try:
+        rel = path.resolve().relative_to(root.resolve())
+    except ValueError:
+        rel = Path(path.name)
+    if kind == "samples" and rel.name.lower() == _SAMPLES_NAME:
+        rel = rel.parent if rel.parent != Path(".") else Path(root.resolve().name)
+    else:
+        rel = rel.with_suffix("")
+    name = "__".join(rel.parts)
+    return name if name and not name.startswith(".") else f"_{name}"
+
+
+def find_materials(
+    source: str | os.PathLike, *, exclude: Path | None = None
+) -> tuple[list[Material], list[tuple[Path, str]]]:
+    """The inputs of a library under a folder or matched by a glob.
+
+    Parameters
+    ----------
+    source
+        A folder (searched recursively for ``samples.h5``, ``*.bsdf``, ``*.binary``;
+        hidden entries skipped) or a glob pattern (``**`` recursive); a matched folder is
+        searched, a matched file is taken when it is a samples or measured file.
+    exclude
+        A folder not to search (the library itself, when it lies under ``source``).
+
+    Returns
+    -------
+    (materials, rejected)
+        Materials sorted by name (names made distinct with a hash of the path where two
+        inputs would share one); ``rejected``: matched files of no known kind, with why.
+
+    Raises
+    ------
+    GonioError
+        Nothing to fit was found (the message names ``source``).
+    """
+    text = str(source)
+    rejected: list[tuple[Path, str]] = []
+    if Path(text).is_dir():
+        root = Path(text)
+        files = _walk(root, exclude)
+    else:
+        root = _glob_root(text)
+        files = []
+        for m in sorted(glob.glob(text, recursive=True)):
+            p = Path(m)
+            if p.is_dir():
+                files += _walk(p, exclude)
+            elif _kind_of(p) is None:
+                rejected.append(
+                    (p, "not a samples file (.h5) or a measured BRDF file (.bsdf, .binary)")
+                )
+            else:
+                files.append(p)
+    seen: dict[Path, None] = {}
+    for f in files:
+        seen.setdefault(f.resolve(), None)
+    materials = []
+    for f in seen:
+        kind = _kind_of(f)
+        assert kind is not None
+        materials.append(Material(_material_name(f, root, kind), f, kind))
+    counts: dict[str, int] = {}
+    for m in materials:
+        counts[m.name] = counts.get(m.name, 0) + 1
+    if any(c > 1 for c in counts.values()):
+        import xxhash
+
+        materials = [
+            dataclasses.replace(m, name=f"{m.name}-{xxhash.xxh3_64_hexdigest(str(m.path))[:6]}")
+            if counts[m.name] > 1
+            else m
+            for m in materials
+        ]
+    if not materials and not rejected:
+        raise GonioError(
+            f"{source}: no samples.h5, .bsdf or .binary files found "
+            "(a folder is searched recursively; quote a glob so the shell leaves it alone)"
+        )
+    return sorted(materials, key=lambda m: m.name), rejected
+
+
+# --------------------------------------------------------------------------- the task
+
+
+def _load(material: Material, sampling: str) -> Any:
+    if material.kind == "samples":
+        from gonio.dataset import load_samples
+
+        return load_samples(material.path)
+    from gonio.brdf import load
+    from gonio.fitting.sampling import sample_brdf
+
+    return sample_brdf(load(material.path), source=str(material.path), **SAMPLINGS[sampling])
+
+
+def _write_fit_files(r: Any, samples: Any, folder: Path, plots: bool) -> list[str]:
+    """The files of a single-input ``gonio fit`` into ``folder``; returns notes."""
+    from gonio.fitting.export import save_json, save_mitsuba_xml
+
+    notes = []
+    save_json(r, folder / "fit.json")
+    try:
+        save_mitsuba_xml(r, folder / "material.xml")
+    except FitError as exc:
+        notes.append(f"no Mitsuba export: {exc}")
+    if plots:
+        from gonio.fitting.plots import plot_residual_map, plot_slices
+
+        plot_slices(r, samples, folder / "slices.png")
+        plot_residual_map(r, samples, folder / "residuals.png")
+    return notes
+
+
+def fit_material(task: _Task) -> dict[str, Any]:
+    """Read and fit one material; the files of its result folder as bytes (a worker task).
+
+    Returns
+    -------
+    dict
+        ``files`` (name -> bytes: fit.json, material.xml, the plots), ``digest`` (of the
+        bytes this worker read), ``n_samples``, ``success``, ``message``, ``notes``.
+
+    Raises
+    ------
+    GonioError
+        The file cannot be read or fitted (the message names it).
+    """
+    import tempfile
+
+    from gonio.fitting import fit
+
+    m, o = task.material, task.options
+    try:
+        digest = file_digest(m.path)
+    except OSError as exc:
+        raise GonioError(f"{m.path}: cannot read: {exc.strerror or exc}") from None
+    samples = _load(m, o.sampling)
+    r = fit(
+        samples,
+        o.model,
+        loss=o.loss,
+        robust=o.robust,
+        f_scale=o.f_scale,
+        algorithm=o.algorithm,
+        energy_conservation=o.energy_conservation,
+        candidates=o.candidates,
+        model_options=dict(o.model_options) or None,
+    )
+    with tempfile.TemporaryDirectory(prefix="gonio-fit-") as tmp:
+        notes = _write_fit_files(r, samples, Path(tmp), o.plots)
+        files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())}
+    return {
+        "files": files,
+        "digest": digest,
+        "n_samples": int(r.n_samples),
+        "success": bool(r.success),
+        "message": str(r.message),
+        "notes": notes,
+    }
+
+
+# --------------------------------------------------------------------------- the library
+
+
+@dataclasses.dataclass
+class LibraryReport:
+    """What one library run did.
+
+    Attributes
+    ----------
+    fitted, skipped
+        Material names fitted now / skipped (input and options unchanged).
+    failed
+        Material name (or path, for an input of no known kind) -> error message.
+    not_converged
+        Materials written whose fit did not converge.
+    written
+        Material folders this run wrote (each once).
+    rows
+        The summary rows (as written to summary.csv / summary.parquet).
+    """
+
+    fitted: list[str] = dataclasses.field(default_factory=list)
+    skipped: list[str] = dataclasses.field(default_factory=list)
+    failed: dict[str, str] = dataclasses.field(default_factory=dict)
+    not_converged: list[str] = dataclasses.field(default_factory=list)
+    written: list[Path] = dataclasses.field(default_factory=list)
+    rows: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+
+
+def _read_record(folder: Path) -> dict[str, Any] | None:
+    try:
+        rec = json.loads((folder / INPUT_RECORD).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return rec if isinstance(rec, dict) else None
+
+
+def _up_to_date(folder: Path, digest: str, options_digest: str) -> bool:
+    rec = _read_record(folder)
+    return (
+        rec is not None
+        and rec.get("digest") == digest
+        and rec.get("options_digest") == options_digest
+        and (folder / "fit.json").is_file()
+    )
+
+
+def _write_material(
+    lib: Path, material: Material, options: FitOptions, result: dict[str, Any]
+) -> Path:
+    from gonio.atomic import atomic_directory
+
+    folder = lib / material.name
+    record = {
+        "schema": "gonio.library_input",
+        "schema_version": 1,
+        "material": material.name,
+        "source": str(material.path),
+        "kind": material.kind,
+        "digest": result["digest"],
+        "digest_algorithm": "xxh3_64",
+        "options": options.as_dict(),
+        "options_digest": options.digest(),
+        "n_samples": result["n_samples"],
+        "notes": result["notes"],
+    }
+    ours = {*FIT_OUTPUTS, INPUT_RECORD}
+    keep = tuple(p.name for p in folder.iterdir() if p.name not in ours) if folder.is_dir() else ()
+    with atomic_directory(folder, keep=keep) as stage:
+        for name, data in result["files"].items():
+            (stage / name).write_bytes(data)
+        (stage / INPUT_RECORD).write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
+    return folder
+
+
+def _fit_row(folder: Path, status: str) -> dict[str, Any] | None:
+    """The summary row of a material folder (from its fit.json and input.json)."""
+    from gonio.fitting.select import format_model_spec
+
+    rec = _read_record(folder)
+    try:
+        fit_doc = json.loads((folder / "fit.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if rec is None:
+        return None
+    diag = fit_doc.get("diagnostics") or {}
+    spec = format_model_spec(fit_doc["model"], fit_doc.get("model_options") or {})
+    row: dict[str, Any] = {
+        "material": folder.name,
+        "status": status,
+        "source": rec.get("source"),
+        "kind": rec.get("kind"),
+        "digest": rec.get("digest"),
+        "model": spec,
+        "n_samples": fit_doc.get("n_samples"),
+        "cost": fit_doc.get("cost"),
+        "bic": diag.get("bic"),
+        "success": fit_doc.get("success"),
+        "selection": json.dumps(
+            [
+                {k: s.get(k) for k in ("model", "criterion", "cost", "success")}
+                for s in diag.get("selection") or []
+            ]
+        )
+        if diag.get("selection")
+        else None,
+        "error": None if fit_doc.get("success") else fit_doc.get("message"),
+    }
+    channels = fit_doc.get("channels") or []
+    for name, values in (fit_doc.get("params") or {}).items():
+        sig = (fit_doc.get("std") or {}).get(name) or [None] * len(values)
+        for c, v, s in zip(channels, values, sig, strict=False):
+            row[f"param.{name}.{c}"] = _num(v)
+            row[f"sigma.{name}.{c}"] = _num(s)
+    return row
+
+
+def _num(v: Any) -> float | None:
+    if v is None:
+        return None
+    if isinstance(v, str):  # save_json writes inf as "inf"
+        return float(v)
+    return float(v)
+
+
+_FIXED_COLUMNS = (
+    "material", "status", "source", "kind", "digest", "model", "n_samples", "cost", "bic",
+    "success", "selection", "error",
+)  # fmt: skip
+
+
+def _columns(rows: Sequence[dict[str, Any]]) -> list[str]:
+    # parameter columns in order of appearance: each fit's own order (R, G, B)
+    extra = dict.fromkeys(k for r in rows for k in r if k not in _FIXED_COLUMNS)
+    return [*_FIXED_COLUMNS, *extra]
+
+
+def _write_summary(lib: Path, rows: list[dict[str, Any]]) -> None:
+    import csv
+    import io
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from gonio.atomic import atomic_path, write_text_atomic
+
+    cols = _columns(rows)
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=cols, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({c: _csv_cell(r.get(c)) for c in cols})
+    write_text_atomic(lib / "summary.csv", buf.getvalue())
+    types = {
+        "n_samples": pa.int64(),
+        "cost": pa.float64(),
+        "bic": pa.float64(),
+        "success": pa.bool_(),
+    }
+    arrays = {}
+    for c in cols:
+        values = [r.get(c) for r in rows]
+        if c.startswith(("param.", "sigma.")):
+            arrays[c] = pa.array(values, type=pa.float64())
+        else:
+            arrays[c] = pa.array(values, type=types.get(c, pa.string()))
+    with atomic_path(lib / "summary.parquet") as tmp:
+        pq.write_table(pa.table(arrays), tmp)
+
+
+def _csv_cell(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ("inf" if v > 0 else "-inf" if v < 0 else "nan")
+    return str(v)
+
+
+def read_summary_rows(path: str | os.PathLike) -> list[dict[str, Any]]:
+    """The rows of a library's ``summary.parquet`` (list of dicts; missing -> None)."""
+    import pyarrow.parquet as pq
+
+    return pq.read_table(path).to_pylist()
+
+
+@contextlib.contextmanager
+def _library_folder(lib: Path) -> Iterator[None]:
+    """Hold ``LIB/.gonio.lock`` for the run; remove a LIB/ this run created and left empty."""
+    from gonio.locks import LOCK_NAME, hold_lock
+
+    created = not lib.exists()
+    lib.mkdir(parents=True, exist_ok=True)
+    try:
+        with hold_lock(lib / LOCK_NAME, f"library {lib}/"):
+            yield
+    except BaseException:
+        if created and {p.name for p in lib.iterdir()} <= {LOCK_NAME}:
+            shutil.rmtree(lib, ignore_errors=True)
+        raise
+
+
+def fit_library(
+    source: str | os.PathLike,
+    lib: str | os.PathLike,
+    options: FitOptions = FitOptions(),
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    force: bool = False,
+    connect_timeout_s: float | None = None,
+    console: Any = None,
+    err_console: Any = None,
+    on_client: Callable[[Any], None] | None = None,
+) -> LibraryReport:
+    """Fit every material under ``source`` into the library folder ``lib``.
+
+    Parameters
+    ----------
+    source
+        A folder or a glob pattern (:func:`find_materials`).
+    lib
+        The library folder (created; one writer at a time).
+    options
+        The fit options (the same for every material).
+    scheduler
+        A dask scheduler address (``tcp://HOST:PORT``); None: a local cluster.
+    workers
+        Local worker processes (default one per core); 0: fit in this process, one
+        material after the other (no dask).  Not with ``scheduler``.
+    force
+        Refit materials that are up to date.
+    connect_timeout_s
+        Seconds to wait for ``scheduler`` (default
+        :data:`gonio.distributed.DEFAULT_CONNECT_TIMEOUT_S`).
+    console, err_console
+        rich consoles for progress and per-material lines / error lines.
+    on_client
+        Called with the dask client once it is connected (tests and benchmarks: to watch
+        or disturb the workers); not called with ``workers=0``.
+
+    Returns
+    -------
+    LibraryReport
+        Failures are in it (and in the summary); this function does not raise for them.
+
+    Raises
+    ------
+    GonioError
+        Nothing found under ``source``; the library is in use by another process
+        (:class:`gonio.locks.LockedError`); the scheduler cannot be reached
+        (:class:`gonio.distributed.SchedulerUnreachable`: before any work, nothing
+        written).
+    """
+    from rich.console import Console
+
+    from gonio.distributed import DEFAULT_CONNECT_TIMEOUT_S, TaskFailure, open_client
+
+    console = console or Console()
+    err_console = err_console or Console(stderr=True)
+    lib = Path(lib)
+    if scheduler is not None and workers is not None:
+        raise GonioError(
+            "--workers sets the size of the local cluster; a scheduler's workers are "
+            "started on the cluster with `dask worker ADDRESS`"
+        )
+    if workers is not None and workers < 0:
+        raise GonioError(f"--workers must be >= 0 (0: no dask, this process), got {workers}")
+    materials, rejected = find_materials(source, exclude=lib.resolve() if lib.exists() else None)
+    report = LibraryReport()
+    status: dict[str, str] = {}
+
+    def fail(name: str, path: Path, message: str) -> None:
+        report.failed[name] = message
+        status[name] = "failed"
+        shown = message if str(path) in message else f"{path}: {message}"
+        err_console.print(f"[red]error: {shown}[/red]", highlight=False)
+
+    timeout = DEFAULT_CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
+    client_cm = (
+        contextlib.nullcontext(None)
+        if workers == 0
+        else open_client(scheduler, workers=workers, timeout_s=timeout)
+    )
+    with _library_folder(lib), client_cm as client:
+        if client is not None and on_client is not None:
+            on_client(client)
+        for path, why in rejected:
+            fail(str(path), path, why)
+        options_digest = options.digest()
+        todo: list[Material] = []
+        digests: dict[str, str] = {}
+        for m in materials:
+            try:
+                digests[m.name] = file_digest(m.path)
+            except OSError as exc:
+                fail(m.name, m.path, f"cannot read: {exc.strerror or exc}")
+                continue
+            if not force and _up_to_date(lib / m.name, digests[m.name], options_digest):
+                report.skipped.append(m.name)
+                status[m.name] = "unchanged"
+            else:
+                todo.append(m)
+        if report.skipped:
+            console.print(
+                f"{len(report.skipped)} material(s) unchanged since their last fit: skipped",
+                highlight=False,
+            )
+        by_name = {m.name: m for m in todo}
+        where = (
+            "this process"
+            if client is None
+            else scheduler or f"a local cluster of {len(client.scheduler_info()['workers'])}"
+        )
+        console.print(f"fitting {len(todo)} material(s) on {where}", highlight=False)
+
+        from gonio.distributed import map_tasks, rich_progress
+
+        with rich_progress(len(todo), "fitting", console=console) as bar:
+
+            def arrived(name: Any, outcome: Any, done: int, total: int) -> None:
+                m = by_name[name]
+                if isinstance(outcome, TaskFailure):
+                    fail(m.name, m.path, outcome.error)
+                else:
+                    try:
+                        report.written.append(_write_material(lib, m, options, outcome))
+                    except OSError as exc:
+                        fail(m.name, lib / m.name, f"cannot write: {exc.strerror or exc}")
+                    else:
+                        report.fitted.append(m.name)
+                        status[m.name] = "fitted"
+                        if not outcome["success"]:
+                            report.not_converged.append(m.name)
+                        for note in outcome["notes"]:
+                            console.print(f"{m.name}: {note}", highlight=False)
+                bar(name, outcome, done, total)
+
+            map_tasks(
+                client,
+                fit_material,
+                [_Task(m, options) for m in todo],
+                key_of=lambda t: t.material.name,
+                retries=1,
+                progress=arrived,
+            )
+        report.rows = _summary_rows(lib, materials, status, report.failed, digests)
+        _write_summary(lib, report.rows)
+    return report
+
+
+def _summary_rows(
+    lib: Path,
+    materials: list[Material],
+    status: dict[str, str],
+    failed: dict[str, str],
+    digests: dict[str, str],
+) -> list[dict[str, Any]]:
+    """Every material folder of the library (fitted now, unchanged, or kept from earlier
+    runs of other sources) and this run's failures, sorted by material name."""
+    rows: dict[str, dict[str, Any]] = {}
+    for folder in sorted(p for p in lib.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        name = folder.name
+        st = status.get(name, "kept")
+        if st == "failed":
+            continue
+        row = _fit_row(folder, st)
+        if row is not None:
+            rows[name] = row
+    by_name = {m.name: m for m in materials}
+    for name, message in failed.items():
+        m = by_name.get(name)
+        rows[name] = {
+            "material": name,
+            "status": "failed",
+            "source": str(m.path) if m else name,
+            "kind": m.kind if m else None,
+            "digest": digests.get(name),
+            "error": message,
+        }
+    return [rows[k] for k in sorted(rows)]
+
+
+# --------------------------------------------------------------------------- the CLI
+
+
+_LIBRARY_PARAMS = ("scheduler", "workers", "sampling", "connect_timeout")
+_LIBRARY_HELP = """
+
+    SOURCE may also be a folder or a quoted glob: a material library.  Every samples.h5,
+    .bsdf and .binary file found is fitted, one material per dask task (a local cluster,
+    or --scheduler), into one folder per material in --out, plus summary.csv and
+    summary.parquet; materials whose file and options are unchanged are skipped.
+
+    \b
+      gonio fit measured/ --model auto --out LIB/
+      gonio fit 'sessions/*/samples.h5' --out LIB/ --scheduler tcp://head:8786
+    """
+
+
+def library_dispatch(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Decorate ``gonio fit``: add the library options, and run :func:`fit_library` when
+    SOURCE is a folder or a glob (the single-input command otherwise, unchanged)."""
+
+    @functools.wraps(fn)
+    def command(**kwargs: Any) -> Any:
+        lib_kwargs = {k: kwargs.pop(k) for k in _LIBRARY_PARAMS}
+        if is_library_source(kwargs["source"]):
+            return _library_command(**kwargs, **lib_kwargs)
+        given = [f"--{k.replace('_', '-')}" for k in _LIBRARY_PARAMS if lib_kwargs[k] is not None]
+        if given:
+            raise click.UsageError(
+                f"{', '.join(given)} apply to a library: SOURCE a folder or a glob "
+                f"(got the file {kwargs['source']})"
+            )
+        return fn(**kwargs)
+
+    command.__doc__ = (fn.__doc__ or "").rstrip() + _LIBRARY_HELP
+    for decorator in reversed(
+        (
+            click.option(
+                "--scheduler",
+                default=None,
+                metavar="tcp://HOST:PORT",
+                help="Library: fit on this dask scheduler's workers (they must see the "
+                "same files at the same paths); default a local cluster.",
+            ),
+            click.option(
+                "--workers",
+                type=int,
+                default=None,
+                help="Library: worker processes of the local cluster (default one per "
+                "core; 0: no dask, fit in this process).",
+            ),
+            click.option(
+                "--sampling",
+                type=click.Choice(list(SAMPLINGS)),
+                default=None,
+                help="Library: grid measured files are sampled on (default standard, the "
+                "grid of a single-input fit; coarse: 810 pairs).",
+            ),
+            click.option(
+                "--connect-timeout",
+                type=float,
+                default=None,
+                metavar="SECONDS",
+                help="Library: how long to wait for --scheduler (default 10).",
+            ),
+        )
+    ):
+        command = decorator(command)
+    return command
+
+
+def _library_command(
+    *,
+    source: Path,
+    model: str,
+    options: tuple[str, ...],
+    candidates: str | None,
+    loss: str,
+    robust: str | None,
+    f_scale: float,
+    algorithm: str,
+    no_energy: bool,
+    out: Path,
+    plots: bool,
+    force: bool,
+    scheduler: str | None,
+    workers: int | None,
+    sampling: str | None,
+    connect_timeout: float | None,
+    **_single_input_only: Any,  # options of `gonio fit` added later: not used by a library
+) -> None:
+    # The option parsing of the single-input command, so both read --option and
+    # --candidates alike.
+    from gonio.fitting.cli import _parse_options, _split_candidates
+
+    model_options = _parse_options(options)
+    if model_options and model == "auto":
+        raise click.UsageError(
+            "--option sets options of one --model; with --model auto put them in the "
+            "candidates: --candidates 'lambert,lambert+ggx[fresnel=schlick]'"
+        )
+    fit_options = FitOptions(
+        model=model,
+        model_options=tuple(sorted(model_options.items())),
+        candidates=_split_candidates(candidates) if candidates else None,
+        loss=loss,
+        robust=robust,
+        f_scale=f_scale,
+        algorithm=algorithm,
+        energy_conservation=not no_energy,
+        plots=plots,
+        sampling=sampling or "standard",
+    )
+    report = fit_library(
+        source,
+        out,
+        fit_options,
+        scheduler=scheduler,
+        workers=workers,
+        force=force,
+        connect_timeout_s=connect_timeout,
+    )
+    from rich.console import Console
+
+    console = Console()
+    console.print(
+        f"{len(report.fitted)} fitted, {len(report.skipped)} unchanged, "
+        f"{len(report.failed)} failed; summary: {Path(out) / 'summary.csv'}, "
+        f"{Path(out) / 'summary.parquet'}",
+        highlight=False,
+    )
+    bad = [*report.failed, *report.not_converged]
+    if bad:
+        what = []
+        if report.failed:
+            what.append(f"{len(report.failed)} failed ({', '.join(report.failed)})")
+        if report.not_converged:
+            what.append(
+                f"{len(report.not_converged)} did not converge ({', '.join(report.not_converged)})"
+            )
+        raise FitError(
+            f"library {out}: {'; '.join(what)}; the others were written (see summary.csv)"
+        )
