@@ -305,12 +305,11 @@ def find_materials(
     if any(c > 1 for c in counts.values()):
         import xxhash
 
-        materials = [
-            dataclasses.replace(m, name=f"{m.name}-{xxhash.xxh3_64_hexdigest(str(m.path))[:6]}")
-            if counts[m.name] > 1
-            else m
-            for m in materials
-        ]
+        def tagged(m: Material) -> Material:
+            tag = xxhash.xxh3_64_hexdigest(str(m.path).encode())[:6]
+            return dataclasses.replace(m, name=f"{m.name}-{tag}")
+
+        materials = [tagged(m) if counts[m.name] > 1 else m for m in materials]
     if not materials and not rejected:
         raise GonioError(
             f"{source}: no samples.h5, .bsdf or .binary files found "
@@ -675,7 +674,9 @@ def fit_library(
         report.failed[name] = message
         status[name] = "failed"
         shown = message if str(path) in message else f"{path}: {message}"
-        err_console.print(f"[red]error: {shown}[/red]", highlight=False)
+        err_console.print(
+            f"error: {shown}", style="red", markup=False, highlight=False, soft_wrap=True
+        )
 
     timeout = DEFAULT_CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
     client_cm = (
@@ -706,6 +707,8 @@ def fit_library(
             console.print(
                 f"{len(report.skipped)} material(s) unchanged since their last fit: skipped",
                 highlight=False,
+                soft_wrap=True,
+                markup=False,
             )
         by_name = {m.name: m for m in todo}
         where = (
@@ -713,7 +716,12 @@ def fit_library(
             if client is None
             else scheduler or f"a local cluster of {len(client.scheduler_info()['workers'])}"
         )
-        console.print(f"fitting {len(todo)} material(s) on {where}", highlight=False)
+        console.print(
+            f"fitting {len(todo)} material(s) on {where}",
+            markup=False,
+            highlight=False,
+            soft_wrap=True,
+        )
 
         from gonio.distributed import map_tasks, rich_progress
 
@@ -734,7 +742,9 @@ def fit_library(
                         if not outcome["success"]:
                             report.not_converged.append(m.name)
                         for note in outcome["notes"]:
-                            console.print(f"{m.name}: {note}", highlight=False)
+                            console.print(
+                                f"{m.name}: {note}", markup=False, highlight=False, soft_wrap=True
+                            )
                 bar(name, outcome, done, total)
 
             map_tasks(
@@ -912,6 +922,8 @@ def _library_command(
         f"{len(report.failed)} failed; summary: {Path(out) / 'summary.csv'}, "
         f"{Path(out) / 'summary.parquet'}",
         highlight=False,
+        soft_wrap=True,
+        markup=False,
     )
     bad = [*report.failed, *report.not_converged]
     if bad:

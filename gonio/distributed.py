@@ -207,7 +207,10 @@ def _local_client(workers: int, threads_per_worker: int) -> Iterator[Client]:
             n_workers=workers,
             threads_per_worker=threads_per_worker,
             processes=True,
-            dashboard_address=None,
+            # loopback only; the scheduler's HTTP routes on a free port (":8787" clashes
+            # with any other cluster on the machine), no dashboard
+            host="127.0.0.1",
+            dashboard_address="127.0.0.1:0",
             scheduler_kwargs={"dashboard": False},
             silence_logs=logging.CRITICAL,
             env=env,
