@@ -305,12 +305,16 @@ def test_ctrl_c_leaves_no_worker(rgl_folder, tmp_path):
             proc.wait()
     assert proc.returncode == 130, err
     assert ("aborted" in err or "interrupted" in err) and "Traceback" not in err
+    # the workers are gone when the CLI has exited ...
     left = []
-    for p in children:
+    for p in workers:
         with contextlib.suppress(psutil.NoSuchProcess):
             if p.is_running() and p.status() != psutil.STATUS_ZOMBIE:
-                left.append((p.pid, p.cmdline()))
+                left.append((p.pid, p.status()))
     assert left == []
+    # ... and multiprocessing's resource tracker ends by itself once its parent has gone
+    _, alive = psutil.wait_procs(children, timeout=30)
+    assert [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE] == []
     # whatever was written is a whole material; no half-written folder or temporary
     if lib.exists():
         assert gonio.atomic.stale_temporaries(lib) == []
