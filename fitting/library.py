@@ -120,12 +120,39 @@ class FitOptions:
         d["candidates"] = None if self.candidates is None else list(self.candidates)
         return d
 
-    def digest(self) -> str:
-        """XXH3-64 of the canonical JSON of :meth:`as_dict` (hex)."""
+    def digest(self, kind: str = "measured") -> str:
+        """XXH3-64 of the canonical JSON of :meth:`as_dict` (hex).
+
+        For ``kind="samples"`` the sampling is left out: it applies to measured files
+        only, so changing it does not refit sessions.
+        """
         import xxhash
 
-        text = json.dumps(self.as_dict(), sort_keys=True, separators=(",", ":"))
+        d = self.as_dict()
+        if kind == "samples":
+            d.pop("sampling")
+        text = json.dumps(d, sort_keys=True, separators=(",", ":"))
         return xxhash.xxh3_64_hexdigest(text.encode())
+
+    def check(self) -> None:
+        """Refuse an unknown model (or candidate) or option here, before any work, rather
+        than once per material on the workers.
+
+        Raises
+        ------
+        GonioError
+            The message names the model spec.
+        """
+        from gonio.brdf import get_model
+        from gonio.fitting.select import parse_model_spec
+
+        specs = [] if self.model == "auto" else [self.model]
+        specs += list(self.candidates or ())
+        for spec in specs:
+            name, opts = parse_model_spec(spec)
+            if spec == self.model:
+                opts = {**opts, **dict(self.model_options)}
+            get_model(name, **opts)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -460,7 +487,7 @@ def _write_material(
         "digest": result["digest"],
         "digest_algorithm": "xxh3_64",
         "options": options.as_dict(),
-        "options_digest": options.digest(),
+        "options_digest": options.digest(material.kind),
         "n_samples": result["n_samples"],
         "notes": result["notes"],
     }
@@ -666,6 +693,7 @@ def fit_library(
         )
     if workers is not None and workers < 0:
         raise GonioError(f"--workers must be >= 0 (0: no dask, this process), got {workers}")
+    options.check()
     materials, rejected = find_materials(source, exclude=lib.resolve() if lib.exists() else None)
     report = LibraryReport()
     status: dict[str, str] = {}
@@ -689,7 +717,6 @@ def fit_library(
             on_client(client)
         for path, why in rejected:
             fail(str(path), path, why)
-        options_digest = options.digest()
         todo: list[Material] = []
         digests: dict[str, str] = {}
         for m in materials:
@@ -698,7 +725,7 @@ def fit_library(
             except OSError as exc:
                 fail(m.name, m.path, f"cannot read: {exc.strerror or exc}")
                 continue
-            if not force and _up_to_date(lib / m.name, digests[m.name], options_digest):
+            if not force and _up_to_date(lib / m.name, digests[m.name], options.digest(m.kind)):
                 report.skipped.append(m.name)
                 status[m.name] = "unchanged"
             else:

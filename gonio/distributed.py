@@ -197,24 +197,29 @@ def _spawned_children() -> set[int]:
 
 @contextlib.contextmanager
 def _local_client(workers: int, threads_per_worker: int) -> Iterator[Client]:
+    import dask
     from distributed import Client, LocalCluster
 
     env = {v: str(threads_per_worker) for v in _THREAD_VARS}
     pids: set[int] = set()
     cluster = client = None
     try:
-        cluster = LocalCluster(
-            n_workers=workers,
-            threads_per_worker=threads_per_worker,
-            processes=True,
-            # loopback only; the scheduler's HTTP routes on a free port (":8787" clashes
-            # with any other cluster on the machine), no dashboard
-            host="127.0.0.1",
-            dashboard_address="127.0.0.1:0",
-            scheduler_kwargs={"dashboard": False},
-            silence_logs=logging.CRITICAL,
-            env=env,
-        )
+        # No dashboard, so the workers' statistical profiler (a thread sampling every
+        # stack each 10 ms, for the dashboard's profile page) would only take the GIL
+        # from the fits.  The nannies hand this config to the worker processes.
+        with dask.config.set({"distributed.worker.profile.enabled": False}):
+            cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=threads_per_worker,
+                processes=True,
+                # loopback only; the scheduler's HTTP routes on a free port (":8787" clashes
+                # with any other cluster on the machine), no dashboard
+                host="127.0.0.1",
+                dashboard_address="127.0.0.1:0",
+                scheduler_kwargs={"dashboard": False},
+                silence_logs=logging.CRITICAL,
+                env=env,
+            )
         client = Client(cluster, set_as_default=False)
         pids = set(client.run(os.getpid).values())
         yield client

@@ -8,6 +8,7 @@ import pickle
 import socket
 import time
 
+import dask
 import psutil
 import pytest
 
@@ -125,6 +126,7 @@ def test_local_cluster_processes_and_ctrl_c():
         with open_client(workers=2) as client:
             pids = client.run(os.getpid)
             env = client.run(os.getenv, "NUMBA_NUM_THREADS")
+            profiling = client.run(dask.config.get, "distributed.worker.profile.enabled")
             procs = [psutil.Process(p) for p in pids.values()]
 
             def interrupt(key, outcome, done, total):
@@ -135,6 +137,7 @@ def test_local_cluster_processes_and_ctrl_c():
                       progress=interrupt)  # fmt: skip
     assert len(pids) == 2 and os.getpid() not in pids.values()
     assert set(env.values()) == {"1"}
+    assert set(profiling.values()) == {False}  # no dashboard: no profiler thread
     alive = [p.pid for p in procs if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
     assert alive == []
 

@@ -364,7 +364,7 @@ def test_second_writer_refused(single_process_lib, rgl_folder, tmp_path):
     assert after == before
 
 
-def test_samples_files_same_as_single_fit(tmp_path, make_samples):
+def test_samples_files_same_as_single_fit(tmp_path, make_samples, capsys):
     """A session's samples.h5 in a library gets the files a single `gonio fit` writes,
     with the same fit (the library with plots, the single fit without: plots are slow)."""
     s = make_samples(
@@ -390,6 +390,18 @@ def test_samples_files_same_as_single_fit(tmp_path, make_samples):
     assert (lib / "S1" / "material.xml").read_bytes() == (single / "material.xml").read_bytes()
     record = json.loads((lib / "S1" / "input.json").read_text())
     assert record["kind"] == "samples" and record["options"]["plots"] is True
+    # the grid of measured files does not concern a session: still up to date
+    capsys.readouterr()
+    assert run("fit", str(sessions), "-m", "lambert+ggx", "--out", str(lib), "--workers", "0",
+               "--sampling", "coarse") == 0  # fmt: skip
+    assert "1 material(s) unchanged" in capsys.readouterr().out
+
+
+def test_unknown_model_refused_before_work(rgl_folder, tmp_path, capsys):
+    lib = tmp_path / "LIB"
+    assert run("fit", str(rgl_folder), "-m", "lambert+ggz", "--out", str(lib)) == 1
+    assert "'ggz'" in capsys.readouterr().err
+    assert not lib.exists()
 
 
 # ------------------------------------------------------------------ inputs
