@@ -364,6 +364,7 @@ def test_second_writer_refused(single_process_lib, rgl_folder, tmp_path):
     assert after == before
 
 
+@pytest.mark.slow
 def test_samples_files_same_as_single_fit(tmp_path, make_samples, capsys):
     """A session's samples.h5 in a library gets the files a single `gonio fit` writes,
     with the same fit (the library with plots, the single fit without: plots are slow)."""
