@@ -11,7 +11,7 @@ from pathlib import Path
 import click
 
 from gonio.errors import FitError
-from gonio.fitting.library import FIT_SOURCE, library_dispatch
+from gonio.fitting.library_cli import FIT_SOURCE, library_dispatch
 
 __all__ = ["fit"]
 

@@ -36,19 +36,21 @@ import dataclasses
 import functools
 import glob
 import json
-import math
 import os
 import shutil
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import click
-
 from gonio.errors import FitError, GonioError
+from gonio.fitting.library_summary import (
+    INPUT_RECORD,  # per-material record of what was fitted: the skip test
+    read_record,
+    summary_rows,
+    write_summary,
+)
 
 __all__ = [
-    "FIT_SOURCE",
     "INPUT_RECORD",
     "SAMPLINGS",
     "FitOptions",
@@ -58,13 +60,8 @@ __all__ = [
     "find_materials",
     "fit_library",
     "fit_material",
-    "is_library_source",
-    "library_dispatch",
-    "read_summary_rows",
 ]
 
-#: Per-material record of what was fitted (source, digest, options): the skip test.
-INPUT_RECORD = "input.json"
 #: The files of one single-input ``gonio fit`` (the same set per material).
 FIT_OUTPUTS = ("fit.json", "material.xml", "slices.png", "residuals.png")
 SUMMARY_NAMES = ("summary.csv", "summary.parquet")
@@ -198,30 +195,6 @@ def file_digest(path: str | os.PathLike) -> str:
         for block in iter(functools.partial(fh.read, 1 << 22), b""):
             h.update(block)
     return h.hexdigest()
-
-
-def is_library_source(source: str | os.PathLike) -> bool:
-    """True for a folder, or a glob pattern that is not itself an existing file."""
-    p = Path(source)
-    return p.is_dir() or (glob.has_magic(str(source)) and not p.exists())
-
-
-class _FitSourceType(click.ParamType):
-    """``gonio fit``'s SOURCE: an existing file, a folder, or a glob pattern (quoted)."""
-
-    name = "path"
-
-    def convert(self, value: Any, param: Any, ctx: Any) -> Path:
-        if isinstance(value, Path):
-            return value
-        p = Path(value)
-        if p.exists() or glob.has_magic(str(value)):
-            return p
-        self.fail(f"Path {str(value)!r} does not exist.", param, ctx)
-
-
-#: The click type of ``gonio fit``'s SOURCE argument.
-FIT_SOURCE = _FitSourceType()
 
 
 def _kind_of(path: Path) -> str | None:
@@ -454,16 +427,8 @@ class LibraryReport:
     rows: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
 
-def _read_record(folder: Path) -> dict[str, Any] | None:
-    try:
-        rec = json.loads((folder / INPUT_RECORD).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    return rec if isinstance(rec, dict) else None
-
-
 def _up_to_date(folder: Path, digest: str, options_digest: str) -> bool:
-    rec = _read_record(folder)
+    rec = read_record(folder)
     return (
         rec is not None
         and rec.get("digest") == digest
@@ -498,117 +463,6 @@ def _write_material(
             (stage / name).write_bytes(data)
         (stage / INPUT_RECORD).write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
     return folder
-
-
-def _fit_row(folder: Path, status: str) -> dict[str, Any] | None:
-    """The summary row of a material folder (from its fit.json and input.json)."""
-    from gonio.fitting.select import format_model_spec
-
-    rec = _read_record(folder)
-    try:
-        fit_doc = json.loads((folder / "fit.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    if rec is None:
-        return None
-    diag = fit_doc.get("diagnostics") or {}
-    spec = format_model_spec(fit_doc["model"], fit_doc.get("model_options") or {})
-    row: dict[str, Any] = {
-        "material": folder.name,
-        "status": status,
-        "source": rec.get("source"),
-        "kind": rec.get("kind"),
-        "digest": rec.get("digest"),
-        "model": spec,
-        "n_samples": fit_doc.get("n_samples"),
-        "cost": fit_doc.get("cost"),
-        "bic": diag.get("bic"),
-        "success": fit_doc.get("success"),
-        "selection": json.dumps(
-            [
-                {k: s.get(k) for k in ("model", "criterion", "cost", "success")}
-                for s in diag.get("selection") or []
-            ]
-        )
-        if diag.get("selection")
-        else None,
-        "error": None if fit_doc.get("success") else fit_doc.get("message"),
-    }
-    channels = fit_doc.get("channels") or []
-    for name, values in (fit_doc.get("params") or {}).items():
-        sig = (fit_doc.get("std") or {}).get(name) or [None] * len(values)
-        for c, v, s in zip(channels, values, sig, strict=False):
-            row[f"param.{name}.{c}"] = _num(v)
-            row[f"sigma.{name}.{c}"] = _num(s)
-    return row
-
-
-def _num(v: Any) -> float | None:
-    if v is None:
-        return None
-    if isinstance(v, str):  # save_json writes inf as "inf"
-        return float(v)
-    return float(v)
-
-
-_FIXED_COLUMNS = (
-    "material", "status", "source", "kind", "digest", "model", "n_samples", "cost", "bic",
-    "success", "selection", "error",
-)  # fmt: skip
-
-
-def _columns(rows: Sequence[dict[str, Any]]) -> list[str]:
-    # parameter columns in order of appearance: each fit's own order (R, G, B)
-    extra = dict.fromkeys(k for r in rows for k in r if k not in _FIXED_COLUMNS)
-    return [*_FIXED_COLUMNS, *extra]
-
-
-def _write_summary(lib: Path, rows: list[dict[str, Any]]) -> None:
-    import csv
-    import io
-
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    from gonio.atomic import atomic_path, write_text_atomic
-
-    cols = _columns(rows)
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=cols, lineterminator="\n")
-    w.writeheader()
-    for r in rows:
-        w.writerow({c: _csv_cell(r.get(c)) for c in cols})
-    write_text_atomic(lib / "summary.csv", buf.getvalue())
-    types = {
-        "n_samples": pa.int64(),
-        "cost": pa.float64(),
-        "bic": pa.float64(),
-        "success": pa.bool_(),
-    }
-    arrays = {}
-    for c in cols:
-        values = [r.get(c) for r in rows]
-        if c.startswith(("param.", "sigma.")):
-            arrays[c] = pa.array(values, type=pa.float64())
-        else:
-            arrays[c] = pa.array(values, type=types.get(c, pa.string()))
-    with atomic_path(lib / "summary.parquet") as tmp:
-        pq.write_table(pa.table(arrays), tmp)
-
-
-def _csv_cell(v: Any) -> str:
-    if v is None:
-        return ""
-    if isinstance(v, float):
-        return repr(v) if math.isfinite(v) else ("inf" if v > 0 else "-inf" if v < 0 else "nan")
-    return str(v)
-
-
-def read_summary_rows(path: str | os.PathLike) -> list[dict[str, Any]]:
-    """The rows of a library's ``summary.parquet`` (list of dicts; missing -> None)."""
-    import pyarrow.parquet as pq
-
-    return pq.read_table(path).to_pylist()
 
 
 @contextlib.contextmanager
@@ -782,185 +636,6 @@ def fit_library(
                 retries=1,
                 progress=arrived,
             )
-        report.rows = _summary_rows(lib, materials, status, report.failed, digests)
-        _write_summary(lib, report.rows)
+        report.rows = summary_rows(lib, materials, status, report.failed, digests)
+        write_summary(lib, report.rows)
     return report
-
-
-def _summary_rows(
-    lib: Path,
-    materials: list[Material],
-    status: dict[str, str],
-    failed: dict[str, str],
-    digests: dict[str, str],
-) -> list[dict[str, Any]]:
-    """Every material folder of the library (fitted now, unchanged, or kept from earlier
-    runs of other sources) and this run's failures, sorted by material name."""
-    rows: dict[str, dict[str, Any]] = {}
-    for folder in sorted(p for p in lib.iterdir() if p.is_dir() and not p.name.startswith(".")):
-        name = folder.name
-        st = status.get(name, "kept")
-        if st == "failed":
-            continue
-        row = _fit_row(folder, st)
-        if row is not None:
-            rows[name] = row
-    by_name = {m.name: m for m in materials}
-    for name, message in failed.items():
-        m = by_name.get(name)
-        rows[name] = {
-            "material": name,
-            "status": "failed",
-            "source": str(m.path) if m else name,
-            "kind": m.kind if m else None,
-            "digest": digests.get(name),
-            "error": message,
-        }
-    return [rows[k] for k in sorted(rows)]
-
-
-# --------------------------------------------------------------------------- the CLI
-
-
-_LIBRARY_PARAMS = ("scheduler", "workers", "sampling", "connect_timeout")
-_LIBRARY_HELP = """
-
-    SOURCE may also be a folder or a quoted glob: a material library.  Every samples.h5,
-    .bsdf and .binary file found is fitted, one material per dask task (a local cluster,
-    or --scheduler), into one folder per material in --out, plus summary.csv and
-    summary.parquet; materials whose file and options are unchanged are skipped.
-
-    \b
-      gonio fit measured/ --model auto --out LIB/
-      gonio fit 'sessions/*/samples.h5' --out LIB/ --scheduler tcp://head:8786
-    """
-
-
-def library_dispatch(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """Decorate ``gonio fit``: add the library options, and run :func:`fit_library` when
-    SOURCE is a folder or a glob (the single-input command otherwise, unchanged)."""
-
-    @functools.wraps(fn)
-    def command(**kwargs: Any) -> Any:
-        lib_kwargs = {k: kwargs.pop(k) for k in _LIBRARY_PARAMS}
-        if is_library_source(kwargs["source"]):
-            return _library_command(**kwargs, **lib_kwargs)
-        given = [f"--{k.replace('_', '-')}" for k in _LIBRARY_PARAMS if lib_kwargs[k] is not None]
-        if given:
-            raise click.UsageError(
-                f"{', '.join(given)} apply to a library: SOURCE a folder or a glob "
-                f"(got the file {kwargs['source']})"
-            )
-        return fn(**kwargs)
-
-    command.__doc__ = (fn.__doc__ or "").rstrip() + _LIBRARY_HELP
-    for decorator in reversed(
-        (
-            click.option(
-                "--scheduler",
-                default=None,
-                metavar="tcp://HOST:PORT",
-                help="Library: fit on this dask scheduler's workers (they must see the "
-                "same files at the same paths); default a local cluster.",
-            ),
-            click.option(
-                "--workers",
-                type=int,
-                default=None,
-                help="Library: worker processes of the local cluster (default one per "
-                "core; 0: no dask, fit in this process).",
-            ),
-            click.option(
-                "--sampling",
-                type=click.Choice(list(SAMPLINGS)),
-                default=None,
-                help="Library: grid measured files are sampled on (default standard, the "
-                "grid of a single-input fit; coarse: 810 pairs).",
-            ),
-            click.option(
-                "--connect-timeout",
-                type=float,
-                default=None,
-                metavar="SECONDS",
-                help="Library: how long to wait for --scheduler (default 10).",
-            ),
-        )
-    ):
-        command = decorator(command)
-    return command
-
-
-def _library_command(
-    *,
-    source: Path,
-    model: str,
-    options: tuple[str, ...],
-    candidates: str | None,
-    loss: str,
-    robust: str | None,
-    f_scale: float,
-    algorithm: str,
-    no_energy: bool,
-    out: Path,
-    plots: bool,
-    force: bool,
-    scheduler: str | None,
-    workers: int | None,
-    sampling: str | None,
-    connect_timeout: float | None,
-    **_single_input_only: Any,  # options of `gonio fit` added later: not used by a library
-) -> None:
-    # The option parsing of the single-input command, so both read --option and
-    # --candidates alike.
-    from gonio.fitting.cli import _parse_options, _split_candidates
-
-    model_options = _parse_options(options)
-    if model_options and model == "auto":
-        raise click.UsageError(
-            "--option sets options of one --model; with --model auto put them in the "
-            "candidates: --candidates 'lambert,lambert+ggx[fresnel=schlick]'"
-        )
-    fit_options = FitOptions(
-        model=model,
-        model_options=tuple(sorted(model_options.items())),
-        candidates=_split_candidates(candidates) if candidates else None,
-        loss=loss,
-        robust=robust,
-        f_scale=f_scale,
-        algorithm=algorithm,
-        energy_conservation=not no_energy,
-        plots=plots,
-        sampling=sampling or "standard",
-    )
-    report = fit_library(
-        source,
-        out,
-        fit_options,
-        scheduler=scheduler,
-        workers=workers,
-        force=force,
-        connect_timeout_s=connect_timeout,
-    )
-    from rich.console import Console
-
-    console = Console()
-    console.print(
-        f"{len(report.fitted)} fitted, {len(report.skipped)} unchanged, "
-        f"{len(report.failed)} failed; summary: {Path(out) / 'summary.csv'}, "
-        f"{Path(out) / 'summary.parquet'}",
-        highlight=False,
-        soft_wrap=True,
-        markup=False,
-    )
-    bad = [*report.failed, *report.not_converged]
-    if bad:
-        what = []
-        if report.failed:
-            what.append(f"{len(report.failed)} failed ({', '.join(report.failed)})")
-        if report.not_converged:
-            what.append(
-                f"{len(report.not_converged)} did not converge ({', '.join(report.not_converged)})"
-            )
-        raise FitError(
-            f"library {out}: {'; '.join(what)}; the others were written (see summary.csv)"
-        )

@@ -27,12 +27,8 @@ from gonio.cli import run
 from gonio.dataset import save_samples
 from gonio.fitting import fit
 from gonio.fitting.export import result_to_dict
-from gonio.fitting.library import (
-    FitOptions,
-    find_materials,
-    fit_library,
-    read_summary_rows,
-)
+from gonio.fitting.library import FitOptions, find_materials, fit_library
+from gonio.fitting.library_summary import read_summary_rows
 from gonio.fitting.sampling import sample_brdf
 from gonio.locks import LOCK_NAME, LockedError, hold_lock
 
