@@ -292,7 +292,7 @@ def test_ctrl_c_leaves_no_worker(rgl_folder, tmp_path):
             pytest.fail(f"no start line; stderr: {proc.stderr.read()}")
         children = psutil.Process(proc.pid).children(recursive=True)
         workers = [p for p in children if "spawn_main" in " ".join(p.cmdline())]
-        assert len(workers) >= 2
+        assert len(workers) >= 2, [p.cmdline() for p in children]
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=120)
     finally:
@@ -300,14 +300,14 @@ def test_ctrl_c_leaves_no_worker(rgl_folder, tmp_path):
             proc.kill()
             proc.wait()
     assert proc.returncode == 130, err
-    assert ("aborted" in err or "interrupted" in err) and "Traceback" not in err
+    assert ("aborted" in err or "interrupted" in err) and "Traceback" not in err, err
     # the workers are gone when the CLI has exited ...
     left = []
     for p in workers:
         with contextlib.suppress(psutil.NoSuchProcess):
             if p.is_running() and p.status() != psutil.STATUS_ZOMBIE:
                 left.append((p.pid, p.status()))
-    assert left == []
+    assert left == [], err
     # ... and multiprocessing's resource tracker ends by itself once its parent has gone
     _, alive = psutil.wait_procs(children, timeout=30)
     assert [p.pid for p in alive if p.status() != psutil.STATUS_ZOMBIE] == []
