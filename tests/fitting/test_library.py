@@ -299,7 +299,10 @@ def test_ctrl_c_leaves_no_worker(rgl_folder, tmp_path):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert proc.returncode == 130, err
+    # 130 from gonio's handler; on a loaded machine the interpreter was seen (1 run in
+    # 5) to end by the signal itself after "aborted", i.e. after the cleanup ran: the
+    # shell reports 130 for both
+    assert proc.returncode in (130, -signal.SIGINT), err
     assert ("aborted" in err or "interrupted" in err) and "Traceback" not in err, err
     # the workers are gone when the CLI has exited ...
     left = []
