@@ -11,6 +11,7 @@ from pathlib import Path
 import click
 
 from gonio.errors import FitError
+from gonio.fitting.library_cli import FIT_SOURCE, library_dispatch
 
 __all__ = ["fit"]
 
@@ -61,7 +62,7 @@ def _split_candidates(text: str) -> tuple[str, ...]:
 
 
 @click.command(name="fit")
-@click.argument("source", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("source", type=FIT_SOURCE)
 @click.option(
     "--model",
     "-m",
@@ -123,6 +124,7 @@ def _split_candidates(text: str) -> tuple[str, ...]:
 )
 @click.option("--plots/--no-plots", default=True, show_default=True)
 @click.option("--force", is_flag=True, help="Replace the outputs of an earlier fit in --out.")
+@library_dispatch  # SOURCE a folder or a glob: a material library (gonio.fitting.library)
 def fit(
     source: Path,
     model: str,
