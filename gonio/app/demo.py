@@ -277,6 +277,7 @@ def run_demo(
     time_scale: float | str = "virtual",
     world: str = "perfect",
     world_seed: int = 0,
+    figure_worker: bool = True,
 ) -> DemoResult:
     """Run capture, reduction and fit of a simulated session into ``out``.
 
@@ -287,19 +288,51 @@ def run_demo(
     configured: no calibration needed) or ``"realistic"`` (errors drawn from
     ``world_seed``): then the camera and the rig are calibrated first, the session runs
     on the calibrated rig and the reduction uses the calibrated camera.
+    ``figure_worker``: draw the figures in a second process beside the main one
+    (:mod:`gonio.app.demo_figures`); False: all in this process (the same files).
     """
-    from gonio.app.simulation import run_simulated_session
-    from gonio.capture.manifest import load_manifest
-    from gonio.capture.reduce import reduce_session, resolve_setup
-    from gonio.dataset import load_samples
-    from gonio.fitting import fit
-    from gonio.rig.config import virtual_rig_document
 
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise SessionError(f"{out} exists and is not empty: choose a new --out (nothing touched)")
-    seconds: dict[str, float] = {}
+    from gonio.app.demo_figures import FigureWorker
+
     t_all = time.perf_counter()
+    # Started first: its imports run beside the capture (see gonio.app.demo_figures).
+    with FigureWorker(enabled=figure_worker) as figures:
+        return _run_demo(
+            out, material, figures, t_all, seed=seed, n_poses=n_poses, width=width,
+            height=height, model=model, quiet=quiet, say=say, time_scale=time_scale,
+            world=world, world_seed=world_seed,
+        )  # fmt: skip
+
+
+def _run_demo(
+    out: Path,
+    material: Material,
+    figures: Any,
+    t_all: float,
+    *,
+    seed: int,
+    n_poses: int,
+    width: int,
+    height: int,
+    model: str,
+    quiet: bool,
+    say: Callable[[str], None],
+    time_scale: float | str,
+    world: str,
+    world_seed: int,
+) -> DemoResult:
+    from gonio.app.demo_figures import samples_plot
+    from gonio.app.simulation import run_simulated_session
+    from gonio.capture.manifest import load_manifest
+    from gonio.capture.reduce import PLOT_FILE, reduce_session, resolve_setup
+    from gonio.dataset import load_samples
+    from gonio.fitting import fit
+    from gonio.rig.config import virtual_rig_document
+
+    seconds: dict[str, float] = {}
 
     t = time.perf_counter()
     grid = _grid_for(n_poses)
@@ -385,7 +418,11 @@ def run_demo(
             session, load_manifest(session), camera_calibration=calibration.camera_file
         )
         setup = dataclasses.replace(setup, grid=6, max_region_spread_deg=REGION_SPREAD_DEG)
-    red = reduce_session(session, setup=setup, plot=True)
+    # The angle-domain plot (what plot=True draws inside the reduction) in the figure
+    # worker, beside the fit: the same function on the same samples, the same file.
+    red = reduce_session(session, setup=setup, plot=False)
+    samples_png = figures.submit(samples_plot, str(red.path), str(red.path.with_name(PLOT_FILE)))
+    red = dataclasses.replace(red, plot=red.path.with_name(PLOT_FILE))
     seconds["reduce"] = time.perf_counter() - t
 
     say(f"fitting (model={model})")
@@ -438,6 +475,8 @@ def run_demo(
         seconds,
         frames,
         calibration,
+        figures=figures,
+        waits=[samples_png],
     )
     seconds["report"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - t_all
