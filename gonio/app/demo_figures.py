@@ -61,6 +61,18 @@ def residual_map(result: Any, samples_path: str, out: str) -> str:
     return str(plot_residual_map(result, load_samples(samples_path), out))
 
 
+def _call(fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)`` in the worker, its error as a :class:`GonioError` with the message:
+    some of gonio's errors take keyword arguments that pickle cannot rebuild, and an
+    error that cannot be unpickled in the main process breaks the whole pool."""
+    from gonio.errors import GonioError
+
+    try:
+        return fn(*args)
+    except Exception as exc:  # noqa: BLE001 - re-raised in the main process, named
+        raise GonioError(f"{fn.__name__}: {exc}") from None
+
+
 class _Done(Future):
     """A future of work done in the calling process (no worker)."""
 
@@ -94,7 +106,7 @@ class FigureWorker(contextlib.AbstractContextManager):
     def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
         if self._pool is not None:
             try:
-                return self._pool.submit(fn, *args)
+                return self._pool.submit(_call, fn, *args)
             except RuntimeError:  # the pool broke (its process was killed): in-process
                 self._pool = None
         return _Done(fn, *args)
