@@ -324,10 +324,9 @@ def _run_demo(
     world: str,
     world_seed: int,
 ) -> DemoResult:
-    from gonio.app.demo_figures import samples_plot
     from gonio.app.simulation import run_simulated_session
     from gonio.capture.manifest import load_manifest
-    from gonio.capture.reduce import PLOT_FILE, reduce_session, resolve_setup
+    from gonio.capture.reduce import reduce_session, resolve_setup
     from gonio.dataset import load_samples
     from gonio.fitting import fit
     from gonio.rig.config import virtual_rig_document
@@ -418,11 +417,7 @@ def _run_demo(
             session, load_manifest(session), camera_calibration=calibration.camera_file
         )
         setup = dataclasses.replace(setup, grid=6, max_region_spread_deg=REGION_SPREAD_DEG)
-    # The angle-domain plot (what plot=True draws inside the reduction) in the figure
-    # worker, beside the fit: the same function on the same samples, the same file.
-    red = reduce_session(session, setup=setup, plot=False)
-    samples_png = figures.submit(samples_plot, str(red.path), str(red.path.with_name(PLOT_FILE)))
-    red = dataclasses.replace(red, plot=red.path.with_name(PLOT_FILE))
+    red = reduce_session(session, setup=setup, plot=True)
     seconds["reduce"] = time.perf_counter() - t
 
     say(f"fitting (model={model})")
@@ -476,7 +471,6 @@ def _run_demo(
         frames,
         calibration,
         figures=figures,
-        waits=[samples_png],
     )
     seconds["report"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - t_all

@@ -1,9 +1,9 @@
 """The demo's figures on the machine's second core.
 
 ``gonio demo`` is a chain (capture, reduction, fit, report) in which each stage needs
-the one before, and its main process is busy on one core throughout.  The figures are
-the part that can run beside it: the angle-domain plot of the samples while the fit
-runs, the residual map while the main process draws the slices and the camera's frames.
+the one before, and its main process is busy on one core throughout.  The report's
+figures are the part that can run beside it: the residual map (the costliest) in a
+second process while the main process draws the slices and the camera's frames.
 A :class:`FigureWorker` is one spawned process, started when the demo starts so that its
 imports (matplotlib, the BRDF kernels from numba's cache) are paid while the capture
 runs, not while someone waits for the report.
@@ -23,7 +23,7 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-__all__ = ["FigureWorker", "residual_map", "result_path", "samples_plot"]
+__all__ = ["FigureWorker", "residual_map", "result_path"]
 
 
 def _init() -> None:
@@ -40,17 +40,8 @@ def _warm() -> None:
     """Import what the figures use, so that the first figure does not wait for it."""
     import matplotlib.pyplot  # noqa: F401
 
-    import gonio.capture.samples_plot  # noqa: F401
     import gonio.dataset  # noqa: F401
     import gonio.fitting.plots  # noqa: F401
-
-
-def samples_plot(samples_path: str, out: str) -> str:
-    """``samples.png`` of ``gonio capture reduce`` for the samples in ``samples_path``."""
-    from gonio.capture.samples_plot import plot_samples
-    from gonio.dataset import load_samples
-
-    return str(plot_samples(load_samples(samples_path), out))
 
 
 def residual_map(result: Any, samples_path: str, out: str) -> str:

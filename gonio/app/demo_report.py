@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -116,16 +117,13 @@ def write_report(
     calibration: Any = None,
     *,
     figures: Any = None,
-    waits: Any = (),
 ) -> Path:
     """Write ``out/report.md`` and its plots; return the report's path.
 
     ``calibration`` (a :class:`gonio.app.demo_calibrations.CalibrationSummary`) adds the
     calibrations' residuals and estimates beside the fit (``--world realistic``).
     ``figures`` (a :class:`gonio.app.demo_figures.FigureWorker`) draws the residual map
-    in its process while this one draws the slices and the frames; ``waits``: futures
-    of figures already submitted, waited for (and their errors raised) before the report
-    is written."""
+    in its process while this one draws the slices and the frames."""
     from gonio.app.demo_figures import FigureWorker, residual_map, result_path
     from gonio.fitting.export import save_json
     from gonio.fitting.plots import plot_slices
@@ -138,8 +136,6 @@ def write_report(
     save_json(result, out / "fit.json")
     images = _sample_images(session, figs)
     resid = result_path(resid_job)
-    for job in waits:
-        result_path(job)
     lines = [
         "# gonio demo report",
         "",
@@ -192,7 +188,9 @@ def write_report(
         lines += [
             "## Samples over the angle domain",
             "",
-            f"![samples]({Path(red.plot).resolve().relative_to(out.resolve())})",
+            # the name the session shows (a link into its output set), not the set's
+            # folder, which the next reduction of the session replaces
+            f"![samples]({Path(os.path.relpath(red.plot, out)).as_posix()})",
             "",
         ]
     if images:
