@@ -277,6 +277,7 @@ def run_demo(
     time_scale: float | str = "virtual",
     world: str = "perfect",
     world_seed: int = 0,
+    figure_worker: bool = True,
 ) -> DemoResult:
     """Run capture, reduction and fit of a simulated session into ``out``.
 
@@ -287,7 +288,42 @@ def run_demo(
     configured: no calibration needed) or ``"realistic"`` (errors drawn from
     ``world_seed``): then the camera and the rig are calibrated first, the session runs
     on the calibrated rig and the reduction uses the calibrated camera.
+    ``figure_worker``: draw the figures in a second process beside the main one
+    (:mod:`gonio.app.demo_figures`); False: all in this process (the same files).
     """
+
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise SessionError(f"{out} exists and is not empty: choose a new --out (nothing touched)")
+    from gonio.app.demo_figures import FigureWorker
+
+    t_all = time.perf_counter()
+    # Started first: its imports run beside the capture (see gonio.app.demo_figures).
+    with FigureWorker(enabled=figure_worker) as figures:
+        return _run_demo(
+            out, material, figures, t_all, seed=seed, n_poses=n_poses, width=width,
+            height=height, model=model, quiet=quiet, say=say, time_scale=time_scale,
+            world=world, world_seed=world_seed,
+        )  # fmt: skip
+
+
+def _run_demo(
+    out: Path,
+    material: Material,
+    figures: Any,
+    t_all: float,
+    *,
+    seed: int,
+    n_poses: int,
+    width: int,
+    height: int,
+    model: str,
+    quiet: bool,
+    say: Callable[[str], None],
+    time_scale: float | str,
+    world: str,
+    world_seed: int,
+) -> DemoResult:
     from gonio.app.simulation import run_simulated_session
     from gonio.capture.manifest import load_manifest
     from gonio.capture.reduce import reduce_session, resolve_setup
@@ -295,11 +331,7 @@ def run_demo(
     from gonio.fitting import fit
     from gonio.rig.config import virtual_rig_document
 
-    out = Path(out)
-    if out.exists() and any(out.iterdir()):
-        raise SessionError(f"{out} exists and is not empty: choose a new --out (nothing touched)")
     seconds: dict[str, float] = {}
-    t_all = time.perf_counter()
 
     t = time.perf_counter()
     grid = _grid_for(n_poses)
@@ -438,6 +470,7 @@ def run_demo(
         seconds,
         frames,
         calibration,
+        figures=figures,
     )
     seconds["report"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - t_all

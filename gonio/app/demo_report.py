@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -114,20 +115,27 @@ def write_report(
     seconds: dict,
     frames: int,
     calibration: Any = None,
+    *,
+    figures: Any = None,
 ) -> Path:
     """Write ``out/report.md`` and its plots; return the report's path.
 
     ``calibration`` (a :class:`gonio.app.demo_calibrations.CalibrationSummary`) adds the
-    calibrations' residuals and estimates beside the fit (``--world realistic``)."""
+    calibrations' residuals and estimates beside the fit (``--world realistic``).
+    ``figures`` (a :class:`gonio.app.demo_figures.FigureWorker`) draws the residual map
+    in its process while this one draws the slices and the frames."""
+    from gonio.app.demo_figures import FigureWorker, residual_map, result_path
     from gonio.fitting.export import save_json
-    from gonio.fitting.plots import plot_residual_map, plot_slices
+    from gonio.fitting.plots import plot_slices
 
     figs = out / "figures"
     figs.mkdir(exist_ok=True)
+    worker = figures if figures is not None else FigureWorker(enabled=False)
+    resid_job = worker.submit(residual_map, result, str(red.path), str(figs / "residuals.png"))
     slices = plot_slices(result, samples, figs / "slices.png")
-    resid = plot_residual_map(result, samples, figs / "residuals.png")
     save_json(result, out / "fit.json")
     images = _sample_images(session, figs)
+    resid = result_path(resid_job)
     lines = [
         "# gonio demo report",
         "",
@@ -180,7 +188,9 @@ def write_report(
         lines += [
             "## Samples over the angle domain",
             "",
-            f"![samples]({Path(red.plot).resolve().relative_to(out.resolve())})",
+            # the name the session shows (a link into its output set), not the set's
+            # folder, which the next reduction of the session replaces
+            f"![samples]({Path(os.path.relpath(red.plot, out)).as_posix()})",
             "",
         ]
     if images:

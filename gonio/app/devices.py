@@ -40,6 +40,13 @@ __all__ = [
 
 VIRTUAL_PORTS = ("virtual", "sim", "simulated")
 
+#: Packet timeout (ms) on a virtual bus whose rig configuration sets none: the SDK's
+#: default budget (~35 ms at 1 Mbaud) is for a USB adapter; the virtual servos' thread
+#: shares the CPU with the rest of the session and, on a loaded machine (8 test workers
+#: on 2 cores), missed it often enough to end sessions on a "did not answer" fault.  A
+#: reply is never waited for longer than it takes: only a silent servo costs the time.
+VIRTUAL_BUS_TIMEOUT_MS = 250.0
+
 #: A virtual bus's speed when neither the caller nor the session's simulation record
 #: says: servo time advances by the commanded motion, not by the wall clock.
 DEFAULT_TIME_SCALE = "virtual"
@@ -141,7 +148,12 @@ def open_session_devices(
                 servos, baud_rate=cfg.bus.baud_rate, seed=request.seed, time_scale=scale
             )
             stack.enter_context(bus)
-            cfg = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"port": bus.port})})
+            link: dict[str, Any] = {"port": bus.port}
+            if cfg.bus.timeout_ms is None:
+                # The virtual servos answer from a thread of this process: on a busy
+                # machine it can be scheduled later than a USB adapter's budget.
+                link["timeout_ms"] = VIRTUAL_BUS_TIMEOUT_MS
+            cfg = cfg.model_copy(update={"bus": cfg.bus.model_copy(update=link)})
             # Settle times and move durations in servo time, whichever clock it keeps.
             sleep, clock = bus.sleep, bus.clock
         rig = stack.enter_context(open_rig(cfg, clock))

@@ -20,6 +20,8 @@ Closed forms are used throughout:
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import special
@@ -292,6 +294,17 @@ def irradiance_rectangle(
 
 
 @np.errstate(invalid="ignore", divide="ignore")  # NaN in gives NaN out, without warnings
+@functools.lru_cache(maxsize=16)
+def _gauss_legendre(n: int) -> tuple[Array, Array]:
+    """Gauss-Legendre nodes and weights on [-1, 1], kept: numpy's eigenvalue solve
+    costs ~5 s of CPU at the rule's 4096 nodes, and a session asks for the same few
+    orders again and again."""
+    x, w = np.polynomial.legendre.leggauss(n)
+    x.flags.writeable = False
+    w.flags.writeable = False
+    return x, w
+
+
 def irradiance_disk(
     point: ArrayLike,
     normal: ArrayLike,
@@ -357,7 +370,7 @@ def irradiance_disk(
 
     # Full disk: periodic trapezoid.  Clipped: Gauss-Legendre on the arc.
     tt = np.linspace(0.0, 2.0 * np.pi, n_nodes, endpoint=False)
-    gx, gw = np.polynomial.legendre.leggauss(n_nodes)
+    gx, gw = _gauss_legendre(n_nodes)
     t_full = np.broadcast_to(tt, shape + (n_nodes,))
     t_arc = t0[..., None] + w[..., None] * gx
     t = np.where(full[..., None], t_full, t_arc)
