@@ -46,18 +46,21 @@ _CHANNEL_COLOURS = {"R": "tab:red", "G": "tab:green", "B": "tab:blue"}
 _OTHER_COLOURS = ["k", "tab:orange", "tab:purple", "tab:brown", "tab:olive", "tab:cyan"]
 
 
-def _plt():
-    import matplotlib
+def _figure(**kw: Any) -> Any:
+    """A matplotlib Figure on an Agg canvas, without pyplot: files only, no figure manager
+    to close, and ~0.1 s less import than ``matplotlib.pyplot``."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    fig = Figure(**kw)
+    FigureCanvasAgg(fig)
+    return fig
 
 
 def load_matplotlib() -> None:
-    """Import matplotlib (Agg) now: the ~0.6 s a process pays before its first figure."""
-    _plt()
+    """Import matplotlib (Agg) now: the ~0.5 s a process pays before its first figure."""
+    import matplotlib.backends.backend_agg  # noqa: F401
+    import matplotlib.figure  # noqa: F401
 
 
 def _wrap(text: str, fig: Any) -> str:
@@ -216,7 +219,6 @@ def slices_figure(
     The fitted curves are ``Line2D`` objects with ``gid`` ``"fit:<channel>"``; their x data
     are signed theta_o in degrees, y data f_r in 1/sr.
     """
-    plt = _plt()
     d = _data(r, samples)
     C = d.y.shape[1]
     names = tuple(r.channels) if len(r.channels) == C else tuple(f"c{k}" for k in range(C))
@@ -225,7 +227,8 @@ def slices_figure(
     nb = max(nb, 1)
     cols = min(3, nb)
     rows = int(np.ceil(nb / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.5 * rows), squeeze=False)
+    fig = _figure(figsize=(4.6 * cols, 3.5 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False)
     bound = r.bind()
     xg = np.linspace(-89.0, 89.0, 713)
     in_plane = d.off_plane <= tol_deg
@@ -448,10 +451,7 @@ def slices_png(r: FitResult, samples: Any, n_bins: int = 6) -> bytes:
 
     fig = slices_figure(r, samples, n_bins=n_bins)
     buf = io.BytesIO()
-    try:
-        fig.savefig(buf, dpi=SLICES_DPI, format="png", **_savefig_kwargs("png"))
-    finally:
-        _plt().close(fig)
+    fig.savefig(buf, dpi=SLICES_DPI, format="png", **_savefig_kwargs("png"))
     return buf.getvalue()
 
 
@@ -461,15 +461,12 @@ def _savefig_kwargs(fmt: str) -> dict[str, Any]:
 
 
 def _save(fig: Any, path: str | os.PathLike, dpi: int) -> Path:
-    """Write a figure atomically (a killed process leaves no half PNG) and close it."""
+    """Write a figure atomically (a killed process leaves no half PNG)."""
     path = Path(path)
     fmt = path.suffix.lstrip(".").lower() or "png"
-    try:
-        with atomic_path(path) as tmp:
-            # the temporary name ends in .tmp
-            fig.savefig(tmp, dpi=dpi, format=fmt, **_savefig_kwargs(fmt))
-    finally:
-        _plt().close(fig)
+    with atomic_path(path) as tmp:
+        # the temporary name ends in .tmp
+        fig.savefig(tmp, dpi=dpi, format=fmt, **_savefig_kwargs(fmt))
     return path
 
 
@@ -480,7 +477,6 @@ def residual_map_figure(r: FitResult, samples: Any, n_bins: int = 6) -> Any:
     centred at x = ``b * pitch``): one scatter per channel instead of one axes per panel,
     which is what the figure's cost was (layout and ticks of C x bins axes).
     """
-    plt = _plt()
     d = _data(r, samples)
     vals, label, lim = _scaled(d)
     C = d.y.shape[1]
@@ -488,7 +484,7 @@ def residual_map_figure(r: FitResult, samples: Any, n_bins: int = 6) -> Any:
     bins, nb = _theta_i_bins(d.theta_i, n_bins)
     nb = max(nb, 1)
     size = 2.5
-    fig = plt.figure(figsize=(size * nb + 1.6, size * C + 1.5))
+    fig = _figure(figsize=(size * nb + 1.6, size * C + 1.5))
     # Polar map of wo, x towards the mirror direction: (theta_o cos, theta_o sin) in deg.
     px = -d.theta_o * np.cos(d.dphi)
     py = d.theta_o * np.sin(d.dphi)
@@ -508,6 +504,11 @@ def residual_map_figure(r: FitResult, samples: Any, n_bins: int = 6) -> Any:
     off = bins * pitch  # x offset of every sample's panel
     counts = np.bincount(bins, minlength=nb) if bins.size else np.zeros(nb, dtype=int)
     ms_bin = np.clip(2500.0 / np.maximum(counts, 1), 6.0, 60.0)
+    # one marker size for all the panels when the bins are equal (a grid): a scalar size
+    # draws the scatter ~2x faster than a per-point array
+    sizes = ms_bin[bins] if bins.size else ms_bin[:0]
+    if sizes.size and np.all(sizes == sizes[0]):
+        sizes = np.full(1, sizes[0])
     left, right, bottom, top = 0.9, 1.3, 0.55, 1.0  # inches of margin
     W, H = fig.get_figwidth(), fig.get_figheight()
     row_h = (H - bottom - top) / C
@@ -522,22 +523,26 @@ def residual_map_figure(r: FitResult, samples: Any, n_bins: int = 6) -> Any:
         ax.set_xlim(-extent, (nb - 1) * pitch + extent)
         ax.set_ylim(-extent, extent)
         ax.set_aspect("equal")
-        ax.set_xticks([b * pitch + t for b in range(nb) for t in (-60, 0, 60)])
-        # tick labels on the bottom row only (the rows share the x scale)
-        ax.set_xticklabels(["-60", "0", "60"] * nb if c == C - 1 else [])
+        # x ticks on the bottom row only (the rows share the x scale): ticks are artists
+        # that cost ~1 ms each to build and draw
+        if c == C - 1:
+            ax.set_xticks([b * pitch + t for b in range(nb) for t in (-60, 0, 60)])
+            ax.set_xticklabels(["-60", "0", "60"] * nb)
+        else:
+            ax.set_xticks([])
         ax.set_yticks([-60, 0, 60])
         ax.tick_params(labelsize=6)
         ax.set_ylabel(f"{names[c]}: theta_o, out of plane (deg)", fontsize=7)
         v = vals[:, c]
         fin = np.isfinite(v)
         if (~fin).any():
-            ax.scatter(px[~fin] + off[~fin], py[~fin], s=ms_bin[bins[~fin]], c="0.75",
+            ax.scatter(px[~fin] + off[~fin], py[~fin], s=_sel(sizes, ~fin), c="0.75",
                        marker="x", lw=0.6)  # fmt: skip
         if fin.any():
             mappable = ax.scatter(
                 px[fin] + off[fin],
                 py[fin],
-                s=ms_bin[bins[fin]],
+                s=_sel(sizes, fin),
                 c=v[fin],
                 cmap="RdBu_r",
                 vmin=-lim,
@@ -578,6 +583,11 @@ def residual_map_figure(r: FitResult, samples: Any, n_bins: int = 6) -> Any:
     )
     fig.suptitle(_wrap(text, fig), fontsize=9, y=1 - 0.15 / H, va="top")
     return fig
+
+
+def _sel(sizes: np.ndarray, mask: np.ndarray) -> Any:
+    """Marker sizes of the samples in ``mask``: the one shared size, or theirs."""
+    return float(sizes[0]) if sizes.size == 1 else sizes[mask]
 
 
 def plot_residual_map(r: FitResult, samples: Any, path: str | os.PathLike) -> Path:
