@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import signal
 import struct
 import sys
 from typing import Any
@@ -81,9 +82,11 @@ class SlicesWorker:
         self.pid = pid
         self._w = to_child_w
         self._r = to_parent_r
+        self._submitted = False
 
     def submit(self, r: Any, samples: Any) -> None:
         """Hand the fit and its samples to the worker (it starts drawing)."""
+        self._submitted = True
         _send(self._w, pickle.dumps((r, samples), protocol=pickle.HIGHEST_PROTOCOL))
 
     def result(self) -> bytes:
@@ -109,6 +112,11 @@ class SlicesWorker:
                     pass
         self._w = self._r = -1
         if self.pid:
+            if not self._submitted:  # the fit failed: no need to let it finish importing
+                try:
+                    os.kill(self.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
             try:
                 os.waitpid(self.pid, 0)
             except ChildProcessError:
