@@ -372,8 +372,17 @@ class _FusedVarPro:
     def __init__(self, vp: VarPro, dist: str, g1: str) -> None:
         from gonio.fitting import kernels
 
-        self.k = kernels
         self.vp = vp
+        parallel = vp.p.wi.shape[0] >= kernels.PARALLEL_ROWS
+        self.kernels = (
+            (kernels.basis_microfacet, kernels.normal_equations, kernels.cost_grad)
+            if parallel
+            else (
+                kernels.basis_microfacet_serial,
+                kernels.normal_equations_serial,
+                kernels.cost_grad_serial,
+            )
+        )
         p = vp.p
         self.wi = np.ascontiguousarray(p.wi)
         self.wo = np.ascontiguousarray(p.wo)
@@ -396,11 +405,10 @@ class _FusedVarPro:
         p = self.vp.p
         theta = p.from_u(u)
         p.njev += 1
-        k = self.k
-        k.basis_microfacet(self.wi, self.wo, float(theta[0]), self.dist, self.g1, self.G, 1,
-                           self.dG)  # fmt: skip
-        k.normal_equations(self.G, self.w2, self.w2y, self.H, self.b)
+        basis, normal, cost_grad = self.kernels
+        basis(self.wi, self.wo, float(theta[0]), self.dist, self.g1, self.G, 1, self.dG)
+        normal(self.G, self.w2, self.w2y, self.H, self.b)
         a = np.ascontiguousarray(solve_box_qp(self.H, self.b, p.lb_lin, p.ub_lin).T)
         grad = np.empty(1)
-        cost = k.cost_grad(self.G, self.dG, self.coupling, a, self.w2, self.y, grad)
+        cost = cost_grad(self.G, self.dG, self.coupling, a, self.w2, self.y, grad)
         return float(cost), grad * p.dtheta_du(theta), a

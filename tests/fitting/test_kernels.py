@@ -84,6 +84,17 @@ def test_normal_equations_and_cost_match_dense_numpy():
     np.testing.assert_allclose(cost, 0.5 * np.sum(w2 * r * r), rtol=1e-12)
     want = [np.sum(w2 * r * dG[:, s, None] * a[coupling[s]][None, :]) for s in range(2)]
     np.testing.assert_allclose(grad, want, rtol=1e-10)
+    # the serial twins (small problems) give the same bits as the threaded kernels
+    H2, b2, grad2 = np.empty_like(H), np.empty_like(b), np.empty(2)
+    k.normal_equations_serial(G, w2, w2 * y, H2, b2)
+    assert np.array_equal(H2, H) and np.array_equal(b2, b)
+    assert k.cost_grad_serial(G, dG, coupling, a, w2, y, grad2) == cost
+    assert np.array_equal(grad2, grad)
+    wi, wo = _directions(n, 3)
+    B1, B2, d1, d2 = (np.zeros((n, 2)), np.zeros((n, 2)), np.zeros((n, 1)), np.zeros((n, 1)))
+    k.basis_microfacet(wi, wo, 0.2, k.DIST_GGX, k.G1_EXACT, B1, 1, d1)
+    k.basis_microfacet_serial(wi, wo, 0.2, k.DIST_GGX, k.G1_EXACT, B2, 1, d2)
+    assert np.array_equal(B1, B2) and np.array_equal(d1, d2)
 
 
 def test_reduced_cost_gradient_and_linear_parameters_match_the_numpy_path(
