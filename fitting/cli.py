@@ -171,12 +171,25 @@ def fit(
         )
     samples, kind = _load_input(source)
     cands = _split_candidates(candidates) if candidates else None
-    with _output_folder(out, force):
-        r, written = _fit_and_write(
-            console, samples, source, out, model, model_options, cands, loss, robust,
-            f_scale, algorithm, no_energy, plots,
-        )  # fmt: skip
+    # forked before the output lock is taken and before the fit: it imports matplotlib
+    # while this process fits (gonio.fitting.plot_worker)
+    worker = _start_plot_worker() if plots else None
+    try:
+        with _output_folder(out, force):
+            r, written = _fit_and_write(
+                console, samples, source, out, model, model_options, cands, loss, robust,
+                f_scale, algorithm, no_energy, plots, worker,
+            )  # fmt: skip
+    finally:
+        if worker is not None:
+            worker.close()
     _report(console, r, source, kind, written)
+
+
+def _start_plot_worker():
+    from gonio.fitting import plot_worker
+
+    return plot_worker.start()
 
 
 def _existing_outputs(out: Path) -> list[Path]:
@@ -210,7 +223,7 @@ def _output_folder(out: Path, force: bool) -> Iterator[None]:
         raise
 
 
-def _write_outputs(console, r, samples, out: Path, plots: bool) -> list[Path]:
+def _write_outputs(console, r, samples, out: Path, plots: bool, worker=None) -> list[Path]:
     """Write fit.json, material.xml and the plots as one set (gonio.atomic.atomic_directory):
     a reader, or a kill at any moment, sees the previous set or this one, never a mix."""
     from gonio.atomic import atomic_directory
@@ -228,17 +241,26 @@ def _write_outputs(console, r, samples, out: Path, plots: bool) -> list[Path]:
             # (--force) the set replaces the old one whole: no old material.xml survives
             console.print(f"[yellow]no Mitsuba export: {exc}[/yellow]")
         if plots:
-            from gonio.fitting.plots import plot_residual_map, plot_slices
+            from gonio.fitting import plots as fig
 
-            plot_slices(r, samples, stage / "slices.png")
-            plot_residual_map(r, samples, stage / "residuals.png")
+            if worker is None:
+                fig.plot_slices(r, samples, stage / "slices.png")
+                fig.plot_residual_map(r, samples, stage / "residuals.png")
+            else:  # slices.png drawn by the worker meanwhile
+                from gonio.atomic import atomic_path
+
+                worker.submit(r, samples)
+                fig.plot_residual_map(r, samples, stage / "residuals.png")
+                png = worker.result()
+                with atomic_path(stage / "slices.png") as tmp:
+                    tmp.write_bytes(png)
             names += ["slices.png", "residuals.png"]
     return [out / n for n in names]
 
 
 def _fit_and_write(
     console, samples, source, out, model, model_options, cands, loss, robust, f_scale,
-    algorithm, no_energy, plots,
+    algorithm, no_energy, plots, worker=None,
 ):  # fmt: skip
     from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
@@ -271,7 +293,7 @@ def _fit_and_write(
             progress=step,
         )
         prog.update(task, description="writing outputs")
-        written = _write_outputs(console, r, samples, out, plots)
+        written = _write_outputs(console, r, samples, out, plots, worker)
         prog.update(task, completed=n_steps)
     return r, written
 

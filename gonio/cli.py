@@ -13,7 +13,6 @@ import sys
 
 import click
 
-from gonio import __version__
 from gonio.errors import GonioError
 
 # command name -> "module:attribute" of a click command or group.  A group appears in
@@ -67,7 +66,14 @@ class LazyGroup(click.Group):
     lazy_commands=_SUBCOMMANDS,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
-@click.version_option(__version__, prog_name="gonio")
+@click.option(
+    "--version",
+    is_flag=True,
+    expose_value=False,
+    is_eager=True,
+    callback=lambda ctx, _param, value: _print_version(ctx) if value else None,
+    help="Show the version and exit.",
+)
 def cli() -> None:
     """gonio: measure BRDFs with a Dynamixel gonioreflectometer, and fit them.
 
@@ -81,6 +87,15 @@ def cli() -> None:
 
     Run any command with --help to learn its options.
     """
+
+
+def _print_version(ctx: click.Context) -> None:
+    """``--version``, as click's version_option prints it, with the version looked up only
+    here (importlib.metadata is not on every command's start-up path)."""
+    import gonio
+
+    click.echo(f"gonio, version {gonio.__version__}")
+    ctx.exit()
 
 
 def run(*argv: str) -> int | str | None:

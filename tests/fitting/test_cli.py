@@ -225,3 +225,93 @@ def test_fit_prints_the_variance_split_of_samples_with_geometric_modes(
         line = next(x for x in res.output.splitlines() if "albedo[G]" in x)
         shares = [f"{p / sum(parts):.0%}" for p in parts]
         assert all(sh in line for sh in shares), (line, shares)
+
+
+@pytest.mark.slow
+def test_auto_on_an_rgl_file_gives_the_scipy_optimum(tmp_path, rgl_file):
+    # Independent reference: the same cosine-L2 objective minimised by scipy's trf from the
+    # best point of a fine ln(alpha) grid (variable projection by lsq_linear per point).
+    from scipy.optimize import least_squares, lsq_linear
+
+    from gonio.brdf import get_model, load
+    from gonio.fitting.losses import get_loss
+    from gonio.fitting.objective import prepare_problem
+    from gonio.fitting.sampling import sample_brdf
+
+    src = rgl_file("vch_golden_yellow")
+    out = tmp_path / "fit"
+    res = CliRunner().invoke(cli, ["fit", str(src), "--model", "auto", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    d = json.loads((out / "fit.json").read_text())
+    assert d["model"] == "lambert+ggx"
+    for name in ("slices.png", "residuals.png"):  # slices.png from the plot worker
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    s = sample_brdf(load(src))
+    prob = prepare_problem(get_model("lambert+ggx"), s, get_loss("cosine_l2"))
+    w = prob.weights
+
+    def grid_cost(alpha):
+        f = get_model("lambert+ggx").eval_with_grad(prob.wi, prob.wo, {"alpha": alpha})[1]
+        G = np.stack([f["albedo"], f["ks"]], axis=-1)
+        return sum(
+            lsq_linear(G * w[:, c, None], w[:, c] * prob.y[:, c], bounds=(0, 1)).cost
+            for c in range(prob.n_channels)
+        )
+
+    alphas = np.exp(np.linspace(np.log(1e-3), 0.0, 120))
+    a_best = alphas[int(np.argmin([grid_cost(a) for a in alphas]))]
+    x0 = prob.pack(np.array([a_best]), np.full((2, prob.n_channels), 0.3))
+    ref = least_squares(
+        lambda x: prob.residuals(x).ravel(),
+        x0,
+        jac=lambda x: prob.dense_jacobian(x)[1],
+        bounds=prob.x_bounds(),
+        method="trf",
+        ftol=1e-14,
+        xtol=1e-14,
+        gtol=1e-14,
+    )
+    theta, a = prob.unpack(ref.x)
+    np.testing.assert_allclose(d["params"]["alpha"], theta[0], rtol=1e-6)
+    for j, name in enumerate(("albedo", "ks")):
+        np.testing.assert_allclose(d["params"][name], a[j], rtol=1e-5, atol=1e-8)
+
+
+def test_a_failing_plot_worker_fails_the_fit_and_keeps_the_old_set(tmp_path, make_samples,
+                                                                    monkeypatch):  # fmt: skip
+    import gonio.fitting.plots as plots
+
+    src = _samples_file(tmp_path, make_samples)
+    out = tmp_path / "fit"
+    assert (
+        CliRunner().invoke(cli, ["fit", str(src), "-m", "lambert", "--out", str(out)]).exit_code
+        == 0
+    )
+    old = _snapshot(out)
+
+    def broken(*a, **k):
+        raise RuntimeError("no fonts")
+
+    monkeypatch.setattr(plots, "slices_png", broken)  # the worker is forked with it
+    res = CliRunner().invoke(cli, ["fit", str(src), "-m", "oren-nayar", "--out", str(out),
+                                   "--force"])  # fmt: skip
+    assert res.exit_code != 0
+    assert "drawing slices.png failed: RuntimeError: no fonts" in str(res.exception)
+    assert _snapshot(out) == old
+
+
+def test_the_plot_worker_draws_the_same_png_as_this_process(make_samples):
+    from gonio.fitting import fit, plot_worker, plots
+
+    s = make_samples("lambert+ggx", {"albedo": [0.2] * 3, "ks": [0.3] * 3, "alpha": 0.2},
+                     n=300, seed=2, noise=1e-4, read=1e-3)  # fmt: skip
+    r = fit(s, "lambert+ggx")
+    worker = plot_worker.start()
+    assert worker is not None  # Linux
+    try:
+        worker.submit(r, s)
+        png = worker.result()
+    finally:
+        worker.close()
+    assert png == plots.slices_png(r, s)

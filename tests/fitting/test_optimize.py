@@ -72,6 +72,85 @@ def test_box_qp_matches_scipy_lsq_linear():
         assert c <= cref * (1 + 1e-9) + 1e-15
 
 
+@pytest.mark.parametrize("K", [1, 2])
+def test_box_qp_with_one_or_two_parameters_matches_scipy_lsq_linear(K):
+    # K <= 2 takes the edge solver (the minimiser on the box's edges), not enumeration
+    from scipy.optimize import lsq_linear
+
+    rng = np.random.default_rng(K)
+    n_active = 0
+    for _ in range(200):
+        A = rng.standard_normal((20, K)) * np.array([1.0, 1e3])[:K]
+        y = rng.standard_normal(20) * rng.uniform(0.1, 10)
+        lo = np.where(rng.random(K) < 0.2, -np.inf, rng.uniform(-1, 0, K))
+        hi = np.where(rng.random(K) < 0.2, np.inf, rng.uniform(0, 1, K) * np.array([1, 1e-3])[:K])
+        a = solve_box_qp((A.T @ A)[None], (A.T @ y)[None], lo, hi)[0]
+        ref = lsq_linear(A, y, bounds=(lo, hi), tol=1e-14).x
+        assert np.all((a >= lo) & (a <= hi))
+        c = 0.5 * np.sum((A @ a - y) ** 2)
+        cref = 0.5 * np.sum((A @ ref - y) ** 2)
+        assert c <= cref * (1 + 1e-9) + 1e-15
+        n_active += bool(np.any((a == lo) | (a == hi)))
+    assert n_active > 50  # the bounds were active in many of the problems
+
+
+@pytest.mark.parametrize("d", [1, 2])
+@pytest.mark.parametrize("seed", [0, 7])
+def test_sobol_design_is_scipys_scrambled_sobol_bit_for_bit(d, seed):
+    from scipy.stats import qmc
+
+    lb, ub = np.array([-9.2, 0.0])[:d], np.array([0.0, 1.0])[:d]
+    for n in (2, 16, 64, 1024):
+        ref = qmc.scale(
+            qmc.Sobol(d, scramble=True, seed=seed).random_base2(int(np.log2(n))), lb, ub
+        )
+        assert np.array_equal(sobol_design(lb, ub, n, seed=seed), ref)
+
+
+def test_one_dimensional_search_stops_at_the_minimum_with_few_evaluations():
+    # c(u) = cosh(u - 1.3) + 0.1 u^2: minimum where sinh(u - 1.3) + 0.2 u = 0
+    from scipy.optimize import brentq
+
+    u_star = brentq(lambda u: np.sinh(u - 1.3) + 0.2 * u, -5, 5, xtol=1e-15)
+    seen = []
+
+    def fun(u, want):
+        seen.append(float(u[0]))
+        return np.cosh(u[0] - 1.3) + 0.1 * u[0] ** 2, np.array([np.sinh(u[0] - 1.3) + 0.2 * u[0]])
+
+    r = nlopt_minimize(fun, np.array([-2.0]), np.array([-5.0]), np.array([5.0]), "LD_LBFGS")
+    assert r.success
+    assert abs(r.x[0] - u_star) <= 1e-9 * max(1.0, abs(u_star))
+    assert r.nfev == len(seen) < 30
+    # a minimum on a bound is left to nlopt (no secant step outside the box)
+    r = nlopt_minimize(fun, np.array([-2.0]), np.array([-5.0]), np.array([0.5]), "LD_LBFGS")
+    assert r.x[0] == 0.5
+
+
+def test_secant_stop_predicts_the_newton_step_of_a_quadratic():
+    from gonio.fitting.optimize import _SecantStop
+
+    # c = 0.5 k (u - m)^2: gradient k (u - m); the secant of two gradients is exact
+    k, m = 4.0e8, -1.9
+
+    def feed(stop, us):
+        out = False
+        for u in us:
+            x = np.array([u])
+            c = 0.5 * k * (u - m) ** 2
+            out = stop.converged(x, np.array([k * (u - m)]), c, c)  # c: the best so far
+        return out
+
+    assert feed(_SecantStop(1e-9, [-5.0], [0.0]), [m + 1e-6, m + 1e-12])  # next step 1e-12
+    assert not feed(_SecantStop(1e-9, [-5.0], [0.0]), [m + 1e-6, m + 1e-7])  # 1e-7 to go
+    assert not feed(_SecantStop(1e-9, [-5.0], [0.0]), [m + 0.5, m + 1e-12])  # not local
+    assert not feed(_SecantStop(1e-9, [-1.0], [0.0]), [-1.0, -1.0 + 1e-12])  # m outside
+    # concave along the step: no prediction
+    stop = _SecantStop(1e-9, [-5.0], [0.0])
+    stop.converged(np.array([m]), np.array([1.0]), 0.0, 0.0)
+    assert not stop.converged(np.array([m + 1e-12]), np.array([0.5]), 0.0, 0.0)
+
+
 def test_sobol_design_fills_the_box():
     U = sobol_design(np.array([0.0, -1.0]), np.array([1.0, 1.0]), 16, seed=0)
     assert U.shape == (16, 2)
