@@ -101,15 +101,20 @@ def label_points(
 @njit(**_JIT, inline="always")
 def _undistort(xd, yd, k1, k2, p1, p2, k3, tol, max_iter):
     # geometry.undistort_normalized's Newton step, for one point
+    # one step beyond the tolerance, as the batch iteration takes for all but its slowest
+    # points: Newton's quadratic convergence then leaves rounding only
     x, y = xd, yd
+    polish = False
     for _ in range(max_iter):
         r2 = x * x + y * y
         radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
         dradial = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)
         fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
         fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
-        if abs(fx) + abs(fy) <= tol:
+        if polish:
             break
+        if abs(fx) + abs(fy) <= tol:
+            polish = True
         a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
         b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
         c = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
