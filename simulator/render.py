@@ -235,6 +235,7 @@ class Surface:
         self.board_img = None
         self.patch = None
         self._kernel_args: tuple[np.ndarray, ...] | None = None
+        self._albedo_rows: np.ndarray | None = None
         if h is not None:
             self.black = np.broadcast_to(np.asarray(h.albedo_black, float), (3,))
             self.white = np.broadcast_to(np.asarray(h.albedo_white, float), (3,))
@@ -266,6 +267,17 @@ class Surface:
                 for a in (self.half, holder, board, bh, patch)
             )
         return self._kernel_args
+
+    def albedo_rows(self) -> np.ndarray:
+        """(3, 3) albedo of the black print, the white print and the reference patch
+        (zeros without one): :meth:`lambert_albedo` as the kernels read it."""
+        if self._albedo_rows is None:
+            if self.holder_half is None:
+                self._albedo_rows = np.zeros((3, 3))
+            else:
+                patch = np.zeros(3) if self.patch is None else self.patch[2]
+                self._albedo_rows = np.array([self.black, self.white, patch], dtype=np.float64)
+        return self._albedo_rows
 
     def extent(self) -> tuple[np.ndarray, np.ndarray]:
         """Bounding box (lo, hi) of the surface, metres."""
@@ -323,7 +335,10 @@ class Surface:
         a uniform diffuse irradiance E reflects is ``E / pi`` times it."""
         out = np.zeros((x.shape[0], 3))
         lam = region != SAMPLE
-        if np.any(lam):
+        rk = _kernels(x.shape[0])
+        if rk is not None:
+            rk.lambert_albedo(region, white, self.albedo_rows(), out)
+        elif np.any(lam):
             out[lam] = self.lambert_albedo(x[lam], region[lam], white[lam])
         smp = ~lam
         if np.any(smp):
@@ -491,33 +506,54 @@ class _Integrator:
 
     def _shade_nodes(self, x, region, white, y, w) -> np.ndarray:
         light = self.light
-        d = y - x[:, None, :]
-        r2 = np.einsum("mki,mki->mk", d, d)
-        r = np.sqrt(r2)
-        wi = d / r[..., None]
-        cos_s = np.maximum(wi[..., 2], 0.0)
-        if light.is_point:
-            g = cos_s / r2
+        m, k = x.shape[0], y.shape[-2]
+        rk = _kernels(m * k)
+        if rk is None:
+            d = y - x[:, None, :]
+            r2 = np.einsum("mki,mki->mk", d, d)
+            r = np.sqrt(r2)
+            wi = d / r[..., None]
+            cos_s = np.maximum(wi[..., 2], 0.0)
+            if light.is_point:
+                g = cos_s / r2
+            else:
+                cos_l = np.maximum(-(wi @ light.normal), 0.0)
+                g = w * cos_s * cos_l / r2
+                # the LED's cos^n emission and its face's gradient (none: Lambertian, uniform)
+                prof = light.profile(cos_l)
+                if prof is not None:
+                    g = g * prof
+                face = light.face(y)
+                if face is not None:
+                    g = g * face
         else:
-            cos_l = np.maximum(-(wi @ light.normal), 0.0)
-            g = w * cos_s * cos_l / r2
-            # the LED's cos^n emission and its face's gradient (none: Lambertian, uniform)
-            prof = light.profile(cos_l)
-            if prof is not None:
-                g = g * prof
-            face = light.face(y)
-            if face is not None:
-                g = g * face
+            wi, g = np.empty((m, k, 3)), np.empty((m, k))
+            face = None if light.is_point else light.face(y)
+            rk.node_geometry(
+                np.ascontiguousarray(x, dtype=np.float64),
+                np.ascontiguousarray(np.reshape(y, (-1, k, 3)), dtype=np.float64),
+                np.ascontiguousarray(np.reshape(w, (-1, k)), dtype=np.float64),
+                np.ascontiguousarray(light.normal, dtype=np.float64),
+                bool(light.is_point),
+                float(light.profile_n),
+                np.zeros((0, k))
+                if face is None
+                else np.ascontiguousarray(np.reshape(face, (-1, k))),
+                wi,
+                g,
+            )
         if self.occ:
             live = g > 0
             blocked = np.zeros_like(live)
-            xb = np.broadcast_to(x[:, None, :], d.shape)
-            yb = np.broadcast_to(y, d.shape)
+            xb = np.broadcast_to(x[:, None, :], wi.shape)
+            yb = np.broadcast_to(y, wi.shape)
             blocked[live] = segments_blocked(self.occ, xb[live], yb[live])
             g = np.where(blocked, 0.0, g)
         out = np.zeros((x.shape[0], 3))
         lam = region != SAMPLE
-        if np.any(lam):
+        if rk is not None:
+            rk.lambert_radiance(region, white, g, self.surface.albedo_rows(), out)
+        elif np.any(lam):
             alb = self.surface.lambert_albedo(x[lam], region[lam], white[lam])
             out[lam] = alb / np.pi * g[lam].sum(-1)[:, None]
         smp = ~lam
@@ -596,6 +632,11 @@ def _kernels(points: int) -> Any:
     return render_kernels
 
 
+def _kernel(rk: Any, name: str, points: int) -> Any:
+    """Kernel ``name`` of module ``rk``: its multi-threaded build for large batches."""
+    return getattr(rk, name if points >= rk.PARALLEL_POINTS else name + "_serial")
+
+
 def _hits(
     surface: Surface, C: np.ndarray, R: np.ndarray, xn: np.ndarray, yn: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -611,7 +652,7 @@ def _hits(
     front = np.empty(n, bool)
     region = np.empty(n, np.uint8)
     white = np.empty(n, bool)
-    rk.label_points(
+    _kernel(rk, "label_points", n)(
         np.ascontiguousarray(xn, dtype=np.float64).reshape(-1),
         np.ascontiguousarray(yn, dtype=np.float64).reshape(-1),
         np.ascontiguousarray(R, dtype=np.float64),
@@ -653,10 +694,11 @@ def _codes(
 
 
 def _subpixel_normalized(
-    K: np.ndarray, ei: np.ndarray, ej: np.ndarray, n_aa: int, dist
+    K: np.ndarray, ei: np.ndarray, ej: np.ndarray, n_aa: int, dist, grid=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Undistorted normalised coordinates of the n_aa x n_aa sub-pixel points of pixels
-    (ei, ej), (len(ei) * n_aa^2,) each, pixel by pixel."""
+    (ei, ej), (len(ei) * n_aa^2,) each, pixel by pixel; ``grid`` the pixel centres'
+    (:func:`pixel_grid`, the kernel's starting points; computed when not given)."""
     m = len(ei) * n_aa * n_aa
     rk = _kernels(m)
     if rk is None:
@@ -667,12 +709,15 @@ def _subpixel_normalized(
         return _normalized(K, su, sv, dist)
     xn, yn, err = np.empty(m), np.empty(m), np.empty(m)
     has = dist is not None and bool(np.any(np.asarray(dist, float) != 0.0))
-    rk.subpixel_normalized(
+    if has and grid is None:
+        grid = pixel_grid(K, int(ei.max()) + 1, int(ej.max()) + 1, dist)
+    _kernel(rk, "subpixel_normalized", m)(
         np.ascontiguousarray(ei, dtype=np.int64),
         np.ascontiguousarray(ej, dtype=np.int64),
         int(n_aa),
         np.ascontiguousarray(K, dtype=np.float64),
         np.asarray(dist, float) if has else np.zeros(0),
+        *(grid if has else (np.zeros((0, 0)), np.zeros((0, 0)))),
         _UNDISTORT_TOL,
         _NEWTON_MAX,
         xn,
@@ -951,7 +996,9 @@ def render(
         ej, ei = np.nonzero(mask)
         if not len(ej):
             continue
-        xsub, _, rsub, wsub = _hits(surface, C, R, *_subpixel_normalized(K, ei, ej, n_aa, dist))
+        xsub, _, rsub, wsub = _hits(
+            surface, C, R, *_subpixel_normalized(K, ei, ej, n_aa, dist, pixel_grid(K, W, H, dist))
+        )
         rsub, _ = _codes(rsub, wsub, occ_cam, C, xsub, [])
         ok = (rsub > 0) & (rsub != OCCLUDED)
         lsub = np.zeros((len(rsub), 3))
