@@ -187,7 +187,7 @@ class RenderResult:
         truth: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
     ) -> None:
         self.radiance = radiance
-        self._truth = None if truth is None else (truth, None)
+        self._truth = truth
         self._wi, self._wo, self._points = wi, wo, points
         self.region = region
         self.edge = edge
@@ -196,7 +196,7 @@ class RenderResult:
 
     def _computed(self) -> None:
         if self._truth is not None:
-            self._wi, self._wo, self._points = self._truth[0]()
+            self._wi, self._wo, self._points = self._truth()
             self._truth = None
 
     @property
