@@ -35,7 +35,13 @@ from gonio.simulator.dng import dng_bytes
 from gonio.simulator.lights import nominal_irradiance
 from gonio.simulator.render import RenderResult, albedo_table, render
 from gonio.simulator.scene import PointLight, Scene, scene_with_rig_poses
-from gonio.simulator.sensor import RawFrame, default_flat_radiance, simulate_raw
+from gonio.simulator.sensor import (
+    RawFrame,
+    cfa_indices,
+    cfa_radiance,
+    default_flat_radiance,
+    simulate_mosaic,
+)
 from gonio.simulator.sensor_defects import FixedPattern, fixed_pattern
 
 __all__ = ["MIRROR_REFLECTANCE", "TARGETS", "SimulatedCamera", "with_light_emission"]
@@ -108,6 +114,7 @@ class SimulatedCamera:
         self._albedo: dict[str, Any] = {}
         self._patterns: dict[tuple[int, int], FixedPattern | None] = {}
         self.renders = 0
+        self._site_cache: dict[Any, Any] = {}
 
     @property
     def model(self) -> str:
@@ -211,6 +218,49 @@ class SimulatedCamera:
             out += result.diffuse * (e0 * (r.ambient_fraction + stray * k))
         return out
 
+    def site_radiance(
+        self, target: Target = "sample", *, rig_time: float = 0.0, light_on: bool = True
+    ) -> np.ndarray:
+        """:meth:`radiance` at the colour filters' sites (H, W), W/(sr m^2), clamped at 0
+        (:func:`~gonio.simulator.sensor.cfa_radiance`): the same values, bit for bit,
+        from the pose's cached render taken at the sites once, so a shot does the work
+        of one channel."""
+        cam = self.scene.camera
+        w, h = cam.resolution
+        r = self.radiometry
+        if target == "flat":
+            return cfa_radiance(np.broadcast_to(self.flat_radiance(), (h, w, 3)), cam)
+        if r is None:
+            if not light_on:
+                return np.zeros((h, w))
+            return self._sites(self._render(target, True, False)[0], "radiance").copy()
+        stray = r.stray_fraction if light_on else 0.0
+        diffuse = r.ambient_fraction > 0.0 or stray > 0.0
+        if not (light_on or diffuse):
+            return np.zeros((h, w))
+        result, e0 = self._render(target, light_on, diffuse)
+        idx = cfa_indices(cam.sensor.cfa_pattern, (h, w))
+        out = np.zeros((h, w))
+        k = r.light_output(rig_time)
+        if light_on:
+            direct = self._sites(result, "radiance")
+            out = direct * k[idx] if r.drifts else direct.copy()
+        if diffuse:
+            out += self._sites(result, "diffuse") * (e0 * (r.ambient_fraction + stray * k))[idx]
+        return np.nan_to_num(np.maximum(out, 0.0, out=out), copy=False)
+
+    def _sites(self, result: RenderResult, name: str) -> np.ndarray:
+        """``result.<name>`` at the colour filters' sites, cached with the render (not
+        clamped: a sum is clamped, not its terms)."""
+        if self._site_cache.get("result") is not result:
+            self._site_cache = {"result": result}
+        if name not in self._site_cache:
+            img = getattr(result, name)
+            flat = np.arange(img.shape[0] * img.shape[1]) * 3
+            idx = cfa_indices(self.scene.camera.sensor.cfa_pattern, img.shape[:2])
+            self._site_cache[name] = img.reshape(-1)[flat + idx.ravel()].reshape(img.shape[:2])
+        return self._site_cache[name]
+
     def capture_frame(
         self,
         exposure_time: float,
@@ -226,8 +276,8 @@ class SimulatedCamera:
         (s) with the light on or off (see :meth:`radiance`)."""
         if target not in TARGETS:
             raise CameraError(f"target must be one of {', '.join(TARGETS)}; got {target!r}")
-        return simulate_raw(
-            self.radiance(target, rig_time=rig_time, light_on=light_on),
+        return simulate_mosaic(
+            self.site_radiance(target, rig_time=rig_time, light_on=light_on),
             self.scene.camera,
             exposure_time=exposure_time,
             iso=iso,

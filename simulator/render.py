@@ -62,7 +62,10 @@ import numpy as np
 
 from gonio.errors import ConfigError
 from gonio.simulator.geometry import (
-    camera_rays,
+    _NEWTON_MAX,
+    _UNDISTORT_TOL,
+    UNDISTORT_ACCURACY,
+    _normalized,
     intersect_plane_z0,
     pixel_grid,
     prepare_occluders,
@@ -102,6 +105,8 @@ REGION_NAMES = {
     OCCLUDED: "occluded",
 }
 _PILOT_PIXELS = 2048
+#: Batches of camera rays from which the numba kernels label them (numpy below).
+_MIN_KERNEL_POINTS = 4096
 _SAFETY = 0.5
 _MC_MAX = 1024
 _QUAD_MAX = 1024
@@ -142,7 +147,6 @@ class RenderStats:
         return asdict(self)
 
 
-@dataclass
 class RenderResult:
     """A rendered image with its ground truth (sample frame).
 
@@ -164,16 +168,51 @@ class RenderResult:
     diffuse
         (H, W, 3) radiance towards the camera per unit uniform diffuse irradiance,
         1/sr (``albedo(theta_o) / pi``); None unless rendered with ``diffuse=True``.
+
+    ``wi``, ``wo`` and ``points`` may be given as one callable returning the three: they
+    are then computed when first read (a camera's shots never read them).
     """
 
-    radiance: np.ndarray
-    wi: np.ndarray
-    wo: np.ndarray
-    points: np.ndarray
-    region: np.ndarray
-    edge: np.ndarray
-    stats: RenderStats
-    diffuse: np.ndarray | None = None
+    def __init__(
+        self,
+        radiance: np.ndarray,
+        wi: np.ndarray | None,
+        wo: np.ndarray | None,
+        points: np.ndarray | None,
+        region: np.ndarray,
+        edge: np.ndarray,
+        stats: RenderStats,
+        diffuse: np.ndarray | None = None,
+        *,
+        truth: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
+    ) -> None:
+        self.radiance = radiance
+        self._truth = truth
+        self._wi, self._wo, self._points = wi, wo, points
+        self.region = region
+        self.edge = edge
+        self.stats = stats
+        self.diffuse = diffuse
+
+    def _computed(self) -> None:
+        if self._truth is not None:
+            self._wi, self._wo, self._points = self._truth()
+            self._truth = None
+
+    @property
+    def wi(self) -> np.ndarray:
+        self._computed()
+        return self._wi
+
+    @property
+    def wo(self) -> np.ndarray:
+        self._computed()
+        return self._wo
+
+    @property
+    def points(self) -> np.ndarray:
+        self._computed()
+        return self._points
 
 
 class Surface:
@@ -195,11 +234,13 @@ class Surface:
         self.holder_half = None if h is None else np.array([h.width / 2, h.height / 2])
         self.board_img = None
         self.patch = None
+        self._kernel_args: tuple[np.ndarray, ...] | None = None
+        self._albedo_rows: np.ndarray | None = None
         if h is not None:
             self.black = np.broadcast_to(np.asarray(h.albedo_black, float), (3,))
             self.white = np.broadcast_to(np.asarray(h.albedo_white, float), (3,))
             if h.board is not None:
-                self.board_img = h.board.image()
+                self.board_img = _board_image(h.board)
                 self.board_half = np.array(h.board.extent) / 2
             if h.reference_patch is not None:
                 p = h.reference_patch
@@ -208,6 +249,35 @@ class Surface:
                     np.asarray(p.size, float) / 2,
                     np.broadcast_to(np.asarray(p.albedo, float), (3,)),
                 )
+
+    def kernel_args(self) -> tuple[np.ndarray, ...]:
+        """The surface as :func:`gonio.simulator.render_kernels.label_points` reads it:
+        sample half-size, holder half-size, board print, its half extent, patch."""
+        from gonio.simulator.render_kernels import board_uint8
+
+        if self._kernel_args is None:
+            holder = np.zeros(0) if self.holder_half is None else self.holder_half
+            board = board_uint8(self.board_img)
+            bh = self.board_half if self.board_img is not None else np.ones(2)
+            patch = np.zeros(0)
+            if self.patch is not None:
+                patch = np.concatenate([self.patch[0][:2], self.patch[1][:2]])
+            self._kernel_args = tuple(
+                np.ascontiguousarray(a, dtype=float) if a.dtype != np.uint8 else a
+                for a in (self.half, holder, board, bh, patch)
+            )
+        return self._kernel_args
+
+    def albedo_rows(self) -> np.ndarray:
+        """(3, 3) albedo of the black print, the white print and the reference patch
+        (zeros without one): :meth:`lambert_albedo` as the kernels read it."""
+        if self._albedo_rows is None:
+            if self.holder_half is None:
+                self._albedo_rows = np.zeros((3, 3))
+            else:
+                patch = np.zeros(3) if self.patch is None else self.patch[2]
+                self._albedo_rows = np.array([self.black, self.white, patch], dtype=np.float64)
+        return self._albedo_rows
 
     def extent(self) -> tuple[np.ndarray, np.ndarray]:
         """Bounding box (lo, hi) of the surface, metres."""
@@ -265,7 +335,10 @@ class Surface:
         a uniform diffuse irradiance E reflects is ``E / pi`` times it."""
         out = np.zeros((x.shape[0], 3))
         lam = region != SAMPLE
-        if np.any(lam):
+        rk = _kernels(x.shape[0])
+        if rk is not None:
+            rk.lambert_albedo(region, white, self.albedo_rows(), out)
+        elif np.any(lam):
             out[lam] = self.lambert_albedo(x[lam], region[lam], white[lam])
         smp = ~lam
         if np.any(smp):
@@ -295,6 +368,22 @@ class Surface:
             [map_coordinates(m[..., k], coords, order=1, mode="nearest") for k in range(3)], -1
         )
         return out.reshape(x.shape[:-1] + (3,))
+
+
+_BOARD_IMAGES: dict[str, np.ndarray] = {}
+
+
+def _board_image(board: Any) -> np.ndarray:
+    """The board's print (read-only; drawn by OpenCV once per board)."""
+    key = board.model_dump_json()
+    img = _BOARD_IMAGES.get(key)
+    if img is None:
+        if len(_BOARD_IMAGES) >= 8:
+            _BOARD_IMAGES.clear()
+        img = board.image()
+        img.flags.writeable = False
+        _BOARD_IMAGES[key] = img
+    return img
 
 
 def _load_albedo_map(path) -> np.ndarray:
@@ -417,33 +506,54 @@ class _Integrator:
 
     def _shade_nodes(self, x, region, white, y, w) -> np.ndarray:
         light = self.light
-        d = y - x[:, None, :]
-        r2 = np.einsum("mki,mki->mk", d, d)
-        r = np.sqrt(r2)
-        wi = d / r[..., None]
-        cos_s = np.maximum(wi[..., 2], 0.0)
-        if light.is_point:
-            g = cos_s / r2
+        m, k = x.shape[0], y.shape[-2]
+        rk = _kernels(m * k)
+        if rk is None:
+            d = y - x[:, None, :]
+            r2 = np.einsum("mki,mki->mk", d, d)
+            r = np.sqrt(r2)
+            wi = d / r[..., None]
+            cos_s = np.maximum(wi[..., 2], 0.0)
+            if light.is_point:
+                g = cos_s / r2
+            else:
+                cos_l = np.maximum(-(wi @ light.normal), 0.0)
+                g = w * cos_s * cos_l / r2
+                # the LED's cos^n emission and its face's gradient (none: Lambertian, uniform)
+                prof = light.profile(cos_l)
+                if prof is not None:
+                    g = g * prof
+                face = light.face(y)
+                if face is not None:
+                    g = g * face
         else:
-            cos_l = np.maximum(-(wi @ light.normal), 0.0)
-            g = w * cos_s * cos_l / r2
-            # the LED's cos^n emission and its face's gradient (none: Lambertian, uniform)
-            prof = light.profile(cos_l)
-            if prof is not None:
-                g = g * prof
-            face = light.face(y)
-            if face is not None:
-                g = g * face
+            wi, g = np.empty((m, k, 3)), np.empty((m, k))
+            face = None if light.is_point else light.face(y)
+            rk.node_geometry(
+                np.ascontiguousarray(x, dtype=np.float64),
+                np.ascontiguousarray(np.reshape(y, (-1, k, 3)), dtype=np.float64),
+                np.ascontiguousarray(np.reshape(w, (-1, k)), dtype=np.float64),
+                np.ascontiguousarray(light.normal, dtype=np.float64),
+                bool(light.is_point),
+                float(light.profile_n),
+                np.zeros((0, k))
+                if face is None
+                else np.ascontiguousarray(np.reshape(face, (-1, k))),
+                wi,
+                g,
+            )
         if self.occ:
             live = g > 0
             blocked = np.zeros_like(live)
-            xb = np.broadcast_to(x[:, None, :], d.shape)
-            yb = np.broadcast_to(y, d.shape)
+            xb = np.broadcast_to(x[:, None, :], wi.shape)
+            yb = np.broadcast_to(y, wi.shape)
             blocked[live] = segments_blocked(self.occ, xb[live], yb[live])
             g = np.where(blocked, 0.0, g)
         out = np.zeros((x.shape[0], 3))
         lam = region != SAMPLE
-        if np.any(lam):
+        if rk is not None:
+            rk.lambert_radiance(region, white, g, self.surface.albedo_rows(), out)
+        elif np.any(lam):
             alb = self.surface.lambert_albedo(x[lam], region[lam], white[lam])
             out[lam] = alb / np.pi * g[lam].sum(-1)[:, None]
         smp = ~lam
@@ -511,10 +621,64 @@ def _choose(
     return "quadrature", levels[-1], 0, err, False
 
 
-def _label(
-    surface: Surface, occ_cam, C, x, front, light_vis
+def _kernels(points: int) -> Any:
+    """:mod:`gonio.simulator.render_kernels` for a batch of ``points``, or None: small
+    batches (numba's import would cost more than it saves) and ``GONIO_NUMBA=0`` stay
+    on the numpy path, the reference."""
+    if points < _MIN_KERNEL_POINTS or os.environ.get("GONIO_NUMBA") == "0":
+        return None
+    from gonio.simulator import render_kernels
+
+    return render_kernels
+
+
+def _kernel(rk: Any, name: str, points: int) -> Any:
+    """Kernel ``name`` of module ``rk``: its multi-threaded build for large batches."""
+    return getattr(rk, name if points >= rk.PARALLEL_POINTS else name + "_serial")
+
+
+def _hits(
+    surface: Surface, C: np.ndarray, R: np.ndarray, xn: np.ndarray, yn: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    region, white = surface.classify(x, front)
+    """Surface points (..., 3), in front (...), region (...) uint8 and board print
+    (...) bool of the rays through undistorted normalised image points (xn, yn)."""
+    rk = _kernels(xn.size)
+    if rk is None:
+        x, front = intersect_plane_z0(C, rays_from_normalized(R, xn, yn))
+        region, white = surface.classify(x, front)
+        return x, front, region, white
+    n = xn.size
+    x = np.empty((n, 3))
+    front = np.empty(n, bool)
+    region = np.empty(n, np.uint8)
+    white = np.empty(n, bool)
+    _kernel(rk, "label_points", n)(
+        np.ascontiguousarray(xn, dtype=np.float64).reshape(-1),
+        np.ascontiguousarray(yn, dtype=np.float64).reshape(-1),
+        np.ascontiguousarray(R, dtype=np.float64),
+        np.ascontiguousarray(C, dtype=np.float64),
+        *surface.kernel_args(),
+        x,
+        front,
+        region,
+        white,
+    )
+    shape = xn.shape
+    return (
+        x.reshape(shape + (3,)),
+        front.reshape(shape),
+        region.reshape(shape),
+        white.reshape(shape),
+    )
+
+
+def _codes(
+    region: np.ndarray, white: np.ndarray, occ_cam, C, x, light_vis
+) -> tuple[np.ndarray, np.ndarray]:
+    """Region with occluded points marked (a new array), and the code whose change
+    between a pixel's centre and corners marks an edge (region, print, light-centre
+    visibility bits)."""
+    region = region.copy()
     if occ_cam:
         seen = region > 0
         blk = np.zeros_like(seen)
@@ -526,7 +690,49 @@ def _label(
         sh = np.zeros_like(lit)
         sh[lit] = segments_blocked(occ, x[lit], center)
         code = code + (16 << bit) * sh
-    return region, white, code, x
+    return region, code
+
+
+def _subpixel_normalized(
+    K: np.ndarray, ei: np.ndarray, ej: np.ndarray, n_aa: int, dist, grid=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Undistorted normalised coordinates of the n_aa x n_aa sub-pixel points of pixels
+    (ei, ej), (len(ei) * n_aa^2,) each, pixel by pixel; ``grid`` the pixel centres'
+    (:func:`pixel_grid`, the kernel's starting points; computed when not given)."""
+    m = len(ei) * n_aa * n_aa
+    rk = _kernels(m)
+    if rk is None:
+        off = (np.arange(n_aa) + 0.5) / n_aa
+        ou, ov = np.meshgrid(off, off, indexing="ij")
+        su = (ei[:, None] + ou.ravel()).ravel()
+        sv = (ej[:, None] + ov.ravel()).ravel()
+        return _normalized(K, su, sv, dist)
+    xn, yn, err = np.empty(m), np.empty(m), np.empty(m)
+    has = dist is not None and bool(np.any(np.asarray(dist, float) != 0.0))
+    if has and grid is None:
+        grid = pixel_grid(K, int(ei.max()) + 1, int(ej.max()) + 1, dist)
+    _kernel(rk, "subpixel_normalized", m)(
+        np.ascontiguousarray(ei, dtype=np.int64),
+        np.ascontiguousarray(ej, dtype=np.int64),
+        int(n_aa),
+        np.ascontiguousarray(K, dtype=np.float64),
+        np.asarray(dist, float) if has else np.zeros(0),
+        *(grid if has else (np.zeros((0, 0)), np.zeros((0, 0)))),
+        _UNDISTORT_TOL,
+        _NEWTON_MAX,
+        xn,
+        yn,
+        err,
+    )
+    bad = ~(err <= UNDISTORT_ACCURACY)
+    if np.any(bad):
+        # the numpy path names the first point where the lens model folds over
+        off = (np.arange(n_aa) + 0.5) / n_aa
+        ou, ov = np.meshgrid(off, off, indexing="ij")
+        su = (ei[:, None] + ou.ravel()).ravel()[bad]
+        sv = (ej[:, None] + ov.ravel()).ravel()[bad]
+        _normalized(K, su, sv, dist)
+    return xn, yn
 
 
 def _spot_code(lights, light_occ, C, x, region) -> np.ndarray:
@@ -656,11 +862,10 @@ def render(
     light_vis = [(oc, li.center) for li, oc in zip(lights, light_occ, strict=True) if oc]
 
     # Pixel centres and corners (their undistorted coordinates are cached per camera).
-    d = rays_from_normalized(R, *pixel_grid(K, W, H, dist))
-    x, front = intersect_plane_z0(C, d)
-    region, white, code_c, _ = _label(surface, occ_cam, C, x, front, light_vis)
-    xc, frontc = intersect_plane_z0(C, rays_from_normalized(R, *pixel_grid(K, W, H, dist, True)))
-    region_k, _, code_k, _ = _label(surface, occ_cam, C, xc, frontc, light_vis)
+    x, _, region, white = _hits(surface, C, R, *pixel_grid(K, W, H, dist))
+    region, code_c = _codes(region, white, occ_cam, C, x, light_vis)
+    xc, _, region_k, white_k = _hits(surface, C, R, *pixel_grid(K, W, H, dist, True))
+    region_k, code_k = _codes(region_k, white_k, occ_cam, C, xc, light_vis)
     if direct and not (np.any(region == SAMPLE) or np.any(region_k == SAMPLE)):
         raise ConfigError(
             f"camera: at {np.round(C, 4).tolist()} the camera does not see the sample "
@@ -791,29 +996,30 @@ def render(
         ej, ei = np.nonzero(mask)
         if not len(ej):
             continue
-        off = (np.arange(n_aa) + 0.5) / n_aa
-        ou, ov = np.meshgrid(off, off, indexing="ij")
-        su = (ei[:, None] + ou.ravel()).ravel()
-        sv = (ej[:, None] + ov.ravel()).ravel()
-        xsub, fsub = intersect_plane_z0(C, camera_rays(K, R, su, sv, dist))
-        rsub, wsub, _, _ = _label(surface, occ_cam, C, xsub, fsub, [])
+        xsub, _, rsub, wsub = _hits(
+            surface, C, R, *_subpixel_normalized(K, ei, ej, n_aa, dist, pixel_grid(K, W, H, dist))
+        )
+        rsub, _ = _codes(rsub, wsub, occ_cam, C, xsub, [])
         ok = (rsub > 0) & (rsub != OCCLUDED)
-        lsub = np.zeros((len(su), 3))
+        lsub = np.zeros((len(rsub), 3))
         lsub[ok] = shade_all(xsub[ok], rsub[ok], wsub[ok])
         radiance[ej, ei] = lsub.reshape(len(ej), n_aa * n_aa, 3).mean(1)
         if diff is not None:
-            dsub = np.zeros((len(su), 3))
+            dsub = np.zeros((len(rsub), 3))
             dsub[ok] = diffuse_all(xsub[ok], rsub[ok], wsub[ok])
             diff[ej, ei] = dsub.reshape(len(ej), n_aa * n_aa, 3).mean(1)
-        n_sub += len(su)
+        n_sub += len(rsub)
     edge = edge | spot_rim
 
-    nan3 = np.full((H, W, 3), np.nan)
-    pts = np.where(surf[..., None], x, nan3)
-    wo = C - pts
-    wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
-    wi = lights[0].center - pts
-    wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+    def truth() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        nan3 = np.full((H, W, 3), np.nan)
+        pts = np.where(surf[..., None], x, nan3)
+        wo = C - pts
+        wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+        wi = lights[0].center - pts
+        wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+        return wi, wo, pts
+
     stats = RenderStats(
         pixels=H * W,
         pixels_shaded=int(surf.sum()),
@@ -825,7 +1031,7 @@ def render(
         lights=light_stats,
         seconds=time.perf_counter() - t0,
     )
-    return RenderResult(radiance, wi, wo, pts, region, edge, stats, diff)
+    return RenderResult(radiance, None, None, None, region, edge, stats, diff, truth=truth)
 
 
 def save_truth(

@@ -20,6 +20,7 @@ the end, and three times cheaper).  Every draw comes from the given seed.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,10 +33,12 @@ from gonio.simulator.sensor_defects import FixedPattern
 __all__ = [
     "RawFrame",
     "cfa_indices",
+    "cfa_radiance",
     "colour_metadata",
     "default_flat_radiance",
     "electrons_per_radiance",
     "mean_electrons",
+    "simulate_mosaic",
     "simulate_raw",
 ]
 
@@ -177,6 +180,17 @@ def colour_metadata(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     return cm / np.abs(cm @ colour.xy_to_XYZ([0.3127, 0.3290])).max(), neutral
 
 
+def cfa_radiance(radiance: np.ndarray, camera: Camera) -> np.ndarray:
+    """The radiance (H, W) of the channel each site's colour filter passes, W/(sr m^2),
+    from a (H, W, 3) image (NaN and negative values as 0)."""
+    radiance = np.asarray(radiance, float)
+    if radiance.ndim != 3 or radiance.shape[2] != 3:
+        raise ParameterError(f"radiance must have shape (H, W, 3), got {radiance.shape}")
+    k = _constants(camera, radiance.shape[:2])
+    sites = radiance.reshape(-1)[k.flat_index].reshape(k.shape)
+    return np.nan_to_num(np.maximum(sites, 0.0, out=sites), copy=False)
+
+
 def simulate_raw(
     radiance: np.ndarray,
     camera: Camera,
@@ -215,24 +229,52 @@ def simulate_raw(
     ParameterError
         A setting is not a positive finite number, or the exposure exceeds an hour.
     """
-    t = _check(
-        "exposure_time (s)",
-        camera.exposure_time if exposure_time is None else exposure_time,
-        MAX_EXPOSURE_S,
+    settings = _settings(camera, exposure_time, iso, f_number)
+    return simulate_mosaic(
+        cfa_radiance(radiance, camera),
+        camera,
+        exposure_time=settings[0],
+        iso=settings[2],
+        f_number=settings[1],
+        seed=seed,
+        fixed_pattern=fixed_pattern,
     )
-    n = _check("f_number", camera.f_number if f_number is None else f_number)
-    iso_v = _check("iso", camera.iso if iso is None else iso)
-    radiance = np.asarray(radiance, float)
-    if radiance.ndim != 3 or radiance.shape[2] != 3:
-        raise ParameterError(f"radiance must have shape (H, W, 3), got {radiance.shape}")
+
+
+def simulate_mosaic(
+    site_radiance: np.ndarray,
+    camera: Camera,
+    *,
+    exposure_time: float | None = None,
+    iso: float | None = None,
+    f_number: float | None = None,
+    seed: int | np.random.Generator = 0,
+    fixed_pattern: FixedPattern | None = None,
+) -> RawFrame:
+    """:func:`simulate_raw` of a radiance already taken at the colour filters' sites.
+
+    ``site_radiance`` (H, W), W/(sr m^2), non-negative and finite (:func:`cfa_radiance`):
+    the same frame, bit for bit, as :func:`simulate_raw` of the (H, W, 3) image, without
+    the work on the two channels a site does not see.  The other parameters as there.
+    """
+    t, n, iso_v = _settings(camera, exposure_time, iso, f_number)
+    sites = np.asarray(site_radiance, float)
+    if sites.ndim != 2:
+        raise ParameterError(f"site radiance must have shape (H, W), got {sites.shape}")
     s = camera.sensor
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    k = _constants(camera, sites.shape)
+    # mean_electrons' products in its order (same bits), on the site's channel only
     with np.errstate(over="ignore"):  # an overflow is a saturated pixel (below)
-        mu3 = mean_electrons(np.nan_to_num(np.maximum(radiance, 0.0)), camera, t, n)
-    idx = cfa_indices(s.cfa_pattern, mu3.shape[:2])
-    mu = np.take_along_axis(mu3, idx[..., None], axis=2)[..., 0]
+        mu = sites * (np.pi / (4.0 * n**2))
+        if k.vignette is not None:
+            mu *= k.vignette
+        mu *= camera.pitch**2
+        mu *= t
+        mu *= k.photons_per_joule
+        mu *= k.qe
     if fixed_pattern is None:
-        mu = mu + s.dark_current * t
+        mu += s.dark_current * t
     else:
         if fixed_pattern.shape != mu.shape:
             raise ParameterError(
@@ -242,24 +284,27 @@ def simulate_raw(
             mu = fixed_pattern.apply(mu, t, s.dark_current * t)
     # A mean beyond numpy's range (a huge radiance or exposure) is a saturated pixel.
     over = ~(mu <= _POISSON_MAX)
-    if over.any():
-        mu = np.where(over, 0.0, mu)
+    any_over = bool(over.any())
+    if any_over:
+        mu[over] = 0.0
     electrons = rng.poisson(mu).astype(np.float64)
-    electrons += rng.normal(0.0, s.read_noise, mu.shape) if s.read_noise > 0 else 0.0
-    electrons = np.clip(electrons, None, s.full_well)
-    if over.any():
+    if s.read_noise > 0:
+        electrons += rng.normal(0.0, s.read_noise, mu.shape)
+    np.minimum(electrons, s.full_well, out=electrons)
+    if any_over:
         electrons[over] = s.full_well
     gain = s.gain_at_base_iso * iso_v / s.base_iso
-    dn = np.rint(s.black_level + electrons * gain)
-    mosaic = np.clip(dn, 0, s.white_level).astype(np.uint16)
-    cm, neutral = colour_metadata(camera)
+    electrons *= gain
+    electrons += s.black_level
+    np.rint(electrons, out=electrons)
+    mosaic = np.clip(electrons, 0, s.white_level, out=electrons).astype(np.uint16)
     return RawFrame(
         mosaic=mosaic,
         cfa_pattern=s.cfa_pattern,
         black_level=s.black_level,
         white_level=s.white_level,
-        colour_matrix=cm,
-        as_shot_neutral=neutral,
+        colour_matrix=k.colour_matrix.copy(),
+        as_shot_neutral=k.neutral.copy(),
         exposure_time=t,
         f_number=n,
         iso=iso_v,
@@ -267,3 +312,77 @@ def simulate_raw(
         model=s.model,
         extra={"gain_dn_per_electron": gain},
     )
+
+
+def _settings(
+    camera: Camera, exposure_time: float | None, iso: float | None, f_number: float | None
+) -> tuple[float, float, float]:
+    t = _check(
+        "exposure_time (s)",
+        camera.exposure_time if exposure_time is None else exposure_time,
+        MAX_EXPOSURE_S,
+    )
+    n = _check("f_number", camera.f_number if f_number is None else f_number)
+    iso_v = _check("iso", camera.iso if iso is None else iso)
+    return t, n, iso_v
+
+
+@dataclass(frozen=True)
+class _Constants:
+    """What a camera's frames share: per-site channel factors, the vignetting map."""
+
+    shape: tuple[int, int]
+    flat_index: np.ndarray  # (H*W,) index of each site's channel in the (H*W*3) image
+    vignette: np.ndarray | None  # (H, W) cos^4 of the field angle
+    photons_per_joule: np.ndarray  # (H, W) of the site's channel
+    qe: np.ndarray  # (H, W)
+    colour_matrix: np.ndarray
+    neutral: np.ndarray
+
+
+_CONSTANTS: OrderedDict[tuple[str, tuple[int, int]], _Constants] = OrderedDict()
+_CONSTANTS_SIZE = 8
+# A camera's pose and exposure settings do not change its per-site constants.
+_POSE_FIELDS = {"position", "look_at", "up", "rotation", "exposure_time", "iso", "f_number"}
+
+
+def _constants(camera: Camera, shape: tuple[int, int]) -> _Constants:
+    h, w = int(shape[0]), int(shape[1])
+    key = (camera.model_dump_json(exclude=_POSE_FIELDS), (h, w))
+    hit = _CONSTANTS.get(key)
+    if hit is not None:
+        _CONSTANTS.move_to_end(key)
+        return hit
+    s = camera.sensor
+    idx = cfa_indices(s.cfa_pattern, (h, w))
+    vignette = None
+    if s.vignetting:
+        K = camera.intrinsics()
+        if camera.has_distortion:
+            # the field angle is the true ray's: undistorted normalised coordinates
+            x, y = pixel_grid(K, w, h, camera.distortion)
+            r2 = x * x + y * y
+        else:
+            v, u = np.mgrid[0:h, 0:w]
+            r2 = ((u + 0.5 - K[0, 2]) ** 2 + (v + 0.5 - K[1, 2]) ** 2) / K[0, 0] ** 2
+        vignette = (1.0 / (1.0 + r2)) ** 2  # cos^4 = (1 + tan^2)^-2
+    ppj = np.asarray(s.wavelength_nm) * 1e-9 / (_H * _C)
+    qe = np.broadcast_to(np.asarray(s.quantum_efficiency, float), (3,))
+    cm, neutral = colour_metadata(camera)
+    out = _Constants(
+        (h, w),
+        (np.arange(h * w) * 3 + idx.ravel()).astype(np.intp),
+        vignette,
+        ppj[idx],
+        qe[idx],
+        cm,
+        neutral,
+    )
+    for a in (out.flat_index, out.photons_per_joule, out.qe, out.colour_matrix, out.neutral):
+        a.flags.writeable = False
+    if vignette is not None:
+        vignette.flags.writeable = False
+    _CONSTANTS[key] = out
+    while len(_CONSTANTS) > _CONSTANTS_SIZE:
+        _CONSTANTS.popitem(last=False)
+    return out

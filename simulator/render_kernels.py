@@ -1,0 +1,319 @@
+"""Fused numba kernels of the renderer's per-pixel geometry: rays, hits, labels.
+
+Why hand-written: a camera ray's way to its label (undistort the image point, turn it
+into a world ray, meet the plane z = 0, find the sample, holder, reference patch and
+board print there) is some thirty numpy passes over the image, each streaming a
+temporary through memory; profiled on a 320 x 240 frame they were a third of the render
+(pixel centres and corners, and the anti-aliasing sub-rays, whose Newton undistortion
+iterates the whole batch until its slowest point has converged).  These kernels do it
+per point in registers, in the numpy code's operation order
+(:func:`gonio.simulator.geometry.rays_from_normalized`, ``intersect_plane_z0``,
+:meth:`gonio.simulator.render.Surface.classify`), so the two paths agree to rounding:
+numpy's ``(N, 3) @ (3, 3)`` goes through BLAS, which may fuse multiply-adds, and the
+batch Newton iteration runs a converged point a step or two further than the per-point
+one (both reproduce the distortion to 1e-13).  ``tests/simulator/test_render_kernels.py``
+holds the two paths equal.
+
+IEEE-strict as :mod:`gonio.brdf.kernels` (``fastmath=False``, ``error_model="numpy"``,
+``cache=True``).  ``GONIO_NUMBA=0`` keeps the renderer on numpy (the reference).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+__all__ = [
+    "PARALLEL_POINTS",
+    "lambert_albedo",
+    "lambert_radiance",
+    "label_points",
+    "label_points_serial",
+    "node_geometry",
+    "subpixel_normalized",
+    "subpixel_normalized_serial",
+]
+
+#: From this many points on, the multi-threaded kernels are used (below, a thread launch
+#: costs more than it saves, and on a busy machine each launch waits for a thread to be
+#: scheduled: a 320 x 240 frame's 77k rays run on the calling thread).
+PARALLEL_POINTS = 262144
+
+_JIT = {"cache": True, "fastmath": False, "error_model": "numpy", "nogil": True}
+
+NONE, SAMPLE, HOLDER, PATCH = 0, 1, 2, 3
+
+
+@njit(**_JIT, inline="always")
+def _label_one(
+    i, xn, yn, R, C, half, holder, board, board_half, patch, out_x, out_front, out_region, out_white
+):
+    has_holder = holder.shape[0] == 2
+    has_board = board.shape[0] > 0
+    has_patch = patch.shape[0] == 4
+    rows, cols = board.shape[0], board.shape[1]
+    x, y = xn[i], yn[i]
+    d0 = x * R[0, 0] + y * R[1, 0] + R[2, 0]
+    d1 = x * R[0, 1] + y * R[1, 1] + R[2, 1]
+    d2 = x * R[0, 2] + y * R[1, 2] + R[2, 2]
+    norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
+    t = -C[2] / d2
+    front = math.isfinite(t) and t > 0
+    if not front:
+        t = 0.0
+    p0 = C[0] + t * d0
+    p1 = C[1] + t * d1
+    out_x[i, 0] = p0
+    out_x[i, 1] = p1
+    out_x[i, 2] = C[2] + t * d2
+    out_front[i] = front
+    ax, ay = abs(p0), abs(p1)
+    region = NONE
+    white = False
+    if has_holder and front and ax <= holder[0] and ay <= holder[1]:
+        region = HOLDER
+        white = True
+        if has_board:
+            c = math.floor((p0 + board_half[0]) / (2 * board_half[0]) * cols)
+            r = math.floor((board_half[1] - p1) / (2 * board_half[1]) * rows)
+            if c >= 0 and c < cols and r >= 0 and r < rows:
+                white = board[int(r), int(c)] != 0
+        if has_patch and abs(p0 - patch[0]) <= patch[2] and abs(p1 - patch[1]) <= patch[3]:
+            region = PATCH
+    if front and ax <= half[0] and ay <= half[1]:
+        region = SAMPLE
+    out_region[i] = region
+    out_white[i] = white and region == HOLDER
+
+
+@njit(**_JIT, parallel=True)
+def label_points(
+    xn, yn, R, C, half, holder, board, board_half, patch, out_x, out_front, out_region, out_white
+):
+    """Hit points and labels of the rays through normalised image points.
+
+    Parameters
+    ----------
+    xn, yn
+        (N,) undistorted normalised coordinates.
+    R
+        (3, 3) world-to-camera rotation; C (3,) camera centre, m.
+    half
+        (2,) sample half-size, m.
+    holder
+        (2,) holder half-size, m, or (0,) without a holder.
+    board
+        (rows, cols) uint8 board print (1 white), or (0, 0) without a board;
+        ``board_half`` (2,) its half extent, m.
+    patch
+        (4,) reference patch centre x, y and half-size x, y, m, or (0,) without one.
+    out_x, out_front, out_region, out_white
+        (N, 3) hit points (the camera centre where the ray misses), (N,) bool in front,
+        (N,) uint8 region code, (N,) bool board print white (holder points only).
+    """
+    for i in prange(xn.shape[0]):
+        _label_one(
+            i, xn, yn, R, C, half, holder, board, board_half, patch,
+            out_x, out_front, out_region, out_white,
+        )  # fmt: skip
+
+
+# The serial twins repeat their parallel kernels' loops on purpose (see gonio.brdf.kernels:
+# numba's cache index does not tell two builds of one function apart).
+@njit(**_JIT)
+def label_points_serial(
+    xn, yn, R, C, half, holder, board, board_half, patch, out_x, out_front, out_region, out_white
+):
+    """:func:`label_points` on the calling thread (no thread launch: small batches)."""
+    for i in range(xn.shape[0]):
+        _label_one(
+            i, xn, yn, R, C, half, holder, board, board_half, patch,
+            out_x, out_front, out_region, out_white,
+        )  # fmt: skip
+
+
+@njit(**_JIT, inline="always")
+def _undistort(xd, yd, x0, y0, k1, k2, p1, p2, k3, tol, max_iter):
+    # geometry.undistort_normalized's Newton step, for one point, from (x0, y0); one step
+    # beyond the tolerance, as the batch iteration takes for all but its slowest points:
+    # Newton's quadratic convergence then leaves rounding only
+    x, y = x0, y0
+    polish = False
+    for _ in range(max_iter):
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dradial = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)
+        fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
+        fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
+        if polish:
+            break
+        if abs(fx) + abs(fy) <= tol:
+            polish = True
+        a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+        b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
+        c = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
+        d = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+        det = a * d - b * c
+        x = x - (d * fx - b * fy) / det
+        y = y - (a * fy - c * fx) / det
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xr = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yr = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return x, y, math.hypot(xr - xd, yr - yd)
+
+
+@njit(**_JIT, inline="always")
+def _subpixel_one(p, ei, ej, n_aa, K, dist, grid_x, grid_y, tol, max_iter, out_x, out_y, out_err):
+    has_dist = dist.shape[0] == 5
+    nn = n_aa * n_aa
+    i, j = ei[p], ej[p]
+    # Newton starts from the pixel centre's undistorted point shifted by the sub-pixel
+    # offset (the lens is locally a near-identity map): two steps fewer than from the
+    # distorted point, the same root
+    xc = (i + 0.5 - K[0, 2]) / K[0, 0]
+    yc = (j + 0.5 - K[1, 2]) / K[1, 1]
+    for a in range(n_aa):
+        ou = (a + 0.5) / n_aa
+        for b in range(n_aa):
+            ov = (b + 0.5) / n_aa
+            k = p * nn + a * n_aa + b
+            x = (i + ou - K[0, 2]) / K[0, 0]
+            y = (j + ov - K[1, 2]) / K[1, 1]
+            err = 0.0
+            if has_dist:
+                x0 = grid_x[j, i] + (x - xc)
+                y0 = grid_y[j, i] + (y - yc)
+                x, y, err = _undistort(
+                    x, y, x0, y0, dist[0], dist[1], dist[2], dist[3], dist[4], tol, max_iter
+                )
+            out_x[k] = x
+            out_y[k] = y
+            out_err[k] = err
+
+
+@njit(**_JIT, parallel=True)
+def subpixel_normalized(
+    ei, ej, n_aa, K, dist, grid_x, grid_y, tol, max_iter, out_x, out_y, out_err
+):
+    """Undistorted normalised coordinates of the ``n_aa`` x ``n_aa`` sub-pixel points of
+    pixels (ei, ej) (columns, rows), in the renderer's order (pixel, then u, then v).
+
+    ``dist`` (5,) or (0,) for a pinhole; ``grid_x``, ``grid_y`` (H, W) the pixel
+    centres' undistorted coordinates (:func:`gonio.simulator.geometry.pixel_grid`; the
+    starting point); ``out_err`` (M,) the distortion's residual at the result (0 for a
+    pinhole).
+    """
+    for p in prange(ei.shape[0]):
+        _subpixel_one(
+            p, ei, ej, n_aa, K, dist, grid_x, grid_y, tol, max_iter, out_x, out_y, out_err
+        )
+
+
+@njit(**_JIT)
+def subpixel_normalized_serial(
+    ei, ej, n_aa, K, dist, grid_x, grid_y, tol, max_iter, out_x, out_y, out_err
+):
+    """:func:`subpixel_normalized` on the calling thread."""
+    for p in range(ei.shape[0]):
+        _subpixel_one(
+            p, ei, ej, n_aa, K, dist, grid_x, grid_y, tol, max_iter, out_x, out_y, out_err
+        )
+
+
+@njit(**_JIT, inline="always")
+def _nodes_one(i, x, y, w, normal, is_point, profile_n, face, out_wi, out_g):
+    # render._Integrator._shade_nodes' geometry, in its operation order
+    # one row of nodes, weights, face for all points, or a row per point (integer
+    # arithmetic: a conditional index does not type inside a parallel loop)
+    yi = min(i, y.shape[0] - 1)
+    wj = min(i, w.shape[0] - 1)
+    fi = min(i, face.shape[0] - 1)
+    has_face = face.shape[0] > 0
+    for k in range(y.shape[1]):
+        d0 = y[yi, k, 0] - x[i, 0]
+        d1 = y[yi, k, 1] - x[i, 1]
+        d2 = y[yi, k, 2] - x[i, 2]
+        r2 = d0 * d0 + d1 * d1 + d2 * d2
+        r = math.sqrt(r2)
+        w0, w1, w2 = d0 / r, d1 / r, d2 / r
+        out_wi[i, k, 0] = w0
+        out_wi[i, k, 1] = w1
+        out_wi[i, k, 2] = w2
+        cos_s = 0.0 if w2 < 0.0 else w2
+        if is_point:
+            g = cos_s / r2
+        else:
+            c = -(w0 * normal[0] + w1 * normal[1] + w2 * normal[2])
+            cos_l = 0.0 if c < 0.0 else c
+            g = w[wj, k] * cos_s * cos_l / r2
+            if profile_n != 0.0:
+                g = g * cos_l**profile_n
+            if has_face:
+                g = g * face[fi, k]
+        out_g[i, k] = g
+
+
+# One thread only: numba's parallel lowering of this loop mistypes the node row index
+# (float64); the shading's BRDF evaluation, its larger cost, runs on numba's threads.
+@njit(**_JIT)
+def node_geometry(x, y, w, normal, is_point, profile_n, face, out_wi, out_g):
+    """Directions to a light's nodes and their geometric factors.
+
+    Parameters
+    ----------
+    x
+        (M, 3) surface points, m.
+    y, w
+        (1 or M, K, 3) nodes on the light, m, and (1 or M, K) their area weights, m^2.
+    normal
+        (3,) the light's emitting normal; ``is_point``: a point light (``g = cos / r^2``).
+    profile_n
+        The emission profile's exponent (0: Lambertian).
+    face
+        (1 or M, K) the face's non-uniformity at the nodes, or (0, K) for a uniform face.
+    out_wi, out_g
+        (M, K, 3) unit directions to the nodes, (M, K) ``w cos cos' prof face / r^2``
+        (1/sr for a point light's unit intensity).
+    """
+    for i in range(x.shape[0]):
+        _nodes_one(i, x, y, w, normal, is_point, profile_n, face, out_wi, out_g)
+
+
+@njit(**_JIT)
+def lambert_radiance(region, white, g, table, out):
+    """``albedo / pi * sum_k g`` (M, 3) into the rows of ``out`` that are not the sample
+    (region 1); ``table`` (3, 3) the black print's, white print's and reference patch's
+    albedo (Surface.lambert_albedo)."""
+    for i in range(region.shape[0]):
+        reg = region[i]
+        if reg == SAMPLE:
+            continue
+        row = 2 if reg == PATCH else (1 if white[i] else 0)
+        gs = 0.0
+        for k in range(g.shape[1]):
+            gs += g[i, k]
+        for c in range(3):
+            out[i, c] = table[row, c] / math.pi * gs
+
+
+@njit(**_JIT)
+def lambert_albedo(region, white, table, out):
+    """The albedo (3,) of every point that is not the sample, into ``out`` (M, 3)."""
+    for i in range(region.shape[0]):
+        reg = region[i]
+        if reg == SAMPLE:
+            continue
+        row = 2 if reg == PATCH else (1 if white[i] else 0)
+        for c in range(3):
+            out[i, c] = table[row, c]
+
+
+def board_uint8(img: np.ndarray | None) -> np.ndarray:
+    """The board print as the kernels read it ((0, 0) without a board)."""
+    if img is None:
+        return np.zeros((0, 0), np.uint8)
+    return np.ascontiguousarray(img, dtype=np.uint8)

@@ -1,0 +1,114 @@
+"""The fast paths of the simulated camera against their numpy references (issue 19.2).
+
+- the renderer's numba kernels (ray labels, sub-pixel undistortion) against the numpy
+  path (``GONIO_NUMBA=0``) on a realistic world's frame: same labels and edges, radiance
+  equal to rounding;
+- the camera's per-site shot (the pose's render taken at the colour filters' sites once)
+  against ``simulate_raw`` of the full radiance image the camera reports: the same bytes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gonio.simulator.camera import SimulatedCamera
+from gonio.simulator.geometry import undistort_normalized
+from gonio.simulator.render import _subpixel_normalized, render
+from gonio.simulator.rig_camera import minimal_scene
+from gonio.simulator.scene import parse_scene
+from gonio.simulator.sensor import simulate_raw
+from gonio.simulator.world import draw_world
+
+WORLD_SEED = 5
+
+
+def realistic_scene(w=240, h=180):
+    """The demo's scene (board, anti-aliased edges) with a realistic world's camera
+    (distortion, principal point) and light (emission profile, face gradient)."""
+    doc = minimal_scene(w, h)
+    doc["camera"]["fov_deg"] = 30.0
+    doc["lights"][0]["radius"] = 0.004
+    doc["render"] = {"strategy": "auto", "tolerance": 1e-3, "antialias": 3}
+    doc["holder"]["board"] = {
+        "squares_x": 7,
+        "squares_y": 7,
+        "square_length": 0.02,
+        "marker_length": 0.015,
+    }
+    doc["holder"]["reference_patch"] = {"center": [0.05, -0.05], "size": [0.02, 0.02]}
+    world = draw_world("realistic", WORLD_SEED)
+    scene = parse_scene(doc)
+    scene = scene.model_copy(update={"camera": world.as_built_camera(scene.camera)})
+    return scene, world
+
+
+@pytest.fixture(scope="module")
+def scene_world():
+    return realistic_scene()
+
+
+def test_kernel_render_equals_the_numpy_render(scene_world, monkeypatch):
+    scene, world = scene_world
+    assert scene.camera.has_distortion  # the as-built lens: the kernels' Newton runs
+    from gonio.simulator.camera import with_light_emission
+
+    scene = with_light_emission(scene, world.radiometry)
+    fast = render(scene, diffuse=True)
+    monkeypatch.setenv("GONIO_NUMBA", "0")
+    ref = render(scene, diffuse=True)
+    assert fast.stats.edge_pixels > 500 and fast.stats.subpixel_samples > 4000
+    np.testing.assert_array_equal(fast.region, ref.region)
+    np.testing.assert_array_equal(fast.edge, ref.edge)
+    assert fast.stats.lights[0].nodes == ref.stats.lights[0].nodes
+    # rays differ by BLAS's fused multiply-adds and one Newton step: rounding only
+    lit = ref.radiance > 0
+    assert lit.sum() > 10000
+    np.testing.assert_allclose(fast.radiance, ref.radiance, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(fast.diffuse, ref.diffuse, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(fast.points, ref.points, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(fast.wi, ref.wi, rtol=0, atol=1e-13)
+
+
+def test_kernel_subpixel_rays_undistort_like_the_numpy_newton(scene_world, monkeypatch):
+    scene, _ = scene_world
+    cam = scene.camera
+    K = cam.intrinsics()
+    w, h = cam.resolution
+    rng = np.random.default_rng(3)
+    ei, ej = rng.integers(0, w, 2000), rng.integers(0, h, 2000)
+    xk, yk = _subpixel_normalized(K, ei, ej, 3, cam.distortion)
+    monkeypatch.setenv("GONIO_NUMBA", "0")
+    xr, yr = _subpixel_normalized(K, ei, ej, 3, cam.distortion)
+    np.testing.assert_allclose(xk, xr, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(yk, yr, rtol=0, atol=1e-15)
+    # and both invert the lens: the sub-pixel points of pixel (i, j) at i + 1/6 ...
+    u = np.repeat(ei, 9) + np.tile(np.repeat([1, 3, 5], 3), 2000) / 6
+    v = np.repeat(ej, 9) + np.tile(np.tile([1, 3, 5], 3), 2000) / 6
+    x0, y0 = undistort_normalized((u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], cam.distortion)
+    np.testing.assert_allclose(xk, x0, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(yk, y0, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("target,light_on", [("sample", True), ("sample", False), ("flat", True)])
+def test_site_shot_is_simulate_raw_of_the_radiance_image(scene_world, target, light_on):
+    scene, world = scene_world
+    cam = SimulatedCamera(scene, world=world)
+    assert cam.radiometry.drifts and cam.fixed_pattern() is not None
+    for k, (t, rig_time) in enumerate(((0.004, 30.0), (0.008, 900.0))):
+        fast = cam.capture_frame(
+            t, 200, 8, seed=k, target=target, rig_time=rig_time, light_on=light_on
+        )
+        image = cam.radiance(target, rig_time=rig_time, light_on=light_on)
+        ref = simulate_raw(
+            image,
+            cam.scene.camera,
+            exposure_time=t,
+            iso=200,
+            f_number=8,
+            seed=np.random.default_rng(k),
+            fixed_pattern=cam.fixed_pattern(),
+        )
+        np.testing.assert_array_equal(fast.mosaic, ref.mosaic)
+        assert fast.mosaic.std() > 1.0
+    assert cam.renders == (0 if target == "flat" else 1)  # a bracket renders once
