@@ -546,7 +546,7 @@ CASES = [
     case("fit-h5-float-flags", "fit {bad}/floatflags.h5 --out {tmp}/F", 1, "'flags'", "integers"),
     case("fit-toml", "fit {bad}/bad.toml --out {tmp}/F", 1, "bad.toml", "unrecognised"),
     case("fit-garbage-bsdf", "fit {bad}/garbage.bsdf --out {tmp}/F", 1, "garbage.bsdf", "expected"),
-    case("fit-dir", "fit {bad}/adir --out {tmp}/F", 1, "adir", "no samples.h5, .bsdf or .binary files found"),
+    case("fit-dir", "fit {bad}/adir --out {tmp}/F", 1, "adir", "no samples.h5, .bsdf or .binary"),
     case("fit-missing", "fit {bad}/nope.h5 --out {tmp}/F", 2, "nope.h5", "does not exist"),
     case("fit-model", "fit {rgl} -m nosuch --out {tmp}/F", 1, "'nosuch'", "lambert", rgl=True),
     case(
