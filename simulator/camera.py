@@ -233,7 +233,9 @@ class SimulatedCamera:
         if r is None:
             if not light_on:
                 return np.zeros((h, w))
-            return self._sites(self._render(target, True, False)[0], "radiance").copy()
+            sites = self._sites(self._render(target, True, False)[0], "radiance")
+            # a measured BRDF's interpolation can dip below 0: clamped as cfa_radiance does
+            return np.nan_to_num(np.maximum(sites, 0.0))
         stray = r.stray_fraction if light_on else 0.0
         diffuse = r.ambient_fraction > 0.0 or stray > 0.0
         if not (light_on or diffuse):

@@ -275,9 +275,16 @@ def test_unreachable_scheduler_cli(rgl_folder, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_ctrl_c_leaves_no_worker(rgl_folder, tmp_path):
-    """SIGINT to the CLI process while its local cluster fits (standard grid: seconds
-    per material): exit 130, and none of its worker processes is left."""
+    """SIGINT to the CLI process while its local cluster fits: exit 130, and none of its
+    worker processes is left.  Six copies of each file (24 materials, standard grid), so
+    the run is still fitting when the signal arrives (4 fits can be over by then)."""
     lib = tmp_path / "LIB"
+    many = tmp_path / "many"
+    many.mkdir()
+    for f in sorted(rgl_folder.glob("*.bsdf")):
+        for k in range(6):
+            shutil.copy(f, many / f"{f.stem}_{k}.bsdf")
+    rgl_folder = many
     proc = subprocess.Popen(
         [sys.executable, "-m", "gonio", "fit", str(rgl_folder), "--out", str(lib),
          "--workers", "2", "--no-plots"],
@@ -286,7 +293,7 @@ def test_ctrl_c_leaves_no_worker(rgl_folder, tmp_path):
     )  # fmt: skip
     try:
         for line in proc.stdout:  # wait for the tasks to be submitted
-            if line.startswith("fitting 4 material(s)"):
+            if line.startswith("fitting 24 material(s)"):
                 break
         else:
             pytest.fail(f"no start line; stderr: {proc.stderr.read()}")

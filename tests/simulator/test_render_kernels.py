@@ -112,3 +112,24 @@ def test_site_shot_is_simulate_raw_of_the_radiance_image(scene_world, target, li
         np.testing.assert_array_equal(fast.mosaic, ref.mosaic)
         assert fast.mosaic.std() > 1.0
     assert cam.renders == (0 if target == "flat" else 1)  # a bracket renders once
+
+
+def test_ideal_world_site_shot_clamps_like_simulate_raw():
+    """Without a world's radiometry the per-site shot also takes radiance below 0 (a
+    measured BRDF's interpolation dips there) or NaN as 0, as ``simulate_raw`` does: the
+    same bytes, and no negative mean reaches the Poisson draw (the RGL demo did)."""
+    scene = parse_scene(minimal_scene(64, 48))
+    cam = SimulatedCamera(scene)
+    assert cam.radiometry is None
+    result, _ = cam._render("sample", True, False)
+    rad = result.radiance
+    rad[:4, :, :] = -1e-4  # the render is cached: the shot sees these values
+    rad[4, :5, :] = np.nan
+    sites = cam.site_radiance("sample")
+    assert np.isfinite(sites).all() and sites.min() >= 0.0
+    fast = cam.capture_frame(0.01, 100, 8, seed=3)
+    ref = simulate_raw(
+        rad, cam.scene.camera, exposure_time=0.01, iso=100, f_number=8,
+        seed=np.random.default_rng(3),
+    )  # fmt: skip
+    np.testing.assert_array_equal(fast.mosaic, ref.mosaic)
