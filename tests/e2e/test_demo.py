@@ -173,8 +173,15 @@ def test_ctrl_c_leaves_no_strays_and_the_session_resumes(tmp_path):
     assert p.returncode in (1, 130), err[-2000:]
     assert "interrupted" in err and "gonio capture resume" in err
     # nothing the demo started survives it (a child re-parented to init keeps the
-    # session id, so it would be listed here)
-    assert _session_members(p.pid) == [], (running, _session_members(p.pid))
+    # session id, so it would be listed here).  multiprocessing's resource tracker (the
+    # figure worker's) leaves when it reads the end of its pipe, just after the demo
+    # exits: a process that is gone within 5 s is not a stray.
+    left = _session_members(p.pid)
+    grace = time.monotonic() + 5.0
+    while left and time.monotonic() < grace:
+        time.sleep(0.1)
+        left = _session_members(p.pid)
+    assert left == [], (running, left)
     # no pseudo-terminal or file of the session is still held open by anyone
     for fd_dir in Path("/proc").glob("[0-9]*/fd"):
         try:
