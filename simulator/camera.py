@@ -233,22 +233,23 @@ class SimulatedCamera:
         if r is None:
             if not light_on:
                 return np.zeros((h, w))
-            sites = self._sites(self._render(target, True, False)[0], "radiance")
-            # a measured BRDF's interpolation can dip below 0: clamped as cfa_radiance does
-            return np.nan_to_num(np.maximum(sites, 0.0))
-        stray = r.stray_fraction if light_on else 0.0
-        diffuse = r.ambient_fraction > 0.0 or stray > 0.0
-        if not (light_on or diffuse):
-            return np.zeros((h, w))
-        result, e0 = self._render(target, light_on, diffuse)
-        idx = cfa_indices(cam.sensor.cfa_pattern, (h, w))
-        out = np.zeros((h, w))
-        k = r.light_output(rig_time)
-        if light_on:
-            direct = self._sites(result, "radiance")
-            out = direct * k[idx] if r.drifts else direct.copy()
-        if diffuse:
-            out += self._sites(result, "diffuse") * (e0 * (r.ambient_fraction + stray * k))[idx]
+            out = self._sites(self._render(target, True, False)[0], "radiance").copy()
+        else:
+            stray = r.stray_fraction if light_on else 0.0
+            diffuse = r.ambient_fraction > 0.0 or stray > 0.0
+            if not (light_on or diffuse):
+                return np.zeros((h, w))
+            result, e0 = self._render(target, light_on, diffuse)
+            idx = cfa_indices(cam.sensor.cfa_pattern, (h, w))
+            out = np.zeros((h, w))
+            k = r.light_output(rig_time)
+            if light_on:
+                direct = self._sites(result, "radiance")
+                out = direct * k[idx] if r.drifts else direct.copy()
+            if diffuse:
+                out += self._sites(result, "diffuse") * (e0 * (r.ambient_fraction + stray * k))[idx]
+        # every path clamps as cfa_radiance does: a measured BRDF's interpolation, and so
+        # a render, can dip below 0
         return np.nan_to_num(np.maximum(out, 0.0, out=out), copy=False)
 
     def _sites(self, result: RenderResult, name: str) -> np.ndarray:
