@@ -373,18 +373,25 @@ def fit_material(task: _Task) -> dict[str, Any]:
         digest = file_digest(m.path)
     except OSError as exc:
         raise GonioError(f"{m.path}: cannot read: {exc.strerror or exc}") from None
+    from threadpoolctl import threadpool_limits
+
     samples = _load(m, o.sampling)
-    r = fit(
-        samples,
-        o.model,
-        loss=o.loss,
-        robust=o.robust,
-        f_scale=o.f_scale,
-        algorithm=o.algorithm,
-        energy_conservation=o.energy_conservation,
-        candidates=o.candidates,
-        model_options=dict(o.model_options) or None,
-    )
+    # BLAS on one thread in every engine: a pool of another size sums in another order,
+    # and nlopt's stopping test can then end a candidate's search one step apart
+    # ("roundoff limited" against "ftol reached", same cost), so the library's bytes
+    # would depend on where the task ran. Tasks, not BLAS, are the parallelism here.
+    with threadpool_limits(limits=1):
+        r = fit(
+            samples,
+            o.model,
+            loss=o.loss,
+            robust=o.robust,
+            f_scale=o.f_scale,
+            algorithm=o.algorithm,
+            energy_conservation=o.energy_conservation,
+            candidates=o.candidates,
+            model_options=dict(o.model_options) or None,
+        )
     with tempfile.TemporaryDirectory(prefix="gonio-fit-") as tmp:
         notes = _write_fit_files(r, samples, Path(tmp), o.plots)
         files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())}
