@@ -74,9 +74,9 @@ class SchedulerUnreachable(GonioError):
 class TaskError(Exception):
     """What a task raised, carried back as its type name and message.
 
-    The original exception class may not survive pickling (gonio's errors take several
-    constructor arguments) or may not be importable on the client; its name and message
-    always do.
+    The original exception class may not survive pickling (a third-party error with its
+    own constructor; gonio's own errors pickle) or may not be importable on the client
+    (a worker's environment can differ); its name and message always do.
     """
 
     def __init__(self, kind: str, message: str, deliberate: bool = False) -> None:

@@ -10,8 +10,25 @@ from __future__ import annotations
 from enum import StrEnum
 
 
+def _rebuild(cls: type, args: tuple, state: dict) -> BaseException:
+    """Unpickle a :class:`GonioError` without calling its ``__init__``."""
+    err = cls.__new__(cls, *args)
+    err.args = args
+    err.__dict__.update(state)
+    return err
+
+
 class GonioError(Exception):
-    """Base class of every deliberate gonio error."""
+    """Base class of every deliberate gonio error.
+
+    Picklable with its attributes whatever a subclass's constructor takes, so errors cross
+    process boundaries (figure workers, dask workers) as themselves: the default pickling
+    calls ``cls(*args)`` with the formatted message, which a constructor such as
+    ``FileFormatError(path, message, field=)`` cannot take.
+    """
+
+    def __reduce__(self) -> tuple:
+        return (_rebuild, (type(self), self.args, dict(self.__dict__)))
 
 
 class ConfigError(GonioError, ValueError):

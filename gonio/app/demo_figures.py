@@ -53,13 +53,16 @@ def residual_map(result: Any, samples_path: str, out: str) -> str:
 
 
 def _call(fn: Callable[..., Any], *args: Any) -> Any:
-    """``fn(*args)`` in the worker, its error as a :class:`GonioError` with the message:
-    some of gonio's errors take keyword arguments that pickle cannot rebuild, and an
-    error that cannot be unpickled in the main process breaks the whole pool."""
+    """``fn(*args)`` in the worker. gonio's own errors travel as themselves (they pickle);
+    any other becomes a :class:`GonioError` with the message, since an error that cannot
+    be unpickled in the main process (a third-party class with its own constructor)
+    breaks the whole pool."""
     from gonio.errors import GonioError
 
     try:
         return fn(*args)
+    except GonioError:
+        raise
     except Exception as exc:  # noqa: BLE001 - re-raised in the main process, named
         raise GonioError(f"{fn.__name__}: {exc}") from None
 

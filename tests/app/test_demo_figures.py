@@ -15,6 +15,7 @@ import pytest
 from gonio.app.demo_figures import FigureWorker, residual_map, result_path
 from gonio.brdf import get_model
 from gonio.dataset import BRDFSamples, save_samples
+from gonio.errors import GonioError
 from gonio.fitting import fit
 from gonio.radiometry.frames import spherical_to_direction
 
@@ -51,9 +52,13 @@ def test_worker_draws_the_same_files_as_this_process(fitted):
 def test_a_figure_error_is_raised_in_the_main_process(fitted, tmp_path):
     _, path, result = fitted
     missing = tmp_path / "nope" / "samples.h5"
+    seen = {}
     for enabled in (True, False):
         with FigureWorker(enabled=enabled) as worker:
             job = worker.submit(residual_map, result, str(missing), str(tmp_path / "s.png"))
-            with pytest.raises(Exception, match="nope"):
+            with pytest.raises(GonioError, match="nope") as info:
                 result_path(job)
+            seen[enabled] = (type(info.value), str(info.value))
+    # the worker's error arrives as the class and message the function raised here
+    assert seen[True] == seen[False]
     assert not (tmp_path / "s.png").exists()
