@@ -431,24 +431,9 @@ def rich_progress(total: int, description: str, console: Any = None) -> Iterator
     console
         A ``rich.console.Console`` (default: rich's own, on stdout).
     """
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
+    from gonio.progress import task_progress
 
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=console,
-        transient=True,
-    ) as bar:
+    with task_progress(console=console, transient=True) as bar:
         task = bar.add_task(description, total=total)
 
         def update(key: Hashable, outcome: Any, done: int, total_: int) -> None:

@@ -204,16 +204,13 @@ class _DryRunProgress:
         import time
 
         from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+        from gonio.progress import task_progress
 
         self._clock = time.monotonic
         self._t0 = self._clock()
-        self._progress = Progress(
-            TextColumn("[bold]{task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            console=Console(stderr=True),
-            transient=True,
+        self._progress = task_progress(
+            "[bold]{task.description}", eta=False, console=Console(stderr=True), transient=True
         )
         self._tasks: dict[str, int] = {}
         self._shown = False

@@ -15,26 +15,10 @@ class SessionProgress:
     """
 
     def __init__(self, quiet: bool, total: int | None = None, done: int = 0) -> None:
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
+        from gonio.progress import task_progress
 
         self.quiet = quiet
-        self.progress = Progress(
-            TextColumn("[bold]poses"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("shots {task.fields[shots]}"),
-            TimeElapsedColumn(),
-            TextColumn("ETA"),
-            TimeRemainingColumn(),
-            disable=quiet,
-        )
+        self.progress = task_progress("[bold]poses", "shots {task.fields[shots]}", disable=quiet)
         self.task = self.progress.add_task("poses", total=total, completed=done, shots=0)
         self.shots = 0
         self.skipped = 0
