@@ -259,8 +259,10 @@ def load_layout(scene: Any) -> SampleLayout:
 
 
 def check_layout(scene: Any) -> None:
-    """:func:`load_layout` for its errors only (``parse_scene`` calls it)."""
-    load_layout(scene)
+    """The errors of :func:`build_spatial_brdf` without loading measured files (their
+    existence is checked): ``parse_scene`` calls it, so a bad map or material is
+    reported before anything renders or a session starts."""
+    build_spatial_brdf(scene, load_measured=False)
 
 
 class SpatialBRDF:
@@ -368,8 +370,11 @@ class SpatialBRDF:
         return f"<SpatialBRDF {self.description}>"
 
 
-def build_spatial_brdf(scene: Any) -> SpatialBRDF:
+def build_spatial_brdf(scene: Any, *, load_measured: bool = True) -> SpatialBRDF:
     """The scene's spatially varying sample BRDF (:class:`SpatialBRDF`).
+
+    ``load_measured=False`` checks that a mix's measured files exist without reading
+    them (their materials are then None: for :func:`check_layout` only).
 
     Raises
     ------
@@ -396,7 +401,7 @@ def build_spatial_brdf(scene: Any) -> SpatialBRDF:
                 path = scene.resolve(spec.file)
                 if not path.is_file():
                     raise ConfigError(f"{what}.file: {path} does not exist")
-                materials.append(gonio.brdf.load(path))
+                materials.append(gonio.brdf.load(path) if load_measured else None)
                 specs.append({"file": path.name})
             else:
                 model = gonio.brdf.get_model(spec.model, **spec.options)

@@ -295,7 +295,7 @@ def test_maps_from_files_npy_and_16_bit_png_with_a_range(tmp_path):
 
 
 def _bad(maps=None, mix=None, **sample):
-    s = dict(brdf=dict(model="lambert+ggx", params=dict(BASE)), **sample)
+    s = {"brdf": dict(model="lambert+ggx", params=dict(BASE)), **sample}
     if maps is not None:
         s["maps"] = maps
     if mix is not None:
@@ -321,6 +321,18 @@ MIX = {"mask": [[0, 1]], "materials": [{"model": "lambert"}, {"model": "lambert"
         (_bad({"ks": [[0.1]]}, MIX), ["maps", "mix", "not both"]),
         (_bad({"ks": [[0.1]]}, albedo_map="a.npy"), ["albedo_map", "does not combine"]),
         (_bad({}), ["maps", "empty"]),
+        (
+            _bad(mix={**MIX, "materials": [{"model": "lambert", "params": {"albedo": 2.0}}] * 2}),
+            ["sample.mix.materials[0]", "albedo", "2"],
+        ),
+        (
+            _bad(mix={**MIX, "materials": [{"model": "lambert"}, {"file": "nope.bsdf"}]}),
+            ["sample.mix.materials[1].file", "nope.bsdf", "does not exist"],
+        ),
+        (
+            _bad({"ks": [[0.1]]}, brdf=dict(model="lambert+ggx", params={"alpha": 5.0})),
+            ["sample.brdf.params", "alpha"],
+        ),
     ],
     ids=[
         "ragged",
@@ -335,6 +347,9 @@ MIX = {"mask": [[0, 1]], "materials": [{"model": "lambert"}, {"model": "lambert"
         "maps-and-mix",
         "albedo-map",
         "empty",
+        "material-params",
+        "material-file",
+        "base-params",
     ],
 )
 def test_bad_maps_are_refused_naming_field_and_value(doc, expect, tmp_path):
