@@ -98,6 +98,7 @@ def test_a_uniform_map_renders_what_no_map_renders(uniform_pair):
 # -- a two-texel map ------------------------------------------------------------------
 
 
+@pytest.mark.slow  # two whole-model albedo tables for the references: ~3-5 s
 def test_each_half_of_a_two_texel_map_renders_as_its_own_parameters():
     left = {"albedo": [0.2, 0.3, 0.4], "ks": 0.05, "alpha": 0.1}
     right = {"albedo": [0.6, 0.5, 0.4], "ks": 0.4, "alpha": 0.5}
@@ -109,10 +110,11 @@ def test_each_half_of_a_two_texel_map_renders_as_its_own_parameters():
     # antialias 1: every pixel is its centre's point, which lies in one half; a fixed
     # rule (auto would choose the level on each scene's own pilot pixels)
     opts = dict(antialias=1, strategy="quadrature")
-    res = render(parse_scene(scene_dict(mapped(maps), **opts)))
+    res = render(parse_scene(scene_dict(mapped(maps), **opts)), diffuse=True)
     refs = {
         side: render(
-            parse_scene(scene_dict(dict(brdf=dict(model="lambert+ggx", params=p)), **opts))
+            parse_scene(scene_dict(dict(brdf=dict(model="lambert+ggx", params=p)), **opts)),
+            diffuse=True,
         )
         for side, p in (("left", left), ("right", right))
     }
@@ -121,6 +123,9 @@ def test_each_half_of_a_two_texel_map_renders_as_its_own_parameters():
     for side, half in (("left", on & (x < 0)), ("right", on & (x > 0))):
         assert half.sum() > 500
         np.testing.assert_allclose(res.radiance[half], refs[side].radiance[half], rtol=1e-12)
+        # the diffuse response: per-lobe tables scaled by the weights' maps against the
+        # texel's whole-model albedo table (the same up to rounding)
+        np.testing.assert_allclose(res.diffuse[half], refs[side].diffuse[half], rtol=1e-12)
     # the halves differ: the map was used
     assert not np.allclose(refs["left"].radiance[on], refs["right"].radiance[on])
 
