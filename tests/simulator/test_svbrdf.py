@@ -423,3 +423,24 @@ def test_map_and_mask_files_are_copied_into_the_session(tmp_path):
     out, files = relocatable(SceneSource(mix, tmp_path))
     assert out["sample"]["mix"] == {"mask": "sim/mask.npy", "materials": [{"file": "sim/a.bsdf"}]}
     assert json.dumps(out).count(str(tmp_path)) == 0
+
+
+def test_a_label_image_mask_and_the_calibration_targets(tmp_path):
+    import cv2
+
+    from gonio.brdf.base import BoundModel
+
+    # an 8-bit label image stores the labels themselves
+    cv2.imwrite(str(tmp_path / "mask.png"), np.array([[1, 0, 1]], dtype=np.uint8))
+    mats = [{"model": "lambert", "params": {"albedo": a}} for a in (0.2, 0.7)]
+    scene = parse_scene(
+        scene_dict(dict(mix={"mask": "mask.png", "materials": mats})), "s", tmp_path
+    )
+    t = read_truth(write_truth(tmp_path / "t.h5", scene))
+    np.testing.assert_array_equal(t.labels, [[1, 0, 1]])
+    # one analytic model for every material: its parameters are in the truth too
+    np.testing.assert_array_equal(t.params["albedo"][0, :, 1], [0.7, 0.2, 0.7])
+    # the reference target and the mirror replace the whole sample, maps and mix included
+    ref = scene.with_reference_target(0.99)
+    assert not ref.sample.spatially_varying and isinstance(ref.build_brdf(), BoundModel)
+    assert not scene.with_mirror_target(0.9).sample.spatially_varying
