@@ -1052,7 +1052,11 @@ def save_truth(
 
     Datasets: ``radiance`` (H, W, 3) W/(sr m^2), ``wi``, ``wo`` (H, W, 3) sample frame,
     ``points`` (H, W, 3) m, ``region`` (H, W) uint8 (attribute ``names``), ``edge``
-    (H, W) bool; attributes ``stats`` (JSON) and ``scene`` (JSON, when given).
+    (H, W) bool; attributes ``stats`` (JSON) and ``scene`` (JSON, when given).  A
+    spatially varying sample's scene adds ``texel`` (H, W) int64: the flat index
+    ``row * nx + col`` of the pixel centre's texel in the finest map's grid (attribute
+    ``texels`` = [nx, ny]; -1 off the sample), :mod:`gonio.simulator.svbrdf`'s
+    convention.
 
     Raises
     ------
@@ -1074,6 +1078,17 @@ def save_truth(
         for name in ("radiance", "wi", "wo", "points", "region", "edge"):
             f.create_dataset(name, data=getattr(result, name), compression="gzip")
         f["region"].attrs["names"] = json.dumps(REGION_NAMES)
+        if scene is not None and scene.sample.spatially_varying:
+            from gonio.simulator.svbrdf import load_layout, texel_of
+
+            ny, nx = load_layout(scene).shape
+            pts = result.points
+            r, c = texel_of(
+                pts[..., 0], pts[..., 1], (scene.sample.width, scene.sample.height), (ny, nx)
+            )
+            idx = np.where(result.region == SAMPLE, r * nx + c, -1).astype(np.int64)
+            f.create_dataset("texel", data=idx, compression="gzip")
+            f["texel"].attrs["texels"] = [nx, ny]
         f.attrs["stats"] = json.dumps(result.stats.as_dict())
         f.attrs["frame"] = "sample"
         if scene is not None:

@@ -207,7 +207,11 @@ def corner_scene():
     )
 
 
-def test_a_distinct_corner_texel_appears_in_that_corner_of_the_render(corner_scene):
+def test_a_distinct_corner_texel_appears_in_that_corner_of_the_render(corner_scene, tmp_path):
+    import h5py
+
+    from gonio.simulator.render import save_truth
+
     res = render(corner_scene)
     plain = render(
         parse_scene(
@@ -225,6 +229,13 @@ def test_a_distinct_corner_texel_appears_in_that_corner_of_the_render(corner_sce
     assert corner.sum() > 20
     np.testing.assert_allclose(res.radiance[elsewhere], plain.radiance[elsewhere], rtol=1e-12)
     assert np.all(res.radiance[corner] > plain.radiance[corner] * 1.2)
+    # the render's truth names each pixel's texel: texel 3 (row 0, column 3) is the corner
+    save_truth(tmp_path / "t.h5", res, corner_scene)
+    with h5py.File(tmp_path / "t.h5") as f:
+        texel = f["texel"][:]
+        assert list(f["texel"].attrs["texels"]) == [4, 4]
+    np.testing.assert_array_equal(texel == 3, corner)
+    assert np.all(texel[~on] == -1) and set(np.unique(texel[on])) == set(range(16))
 
 
 def test_the_truth_file_round_trips_with_the_scene_orientation(corner_scene, tmp_path):
