@@ -76,6 +76,7 @@ from gonio.capture.samples_plot import plot_samples
 from gonio.dataset import save_samples
 from gonio.errors import GonioError, ReductionError, SessionError
 from gonio.locks import hold_lock
+from gonio.texels import ORIENTATION, TEXELS_FILE, save_texels
 
 __all__ = [
     "CONFIG_FILE",
@@ -85,6 +86,7 @@ __all__ = [
     "IRRADIANCE_UNITS",
     "SAMPLES_FILE",
     "SUMMARY_FILE",
+    "TEXELS_FILE",
     "IncrementalReduction",
     "ReductionResult",
     "ReductionSetup",
@@ -153,6 +155,7 @@ def reduce_session(
     plot: bool = True,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
+    texels: tuple[int, int] | None = None,
 ) -> ReductionResult:
     """Reduce a session's RAW frames to calibrated BRDF samples (``samples.h5``).
 
@@ -176,6 +179,13 @@ def reduce_session(
         Threads, this one included: the others read, hash and decode frames ahead while
         poses are measured (:func:`default_threads` when None; 1 does everything in
         this thread).  The output is the same for any number.
+    texels
+        ``(nx, ny)``: also write the per-texel file ``texels.h5`` beside the output
+        (:mod:`gonio.texels`), with the region grid made the texel grid
+        (:mod:`gonio.capture.texel_reduce`: ``grid = nx`` over the whole sample,
+        ``roi_fraction = 1``, overriding the setup's); ``samples.h5`` then holds the same
+        samples pooled.  Without it, a ``texels.h5`` of an earlier texel reduction leaves
+        with the rest of that output set.
 
     Returns
     -------
@@ -186,7 +196,10 @@ def reduce_session(
     SessionError
         Not a session directory, no ``reduction.toml``, or nothing to reduce.
     ReductionError
-        No usable reference frames (the irradiance cannot be calibrated).
+        No usable reference frames (the irradiance cannot be calibrated); ``texels``
+        finer than the camera resolves, or not square
+        (:func:`gonio.capture.texel_reduce.texel_resolution`), refused before any frame
+        is decoded.
     gonio.locks.LockedError
         Another process is writing the same output (nothing is written).
     """
@@ -205,18 +218,35 @@ def reduce_session(
         setup = resolve_setup(session, manifest, noise)
     elif noise is not None:
         setup = setup.replace(noise=noise)
+    kin = _kinematics(manifest)
+    resolution = None
+    if texels is not None:
+        from gonio.capture.texel_reduce import texel_resolution, texel_setup
+
+        texels = (int(texels[0]), int(texels[1]))
+        setup = texel_setup(setup, texels)
+        resolution = texel_resolution(setup, texels, _sample_cameras(kin, records))
     path = Path(out) if out is not None else session / SAMPLES_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
     with hold_lock(output_lock(path), f"output {path}"):
-        run = _PoseRun(session, setup, _kinematics(manifest), records)
+        run = _PoseRun(session, setup, kin, records)
         run.measure_all(default_threads() if threads is None else max(1, int(threads)), progress)
         samples = run.samples(manifest)
         n_kept = int(samples.valid.sum())
         summary = run.summary(len(samples), n_kept, path)
         summary["retention"] = retention(manifest, run.measurements, run.setup.grid)
-        # One set: a kill leaves the old samples, summary and plot, or the new ones.
-        with output_set(path, (path.name, SUMMARY_FILE, PLOT_FILE)) as stage:
+        texel_doc = None
+        if texels is not None:
+            texel_doc = _texel_arrays_and_summary(run, samples, session, texels, resolution)
+        summary["texels"] = None if texel_doc is None else texel_doc[1]
+        # One set: a kill leaves the old samples, summary, plot and texels, or the new
+        # ones; texels.h5 is always one of the set's names, so a reduction without
+        # --texels drops an earlier one's texels.h5 with the rest of its set.
+        names = (path.name, SUMMARY_FILE, PLOT_FILE, TEXELS_FILE)
+        with output_set(path, names) as stage:
             save_samples(stage / path.name, samples)
+            if texel_doc is not None:
+                save_texels(stage / TEXELS_FILE, **texel_doc[0])
             _write_json(stage / SUMMARY_FILE, summary)
             if plot:
                 plot_samples(samples, stage / PLOT_FILE)
@@ -224,6 +254,89 @@ def reduce_session(
     return ReductionResult(
         path, len(samples), n_kept, dict(run.rejected), summary, plot_path, list(run.warnings)
     )
+
+
+def _sample_cameras(
+    kin: Any, records: list[dict[str, Any]]
+) -> dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]]:
+    """Sample pose -> the rig's reported camera (position, world-to-camera rotation),
+    from the journal's last shot of each pose (poses whose camera is unknown left out)."""
+    last: dict[int, dict[str, Any]] = {}
+    for r in records:
+        if r.get("type") == "shot" and r.get("kind") == "sample":
+            last[int(r["pose"])] = r
+    out = {}
+    for p, r in last.items():
+        wi = np.asarray(r.get("wi_achieved") or r.get("wi_requested") or [0, 0, 1], float)
+        wo = np.asarray(r.get("wo_achieved") or r.get("wo_requested") or [0, 0, 1], float)
+        try:
+            _, _, cam = _rig_pose(kin, r.get("joints"), wi, wo, r.get("approach"))
+        except ReductionError:
+            continue
+        out[p] = cam
+    return out
+
+
+def _texel_arrays_and_summary(
+    run: _PoseRun,
+    samples: Any,
+    session: Path,
+    texels: tuple[int, int],
+    resolution: Any,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``save_texels``'s arguments and ``reduction.json["texels"]``."""
+    from gonio.capture.texel_reduce import texel_arrays
+
+    samples_m = [m for m in run.measurements if m.kind == "sample"]
+    n = run.setup.grid
+    arrays = texel_arrays(
+        samples, [len(m.flags) for m in samples_m], [m.pose for m in samples_m], n
+    )
+    attrs = dict(samples.attrs)
+    attrs["session_created"] = attrs.pop("session", "")
+    attrs["session"] = str(session)
+    doc = dict(
+        arrays,
+        texels=texels,
+        sample_size=tuple(run.setup.sample_size),
+        channels=samples.channels,
+        attrs=attrs,
+        units=dict(samples.units),
+    )
+    usable = arrays["flags"] == 0
+    with np.errstate(invalid="ignore"):
+        usable &= np.isfinite(arrays["brdf"]).all(axis=2)
+    per_texel = usable.sum(axis=1)
+    summary = {
+        "file": TEXELS_FILE,
+        "texels": list(texels),
+        "n_texels": int(n * n),
+        "sample_size_m": list(run.setup.sample_size),
+        "orientation": ORIENTATION,
+        "poses": len(samples_m),
+        "samples": int(usable.size),
+        "kept": int(usable.sum()),
+        "kept_per_texel": {
+            "min": int(per_texel.min()),
+            "median": float(np.median(per_texel)),
+            "max": int(per_texel.max()),
+        },
+        "texels_without_samples": int((per_texel == 0).sum()),
+        "chunk_texels": None,  # below
+        "region_order": "region r = iy * N + ix (iy from -y) is texel (N - 1 - iy) * N + ix",
+        "grid": n,
+        "roi_fraction": run.setup.roi_fraction,
+        "resolution": None if resolution is None else resolution.to_json(),
+        "samples_h5": "the same samples pooled (one per texel and sample pose)",
+        "geometry_modes": "geometry_modes" in arrays,
+    }
+    from gonio.texels import chunk_texels_for
+
+    m = arrays["geometry_modes"].shape[2] if "geometry_modes" in arrays else 0
+    # the rule save_texels applies by default, fixed here so the summary states it
+    k = chunk_texels_for(n * n, len(samples_m), 8 * m * 6 if m else 8 * 3)
+    summary["chunk_texels"] = doc["chunk_texels"] = k
+    return doc, summary
 
 
 @dataclass

@@ -482,9 +482,7 @@ class TexelFile:
         self.sample_size = (float(size[0]), float(size[1]))
         self.orientation = _text(f.attrs.get("orientation", ""))
         if self.orientation != ORIENTATION:
-            raise self._fail(
-                f"expected {ORIENTATION!r}, found {self.orientation!r}", "orientation"
-            )
+            raise self._fail(f"expected {ORIENTATION!r}, found {self.orientation!r}", "orientation")
         ch = f.attrs.get("channels", ())
         if isinstance(ch, str | bytes) or np.ndim(ch) != 1 or len(ch) < 1:
             raise self._fail(f"expected a list of channel names, found {ch!r}", "channels")
