@@ -229,12 +229,12 @@ def reduce_session(
     path = Path(out) if out is not None else session / SAMPLES_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
     with hold_lock(output_lock(path), f"output {path}"):
-        run = _PoseRun(session, setup, kin, records)
+        run = _PoseRun(session, setup, kin, records, texels=texels)
         run.measure_all(default_threads() if threads is None else max(1, int(threads)), progress)
         samples = run.samples(manifest)
         n_kept = int(samples.valid.sum())
         summary = run.summary(len(samples), n_kept, path)
-        summary["retention"] = retention(manifest, run.measurements, run.setup.grid)
+        summary["retention"] = retention(manifest, run.measurements, run.setup.grid_xy)
         texel_doc = None
         if texels is not None:
             texel_doc = _texel_arrays_and_summary(run, samples, session, texels, resolution)
@@ -288,9 +288,9 @@ def _texel_arrays_and_summary(
     from gonio.capture.texel_reduce import texel_arrays
 
     samples_m = [m for m in run.measurements if m.kind == "sample"]
-    n = run.setup.grid
+    nx, ny = run.setup.grid_xy
     arrays = texel_arrays(
-        samples, [len(m.flags) for m in samples_m], [m.pose for m in samples_m], n
+        samples, [len(m.flags) for m in samples_m], [m.pose for m in samples_m], (nx, ny)
     )
     attrs = dict(samples.attrs)
     attrs["session_created"] = attrs.pop("session", "")
@@ -310,7 +310,7 @@ def _texel_arrays_and_summary(
     summary = {
         "file": TEXELS_FILE,
         "texels": list(texels),
-        "n_texels": int(n * n),
+        "n_texels": int(nx * ny),
         "sample_size_m": list(run.setup.sample_size),
         "orientation": ORIENTATION,
         "poses": len(samples_m),
@@ -323,8 +323,8 @@ def _texel_arrays_and_summary(
         },
         "texels_without_samples": int((per_texel == 0).sum()),
         "chunk_texels": None,  # below
-        "region_order": "region r = iy * N + ix (iy from -y) is texel (N - 1 - iy) * N + ix",
-        "grid": n,
+        "region_order": "region r = iy * NX + ix (iy from -y) is texel (NY - 1 - iy) * NX + ix",
+        "grid": [nx, ny],
         "roi_fraction": run.setup.roi_fraction,
         "resolution": None if resolution is None else resolution.to_json(),
         "samples_h5": "the same samples pooled (one per texel and sample pose)",
@@ -334,9 +334,48 @@ def _texel_arrays_and_summary(
 
     m = arrays["geometry_modes"].shape[2] if "geometry_modes" in arrays else 0
     # the rule save_texels applies by default, fixed here so the summary states it
-    k = chunk_texels_for(n * n, len(samples_m), 8 * m * 6 if m else 8 * 3)
+    k = chunk_texels_for(nx * ny, len(samples_m), 8 * m * 6 if m else 8 * 3)
     summary["chunk_texels"] = doc["chunk_texels"] = k
     return doc, summary
+
+
+def _texel_levelled(
+    brdf: NDArray[np.float64],
+    samples_m: list[PoseMeasurement],
+    usable: NDArray[np.bool_],
+    texels: tuple[int, int],
+) -> NDArray[np.float64]:
+    """The BRDF with each texel's own level divided out, for the geometry term's gradient.
+
+    The gradient of ``log f`` over the directions is estimated from neighbouring samples
+    (:func:`gonio.capture.budget.local_log_gradient`).  On a texel grid those neighbours
+    are mostly other texels seen in the same pose, whose directions differ with their
+    place on the sample: a sample whose albedo varies across it would have its spatial
+    variation read as a directional slope (on a Lambertian sample with a 40 % albedo
+    ramp, 0.7 % of f instead of ~0.002 %).  Each texel's geometric mean over its usable
+    poses (per channel) is divided out, so a multiplicative spatial variation leaves
+    the neighbourhoods.  The cost: the share of a real directional slope that is common
+    to a texel over all its poses goes with it (small with many poses)."""
+    from gonio.capture.texel_reduce import region_to_texel
+
+    n_regions = texels[0] * texels[1]
+    to_texel = region_to_texel(texels)
+    ids = np.concatenate(
+        [to_texel if len(m.flags) == n_regions else np.full(len(m.flags), -1) for m in samples_m]
+    )
+    with np.errstate(invalid="ignore", divide="ignore"):
+        logf = np.log(brdf)
+    ok = usable & (ids >= 0) & np.isfinite(logf).all(axis=1)
+    n_tex = int(n_regions)
+    cnt = np.bincount(ids[ok], minlength=n_tex)
+    out = brdf.copy()
+    for c in range(brdf.shape[1]):
+        level = np.bincount(ids[ok], logf[ok, c], minlength=n_tex) / np.maximum(cnt, 1)
+        centre = float(np.mean(level[cnt > 0])) if (cnt > 0).any() else 0.0
+        shift = np.where(cnt > 0, level - centre, 0.0)
+        sel = ids >= 0
+        out[sel, c] = brdf[sel, c] / np.exp(shift[ids[sel]])
+    return out
 
 
 @dataclass
@@ -359,6 +398,8 @@ class _PoseRun:
     #: modes move (:mod:`gonio.capture.budget`)
     pose_inputs: dict[int, tuple[Any, Any, Any]] = field(default_factory=dict)
     budget_summary: dict[str, Any] = field(default_factory=dict)
+    #: (nx, ny) of a texel reduction (its regions are texels), else None
+    texels: tuple[int, int] | None = None
 
     def measure_all(self, threads: int, progress: Callable[[int, int], None] | None) -> None:
         """Decode and measure every sample and reference pose, in journal order."""
@@ -547,7 +588,7 @@ class _PoseRun:
             ),
             "reference_reflectance": setup.reflectance.tolist(),
             "roi_fraction": setup.roi_fraction,
-            "grid": setup.grid,
+            "grid": setup.grid if setup.grid_y is None else list(setup.grid_xy),
         }
         # brdf_std: the root sum of squares of the per-sample terms (noise alone before
         # issue 16); the shared terms stay apart (calibration_rel_std, budget attrs)
@@ -837,7 +878,7 @@ class _PoseRun:
         grad = local_log_gradient(
             np.concatenate([m.wi for m in samples_m]),
             np.concatenate([m.wo for m in samples_m]),
-            brdf,
+            brdf if self.texels is None else _texel_levelled(brdf, samples_m, usable, self.texels),
             usable,
         )
         budget: dict[str, NDArray[np.float64]] = {
@@ -911,7 +952,7 @@ RETENTION_UP_TO_DEG = 80.0
 def retention(
     manifest: Mapping[str, Any],
     measurements: list[PoseMeasurement],
-    grid: int,
+    grid: int | tuple[int, int],
     *,
     up_to_deg: float = RETENTION_UP_TO_DEG,
     band_deg: float = 10.0,
@@ -920,9 +961,9 @@ def retention(
     ``"retention"``), in all and by theta band.
 
     Every sample pose of the plan (the manifest's ``schedule``; one pose per schedule
-    entry, in journal numbering) plans ``grid**2`` region samples, whether or not it was
-    shot; a sample is kept when it has no flag.  A pose's band is that of the larger of
-    its planned theta_i and theta_o (the more grazing direction): band ``[lo, lo +
+    entry, in journal numbering) plans ``grid**2`` (``nx * ny``) region samples, whether
+    or not it was shot; a sample is kept when it has no flag.  A pose's band is that of
+    the larger of its planned theta_i and theta_o (the more grazing direction): band ``[lo, lo +
     band_deg]`` holds the poses with ``lo < theta <= lo + band_deg`` (the first band
     also theta = 0).  The headline ``planned``, ``kept`` and ``fraction`` count the poses
     up to ``up_to_deg``; bands beyond it are listed but not counted there.
@@ -935,7 +976,7 @@ def retention(
         The measured poses (:class:`gonio.capture.pose_measure.PoseMeasurement`); a
         planned pose without one kept nothing.
     grid
-        Regions per side of each pose.
+        Regions per side of each pose, or ``(nx, ny)``.
     up_to_deg, band_deg
         The headline's largest theta and the bands' width, degrees.
 
@@ -946,7 +987,8 @@ def retention(
         [lo, hi], "planned", "kept", "fraction"}, ...], "geometry_source": {source:
         kept samples}}``; a fraction is None where nothing was planned.
     """
-    per_pose = grid * grid
+    gx, gy = (grid, grid) if isinstance(grid, int | np.integer) else grid
+    per_pose = int(gx) * int(gy)
     kept_by_pose: dict[int, int] = {}
     sources: Counter[str] = Counter()
     for m in measurements:

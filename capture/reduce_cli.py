@@ -99,8 +99,8 @@ from gonio.errors import ReductionError
     "SESSION/texels.h5 --svbrdf').  The region grid becomes the texel grid (N per side "
     "over the whole sample: not with --grid or --roi-fraction); samples.h5 holds the "
     "same samples pooled.  Refused when a texel would be narrower than 2 pixels at the "
-    "best-resolving pose (the message gives the largest N that fits).  NXxNY must be "
-    "square (NxN) in this version.",
+    "best-resolving pose (the message gives the largest N that fits).  NXxNY: NX texels "
+    "along x by NY along y (e.g. 16x12 for a 4:3 sample).",
 )
 @click.option("--no-plot", is_flag=True, help="Do not write SESSION/samples.png.")
 @click.option(

@@ -1,7 +1,7 @@
 """The per-texel side of ``gonio capture reduce --texels N`` (issue 18, item 2).
 
 A texel reduction is the ordinary per-pose reduction with its region grid made the
-texel grid: ``[reduction] grid = N`` regions per side over the *whole* sample
+texel grid: ``nx x ny`` regions (``grid = nx``, ``grid_y = ny``) over the *whole* sample
 (``roi_fraction = 1``), so every region is one texel of the :mod:`gonio.texels`
 convention.  This module holds what differs:
 
@@ -10,9 +10,9 @@ convention.  This module holds what differs:
   at least :data:`MIN_TEXEL_PX` pixels across its narrower side at the best-resolving
   sample pose (the closest, most frontal view), before any frame is decoded;
 * :func:`region_to_texel` maps the region order to the texel order.  The regions are
-  numbered ``r = iy * N + ix`` with ``iy`` counted from -y
+  numbered ``r = iy * nx + ix`` with ``iy`` counted from -y
   (:func:`gonio.capture.fiducials.map_regions`), the texels with row 0 at +y: region
-  ``(iy, ix)`` is texel ``(N - 1 - iy, ix)``, ``t = (N - 1 - iy) N + ix``;
+  ``(iy, ix)`` is texel ``(ny - 1 - iy, ix)``, ``t = (ny - 1 - iy) nx + ix``;
 * :func:`texel_arrays` scatters the reduction's samples (one per region and sample pose,
   in journal order) into ``(T, P, ...)`` arrays: a pose that gave no measurement (one
   INVALID sample) is INVALID with NaN for every texel.
@@ -78,27 +78,23 @@ def parse_texels(text: str | int | Sequence[int]) -> tuple[int, int]:
 
 
 def texel_setup(setup: ReductionSetup, texels: tuple[int, int]) -> ReductionSetup:
-    """The reduction setup whose region grid is the texel grid: ``grid = N`` over the
-    whole sample (``roi_fraction = 1``).
-
-    Raises
-    ------
-    ReductionError
-        ``nx != ny``: the region grid is square (one count per side) in this version.
-    """
-    nx, ny = texels
-    if nx != ny:
-        raise ReductionError(
-            f"--texels {nx}x{ny}: the reduction's region grid is square (N x N) in this "
-            "version; use --texels N"
-        )
-    return setup.replace(grid=int(nx), roi_fraction=1.0)
+    """The reduction setup whose region grid is the texel grid: ``nx x ny`` regions over
+    the whole sample (``grid = nx``, ``grid_y = ny`` or None when square,
+    ``roi_fraction = 1``)."""
+    nx, ny = (int(v) for v in texels)
+    return setup.replace(grid=nx, grid_y=None if ny == nx else ny, roi_fraction=1.0)
 
 
-def region_to_texel(n: int) -> NDArray[np.int64]:
-    """(n * n,) texel index of each region of an ``n x n`` region grid (see module)."""
-    iy, ix = np.divmod(np.arange(n * n), n)
-    return ((n - 1 - iy) * n + ix).astype(np.int64)
+def _counts(n: int | tuple[int, int]) -> tuple[int, int]:
+    return (int(n), int(n)) if isinstance(n, int | np.integer) else (int(n[0]), int(n[1]))
+
+
+def region_to_texel(n: int | tuple[int, int]) -> NDArray[np.int64]:
+    """(nx * ny,) texel index of each region of an ``n x n`` (or ``(nx, ny)``) region
+    grid (see module)."""
+    nx, ny = _counts(n)
+    iy, ix = np.divmod(np.arange(nx * ny), nx)
+    return ((ny - 1 - iy) * nx + ix).astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -169,7 +165,7 @@ def texel_resolution(
     a, b = w / nx, h / ny
     K = np.asarray(setup.K, float)
     pts = np.array([[-a / 2, 0, 0], [a / 2, 0, 0], [0, -b / 2, 0], [0, b / 2, 0]])
-    best: tuple[float, int, float] | None = None
+    best: tuple[float, int, float, float, float] | None = None
     closest = math.inf
     for pose, (C, R) in sorted(cameras.items()):
         C, R = np.asarray(C, float), np.asarray(R, float)
@@ -177,29 +173,36 @@ def texel_resolution(
         if not (pc[:, 2] > 0).all():
             continue  # the sample's centre is behind this camera
         uv = (pc @ K.T)[:, :2] / pc[:, 2:3]
-        side = min(np.linalg.norm(uv[1] - uv[0]), np.linalg.norm(uv[3] - uv[2]))
+        side_x, side_y = np.linalg.norm(uv[1] - uv[0]), np.linalg.norm(uv[3] - uv[2])
+        side = min(side_x, side_y)
         d = float(np.linalg.norm(C))
         closest = min(closest, d)
         if best is None or side > best[0]:
-            best = (float(side), int(pose), d)
+            best = (float(side), int(pose), d, float(side_x), float(side_y))
     if best is None:
         return None
     res = TexelResolution(best[0], best[1], best[2], closest)
     if res.pixels < MIN_TEXEL_PX:
-        # the texel size scales as 1/N: the finest grid that keeps MIN_TEXEL_PX
-        n_max = max(int(math.floor(min(nx, ny) * res.pixels / MIN_TEXEL_PX)), 0)
+        # a texel's side scales as 1/N along its axis: the finest grid keeping MIN_TEXEL_PX
+        mx = int(math.floor(nx * best[3] / MIN_TEXEL_PX))
+        my = int(math.floor(ny * best[4] / MIN_TEXEL_PX))
+        fits = f"{min(mx, my)}" if nx == ny else f"{mx}x{my}"
         raise ReductionError(
             f"--texels {nx}x{ny}: a texel is {res.pixels:.2f} pixels across at the "
             f"best-resolving sample pose (pose {res.pose}, camera {res.distance_m:.3f} m "
             f"from the sample; closest {res.closest_distance_m:.3f} m); the camera resolves "
             f"texels of at least {MIN_TEXEL_PX:g} pixels (a whole Bayer cell): use at most "
-            f"--texels {n_max}" + (" (the camera does not resolve the sample)" if not n_max else "")
+            f"--texels {fits}"
+            + (" (the camera does not resolve the sample)" if min(mx, my) < 1 else "")
         )
     return res
 
 
 def texel_arrays(
-    samples: BRDFSamples, counts: Sequence[int], poses: Sequence[int], n: int
+    samples: BRDFSamples,
+    counts: Sequence[int],
+    poses: Sequence[int],
+    n: int | tuple[int, int],
 ) -> dict[str, Any]:
     """The reduction's samples as ``(T, P, ...)`` arrays for :func:`gonio.texels.save_texels`.
 
@@ -208,12 +211,12 @@ def texel_arrays(
     samples
         The reduction's samples, pose after pose (``samples.h5``'s content).
     counts
-        Samples of each sample pose, in order: ``n * n`` (one per region) or 1 (a pose
+        Samples of each sample pose, in order: ``nx * ny`` (one per region) or 1 (a pose
         that gave no measurement: :func:`gonio.capture.pose_measure.invalid_pose`).
     poses
         Journal pose index of each sample pose.
     n
-        Regions (texels) per side.
+        Regions (texels) per side, or ``(nx, ny)``.
 
     Returns
     -------
@@ -225,9 +228,10 @@ def texel_arrays(
     Raises
     ------
     ReductionError
-        A pose's sample count is neither ``n * n`` nor 1, or they do not add up.
+        A pose's sample count is neither ``nx * ny`` nor 1, or they do not add up.
     """
-    t, p = n * n, len(counts)
+    nx, ny = _counts(n)
+    t, p = nx * ny, len(counts)
     if sum(counts) != len(samples) or len(poses) != p:
         raise ReductionError(
             f"{len(samples)} samples for {p} poses of {list(counts)[:5]}... regions"

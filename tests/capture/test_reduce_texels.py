@@ -7,7 +7,7 @@ samples of an ordinary ``--grid N --roi-fraction 1`` reduction of the same sessi
 existing path, mapped region -> texel by the convention, worked out here by hand); each
 texel's BRDF follows the map's mean over that texel's rectangle (the truth, independent
 of the reduction); the chunk layout; the refusals (too fine for the camera, N < 1,
-malformed, not square, with --grid), which write nothing.
+malformed, with --grid), which write nothing; an NXxNY grid.
 """
 
 from __future__ import annotations
@@ -98,6 +98,10 @@ def reduced(tmp_path_factory):
     assert run("capture", "run", str(d / "plan.toml"), *args, "--quiet") == 0
     s = d / "S"
     write_reduction_toml(s)
+    rect = d / "R" / "samples.h5"  # NXxNY, into another folder
+    assert run("capture", "reduce", str(s), "--texels", "4x2", "--out", str(rect), "--quiet") == 0
+    with open_texels(rect.with_name("texels.h5")) as tf:
+        rect_rows = (tf.shape, tf.block(0, tf.n_texels))
     assert run("capture", "reduce", str(s), "--texels", str(N), "--quiet", "--no-plot") == 0
     summary = json.loads((s / "reduction.json").read_text())
     with open_texels(s / "texels.h5") as tf:
@@ -118,6 +122,7 @@ def reduced(tmp_path_factory):
         texel_samples=texel_samples,
         grid=load_samples(s / "samples.h5"),
         grid_summary=json.loads((s / "reduction.json").read_text()),
+        rect=rect_rows,
     )
 
 
@@ -134,10 +139,13 @@ def test_texels_equal_the_region_samples_of_a_grid_reduction(reduced):
         np.testing.assert_array_equal(s.wi[pose_col], grid.wi[k])
         np.testing.assert_array_equal(s.wo[pose_col], grid.wo[k])
         np.testing.assert_array_equal(s.brdf[pose_col], grid.brdf[k])
-        np.testing.assert_array_equal(s.brdf_std[pose_col], grid.brdf_std[k])
         assert s.flags[pose_col] == grid.flags[k] and s.pose[pose_col] == grid.pose[k]
-        for term in BUDGET_TERMS:
+        # every term but the geometry's, whose gradient a texel run takes with each
+        # texel's level divided out (see test_geometry_term_ignores_the_albedo_map)
+        for term in set(BUDGET_TERMS) - {"geometry"}:
             np.testing.assert_array_equal(s.budget[term][pose_col], grid.budget[term][k])
+        rss = np.sqrt(sum(s.budget[term][pose_col] ** 2 for term in BUDGET_TERMS))
+        np.testing.assert_allclose(s.brdf_std[pose_col], rss, rtol=1e-12)
         np.testing.assert_array_equal(s.geometry_modes[pose_col], grid.geometry_modes[k])
     s0 = rows[0]
     assert list(s0.geometry_mode_names) == list(grid.geometry_mode_names)
@@ -149,6 +157,18 @@ def test_texels_equal_the_region_samples_of_a_grid_reduction(reduced):
     # samples.h5 of the texel reduction is the same set of samples, pooled
     np.testing.assert_array_equal(reduced["texel_samples"].brdf, grid.brdf)
     assert all(int(s.flags.max()) == 0 for s in rows)
+
+
+def test_geometry_term_ignores_the_albedo_map(reduced):
+    """A Lambertian BRDF has no slope over the directions, so the geometry term (the
+    gradient of log f times the directions' modes) is ~0 whatever the albedo map does
+    (a texel's directions move nothing).  Pooled over texels, as an ordinary reduction
+    takes its neighbours, the map's 40 % ramp across the sample reads as a directional
+    slope; the texel run divides each texel's level out first."""
+    rel = np.array([s.budget["geometry"] / s.brdf for s in reduced["rows"]])
+    assert np.median(rel) < 1e-4 and rel.max() < 5e-4
+    grid = reduced["grid"]
+    assert np.median(grid.budget["geometry"] / grid.brdf) > 3e-3  # the pooled estimate
 
 
 def test_texel_orientation_follows_the_albedo_map(reduced):
@@ -166,6 +186,18 @@ def test_texel_orientation_follows_the_albedo_map(reduced):
         np.testing.assert_allclose(np.median(ratio), 0.5 / np.pi, rtol=0.03)
 
 
+def test_a_rectangular_texel_grid_follows_the_map_too(reduced):
+    """--texels 4x2: 4 texels along x, 2 along y (an image of 2 rows by 4 columns)."""
+    shape, rows = reduced["rect"]
+    assert shape == (2, 4) and len(rows) == 8
+    m = albedo_map()
+    truth = m.reshape(2, 32, 4, 16).mean(axis=(1, 3)).ravel()
+    f = np.array([s.brdf[0, 1] for s in rows])
+    ratio = f / truth
+    np.testing.assert_allclose(ratio / np.median(ratio), 1.0, atol=0.03)
+    np.testing.assert_allclose(rows[5].attrs["texel_center"], [-0.00625, -0.0125])
+
+
 def test_file_layout_and_summary(reduced):
     meta, summary = reduced["meta"], reduced["summary"]["texels"]
     assert meta["shape"] == (N, N)
@@ -179,7 +211,7 @@ def test_file_layout_and_summary(reduced):
     assert attrs["session"] == str(reduced["session"])
     np.testing.assert_allclose(attrs["sample_size"], [0.05, 0.05])
     assert summary["kept"] == 2 * N * N and summary["texels_without_samples"] == 0
-    assert summary["roi_fraction"] == 1.0 and summary["grid"] == N
+    assert summary["roi_fraction"] == 1.0 and summary["grid"] == [N, N]
     res = summary["resolution"]
     # the texel's side in pixels at the best pose (the frontal one, theta_o = 0): 12.5 mm
     # at 0.40 m with fx = 160 / tan(15 deg) = 597.1 px (320 px over a 30 deg fov)
@@ -197,7 +229,7 @@ def test_file_layout_and_summary(reduced):
         (("--texels", "0"), "must be >= 1, got 0x0"),
         (("--texels", "4x"), "expected N or NXxNY"),
         (("--texels", "four"), "expected N or NXxNY"),
-        (("--texels", "4x3"), r"square \(N x N\)"),
+        (("--texels", "64x4"), "1.17 pixels across.*use at most --texels 37x37"),
         (("--texels", "4", "--grid", "3"), "leave out --grid"),
     ],
 )
