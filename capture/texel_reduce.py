@@ -188,9 +188,10 @@ def texel_resolution(
         my = int(math.floor(ny * best[4] / MIN_TEXEL_PX))
         fits = f"{min(mx, my)}" if nx == ny else f"{mx}x{my}"
         raise ReductionError(
-            f"--texels {nx}x{ny}: a texel is {res.pixels:.2f} pixels across at the "
-            f"best-resolving sample pose (pose {res.pose}, camera {res.distance_m:.3f} m "
-            f"from the sample; closest {res.closest_distance_m:.3f} m); the camera resolves "
+            f"--texels {nx}x{ny}: a texel is {res.pixels:.2f} pixels across (its narrower "
+            f"side) at the closest, best-resolving sample pose (pose {res.pose}, camera "
+            f"{res.distance_m:.3f} m from the sample; closest {res.closest_distance_m:.3f} m); "
+            "the camera resolves "
             f"texels of at least {MIN_TEXEL_PX:g} pixels (a whole Bayer cell): use at most "
             f"--texels {fits}"
             + (" (the camera does not resolve the sample)" if min(mx, my) < 1 else "")

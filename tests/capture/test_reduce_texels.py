@@ -264,3 +264,18 @@ def test_an_empty_pose_is_invalid_in_every_texel():
     assert a["brdf"][:, 0, 0].tolist() == [2.0, 3.0, 0.0, 1.0]
     assert (a["flags"][:, 1] == Flag.INVALID).all() and np.isnan(a["brdf"][:, 1]).all()
     assert np.isnan(a["wi"][:, 1]).all() and a["pose"].tolist() == [3, 5]
+
+
+def test_a_texel_reduction_takes_the_outputs_lock(reduced, capsys):
+    """texels.h5 belongs to samples.h5's output set: a reduction holding its lock (here
+    this process, through another open file) makes a --texels run refuse, write nothing."""
+    from gonio.capture.reduce import output_lock
+    from gonio.locks import hold_lock
+
+    s = reduced["session"]
+    before = sorted(p.name for p in s.iterdir())
+    with hold_lock(output_lock(s / "samples.h5"), "a test's reduction"):
+        assert run("capture", "reduce", str(s), "--texels", str(N), "--quiet") == 1
+    assert f"in use by process {os.getpid()}" in capsys.readouterr().err
+    assert sorted(p.name for p in s.iterdir()) == before
+    assert not os.path.lexists(s / "texels.h5")
