@@ -239,6 +239,7 @@ def reduce_session(
         if texels is not None:
             texel_doc = _texel_arrays_and_summary(run, samples, session, texels, resolution)
         summary["texels"] = None if texel_doc is None else texel_doc[1]
+        summary["warnings"] = list(run.warnings)  # with the texel file's, if any
         # One set: a kill leaves the old samples, summary, plot and texels, or the new
         # ones; texels.h5 is always one of the set's names, so a reduction without
         # --texels drops an earlier one's texels.h5 with the rest of its set.
@@ -285,12 +286,20 @@ def _texel_arrays_and_summary(
     resolution: Any,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """``save_texels``'s arguments and ``reduction.json["texels"]``."""
-    from gonio.capture.texel_reduce import texel_arrays
+    from gonio.capture.texel_reduce import modes_omitted, texel_arrays
 
     samples_m = [m for m in run.measurements if m.kind == "sample"]
     nx, ny = run.setup.grid_xy
+    m_modes = 0 if samples.geometry_modes is None else samples.geometry_modes.shape[1]
+    omitted = modes_omitted(nx * ny, len(samples_m), m_modes)
+    if omitted:
+        run.warnings.append(omitted)
     arrays = texel_arrays(
-        samples, [len(m.flags) for m in samples_m], [m.pose for m in samples_m], (nx, ny)
+        samples,
+        [len(m.flags) for m in samples_m],
+        [m.pose for m in samples_m],
+        (nx, ny),
+        with_modes=omitted is None,
     )
     attrs = dict(samples.attrs)
     attrs["session_created"] = attrs.pop("session", "")
@@ -329,6 +338,7 @@ def _texel_arrays_and_summary(
         "resolution": None if resolution is None else resolution.to_json(),
         "samples_h5": "the same samples pooled (one per texel and sample pose)",
         "geometry_modes": "geometry_modes" in arrays,
+        "geometry_modes_omitted": omitted,
     }
     from gonio.texels import chunk_texels_for
 

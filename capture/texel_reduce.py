@@ -33,7 +33,9 @@ from gonio.dataset import BRDFSamples, Flag
 from gonio.errors import ReductionError
 
 __all__ = [
+    "MAX_TEXEL_MODES_BYTES",
     "MIN_TEXEL_PX",
+    "modes_omitted",
     "TexelResolution",
     "parse_texels",
     "region_to_texel",
@@ -41,6 +43,13 @@ __all__ = [
     "texel_resolution",
     "texel_setup",
 ]
+
+#: Largest geometry-mode array (T, P, M, 6) float64 a texel file takes, bytes.  The
+#: modes are the largest part by far (M ~ 10: 480 bytes per texel and pose against ~150
+#: for everything else); beyond this the texel file leaves them out, says so, and keeps
+#: the geometry term they give (``budget/geometry``), so that a full-resolution grid does
+#: not double the reduction's largest array in memory once more.
+MAX_TEXEL_MODES_BYTES = 2**30
 
 #: Fewest pixels across a texel's narrower side at the best-resolving pose.  A Bayer
 #: mosaic samples each colour once per 2 x 2 cell: a texel narrower than 2 pixels would
@@ -199,11 +208,29 @@ def texel_resolution(
     return res
 
 
+def modes_omitted(
+    n_texels: int, n_poses: int, n_modes: int, limit: int = MAX_TEXEL_MODES_BYTES
+) -> str | None:
+    """Why a texel file leaves its geometry modes out (their array exceeds ``limit``
+    bytes), or None when it keeps them."""
+    size = int(n_texels) * int(n_poses) * int(n_modes) * 6 * 8
+    if size <= limit:
+        return None
+    return (
+        f"geometry_modes ({n_texels} texels x {n_poses} poses x {n_modes} modes x 6 "
+        f"float64 = {size / 2**30:.2f} GiB) exceed the texel file's limit of "
+        f"{limit / 2**30:.2f} GiB: left out of texels.h5 (samples.h5 holds them; "
+        "budget/geometry, the term they give, is kept)"
+    )
+
+
 def texel_arrays(
     samples: BRDFSamples,
     counts: Sequence[int],
     poses: Sequence[int],
     n: int | tuple[int, int],
+    *,
+    with_modes: bool = True,
 ) -> dict[str, Any]:
     """The reduction's samples as ``(T, P, ...)`` arrays for :func:`gonio.texels.save_texels`.
 
@@ -218,6 +245,8 @@ def texel_arrays(
         Journal pose index of each sample pose.
     n
         Regions (texels) per side, or ``(nx, ny)``.
+    with_modes
+        Include the geometry modes (see :func:`modes_omitted`).
 
     Returns
     -------
@@ -271,7 +300,7 @@ def texel_arrays(
         "budget": {k: per(v) for k, v in (samples.budget or {}).items()} or None,
         "shared_budget": samples.shared_budget,
     }
-    if samples.geometry_modes is not None:
+    if samples.geometry_modes is not None and with_modes:
         out["geometry_modes"] = per(samples.geometry_modes)
         out["geometry_mode_scope"] = list(samples.geometry_mode_scope)
         out["geometry_mode_names"] = list(samples.geometry_mode_names)

@@ -279,3 +279,26 @@ def test_a_texel_reduction_takes_the_outputs_lock(reduced, capsys):
     assert f"in use by process {os.getpid()}" in capsys.readouterr().err
     assert sorted(p.name for p in s.iterdir()) == before
     assert not os.path.lexists(s / "texels.h5")
+
+
+def test_geometry_modes_beyond_the_limit_are_left_out_and_said_so():
+    """The modes' (T, P, M, 6) array is the texel file's largest: 128 x 128 texels, 200
+    poses and 10 modes are 16384 x 200 x 480 bytes = 1.46 GiB, beyond 1 GiB (by hand)."""
+    from gonio.capture.texel_reduce import MAX_TEXEL_MODES_BYTES, modes_omitted, texel_arrays
+    from gonio.dataset import BRDFSamples
+
+    assert MAX_TEXEL_MODES_BYTES == 2**30
+    assert modes_omitted(64 * 64, 200, 10) is None  # 0.37 GiB
+    why = modes_omitted(128 * 128, 200, 10)
+    assert "1.46 GiB" in why and "samples.h5 holds them" in why
+    z = np.tile([0.0, 0.0, 1.0], (4, 1))
+    s = BRDFSamples(
+        wi=z,
+        wo=z,
+        brdf=np.ones((4, 3)),
+        geometry_modes=np.zeros((4, 2, 6)),
+        geometry_mode_scope=["session", "pose"],
+        geometry_mode_names=["a", "b"],
+    )
+    assert "geometry_modes" in texel_arrays(s, [4], [0], 2)
+    assert "geometry_modes" not in texel_arrays(s, [4], [0], 2, with_modes=False)
