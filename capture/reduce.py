@@ -73,6 +73,7 @@ from gonio.capture.reduction_config import (
     resolve_setup,
 )
 from gonio.capture.samples_plot import plot_samples
+from gonio.capture.texel_reduce import texel_levelled
 from gonio.dataset import save_samples
 from gonio.errors import GonioError, ReductionError, SessionError
 from gonio.locks import hold_lock
@@ -182,7 +183,7 @@ def reduce_session(
     texels
         ``(nx, ny)``: also write the per-texel file ``texels.h5`` beside the output
         (:mod:`gonio.texels`), with the region grid made the texel grid
-        (:mod:`gonio.capture.texel_reduce`: ``grid = nx`` over the whole sample,
+        (:mod:`gonio.capture.texel_reduce`: ``nx x ny`` regions over the whole sample,
         ``roi_fraction = 1``, overriding the setup's); ``samples.h5`` then holds the same
         samples pooled.  Without it, a ``texels.h5`` of an earlier texel reduction leaves
         with the rest of that output set.
@@ -197,7 +198,7 @@ def reduce_session(
         Not a session directory, no ``reduction.toml``, or nothing to reduce.
     ReductionError
         No usable reference frames (the irradiance cannot be calibrated); ``texels``
-        finer than the camera resolves, or not square
+        finer than the camera resolves
         (:func:`gonio.capture.texel_reduce.texel_resolution`), refused before any frame
         is decoded.
     gonio.locks.LockedError
@@ -347,45 +348,6 @@ def _texel_arrays_and_summary(
     k = chunk_texels_for(nx * ny, len(samples_m), 8 * m * 6 if m else 8 * 3)
     summary["chunk_texels"] = doc["chunk_texels"] = k
     return doc, summary
-
-
-def _texel_levelled(
-    brdf: NDArray[np.float64],
-    samples_m: list[PoseMeasurement],
-    usable: NDArray[np.bool_],
-    texels: tuple[int, int],
-) -> NDArray[np.float64]:
-    """The BRDF with each texel's own level divided out, for the geometry term's gradient.
-
-    The gradient of ``log f`` over the directions is estimated from neighbouring samples
-    (:func:`gonio.capture.budget.local_log_gradient`).  On a texel grid those neighbours
-    are mostly other texels seen in the same pose, whose directions differ with their
-    place on the sample: a sample whose albedo varies across it would have its spatial
-    variation read as a directional slope (on a Lambertian sample with a 40 % albedo
-    ramp, 0.7 % of f instead of ~0.002 %).  Each texel's geometric mean over its usable
-    poses (per channel) is divided out, so a multiplicative spatial variation leaves
-    the neighbourhoods.  The cost: the share of a real directional slope that is common
-    to a texel over all its poses goes with it (small with many poses)."""
-    from gonio.capture.texel_reduce import region_to_texel
-
-    n_regions = texels[0] * texels[1]
-    to_texel = region_to_texel(texels)
-    ids = np.concatenate(
-        [to_texel if len(m.flags) == n_regions else np.full(len(m.flags), -1) for m in samples_m]
-    )
-    with np.errstate(invalid="ignore", divide="ignore"):
-        logf = np.log(brdf)
-    ok = usable & (ids >= 0) & np.isfinite(logf).all(axis=1)
-    n_tex = int(n_regions)
-    cnt = np.bincount(ids[ok], minlength=n_tex)
-    out = brdf.copy()
-    for c in range(brdf.shape[1]):
-        level = np.bincount(ids[ok], logf[ok, c], minlength=n_tex) / np.maximum(cnt, 1)
-        centre = float(np.mean(level[cnt > 0])) if (cnt > 0).any() else 0.0
-        shift = np.where(cnt > 0, level - centre, 0.0)
-        sel = ids >= 0
-        out[sel, c] = brdf[sel, c] / np.exp(shift[ids[sel]])
-    return out
 
 
 @dataclass
@@ -888,7 +850,9 @@ class _PoseRun:
         grad = local_log_gradient(
             np.concatenate([m.wi for m in samples_m]),
             np.concatenate([m.wo for m in samples_m]),
-            brdf if self.texels is None else _texel_levelled(brdf, samples_m, usable, self.texels),
+            brdf
+            if self.texels is None
+            else texel_levelled(brdf, [len(m.flags) for m in samples_m], usable, self.texels),
             usable,
         )
         budget: dict[str, NDArray[np.float64]] = {
