@@ -229,6 +229,14 @@ def reduce_session(
         resolution = texel_resolution(setup, texels, _sample_cameras(kin, records))
     path = Path(out) if out is not None else session / SAMPLES_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
+    names = [path.name, SUMMARY_FILE, PLOT_FILE]
+    if texels is not None or _texels_of_this_set(path):
+        # texels.h5 joins the set when written, and when an earlier texel reduction's is
+        # there (it then leaves with its set); a file of that name that is not ours is
+        # never touched
+        names.append(TEXELS_FILE)
+    if texels is not None:
+        _refuse_foreign_texels(path.with_name(TEXELS_FILE), path)
     with hold_lock(output_lock(path), f"output {path}"):
         run = _PoseRun(session, setup, kin, records, texels=texels)
         run.measure_all(default_threads() if threads is None else max(1, int(threads)), progress)
@@ -242,9 +250,8 @@ def reduce_session(
         summary["texels"] = None if texel_doc is None else texel_doc[1]
         summary["warnings"] = list(run.warnings)  # with the texel file's, if any
         # One set: a kill leaves the old samples, summary, plot and texels, or the new
-        # ones; texels.h5 is always one of the set's names, so a reduction without
-        # --texels drops an earlier one's texels.h5 with the rest of its set.
-        names = (path.name, SUMMARY_FILE, PLOT_FILE, TEXELS_FILE)
+        # ones; a reduction without --texels drops an earlier one's texels.h5 with the
+        # rest of its set.
         with output_set(path, names) as stage:
             save_samples(stage / path.name, samples)
             if texel_doc is not None:
@@ -256,6 +263,33 @@ def reduce_session(
     return ReductionResult(
         path, len(samples), n_kept, dict(run.rejected), summary, plot_path, list(run.warnings)
     )
+
+
+def _texels_of_this_set(path: Path) -> bool:
+    """Whether ``texels.h5`` beside ``path`` is the link into ``path``'s output set that an
+    earlier texel reduction made."""
+    from gonio.capture.output_set import set_folder
+
+    t = path.with_name(TEXELS_FILE)
+    return t.is_symlink() and os.readlink(t) == f"{set_folder(path).name}/{TEXELS_FILE}"
+
+
+def _refuse_foreign_texels(tex: Path, path: Path) -> None:
+    """Refuse to replace a ``texels.h5`` that neither this output's set nor gonio wrote."""
+    if not os.path.lexists(tex) or _texels_of_this_set(path):
+        return
+    import h5py
+
+    try:
+        with h5py.File(tex, "r") as f:
+            ours = f.attrs.get("schema") == "gonio.texels"
+    except OSError:
+        ours = False
+    if not ours:
+        raise ReductionError(
+            f"{tex} exists and is not a gonio texel file: move it away first (a texel "
+            "reduction writes texels.h5 beside its output; nothing was written)"
+        )
 
 
 def _sample_cameras(
