@@ -27,6 +27,7 @@ __all__ = [
     "plot_residual_map",
     "plot_slices",
     "residual_map_figure",
+    "residuals_png",
     "scaled_residuals",
     "slices_figure",
     "slices_png",
@@ -449,11 +450,20 @@ RESIDUALS_DPI = 90
 def slices_png(r: FitResult, samples: Any, n_bins: int = 6) -> bytes:
     """The PNG file :func:`plot_slices` writes, as bytes (for a process that does not own
     the output folder: :mod:`gonio.fitting.plot_worker`)."""
+    return _png(slices_figure(r, samples, n_bins=n_bins), SLICES_DPI)
+
+
+def residuals_png(r: FitResult, samples: Any) -> bytes:
+    """The PNG file :func:`plot_residual_map` writes, as bytes (for
+    :mod:`gonio.fitting.plot_worker`)."""
+    return _png(residual_map_figure(r, samples), RESIDUALS_DPI)
+
+
+def _png(fig: Any, dpi: int) -> bytes:
     import io
 
-    fig = slices_figure(r, samples, n_bins=n_bins)
     buf = io.BytesIO()
-    fig.savefig(buf, dpi=SLICES_DPI, format="png", **_savefig_kwargs("png"))
+    fig.savefig(buf, dpi=dpi, format="png", **_savefig_kwargs("png"))
     return buf.getvalue()
 
 
