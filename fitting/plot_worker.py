@@ -153,7 +153,7 @@ def _serve(rfd: int, wfd: int) -> None:
         if msg is not None:
             os.close(rfd)
             r, samples = pickle.loads(msg)
-            residuals = _fork_drawer(plots.residuals_png, r, samples)
+            residuals = _fork_drawer(plots.residuals_png, r, samples, wfd)
             slices = _draw(plots.slices_png, r, samples)
             reply = (slices, residuals())
             _send(wfd, pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL))
@@ -163,9 +163,11 @@ def _serve(rfd: int, wfd: int) -> None:
         os._exit(code)
 
 
-def _fork_drawer(fn: Any, r: Any, samples: Any) -> Any:
+def _fork_drawer(fn: Any, r: Any, samples: Any, parent_fd: int) -> Any:
     """Draw ``fn(r, samples)`` in a forked process; returns a function that waits for it
-    and gives ``(ok, png bytes or error text)``.  Without a fork: drawn here, now."""
+    and gives ``(ok, png bytes or error text)``.  Without a fork: drawn here, now.
+    ``parent_fd`` (the pipe to the command) is closed in the child, so that the command
+    sees the end of the pipe as soon as the worker itself is gone."""
     try:
         rfd, wfd = os.pipe()
         pid = os.fork()
@@ -176,6 +178,7 @@ def _fork_drawer(fn: Any, r: Any, samples: Any) -> Any:
         code = 0
         try:
             os.close(rfd)
+            os.close(parent_fd)
             _send(wfd, pickle.dumps(_draw(fn, r, samples), protocol=pickle.HIGHEST_PROTOCOL))
         except BaseException:  # noqa: BLE001 - the worker is gone
             code = 1
