@@ -10,8 +10,9 @@ two figures in that process.  Settings:
 
 - ``one_thread``: every pool pinned to one thread, gonio without its plot worker
   (``GONIO_PLOT_WORKER=0``: one process), against the baseline at one thread;
-- ``all_cores``: gonio as installed (the plot worker draws slices.png on the second core)
-  against the baseline with its BLAS on all cores.
+- ``all_cores``: gonio as installed (the plot worker, forked at the start, imports
+  matplotlib while the command loads and fits, then draws slices.png and residuals.png in
+  two processes, one per core) against the baseline with its BLAS on all cores.
 
 Caches: the runs are *warm* (Python bytecode, matplotlib's font cache; numba is not
 imported on this path: 5832 samples are below ``gonio.fitting.kernels.MIN_ROWS``, and the
@@ -177,7 +178,8 @@ def breakdown(src: Path, repeats: int) -> dict:
         **stages,
         "numba_imported": any(r["numba_imported"] for r in runs),
         "note": "sequential in one process; the command overlaps 'import matplotlib' with "
-        "the fit and 'slices.png' with 'residuals.png' (plot worker) on two cores",
+        "the load and the fit, and draws 'slices.png' and 'residuals.png' side by side "
+        "(plot worker and its child) on two cores",
     }
 
 

@@ -154,9 +154,6 @@ def fit(
     Shape parameters (roughness) are shared by all colour channels; albedo and ks are fitted
     per channel.  The summary shows each parameter with its one-sigma uncertainty.
     """
-    from rich.console import Console
-
-    console = Console(stderr=False)
     existing = _existing_outputs(out)
     if existing and not force:
         raise FitError(
@@ -169,12 +166,16 @@ def fit(
             "--option sets options of one --model; with --model auto put them in the "
             "candidates: --candidates 'lambert,lambert+ggx[fresnel=schlick]'"
         )
-    samples, kind = _load_input(source)
-    cands = _split_candidates(candidates) if candidates else None
-    # forked before the output lock is taken and before the fit: it imports matplotlib
-    # while this process fits (gonio.fitting.plot_worker)
+    # forked before the output lock is taken and before anything else is imported or
+    # loaded: it imports matplotlib while this process loads and fits
+    # (gonio.fitting.plot_worker), so the less the fork inherits the sooner it starts
     worker = _start_plot_worker() if plots else None
     try:
+        from rich.console import Console
+
+        console = Console(stderr=False)
+        samples, kind = _load_input(source)
+        cands = _split_candidates(candidates) if candidates else None
         with _output_folder(out, force):
             r, written = _fit_and_write(
                 console, samples, source, out, model, model_options, cands, loss, robust,
@@ -241,19 +242,18 @@ def _write_outputs(console, r, samples, out: Path, plots: bool, worker=None) -> 
             # (--force) the set replaces the old one whole: no old material.xml survives
             console.print(f"[yellow]no Mitsuba export: {exc}[/yellow]")
         if plots:
-            from gonio.fitting import plots as fig
-
             if worker is None:
+                from gonio.fitting import plots as fig
+
                 fig.plot_slices(r, samples, stage / "slices.png")
                 fig.plot_residual_map(r, samples, stage / "residuals.png")
-            else:  # slices.png drawn by the worker meanwhile
+            else:  # both figures drawn by the worker's two processes, one per core
                 from gonio.atomic import atomic_path
 
                 worker.submit(r, samples)
-                fig.plot_residual_map(r, samples, stage / "residuals.png")
-                png = worker.result()
-                with atomic_path(stage / "slices.png") as tmp:
-                    tmp.write_bytes(png)
+                for name, png in worker.result().items():
+                    with atomic_path(stage / name) as tmp:
+                        tmp.write_bytes(png)
             names += ["slices.png", "residuals.png"]
     return [out / n for n in names]
 

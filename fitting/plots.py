@@ -27,6 +27,7 @@ __all__ = [
     "plot_residual_map",
     "plot_slices",
     "residual_map_figure",
+    "residuals_png",
     "scaled_residuals",
     "slices_figure",
     "slices_png",
@@ -152,6 +153,15 @@ def _theta_i_bins(ti: np.ndarray, n_bins: int, gap: float = 2.0, max_span: float
         q = np.quantile(ti, np.linspace(0, 1, n_bins + 1))
         edges = np.unique(q[1:-1])
     return np.searchsorted(edges, ti, side="right"), len(edges) + 1
+
+
+_SUPERSCRIPT = str.maketrans("0123456789-", "⁰¹²³⁴⁵⁶⁷⁸⁹⁻")
+
+
+def _decade_label(value: float, pos: Any = None) -> str:
+    """Tick label of a decade, ``10⁻²`` (the locator puts ticks on decades only)."""
+    exponent = round(np.log10(value)) if value > 0 else 0
+    return "10" + str(int(exponent)).translate(_SUPERSCRIPT)
 
 
 def _bin_title(ti: np.ndarray) -> str:
@@ -321,13 +331,16 @@ def slices_figure(
                 transform=ax.get_xaxis_transform(),
             )
         if log and positive.size:
-            from matplotlib.ticker import LogLocator, NullLocator
+            from matplotlib.ticker import FuncFormatter, LogLocator, NullLocator
 
             ax.set_yscale("log")
             ax.set_ylim(bottom=floor, top=top * 2.0)
             # decades only: the log axis' minor ticks were half the figure's drawing time
             ax.yaxis.set_major_locator(LogLocator(base=10.0, numticks=12))
             ax.yaxis.set_minor_locator(NullLocator())
+            # "10⁻²" in plain text: matplotlib's mathtext labels cost a parser build per
+            # process and a layout per label
+            ax.yaxis.set_major_formatter(FuncFormatter(_decade_label))
         else:
             ax.set_ylim(bottom=min(0.0, float(np.nanmin(d.y[sel_ip])) if sel_ip.any() else 0.0))
         ax.set_xlim(-90, 90)
@@ -449,11 +462,20 @@ RESIDUALS_DPI = 90
 def slices_png(r: FitResult, samples: Any, n_bins: int = 6) -> bytes:
     """The PNG file :func:`plot_slices` writes, as bytes (for a process that does not own
     the output folder: :mod:`gonio.fitting.plot_worker`)."""
+    return _png(slices_figure(r, samples, n_bins=n_bins), SLICES_DPI)
+
+
+def residuals_png(r: FitResult, samples: Any) -> bytes:
+    """The PNG file :func:`plot_residual_map` writes, as bytes (for
+    :mod:`gonio.fitting.plot_worker`)."""
+    return _png(residual_map_figure(r, samples), RESIDUALS_DPI)
+
+
+def _png(fig: Any, dpi: int) -> bytes:
     import io
 
-    fig = slices_figure(r, samples, n_bins=n_bins)
     buf = io.BytesIO()
-    fig.savefig(buf, dpi=SLICES_DPI, format="png", **_savefig_kwargs("png"))
+    fig.savefig(buf, dpi=dpi, format="png", **_savefig_kwargs("png"))
     return buf.getvalue()
 
 

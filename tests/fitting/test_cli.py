@@ -10,6 +10,7 @@ from click.testing import CliRunner
 
 from gonio.cli import cli
 from gonio.dataset import save_samples
+from gonio.errors import FitError
 
 
 def test_fit_samples_file(tmp_path, make_samples):
@@ -110,6 +111,7 @@ def test_a_failed_output_phase_leaves_the_old_set(tmp_path, make_samples, monkey
         raise RuntimeError("disk full while plotting")
 
     monkeypatch.setattr(plots, "plot_residual_map", broken)
+    monkeypatch.setenv("GONIO_PLOT_WORKER", "0")  # the in-process path draws both figures
     res = CliRunner().invoke(cli, ["fit", str(src), "-m", "oren-nayar", "--out", str(out),
                                    "--force"])  # fmt: skip
     assert res.exit_code != 0
@@ -301,7 +303,7 @@ def test_a_failing_plot_worker_fails_the_fit_and_keeps_the_old_set(tmp_path, mak
     assert _snapshot(out) == old
 
 
-def test_the_plot_worker_draws_the_same_png_as_this_process(make_samples):
+def test_the_plot_workers_draw_the_same_pngs_as_this_process(make_samples):
     from gonio.fitting import fit, plot_worker, plots
 
     s = make_samples("lambert+ggx", {"albedo": [0.2] * 3, "ks": [0.3] * 3, "alpha": 0.2},
@@ -311,7 +313,29 @@ def test_the_plot_worker_draws_the_same_png_as_this_process(make_samples):
     assert worker is not None  # Linux
     try:
         worker.submit(r, s)
-        png = worker.result()
+        pngs = worker.result()
     finally:
         worker.close()
-    assert png == plots.slices_png(r, s)
+    here = {"slices.png": plots.slices_png(r, s), "residuals.png": plots.residuals_png(r, s)}
+    assert pngs == here
+
+
+def test_a_failing_residual_drawer_is_named(make_samples, monkeypatch):
+    import gonio.fitting.plots as plots
+    from gonio.fitting import fit, plot_worker
+
+    s = make_samples("lambert", {"albedo": [0.2] * 3}, n=100, seed=3, noise=1e-4, read=1e-3)
+    r = fit(s, "lambert")
+
+    def broken(*a, **k):
+        raise ValueError("bad colours")
+
+    monkeypatch.setattr(plots, "residuals_png", broken)  # inherited by the fork
+    worker = plot_worker.start()
+    assert worker is not None
+    try:
+        worker.submit(r, s)
+        with pytest.raises(FitError, match="drawing residuals.png failed: ValueError: bad colo"):
+            worker.result()
+    finally:
+        worker.close()

@@ -125,6 +125,18 @@ def test_fitted_curve_passes_through_noise_free_in_plane_points() -> None:
     plt.close(fig)
 
 
+def test_log_panels_label_their_decades_in_plain_text() -> None:
+    # no mathtext (its parser cost a tenth of a second per process): "10⁻²" as characters
+    sharp = {"albedo": [0.02] * 3, "ks": [0.8] * 3, "alpha": [0.05] * 3}  # spans decades
+    s, _, _, _ = _in_plane_samples("lambert+ggx", sharp)
+    fig = slices_figure(_result("lambert+ggx", sharp, len(s)), s)
+    log_axes = [ax for ax in fig.axes if ax.get_yscale() == "log"]
+    assert log_axes
+    fmt = log_axes[0].yaxis.get_major_formatter()
+    labels = [fmt(v, k) for k, v in enumerate((1e-3, 1e-2, 0.1, 1.0, 10.0, 100.0))]
+    assert labels == ["10⁻³", "10⁻²", "10⁻¹", "10⁰", "10¹", "10²"]
+
+
 def test_wrong_parameters_give_a_curve_off_the_points() -> None:
     # The check above can fail: a curve of other parameters misses the points.
     s, f, signed, _ = _in_plane_samples("lambert+ggx", GGX)
