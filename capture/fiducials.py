@@ -597,9 +597,12 @@ class RoiGeometry:
         Margin kept inside every cell along x and along y, metres
         (:func:`spread_margins`: it bounds the spread of directions within a region).
     grid
-        Regions per side.
+        Regions along x (and along y unless ``grid_y`` says otherwise).
     centers
-        (grid * grid, 2) cell centres on the sample, metres (x, y).
+        (grid * grid_y, 2) cell centres on the sample, metres (x, y), in region order
+        ``iy * grid + ix`` (``iy`` counted from -y).
+    grid_y
+        Regions along y; None: ``grid`` (square).
     """
 
     box: tuple[slice, slice]
@@ -609,6 +612,12 @@ class RoiGeometry:
     grid: int
     centers: NDArray[np.float64]
     inner_margin: tuple[float, float] = (0.0, 0.0)
+    grid_y: int | None = None
+
+    @property
+    def grid_xy(self) -> tuple[int, int]:
+        """Regions along x and along y."""
+        return (self.grid, self.grid if self.grid_y is None else self.grid_y)
 
 
 def roi_geometry(
@@ -618,12 +627,13 @@ def roi_geometry(
     sample_size: tuple[float, float],
     *,
     roi_fraction: float = 0.6,
-    grid: int = 3,
+    grid: int | tuple[int, int] = 3,
     margin_px: float = 2.0,
     dist: ArrayLike | None = None,
     inner_margin: tuple[float, float] = (0.0, 0.0),
 ) -> RoiGeometry:
-    """The ROI's crop and grid in one camera pose (see :func:`map_regions`).
+    """The ROI's crop and grid in one camera pose (see :func:`map_regions`; ``grid`` an
+    int for a square grid or ``(nx, ny)`` regions along x and y).
 
     With a distorting lens (``dist``, OpenCV coefficients) the crop is the bounding box
     of the ROI's distorted image: its outline (corners and edges, which distortion bends)
@@ -654,18 +664,27 @@ def roi_geometry(
         )
     mx, my = edge_margins(pose, K, sample_size, (hw, hh), margin_px)
     limit = (min(hw, 0.5 * sample_size[0] - mx), min(hh, 0.5 * sample_size[1] - my))
-    cell_x, cell_y = 2 * hw / grid, 2 * hh / grid
-    g = np.arange(grid) + 0.5
-    cx, cy = np.meshgrid(-hw + g * cell_x, -hh + g * cell_y)
+    gx, gy = grid_counts(grid)
+    cell_x, cell_y = 2 * hw / gx, 2 * hh / gy
+    cx, cy = np.meshgrid(-hw + (np.arange(gx) + 0.5) * cell_x, -hh + (np.arange(gy) + 0.5) * cell_y)
     return RoiGeometry(
         (slice(r0, r1), slice(c0, c1)),
         (hw, hh),
         (cell_x, cell_y),
         limit,
-        grid,
+        gx,
         np.stack([cx.ravel(), cy.ravel()], axis=1),
         (float(inner_margin[0]), float(inner_margin[1])),
+        None if gy == gx else gy,
     )
+
+
+def grid_counts(grid: int | tuple[int, int]) -> tuple[int, int]:
+    """``(nx, ny)`` regions of a grid given as one count per side or as a pair."""
+    if isinstance(grid, int | np.integer):
+        return int(grid), int(grid)
+    gx, gy = grid
+    return int(gx), int(gy)
 
 
 def edge_margins(
@@ -1017,7 +1036,7 @@ def map_regions(
     sample_size: tuple[float, float],
     *,
     roi_fraction: float = 0.6,
-    grid: int = 3,
+    grid: int | tuple[int, int] = 3,
     margin_px: float = 2.0,
     dist: ArrayLike | None = None,
     inner_margin: tuple[float, float] = (0.0, 0.0),
@@ -1037,7 +1056,9 @@ def map_regions(
     roi_fraction
         Fraction of each side used (keeps away from the sample's edges).
     grid
-        Regions per side; small regions keep the spread of directions in each small.
+        Regions per side; small regions keep the spread of directions in each small.  A
+        pair ``(nx, ny)``: regions along x and along y.  Region ``iy * nx + ix``, ``iy``
+        counted from -y.
     margin_px
         Pixels whose centre lies closer than this (in the image) to the sample's edge are
         left out, so that no pixel mixes the holder in (:func:`edge_margins`; with the
@@ -1082,11 +1103,12 @@ def map_regions(
     iy = np.floor(uy / cell_y)
     fx = ux - ix * cell_x
     fy = uy - iy * cell_y
-    inside = (ix >= 0) & (ix < grid) & (iy >= 0) & (iy < grid)
+    gx, gy = roi.grid_xy
+    inside = (ix >= 0) & (ix < gx) & (iy >= 0) & (iy < gy)
     inside &= (np.abs(xyz[0]) < lx) & (np.abs(xyz[1]) < ly)
     inside &= (fx >= mx) & (fx <= cell_x - mx) & (fy >= my) & (fy <= cell_y - my)
-    label = np.where(inside, iy * grid + ix, -1).astype(np.int64)
-    return RegionMap(roi.box, label, grid * grid, roi.centers, pose, K, {"_rays": rays}, dist)
+    label = np.where(inside, iy * gx + ix, -1).astype(np.int64)
+    return RegionMap(roi.box, label, gx * gy, roi.centers, pose, K, {"_rays": rays}, dist)
 
 
 def directions_to(points: NDArray[np.float64], position: ArrayLike) -> NDArray[np.float64]:

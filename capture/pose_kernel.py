@@ -89,7 +89,7 @@ class View(NamedTuple):
     c0: int
     roi: NDArray[np.float64]  # (8,) half width, half height, cell width, cell height, used
     # half width, used half height (RoiGeometry.limit), margin in a cell along x, along y (m)
-    grid: int  # regions per side
+    grid: int  # regions along x (per side of a square grid)
     light: NDArray[np.float64]  # (3,) light position, metres
     light_normal: NDArray[np.float64]  # (3,) emitting normal (ignored unless has_normal)
     has_normal: bool
@@ -102,6 +102,7 @@ class View(NamedTuple):
     ray_x: NDArray[np.float64]
     ray_y: NDArray[np.float64]
     undistorted: bool
+    grid_y: int = -1  # regions along y; -1: grid (square)
 
 
 @njit(**_JIT)
@@ -125,8 +126,9 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     has_normal, light_radius, n_channels = view.has_normal, view.light_radius, view.n_channels
     ray_x, ray_y, undistorted = view.ray_x, view.ray_y, view.undistorted
     profile_n = view.profile_n
+    grid_y = grid if view.grid_y < 0 else view.grid_y
     F, h, w = raws.shape
-    n = grid * grid
+    n = grid * grid_y
     label = np.full((h, w), -1, np.int64)
     sums = np.zeros((n, n_channels, 7))
     dirs = np.zeros((n, 7))
@@ -152,7 +154,7 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
             uy = p1 + hh
             ix = math.floor(ux / cell_x)
             iy = math.floor(uy / cell_y)
-            if not (ix >= 0 and ix < grid and iy >= 0 and iy < grid):
+            if not (ix >= 0 and ix < grid and iy >= 0 and iy < grid_y):
                 continue
             if not (abs(p0) < lim_x and abs(p1) < lim_y):
                 continue

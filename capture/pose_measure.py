@@ -356,7 +356,8 @@ def region_margins(
         return (0.0, 0.0)
     hw = 0.5 * setup.roi_fraction * setup.sample_size[0]
     hh = 0.5 * setup.roi_fraction * setup.sample_size[1]
-    cell = (2 * hw / setup.grid, 2 * hh / setup.grid)
+    gx, gy = setup.grid_xy
+    cell = (2 * hw / gx, 2 * hh / gy)
     return spread_margins(
         [cam.position, light_position], cell, (hw, hh), setup.max_region_spread_deg
     )
@@ -450,7 +451,7 @@ def _pose_sums_numpy(
         frames[0].shape,
         setup.sample_size,
         roi_fraction=setup.roi_fraction,
-        grid=setup.grid,
+        grid=setup.grid_xy,
         dist=setup.dist,
         inner_margin=region_margins(cam, lp, setup),
     )
@@ -567,7 +568,7 @@ def _pose_sums_fused(
         ref.shape,
         setup.sample_size,
         roi_fraction=setup.roi_fraction,
-        grid=setup.grid,
+        grid=setup.grid_xy,
         dist=setup.dist,
         inner_margin=region_margins(cam, lp, setup),
     )
@@ -635,7 +636,8 @@ def _pose_sums_fused(
         r0=int(r0),
         c0=int(c0),
         roi=np.array([hw, hh, *roi.cell, *roi.limit, *roi.inner_margin]),
-        grid=int(roi.grid),
+        grid=int(roi.grid_xy[0]),
+        grid_y=int(roi.grid_xy[1]),
         light=lp,
         light_normal=np.zeros(3) if light_normal is None else light_normal,
         has_normal=light_normal is not None,
@@ -647,7 +649,7 @@ def _pose_sums_fused(
         undistorted=dist is not None,
     )
     label, sums, dirs = kernel(bracket, stencils, view)
-    regions = RegionMap(box, label, roi.grid**2, roi.centers, cam, K, dist=dist)
+    regions = RegionMap(box, label, roi.grid_xy[0] * roi.grid_xy[1], roi.centers, cam, K, dist=dist)
     return regions, sums, dirs
 
 

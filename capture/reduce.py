@@ -76,6 +76,7 @@ from gonio.capture.samples_plot import plot_samples
 from gonio.dataset import save_samples
 from gonio.errors import GonioError, ReductionError, SessionError
 from gonio.locks import hold_lock
+from gonio.texels import ORIENTATION, TEXELS_FILE, save_texels
 
 __all__ = [
     "CONFIG_FILE",
@@ -85,6 +86,7 @@ __all__ = [
     "IRRADIANCE_UNITS",
     "SAMPLES_FILE",
     "SUMMARY_FILE",
+    "TEXELS_FILE",
     "IncrementalReduction",
     "ReductionResult",
     "ReductionSetup",
@@ -153,6 +155,7 @@ def reduce_session(
     plot: bool = True,
     progress: Callable[[int, int], None] | None = None,
     threads: int | None = None,
+    texels: tuple[int, int] | None = None,
 ) -> ReductionResult:
     """Reduce a session's RAW frames to calibrated BRDF samples (``samples.h5``).
 
@@ -176,6 +179,13 @@ def reduce_session(
         Threads, this one included: the others read, hash and decode frames ahead while
         poses are measured (:func:`default_threads` when None; 1 does everything in
         this thread).  The output is the same for any number.
+    texels
+        ``(nx, ny)``: also write the per-texel file ``texels.h5`` beside the output
+        (:mod:`gonio.texels`), with the region grid made the texel grid
+        (:mod:`gonio.capture.texel_reduce`: ``grid = nx`` over the whole sample,
+        ``roi_fraction = 1``, overriding the setup's); ``samples.h5`` then holds the same
+        samples pooled.  Without it, a ``texels.h5`` of an earlier texel reduction leaves
+        with the rest of that output set.
 
     Returns
     -------
@@ -186,7 +196,10 @@ def reduce_session(
     SessionError
         Not a session directory, no ``reduction.toml``, or nothing to reduce.
     ReductionError
-        No usable reference frames (the irradiance cannot be calibrated).
+        No usable reference frames (the irradiance cannot be calibrated); ``texels``
+        finer than the camera resolves, or not square
+        (:func:`gonio.capture.texel_reduce.texel_resolution`), refused before any frame
+        is decoded.
     gonio.locks.LockedError
         Another process is writing the same output (nothing is written).
     """
@@ -205,18 +218,36 @@ def reduce_session(
         setup = resolve_setup(session, manifest, noise)
     elif noise is not None:
         setup = setup.replace(noise=noise)
+    kin = _kinematics(manifest)
+    resolution = None
+    if texels is not None:
+        from gonio.capture.texel_reduce import texel_resolution, texel_setup
+
+        texels = (int(texels[0]), int(texels[1]))
+        setup = texel_setup(setup, texels)
+        resolution = texel_resolution(setup, texels, _sample_cameras(kin, records))
     path = Path(out) if out is not None else session / SAMPLES_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
     with hold_lock(output_lock(path), f"output {path}"):
-        run = _PoseRun(session, setup, _kinematics(manifest), records)
+        run = _PoseRun(session, setup, kin, records, texels=texels)
         run.measure_all(default_threads() if threads is None else max(1, int(threads)), progress)
         samples = run.samples(manifest)
         n_kept = int(samples.valid.sum())
         summary = run.summary(len(samples), n_kept, path)
-        summary["retention"] = retention(manifest, run.measurements, run.setup.grid)
-        # One set: a kill leaves the old samples, summary and plot, or the new ones.
-        with output_set(path, (path.name, SUMMARY_FILE, PLOT_FILE)) as stage:
+        summary["retention"] = retention(manifest, run.measurements, run.setup.grid_xy)
+        texel_doc = None
+        if texels is not None:
+            texel_doc = _texel_arrays_and_summary(run, samples, session, texels, resolution)
+        summary["texels"] = None if texel_doc is None else texel_doc[1]
+        summary["warnings"] = list(run.warnings)  # with the texel file's, if any
+        # One set: a kill leaves the old samples, summary, plot and texels, or the new
+        # ones; texels.h5 is always one of the set's names, so a reduction without
+        # --texels drops an earlier one's texels.h5 with the rest of its set.
+        names = (path.name, SUMMARY_FILE, PLOT_FILE, TEXELS_FILE)
+        with output_set(path, names) as stage:
             save_samples(stage / path.name, samples)
+            if texel_doc is not None:
+                save_texels(stage / TEXELS_FILE, **texel_doc[0])
             _write_json(stage / SUMMARY_FILE, summary)
             if plot:
                 plot_samples(samples, stage / PLOT_FILE)
@@ -224,6 +255,137 @@ def reduce_session(
     return ReductionResult(
         path, len(samples), n_kept, dict(run.rejected), summary, plot_path, list(run.warnings)
     )
+
+
+def _sample_cameras(
+    kin: Any, records: list[dict[str, Any]]
+) -> dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]]:
+    """Sample pose -> the rig's reported camera (position, world-to-camera rotation),
+    from the journal's last shot of each pose (poses whose camera is unknown left out)."""
+    last: dict[int, dict[str, Any]] = {}
+    for r in records:
+        if r.get("type") == "shot" and r.get("kind") == "sample":
+            last[int(r["pose"])] = r
+    out = {}
+    for p, r in last.items():
+        wi = np.asarray(r.get("wi_achieved") or r.get("wi_requested") or [0, 0, 1], float)
+        wo = np.asarray(r.get("wo_achieved") or r.get("wo_requested") or [0, 0, 1], float)
+        try:
+            _, _, cam = _rig_pose(kin, r.get("joints"), wi, wo, r.get("approach"))
+        except ReductionError:
+            continue
+        out[p] = cam
+    return out
+
+
+def _texel_arrays_and_summary(
+    run: _PoseRun,
+    samples: Any,
+    session: Path,
+    texels: tuple[int, int],
+    resolution: Any,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``save_texels``'s arguments and ``reduction.json["texels"]``."""
+    from gonio.capture.texel_reduce import modes_omitted, texel_arrays
+
+    samples_m = [m for m in run.measurements if m.kind == "sample"]
+    nx, ny = run.setup.grid_xy
+    m_modes = 0 if samples.geometry_modes is None else samples.geometry_modes.shape[1]
+    omitted = modes_omitted(nx * ny, len(samples_m), m_modes)
+    if omitted:
+        run.warnings.append(omitted)
+    arrays = texel_arrays(
+        samples,
+        [len(m.flags) for m in samples_m],
+        [m.pose for m in samples_m],
+        (nx, ny),
+        with_modes=omitted is None,
+    )
+    attrs = dict(samples.attrs)
+    attrs["session_created"] = attrs.pop("session", "")
+    attrs["session"] = str(session)
+    doc = dict(
+        arrays,
+        texels=texels,
+        sample_size=tuple(run.setup.sample_size),
+        channels=samples.channels,
+        attrs=attrs,
+        units=dict(samples.units),
+    )
+    usable = arrays["flags"] == 0
+    with np.errstate(invalid="ignore"):
+        usable &= np.isfinite(arrays["brdf"]).all(axis=2)
+    per_texel = usable.sum(axis=1)
+    summary = {
+        "file": TEXELS_FILE,
+        "texels": list(texels),
+        "n_texels": int(nx * ny),
+        "sample_size_m": list(run.setup.sample_size),
+        "orientation": ORIENTATION,
+        "poses": len(samples_m),
+        "samples": int(usable.size),
+        "kept": int(usable.sum()),
+        "kept_per_texel": {
+            "min": int(per_texel.min()),
+            "median": float(np.median(per_texel)),
+            "max": int(per_texel.max()),
+        },
+        "texels_without_samples": int((per_texel == 0).sum()),
+        "chunk_texels": None,  # below
+        "region_order": "region r = iy * NX + ix (iy from -y) is texel (NY - 1 - iy) * NX + ix",
+        "grid": [nx, ny],
+        "roi_fraction": run.setup.roi_fraction,
+        "resolution": None if resolution is None else resolution.to_json(),
+        "samples_h5": "the same samples pooled (one per texel and sample pose)",
+        "geometry_modes": "geometry_modes" in arrays,
+        "geometry_modes_omitted": omitted,
+    }
+    from gonio.texels import chunk_texels_for
+
+    m = arrays["geometry_modes"].shape[2] if "geometry_modes" in arrays else 0
+    # the rule save_texels applies by default, fixed here so the summary states it
+    k = chunk_texels_for(nx * ny, len(samples_m), 8 * m * 6 if m else 8 * 3)
+    summary["chunk_texels"] = doc["chunk_texels"] = k
+    return doc, summary
+
+
+def _texel_levelled(
+    brdf: NDArray[np.float64],
+    samples_m: list[PoseMeasurement],
+    usable: NDArray[np.bool_],
+    texels: tuple[int, int],
+) -> NDArray[np.float64]:
+    """The BRDF with each texel's own level divided out, for the geometry term's gradient.
+
+    The gradient of ``log f`` over the directions is estimated from neighbouring samples
+    (:func:`gonio.capture.budget.local_log_gradient`).  On a texel grid those neighbours
+    are mostly other texels seen in the same pose, whose directions differ with their
+    place on the sample: a sample whose albedo varies across it would have its spatial
+    variation read as a directional slope (on a Lambertian sample with a 40 % albedo
+    ramp, 0.7 % of f instead of ~0.002 %).  Each texel's geometric mean over its usable
+    poses (per channel) is divided out, so a multiplicative spatial variation leaves
+    the neighbourhoods.  The cost: the share of a real directional slope that is common
+    to a texel over all its poses goes with it (small with many poses)."""
+    from gonio.capture.texel_reduce import region_to_texel
+
+    n_regions = texels[0] * texels[1]
+    to_texel = region_to_texel(texels)
+    ids = np.concatenate(
+        [to_texel if len(m.flags) == n_regions else np.full(len(m.flags), -1) for m in samples_m]
+    )
+    with np.errstate(invalid="ignore", divide="ignore"):
+        logf = np.log(brdf)
+    ok = usable & (ids >= 0) & np.isfinite(logf).all(axis=1)
+    n_tex = int(n_regions)
+    cnt = np.bincount(ids[ok], minlength=n_tex)
+    out = brdf.copy()
+    for c in range(brdf.shape[1]):
+        level = np.bincount(ids[ok], logf[ok, c], minlength=n_tex) / np.maximum(cnt, 1)
+        centre = float(np.mean(level[cnt > 0])) if (cnt > 0).any() else 0.0
+        shift = np.where(cnt > 0, level - centre, 0.0)
+        sel = ids >= 0
+        out[sel, c] = brdf[sel, c] / np.exp(shift[ids[sel]])
+    return out
 
 
 @dataclass
@@ -246,6 +408,8 @@ class _PoseRun:
     #: modes move (:mod:`gonio.capture.budget`)
     pose_inputs: dict[int, tuple[Any, Any, Any]] = field(default_factory=dict)
     budget_summary: dict[str, Any] = field(default_factory=dict)
+    #: (nx, ny) of a texel reduction (its regions are texels), else None
+    texels: tuple[int, int] | None = None
 
     def measure_all(self, threads: int, progress: Callable[[int, int], None] | None) -> None:
         """Decode and measure every sample and reference pose, in journal order."""
@@ -434,7 +598,7 @@ class _PoseRun:
             ),
             "reference_reflectance": setup.reflectance.tolist(),
             "roi_fraction": setup.roi_fraction,
-            "grid": setup.grid,
+            "grid": setup.grid if setup.grid_y is None else list(setup.grid_xy),
         }
         # brdf_std: the root sum of squares of the per-sample terms (noise alone before
         # issue 16); the shared terms stay apart (calibration_rel_std, budget attrs)
@@ -724,7 +888,7 @@ class _PoseRun:
         grad = local_log_gradient(
             np.concatenate([m.wi for m in samples_m]),
             np.concatenate([m.wo for m in samples_m]),
-            brdf,
+            brdf if self.texels is None else _texel_levelled(brdf, samples_m, usable, self.texels),
             usable,
         )
         budget: dict[str, NDArray[np.float64]] = {
@@ -798,7 +962,7 @@ RETENTION_UP_TO_DEG = 80.0
 def retention(
     manifest: Mapping[str, Any],
     measurements: list[PoseMeasurement],
-    grid: int,
+    grid: int | tuple[int, int],
     *,
     up_to_deg: float = RETENTION_UP_TO_DEG,
     band_deg: float = 10.0,
@@ -807,9 +971,9 @@ def retention(
     ``"retention"``), in all and by theta band.
 
     Every sample pose of the plan (the manifest's ``schedule``; one pose per schedule
-    entry, in journal numbering) plans ``grid**2`` region samples, whether or not it was
-    shot; a sample is kept when it has no flag.  A pose's band is that of the larger of
-    its planned theta_i and theta_o (the more grazing direction): band ``[lo, lo +
+    entry, in journal numbering) plans ``grid**2`` (``nx * ny``) region samples, whether
+    or not it was shot; a sample is kept when it has no flag.  A pose's band is that of
+    the larger of its planned theta_i and theta_o (the more grazing direction): band ``[lo, lo +
     band_deg]`` holds the poses with ``lo < theta <= lo + band_deg`` (the first band
     also theta = 0).  The headline ``planned``, ``kept`` and ``fraction`` count the poses
     up to ``up_to_deg``; bands beyond it are listed but not counted there.
@@ -822,7 +986,7 @@ def retention(
         The measured poses (:class:`gonio.capture.pose_measure.PoseMeasurement`); a
         planned pose without one kept nothing.
     grid
-        Regions per side of each pose.
+        Regions per side of each pose, or ``(nx, ny)``.
     up_to_deg, band_deg
         The headline's largest theta and the bands' width, degrees.
 
@@ -833,7 +997,8 @@ def retention(
         [lo, hi], "planned", "kept", "fraction"}, ...], "geometry_source": {source:
         kept samples}}``; a fraction is None where nothing was planned.
     """
-    per_pose = grid * grid
+    gx, gy = (grid, grid) if isinstance(grid, int | np.integer) else grid
+    per_pose = int(gx) * int(gy)
     kept_by_pose: dict[int, int] = {}
     sources: Counter[str] = Counter()
     for m in measurements:

@@ -88,6 +88,20 @@ from gonio.errors import ReductionError
     "others decode RAW files ahead while poses are measured.  The output is the same for "
     "any number.",
 )
+@click.option(
+    "--texels",
+    "texels_text",
+    metavar="N|NXxNY",
+    default=None,
+    help="Also write SESSION/texels.h5: the sample divided into N x N texels (row 0 at "
+    "+y, column 0 at -x), every texel's sample in every pose with its directions and "
+    "full error budget, chunked by texels for per-texel fitting ('gonio fit "
+    "SESSION/texels.h5 --svbrdf').  The region grid becomes the texel grid (N per side "
+    "over the whole sample: not with --grid or --roi-fraction); samples.h5 holds the "
+    "same samples pooled.  Refused when a texel would be narrower than 2 pixels at the "
+    "best-resolving pose (the message gives the largest N that fits).  NXxNY: NX texels "
+    "along x by NY along y (e.g. 16x12 for a 4:3 sample).",
+)
 @click.option("--no-plot", is_flag=True, help="Do not write SESSION/samples.png.")
 @click.option(
     "--force", is_flag=True, help="Replace an existing --out file that is not a samples file."
@@ -105,6 +119,7 @@ def reduce_cmd(
     geometry: str | None,
     max_spread: float | None,
     threads: int | None,
+    texels_text: str | None,
     no_plot: bool,
     force: bool,
     quiet: bool,
@@ -131,8 +146,16 @@ def reduce_cmd(
     a time writes an output: a second one into the same file refuses.
 
     \b
-    Example:
+    Spatially varying samples (--texels): the same per-pose reduction with one region
+    per texel over the whole sample; SESSION/texels.h5 (gonio.texels) holds, per texel
+    and sample pose, wi, wo, the BRDF, its std and budget terms, flags and the geometry
+    modes, and reduction.json gains a "texels" section (pixels per texel at the
+    best-resolving pose, samples kept per texel, chunking).
+
+    \b
+    Examples:
       gonio capture reduce runs/paper/ --grid 3
+      gonio capture reduce runs/paper/ --texels 16
     """
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
@@ -142,6 +165,16 @@ def reduce_cmd(
     from gonio.capture.noise import NoiseModel
     from gonio.capture.reduce import reduce_session, resolve_setup
 
+    texels = None
+    if texels_text is not None:
+        from gonio.capture.texel_reduce import parse_texels
+
+        texels = parse_texels(texels_text)
+        if grid is not None or roi_fraction is not None:
+            raise ReductionError(
+                "--texels sets the region grid (N per side) over the whole sample: "
+                "leave out --grid and --roi-fraction"
+            )
     console = Console(stderr=True, quiet=quiet)
     noise = NoiseModel.load(noise_file) if noise_file else None
     setup = resolve_setup(
@@ -188,6 +221,7 @@ def reduce_cmd(
             plot=not no_plot,
             progress=progress,
             threads=threads,
+            texels=texels,
         )
     table = Table(title="BRDF samples")
     table.add_column("samples", justify="right")
@@ -209,6 +243,15 @@ def reduce_cmd(
     for frame, why in res.summary.get("frame_problems", {}).items():
         console.print(f"[yellow]frame {frame}: {why}", soft_wrap=True)
     console.print(f"wrote {res.path}", soft_wrap=True)
+    tex = res.summary.get("texels")
+    if tex:
+        per = tex["kept_per_texel"]
+        console.print(
+            f"texels: {res.path.with_name(tex['file'])} ({tex['texels'][0]}x"
+            f"{tex['texels'][1]} texels x {tex['poses']} poses; kept per texel "
+            f"{per['min']}..{per['max']}, {tex['texels_without_samples']} texel(s) without)",
+            soft_wrap=True,
+        )
     if res.plot:
         console.print(f"plot: {res.plot}", soft_wrap=True)
     # What the session lacks and what it costs: printed even with --quiet (never silent),

@@ -311,7 +311,10 @@ class ReductionSetup:
         The session camera's CFA pattern and mosaic size (frames that differ are refused);
         None takes it from the first frame.
     roi_fraction, grid
-        Central fraction of the sample used, and regions per side.
+        Central fraction of the sample used, and regions per side (along x).
+    grid_y
+        Regions along y when they differ from ``grid`` (a texel reduction's NXxNY), None
+        for a square grid.
     geometry_tolerance_deg, position_tolerance_m
         Largest disagreement between the camera pose from the board and the rig's report.
     geometry
@@ -404,6 +407,12 @@ class ReductionSetup:
     intrinsics_source: str = "camera"
     prnu: float = 0.01
     dsnu_e: float = 5.0
+    grid_y: int | None = None
+
+    @property
+    def grid_xy(self) -> tuple[int, int]:
+        """Regions along x and along y."""
+        return (self.grid, self.grid if self.grid_y is None else self.grid_y)
 
     def replace(self, **changes: Any) -> ReductionSetup:
         """A copy with some fields changed (``dataclasses.replace``)."""

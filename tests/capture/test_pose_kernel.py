@@ -310,3 +310,21 @@ def test_light_profile_in_g_in_both_paths_and_its_closed_form(brackets, monkeypa
     ratio = ref.geometry[ok, 1] / lambertian.geometry[ok, 1]
     np.testing.assert_allclose(1 - ratio, 1 - want[ok], rtol=0.02)
     assert np.ptp(ratio) > 1e-4  # the profile changes G across the sample
+
+
+def test_fused_kernel_matches_numpy_path_on_a_rectangular_grid(brackets, monkeypatch):
+    """``grid_y`` (a texel reduction's NXxNY): both paths label the same pixels, and each
+    region ``iy * nx + ix`` holds the pixels whose sample point lies in cell (ix, iy),
+    ``iy`` counted from -y (worked from the points themselves)."""
+    setup, poses = brackets
+    frames, rp = poses[0]
+    s = setup.replace(grid=5, grid_y=2, roi_fraction=1.0)
+    ref, got = both_paths(monkeypatch, frames, s, rp)
+    assert_same(ref, got)
+    assert ref.regions.n_regions == 10 and len(ref.flags) == 10
+    w, h = s.sample_size
+    inside = ref.regions.label >= 0
+    pts, lab = ref.regions.points[inside], ref.regions.label[inside]
+    ix = np.floor((pts[:, 0] + w / 2) / (w / 5)).astype(int)
+    iy = np.floor((pts[:, 1] + h / 2) / (h / 2)).astype(int)
+    assert np.array_equal(lab, iy * 5 + ix)
