@@ -34,6 +34,8 @@ def _frame(mi, e1, e2, n, c) -> Any:
 
 
 def _bsdf(scene: Scene) -> dict:
+    if scene.sample.spatially_varying:
+        raise ValueError("no Mitsuba equivalent here for a sample with maps or a mix")
     spec = scene.sample.brdf
     if spec.file is not None:
         return {"type": "measured", "filename": str(scene.resolve(spec.file))}

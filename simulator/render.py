@@ -227,6 +227,8 @@ class Surface:
             self.brdf = None
         else:
             self.brdf = scene.build_brdf() if brdf is None else brdf
+        # a spatially varying sample (gonio.simulator.svbrdf): per-texel BRDF and albedo
+        self.spatial = bool(getattr(self.brdf, "spatial", False))
         self.albedo_map = None
         if s.albedo_map is not None:
             self.albedo_map = _load_albedo_map(scene.resolve(s.albedo_map))
@@ -329,7 +331,7 @@ class Surface:
         region: np.ndarray,
         white: np.ndarray,
         camera: np.ndarray,
-        sample_albedo: Callable[[np.ndarray], np.ndarray] | None,
+        sample_albedo: Callable[..., np.ndarray] | None,
     ) -> np.ndarray:
         """Directional albedo (M, 3) towards the camera of surface points x (M, 3): what
         a uniform diffuse irradiance E reflects is ``E / pi`` times it."""
@@ -348,7 +350,8 @@ class Surface:
                 xs = x[smp]
                 wo = camera - xs
                 cos_o = wo[:, 2] / np.linalg.norm(wo, axis=-1)
-                a = sample_albedo(np.arccos(np.clip(cos_o, -1.0, 1.0)))
+                theta = np.arccos(np.clip(cos_o, -1.0, 1.0))
+                a = sample_albedo(theta, xs) if self.spatial else sample_albedo(theta)
                 scale = self.albedo_scale(xs)
                 out[smp] = a if scale is None else a * scale
         return out
@@ -438,8 +441,12 @@ def albedo_table(brdf: Any) -> Callable[[np.ndarray], np.ndarray]:
     Returns
     -------
     callable
-        ``theta_o (M,) rad -> (M, 3)`` albedo.
+        ``theta_o (M,) rad -> (M, 3)`` albedo; for a spatially varying sample
+        (:class:`gonio.simulator.svbrdf.SpatialBRDF`) ``(theta_o, x (M, 3)) -> (M, 3)``,
+        each point's texel tabulated once.
     """
+    if getattr(brdf, "spatial", False):
+        return brdf.albedo_at
     a = np.asarray(brdf.albedo(_ALBEDO_THETA), dtype=np.float64)
     a = np.broadcast_to(a.reshape(len(_ALBEDO_THETA), -1), (len(_ALBEDO_THETA), 3)).copy()
 
@@ -562,7 +569,11 @@ class _Integrator:
             wo = self.camera - xs
             wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
             wis = wi[smp]
-            f = np.asarray(self.surface.brdf.eval(wis, np.broadcast_to(wo[:, None, :], wis.shape)))
+            wob = np.broadcast_to(wo[:, None, :], wis.shape)
+            if self.surface.spatial:
+                f = np.asarray(self.surface.brdf.eval_at(xs, wis, wob))
+            else:
+                f = np.asarray(self.surface.brdf.eval(wis, wob))
             f = np.nan_to_num(f, nan=0.0)
             val = np.einsum("mkc,mk->mc", f, g[smp])
             scale = self.surface.albedo_scale(xs)
@@ -793,7 +804,7 @@ def render(
     max_memory_bytes: float | None = None,
     direct: bool = True,
     diffuse: bool = False,
-    sample_albedo: Callable[[np.ndarray], np.ndarray] | None = None,
+    sample_albedo: Callable[..., np.ndarray] | None = None,
 ) -> RenderResult:
     """Render the scene's camera view of the sample plane.
 
@@ -1041,7 +1052,11 @@ def save_truth(
 
     Datasets: ``radiance`` (H, W, 3) W/(sr m^2), ``wi``, ``wo`` (H, W, 3) sample frame,
     ``points`` (H, W, 3) m, ``region`` (H, W) uint8 (attribute ``names``), ``edge``
-    (H, W) bool; attributes ``stats`` (JSON) and ``scene`` (JSON, when given).
+    (H, W) bool; attributes ``stats`` (JSON) and ``scene`` (JSON, when given).  A
+    spatially varying sample's scene adds ``texel`` (H, W) int64: the flat index
+    ``row * nx + col`` of the pixel centre's texel in the finest map's grid (attribute
+    ``texels`` = [nx, ny]; -1 off the sample), :mod:`gonio.simulator.svbrdf`'s
+    convention.
 
     Raises
     ------
@@ -1063,6 +1078,17 @@ def save_truth(
         for name in ("radiance", "wi", "wo", "points", "region", "edge"):
             f.create_dataset(name, data=getattr(result, name), compression="gzip")
         f["region"].attrs["names"] = json.dumps(REGION_NAMES)
+        if scene is not None and scene.sample.spatially_varying:
+            from gonio.simulator.svbrdf import load_layout, texel_of
+
+            ny, nx = load_layout(scene).shape
+            pts = result.points
+            r, c = texel_of(
+                pts[..., 0], pts[..., 1], (scene.sample.width, scene.sample.height), (ny, nx)
+            )
+            idx = np.where(result.region == SAMPLE, r * nx + c, -1).astype(np.int64)
+            f.create_dataset("texel", data=idx, compression="gzip")
+            f["texel"].attrs["texels"] = [nx, ny]
         f.attrs["stats"] = json.dumps(result.stats.as_dict())
         f.attrs["frame"] = "sample"
         if scene is not None:

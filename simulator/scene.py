@@ -17,6 +17,17 @@ TOML schema (every length in metres, angles in degrees where the name says ``_de
     options = { fresnel = "schlick" }   # keyword options of get_model
     # file = "paper_white_rgb.bsdf"     # ... or a measured file (gonio.brdf.load)
 
+    [sample.maps]                # optional: parameters of the analytic sample.brdf.model
+                                 # per texel (gonio.simulator.svbrdf; piecewise constant,
+                                 # row 0 at +y, column 0 at -x; maps may differ in size)
+    alpha = [[0.1, 0.2], [0.3, 0.4]]     # inline rows (of numbers or of [r, g, b])
+    ks = "ks.npy"                        # (ny, nx) or (ny, nx, 3) .npy, natural units
+    albedo = { file = "albedo.png", range = [0.0, 0.8] }   # 8/16-bit image [0,1] -> range
+    # [sample.mix]               # ... or materials by an integer mask (not both; neither
+    # mask = [[0, 1], [1, 0]]    # combines with albedo_map; sample.brdf is then not needed)
+    # [[sample.mix.materials]]   # label k -> materials[k]: a BRDFSpec (model + params,
+    # file = "paper_white_rgb.bsdf"      # or a measured file)
+
     [holder]                     # optional: a Lambertian plate around the sample
     width = 0.15
     height = 0.15
@@ -118,6 +129,8 @@ __all__ = [
     "Board",
     "BoxOccluder",
     "Camera",
+    "MapFile",
+    "Mix",
     "CylinderOccluder",
     "DiskLight",
     "Holder",
@@ -251,14 +264,78 @@ class BRDFSpec(_Model):
         return self
 
 
+class MapFile(_Model):
+    """A parameter map in a file: ``.npy`` (natural units) or an 8/16-bit image whose
+    [0, 1] values are taken to ``range`` (default [0, 1])."""
+
+    file: Path
+    range: tuple[float, float] | None = None
+
+    @model_validator(mode="after")
+    def _finite_range(self) -> MapFile:
+        if self.range is not None and not all(np.isfinite(self.range)):
+            raise ValueError(f"range must be two finite numbers, got {list(self.range)}")
+        return self
+
+
+#: A map's value in ``[sample.maps]``: a path, a file with a value range, or an inline
+#: nested list (rows of numbers or of [r, g, b]); loaded by
+#: :func:`gonio.simulator.svbrdf.load_maps`, which checks shape, NaN and bounds.
+MapValue = MapFile | Path | list[Any]
+
+
+class Mix(_Model):
+    """A sample made of measured or analytic materials laid out by an integer mask:
+    texel label k has ``materials[k]``."""
+
+    mask: Path | list[Any]
+    materials: list[BRDFSpec] = Field(min_length=1)
+
+
 class Sample(_Model):
-    """The measured sample: a rectangle centred on the origin in the plane z = 0."""
+    """The measured sample: a rectangle centred on the origin in the plane z = 0.
+
+    Spatially varying samples (``maps`` or ``mix``, not both, and neither with
+    ``albedo_map``): see :mod:`gonio.simulator.svbrdf`.
+    """
 
     width: Positive
     height: Positive
-    brdf: BRDFSpec
+    brdf: BRDFSpec | None = None
     albedo_map: Path | None = None
+    maps: dict[str, MapValue] | None = None
+    mix: Mix | None = None
     mirror_reflectance: Annotated[float, Field(gt=0, le=1)] | None = None
+
+    @model_validator(mode="after")
+    def _one_layout(self) -> Sample:
+        if self.maps is not None and self.mix is not None:
+            raise ValueError(
+                "give 'maps' (parameter maps of sample.brdf) or 'mix' (materials by a "
+                "mask), not both"
+            )
+        if self.albedo_map is not None and (self.maps is not None or self.mix is not None):
+            which = "maps" if self.maps is not None else "mix"
+            raise ValueError(
+                f"'albedo_map' does not combine with '{which}' (give the albedo as "
+                "sample.maps.albedo instead)"
+            )
+        if self.brdf is None and self.mix is None:
+            raise ValueError("give 'brdf' (or 'mix' with its materials)")
+        if self.maps is not None:
+            if self.brdf is None or self.brdf.model is None:
+                raise ValueError(
+                    "'maps' replace parameters of an analytic sample.brdf.model; a "
+                    "measured file has none (use 'mix' for measured materials)"
+                )
+            if not self.maps:
+                raise ValueError("'maps' is empty: give at least one parameter map")
+        return self
+
+    @property
+    def spatially_varying(self) -> bool:
+        """Whether the sample has parameter maps or a material mix."""
+        return self.maps is not None or self.mix is not None
 
 
 class Board(_Model):
@@ -598,7 +675,12 @@ class Scene(_Model):
         """
         from gonio.errors import GonioError
 
+        if self.sample.spatially_varying:
+            from gonio.simulator.svbrdf import build_spatial_brdf
+
+            return build_spatial_brdf(self)
         spec = self.sample.brdf
+        assert spec is not None  # Sample's validator: brdf unless mix
         if spec.file is not None:
             import gonio.brdf
 
@@ -618,7 +700,9 @@ class Scene(_Model):
     def with_reference_target(self, albedo: RGBOrScalar = 0.99) -> Scene:
         """The same scene with a Lambertian target of ``albedo`` in place of the sample."""
         brdf = BRDFSpec(model="lambert", params={"albedo": list(_rgb(albedo))})
-        sample = self.sample.model_copy(update={"brdf": brdf, "albedo_map": None})
+        sample = self.sample.model_copy(
+            update={"brdf": brdf, "albedo_map": None, "maps": None, "mix": None}
+        )
         return self.model_copy(update={"sample": sample})
 
     def with_mirror_target(self, reflectance: float = 0.9) -> Scene:
@@ -633,7 +717,12 @@ class Scene(_Model):
         if not 0.0 < float(reflectance) <= 1.0:
             raise ConfigError(f"mirror reflectance = {reflectance!r}: expected a value in (0, 1]")
         sample = self.sample.model_copy(
-            update={"mirror_reflectance": float(reflectance), "albedo_map": None}
+            update={
+                "mirror_reflectance": float(reflectance),
+                "albedo_map": None,
+                "maps": None,
+                "mix": None,
+            }
         )
         return self.model_copy(update={"sample": sample})
 
@@ -691,6 +780,13 @@ def parse_scene(
         Naming the source and each offending field.
     """
     scene = validate(Scene, {**data, "base_dir": base_dir}, f"{source}: invalid scene")
+    if scene.sample.spatially_varying:
+        from gonio.simulator.svbrdf import check_layout
+
+        try:
+            check_layout(scene)  # shapes, NaN, bounds, labels: before anything renders
+        except ConfigError as exc:
+            raise ConfigError(f"{source}: invalid scene: {exc}") from None
     if scene.rig is not None and rig_poses is not None:
         scene = scene_with_rig_poses(scene, rig_poses(scene))
     return scene

@@ -205,6 +205,13 @@ def open_session_devices(
             # camera: from the session's reduction.toml, never from the scene -- and the
             # NOMINAL camera (the drawing), as a lab knows it before calibrating.
             setup = reduction_toml_text(reduction_document(drawn, refl))
+            files = {CONFIG_FILE: setup.encode()}
+            if drawn.sample.spatially_varying:
+                from gonio.simulator.svbrdf import TRUTH_FILE, truth_bytes
+
+                # the sample's maps beside the DNGs, for tests and benchmarks only: the
+                # reduction and the fit never read them
+                files[TRUTH_FILE] = truth_bytes(drawn)
             yield SessionDevices(
                 rig,
                 camera,
@@ -213,7 +220,7 @@ def open_session_devices(
                 kinematics=kin,
                 sleep=sleep,
                 read_noise_dn=camera.read_noise_dn,
-                files={CONFIG_FILE: setup.encode()},
+                files=files,
                 clock=rig_clock,
             )
             return

@@ -153,15 +153,19 @@ def render_cmd(
             )
     scene = load_scene(scene_file)
     try:
-        scene.build_brdf()  # the sample's BRDF is resolved lazily; fail now, naming the file
+        # the sample's BRDF is resolved lazily; fail now, naming the file (and keep it:
+        # measured files, a mix's too, are slow to load)
+        brdf = scene.build_brdf()
     except ConfigError as exc:
         raise ConfigError(f"{scene_file}: {exc}") from None
     if reference:
-        scene = scene.with_reference_target(0.99)
+        scene, brdf = scene.with_reference_target(0.99), None
     limit = None if max_memory_gb is None else max_memory_gb * 1e9
     try:
         with console.status("rendering..."):
-            result = render(scene, tolerance=tolerance, strategy=strategy, max_memory_bytes=limit)
+            result = render(
+                scene, tolerance=tolerance, strategy=strategy, max_memory_bytes=limit, brdf=brdf
+            )
         frame = simulate_raw(
             result.radiance,
             scene.camera,

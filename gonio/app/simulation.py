@@ -115,10 +115,15 @@ def relocatable(source: SceneSource) -> tuple[dict[str, Any], dict[str, Path]]:
     """
     copies = _Copies(source.base_dir)
 
-    def walk(node: Any) -> Any:
+    def walk(node: Any, maps: bool = False) -> Any:
         if isinstance(node, dict):
             return {
-                k: (copies.take(v) if k in _PATH_KEYS and isinstance(v, str) else walk(v))
+                k: (
+                    copies.take(v)
+                    # a parameter map's value and a mix's mask are paths when strings
+                    if isinstance(v, str) and (k in _PATH_KEYS or maps or k == "mask")
+                    else walk(v, k == "maps")
+                )
                 for k, v in node.items()
             }
         if isinstance(node, list):
