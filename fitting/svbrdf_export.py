@@ -331,7 +331,14 @@ def standard_surface_eval(
         * _g2_height_correlated(ci_s, co_s, np.float64(alpha))
         / (4.0 * ci_s * co_s)
     )
-    e = _specular_albedo(co_s, np.float64(alpha), ior)
+    # E depends on theta_o only: once per distinct cos_o (a grid has few)
+    cos_u, inv = np.unique(co_s, return_inverse=True)
+    e = np.concatenate(
+        [
+            _specular_albedo(part, np.float64(alpha), ior)
+            for part in np.array_split(cos_u, max(1, cos_u.size // 256))
+        ]
+    )[inv]
     f = (
         np.asarray(base_color)[None, :] / math.pi * (1.0 - e)[:, None]
         + spec[:, None] * np.asarray(specular_color)[None, :]
