@@ -428,7 +428,7 @@ def fit_svbrdf(
 
     console = console or Console()
     err_console = err_console or Console(stderr=True)
-    path = Path(path).resolve()
+    path = Path(path).absolute()
     if scheduler is not None and workers is not None:
         raise GonioError(
             "--workers sets the size of the local cluster; a scheduler's workers are "

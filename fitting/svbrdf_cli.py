@@ -145,7 +145,8 @@ def _svbrdf_command(
 
     with open_texels(source):  # a FileFormatError names the file before any folder exists
         pass
-    out = Path(out) if out is not None else Path(source).resolve().parent / "svbrdf"
+    # not resolved: SESSION/texels.h5 may be a link into the reduction's output set
+    out = Path(out) if out is not None else Path(source).absolute().parent / "svbrdf"
     console = Console()
     with output_folder(out, force) as keep:
         res = fit_svbrdf(
