@@ -153,7 +153,8 @@ def _preview(res: SVBRDFResult, path: Path) -> None:
             ax.set_title(title)
         ax.set_xlabel("x (mm)")
     axes[0][0].set_ylabel("y (mm)")
-    fig.suptitle(f"{res.model}: {res.shape[1]} x {res.shape[0]} texels, {res.source.name}")
+    smooth = f", smoothed (lambda {res.smooth:g})" if res.smooth else ""
+    fig.suptitle(f"{res.model}: {res.shape[1]} x {res.shape[0]} texels, {res.source.name}{smooth}")
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, format="png")
