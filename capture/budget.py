@@ -604,8 +604,33 @@ def local_log_gradient(
     kk = min(int(k), len(pool))
     if kk < 6:
         return out
-    q = np.flatnonzero(np.isfinite(X).all(axis=1))
     tree = cKDTree(X[pool])
+    logf = np.log(np.where(ok[:, None], f, np.nan))
+    q_all = np.flatnonzero(np.isfinite(X).all(axis=1))
+    # Queries in blocks: the neighbourhoods' design matrices take ~14 kB per sample, which
+    # a texel reduction (T x P samples) would otherwise hold all at once; each sample's
+    # fit is its own, so the result is the same block by block.
+    for b0 in range(0, len(q_all), _GRADIENT_BLOCK):
+        q = q_all[b0 : b0 + _GRADIENT_BLOCK]
+        out[q] = _local_fits(X, logf, tree, pool, q, kk, ridge, curvature_ridge)
+    return out
+
+
+#: Samples whose neighbourhood fits :func:`local_log_gradient` solves at a time.
+_GRADIENT_BLOCK = 4096
+
+
+def _local_fits(
+    X: Array,
+    logf: Array,
+    tree: Any,
+    pool: NDArray[np.int64],
+    q: NDArray[np.int64],
+    kk: int,
+    ridge: float,
+    curvature_ridge: float,
+) -> Array:
+    """(Q, C, 4) gradients of the queries ``q`` (see :func:`local_log_gradient`)."""
     dist, idx = tree.query(X[q], k=kk)
     nb = pool[idx]  # (Q, k)
     h = dist[:, -1] * 1.0001 + 1e-12
@@ -619,15 +644,14 @@ def local_log_gradient(
     reg[1:5] = ridge
     reg[5:] = curvature_ridge
     normal += w.sum(axis=1)[:, None, None] * np.diag(reg)
-    rhs = AtW @ np.log(f[nb])  # (Q, 15, C)
+    rhs = AtW @ logf[nb]  # (Q, 15, C)
     if ridge > 0 and curvature_ridge > 0:  # positive definite: a direct solve (5x faster)
         beta = np.linalg.solve(normal, rhs)
     else:
         # the pseudo-inverse: a neighbourhood that spans fewer directions than the
         # features gets the minimum-norm slope there, not an error
         beta = np.linalg.pinv(normal) @ rhs
-    out[q] = beta[:, 1:5, :].transpose(0, 2, 1) / h[:, None, None]
-    return out
+    return beta[:, 1:5, :].transpose(0, 2, 1) / h[:, None, None]
 
 
 def geometry_std(brdf: Array, gradient: Array, modes: Array) -> Array:

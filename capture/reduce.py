@@ -73,6 +73,7 @@ from gonio.capture.reduction_config import (
     resolve_setup,
 )
 from gonio.capture.samples_plot import plot_samples
+from gonio.capture.texel_reduce import texel_levelled
 from gonio.dataset import save_samples
 from gonio.errors import GonioError, ReductionError, SessionError
 from gonio.locks import hold_lock
@@ -182,7 +183,7 @@ def reduce_session(
     texels
         ``(nx, ny)``: also write the per-texel file ``texels.h5`` beside the output
         (:mod:`gonio.texels`), with the region grid made the texel grid
-        (:mod:`gonio.capture.texel_reduce`: ``grid = nx`` over the whole sample,
+        (:mod:`gonio.capture.texel_reduce`: ``nx x ny`` regions over the whole sample,
         ``roi_fraction = 1``, overriding the setup's); ``samples.h5`` then holds the same
         samples pooled.  Without it, a ``texels.h5`` of an earlier texel reduction leaves
         with the rest of that output set.
@@ -197,7 +198,7 @@ def reduce_session(
         Not a session directory, no ``reduction.toml``, or nothing to reduce.
     ReductionError
         No usable reference frames (the irradiance cannot be calibrated); ``texels``
-        finer than the camera resolves, or not square
+        finer than the camera resolves
         (:func:`gonio.capture.texel_reduce.texel_resolution`), refused before any frame
         is decoded.
     gonio.locks.LockedError
@@ -228,6 +229,14 @@ def reduce_session(
         resolution = texel_resolution(setup, texels, _sample_cameras(kin, records))
     path = Path(out) if out is not None else session / SAMPLES_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
+    names = [path.name, SUMMARY_FILE, PLOT_FILE]
+    if texels is not None or _texels_of_this_set(path):
+        # texels.h5 joins the set when written, and when an earlier texel reduction's is
+        # there (it then leaves with its set); a file of that name that is not ours is
+        # never touched
+        names.append(TEXELS_FILE)
+    if texels is not None:
+        _refuse_foreign_texels(path.with_name(TEXELS_FILE), path)
     with hold_lock(output_lock(path), f"output {path}"):
         run = _PoseRun(session, setup, kin, records, texels=texels)
         run.measure_all(default_threads() if threads is None else max(1, int(threads)), progress)
@@ -241,9 +250,8 @@ def reduce_session(
         summary["texels"] = None if texel_doc is None else texel_doc[1]
         summary["warnings"] = list(run.warnings)  # with the texel file's, if any
         # One set: a kill leaves the old samples, summary, plot and texels, or the new
-        # ones; texels.h5 is always one of the set's names, so a reduction without
-        # --texels drops an earlier one's texels.h5 with the rest of its set.
-        names = (path.name, SUMMARY_FILE, PLOT_FILE, TEXELS_FILE)
+        # ones; a reduction without --texels drops an earlier one's texels.h5 with the
+        # rest of its set.
         with output_set(path, names) as stage:
             save_samples(stage / path.name, samples)
             if texel_doc is not None:
@@ -255,6 +263,33 @@ def reduce_session(
     return ReductionResult(
         path, len(samples), n_kept, dict(run.rejected), summary, plot_path, list(run.warnings)
     )
+
+
+def _texels_of_this_set(path: Path) -> bool:
+    """Whether ``texels.h5`` beside ``path`` is the link into ``path``'s output set that an
+    earlier texel reduction made."""
+    from gonio.capture.output_set import set_folder
+
+    t = path.with_name(TEXELS_FILE)
+    return t.is_symlink() and os.readlink(t) == f"{set_folder(path).name}/{TEXELS_FILE}"
+
+
+def _refuse_foreign_texels(tex: Path, path: Path) -> None:
+    """Refuse to replace a ``texels.h5`` that neither this output's set nor gonio wrote."""
+    if not os.path.lexists(tex) or _texels_of_this_set(path):
+        return
+    import h5py
+
+    try:
+        with h5py.File(tex, "r") as f:
+            ours = f.attrs.get("schema") == "gonio.texels"
+    except OSError:
+        ours = False
+    if not ours:
+        raise ReductionError(
+            f"{tex} exists and is not a gonio texel file: move it away first (a texel "
+            "reduction writes texels.h5 beside its output; nothing was written)"
+        )
 
 
 def _sample_cameras(
@@ -347,45 +382,6 @@ def _texel_arrays_and_summary(
     k = chunk_texels_for(nx * ny, len(samples_m), 8 * m * 6 if m else 8 * 3)
     summary["chunk_texels"] = doc["chunk_texels"] = k
     return doc, summary
-
-
-def _texel_levelled(
-    brdf: NDArray[np.float64],
-    samples_m: list[PoseMeasurement],
-    usable: NDArray[np.bool_],
-    texels: tuple[int, int],
-) -> NDArray[np.float64]:
-    """The BRDF with each texel's own level divided out, for the geometry term's gradient.
-
-    The gradient of ``log f`` over the directions is estimated from neighbouring samples
-    (:func:`gonio.capture.budget.local_log_gradient`).  On a texel grid those neighbours
-    are mostly other texels seen in the same pose, whose directions differ with their
-    place on the sample: a sample whose albedo varies across it would have its spatial
-    variation read as a directional slope (on a Lambertian sample with a 40 % albedo
-    ramp, 0.7 % of f instead of ~0.002 %).  Each texel's geometric mean over its usable
-    poses (per channel) is divided out, so a multiplicative spatial variation leaves
-    the neighbourhoods.  The cost: the share of a real directional slope that is common
-    to a texel over all its poses goes with it (small with many poses)."""
-    from gonio.capture.texel_reduce import region_to_texel
-
-    n_regions = texels[0] * texels[1]
-    to_texel = region_to_texel(texels)
-    ids = np.concatenate(
-        [to_texel if len(m.flags) == n_regions else np.full(len(m.flags), -1) for m in samples_m]
-    )
-    with np.errstate(invalid="ignore", divide="ignore"):
-        logf = np.log(brdf)
-    ok = usable & (ids >= 0) & np.isfinite(logf).all(axis=1)
-    n_tex = int(n_regions)
-    cnt = np.bincount(ids[ok], minlength=n_tex)
-    out = brdf.copy()
-    for c in range(brdf.shape[1]):
-        level = np.bincount(ids[ok], logf[ok, c], minlength=n_tex) / np.maximum(cnt, 1)
-        centre = float(np.mean(level[cnt > 0])) if (cnt > 0).any() else 0.0
-        shift = np.where(cnt > 0, level - centre, 0.0)
-        sel = ids >= 0
-        out[sel, c] = brdf[sel, c] / np.exp(shift[ids[sel]])
-    return out
 
 
 @dataclass
@@ -888,7 +884,9 @@ class _PoseRun:
         grad = local_log_gradient(
             np.concatenate([m.wi for m in samples_m]),
             np.concatenate([m.wo for m in samples_m]),
-            brdf if self.texels is None else _texel_levelled(brdf, samples_m, usable, self.texels),
+            brdf
+            if self.texels is None
+            else texel_levelled(brdf, [len(m.flags) for m in samples_m], usable, self.texels),
             usable,
         )
         budget: dict[str, NDArray[np.float64]] = {

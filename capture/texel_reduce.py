@@ -40,6 +40,7 @@ __all__ = [
     "parse_texels",
     "region_to_texel",
     "texel_arrays",
+    "texel_levelled",
     "texel_resolution",
     "texel_setup",
 ]
@@ -304,4 +305,57 @@ def texel_arrays(
         out["geometry_modes"] = per(samples.geometry_modes)
         out["geometry_mode_scope"] = list(samples.geometry_mode_scope)
         out["geometry_mode_names"] = list(samples.geometry_mode_names)
+    return out
+
+
+def texel_levelled(
+    brdf: NDArray[np.float64],
+    counts: Sequence[int],
+    usable: NDArray[np.bool_],
+    texels: tuple[int, int],
+) -> NDArray[np.float64]:
+    """The BRDF with each texel's own level divided out, for the geometry term's gradient.
+
+    The gradient of ``log f`` over the directions is estimated from neighbouring samples
+    (:func:`gonio.capture.budget.local_log_gradient`).  On a texel grid those neighbours
+    are mostly other texels seen in the same pose, whose directions differ with their
+    place on the sample: a sample whose albedo varies across it would have its spatial
+    variation read as a directional slope (on a Lambertian sample with a 40 % albedo
+    ramp, 0.7 % of f instead of ~0.002 %).  Each texel's geometric mean over its usable
+    poses (per channel) is divided out, so a multiplicative spatial variation leaves
+    the neighbourhoods.  The cost: the share of a real directional slope that is common
+    to a texel over all its poses goes with it (small with many poses).
+
+    Parameters
+    ----------
+    brdf
+        (N, C) the reduction's samples, pose after pose, 1/sr.
+    counts
+        Samples of each sample pose: ``nx * ny``, or 1 for a pose without a measurement
+        (left as it is).
+    usable
+        (N,) the samples that set a texel's level.
+    texels
+        ``(nx, ny)``.
+
+    Returns
+    -------
+    ndarray
+        (N, C) the levelled BRDF (for the gradient only: never stored).
+    """
+    n_regions = texels[0] * texels[1]
+    to_texel = region_to_texel(texels)
+    ids = np.concatenate([to_texel if c == n_regions else np.full(c, -1) for c in counts])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        logf = np.log(brdf)
+    ok = usable & (ids >= 0) & np.isfinite(logf).all(axis=1)
+    n_tex = int(n_regions)
+    cnt = np.bincount(ids[ok], minlength=n_tex)
+    out = brdf.copy()
+    for c in range(brdf.shape[1]):
+        level = np.bincount(ids[ok], logf[ok, c], minlength=n_tex) / np.maximum(cnt, 1)
+        centre = float(np.mean(level[cnt > 0])) if (cnt > 0).any() else 0.0
+        shift = np.where(cnt > 0, level - centre, 0.0)
+        sel = ids >= 0
+        out[sel, c] = brdf[sel, c] / np.exp(shift[ids[sel]])
     return out

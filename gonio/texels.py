@@ -65,6 +65,7 @@ from gonio.dataset import (
     SHARED_BUDGET_TERMS,
     UNIT_TOLERANCE,
     BRDFSamples,
+    Flag,
 )
 from gonio.errors import FileFormatError
 
@@ -342,13 +343,19 @@ def save_texels(
         raise ValueError(f"chunk_texels must lie in [1, {t}], got {chunk_texels!r}")
 
     def put(where: h5py.Group, name: str, v: NDArray, unit: str) -> None:
+        # what a chunk lost from the file's index would read as: no sample
+        fill = np.uint32(Flag.INVALID) if v.dtype.kind == "u" else np.nan
         ds = where.create_dataset(
             name,
             data=v,
+            fillvalue=fill,
             chunks=(k, *v.shape[1:]),
             compression="gzip",
             compression_opts=4,
             shuffle=True,
+            # a checksum per chunk: a worker reading a damaged block gets an error
+            # naming the dataset, never silently wrong numbers
+            fletcher32=True,
         )
         ds.attrs["units"] = unit
 
@@ -357,7 +364,12 @@ def save_texels(
         f.create_dataset(name, data=a, dtype=h5py.string_dtype()).attrs["units"] = ""
 
     path = Path(path)
-    with atomic_path(path, parents=True) as tmp, h5py.File(tmp, "w") as f:
+    # libver "v110": object headers and chunk indexes carry checksums (HDF5 >= 1.10 reads
+    # them), so a damaged header or index is an error too, not a chunk read as fill
+    with (
+        atomic_path(path, parents=True) as tmp,
+        h5py.File(tmp, "w", libver=("v110", "latest")) as f,
+    ):
         for key, v in extra.items():
             f.attrs[key] = _attr_value(v)
         f.attrs["schema"] = SCHEMA
@@ -583,8 +595,22 @@ class TexelFile:
 
     # reading blocks --------------------------------------------------------------------
     def _read(self, name: str, t0: int, t1: int) -> NDArray:
+        ds = self._f[name]
         try:
-            return self._f[name][t0:t1]
+            k = ds.chunks[0] if ds.chunks else None
+            if k is not None:
+                # HDF5 reads a chunk missing from the index as the fill value, silently
+                for c0 in range(t0 - t0 % k, t1, k):
+                    info = ds.id.get_chunk_info_by_coord((c0,) + (0,) * (ds.ndim - 1))
+                    if info.byte_offset is None:
+                        raise self._fail(
+                            f"texels {c0}..{min(c0 + k, ds.shape[0]) - 1}: the chunk is "
+                            "missing from the file (damaged index)",
+                            name,
+                        )
+            return ds[t0:t1]
+        except FileFormatError:
+            raise
         except Exception as exc:  # a damaged chunk fails inside HDF5's filters
             raise self._fail(
                 f"texels {t0}..{t1 - 1}: damaged or unreadable data ({exc})", name

@@ -440,3 +440,22 @@ def test_camera_modes_move_a_board_pose_as_a_resolved_pose_does():
     # on a rig pose the camera modes are the rig covariance's business: zeros
     m_rig = pose_modes(wi, wo, cam, L, source="rig", K=K, camera_modes=cm)
     assert np.all(m_rig[:, :4] == 0)
+
+
+def test_local_log_gradient_is_the_same_block_by_block(monkeypatch):
+    """The neighbourhood fits are solved a block of samples at a time (bounded memory on
+    texel reductions): one block or blocks of 7 give the same numbers, bit for bit."""
+    from gonio.capture import budget
+    from gonio.radiometry import normalize
+
+    rng = np.random.default_rng(4)
+    n = 200
+    wi = normalize(np.abs(rng.normal(size=(n, 3))) + [0, 0, 0.5])
+    wo = normalize(np.abs(rng.normal(size=(n, 3))) + [0, 0, 0.5])
+    f = np.exp(0.1 * rng.normal(size=(n, 3))) * (1 + 5 * (wi[:, 2:3] * wo[:, 2:3]) ** 8)
+    f[3] = np.nan
+    whole = budget.local_log_gradient(wi, wo, f)
+    monkeypatch.setattr(budget, "_GRADIENT_BLOCK", 7)
+    np.testing.assert_array_equal(budget.local_log_gradient(wi, wo, f), whole)
+    # a sample without a usable BRDF is not a neighbour, but still gets its neighbours' slope
+    assert np.isfinite(whole).all()

@@ -302,3 +302,31 @@ def test_geometry_modes_beyond_the_limit_are_left_out_and_said_so():
     )
     assert "geometry_modes" in texel_arrays(s, [4], [0], 2)
     assert "geometry_modes" not in texel_arrays(s, [4], [0], 2, with_modes=False)
+
+
+def test_levelling_divides_out_each_texels_geometric_mean():
+    """2 x 1 texels, two poses and a pose without a measurement (hand-made numbers):
+    texel levels 2 and 8 (geometric means over their poses) become their common
+    geometric mean 4; the directional change between the poses (x 1.5) stays."""
+    from gonio.capture.texel_reduce import texel_levelled
+
+    # regions r = ix (one row): texel = ix; pose 1 is 1.5 x pose 0
+    f = np.array([[2 / 1.5**0.5], [8 / 1.5**0.5], [2 * 1.5**0.5], [8 * 1.5**0.5], [7.0]])
+    out = texel_levelled(f * np.ones(3), [2, 2, 1], np.ones(5, bool), (2, 1))
+    np.testing.assert_allclose(out[:4, 0], [4 / 1.5**0.5] * 2 + [4 * 1.5**0.5] * 2)
+    assert out[4, 0] == 7.0  # the empty pose's sample is left alone
+
+
+def test_a_texels_h5_that_is_not_ours_is_never_touched(reduced, capsys):
+    """A file named texels.h5 beside the output that no texel reduction wrote: --texels
+    refuses (nothing written), and a plain reduction leaves it alone."""
+    s = reduced["session"]
+    foreign = s / "texels.h5"
+    foreign.write_bytes(b"the lab's own notes")
+    try:
+        assert run("capture", "reduce", str(s), "--texels", str(N), "--quiet") == 1
+        assert "is not a gonio texel file" in capsys.readouterr().err
+        assert run("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
+        assert not foreign.is_symlink() and foreign.read_bytes() == b"the lab's own notes"
+    finally:
+        foreign.unlink()

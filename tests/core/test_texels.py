@@ -211,3 +211,35 @@ def test_a_texel_fits_like_a_samples_file(written):
             if t == 7:  # its empty pose is left out as a flagged samples.h5 row is
                 assert r.diagnostics["dropped"] == {"flagged": 1}
             np.testing.assert_allclose(r.params["albedo"], 0.1 + 0.05 * t, rtol=1e-6)
+
+
+def test_damage_is_an_error_or_nothing(tmp_path, written):
+    """Random byte changes and truncations of a texels.h5: reading every texel either
+    raises FileFormatError or gives back exactly what was written (chunk checksums,
+    checksummed headers and chunk indexes, fill values of no sample), never a traceback
+    or silently changed numbers."""
+    src, a = written
+    data = src.read_bytes()
+    rng = np.random.default_rng(0)
+    p = tmp_path / "fuzz.h5"
+    outcomes = {"error": 0, "same": 0}
+    for _ in range(100):
+        b = bytearray(data)
+        for _ in range(int(rng.integers(1, 8))):
+            b[int(rng.integers(0, len(b)))] = int(rng.integers(0, 256))
+        if rng.uniform() < 0.2:
+            b = b[: int(rng.integers(0, len(b)))]
+        p.write_bytes(bytes(b))
+        try:
+            with open_texels(p) as tf:
+                rows = tf.block(0, tf.n_texels)
+        except FileFormatError:
+            outcomes["error"] += 1
+            continue
+        for t, s in enumerate(rows):
+            for name in ("wi", "wo", "brdf", "brdf_std", "flags", "geometry_modes"):
+                np.testing.assert_array_equal(getattr(s, name), a[name][t])
+            for term in BUDGET_TERMS:
+                np.testing.assert_array_equal(s.budget[term], a["budget"][term][t])
+        outcomes["same"] += 1
+    assert outcomes["error"] > 70, outcomes
