@@ -10,7 +10,7 @@ from pathlib import Path
 
 import click
 
-from gonio.errors import FitError
+from gonio.errors import FitError, GonioError
 from gonio.fitting.library_cli import FIT_SOURCE, library_dispatch
 from gonio.fitting.svbrdf_cli import svbrdf_dispatch
 
@@ -171,7 +171,7 @@ def fit(
         )
     # forked before the output lock is taken and before anything else is imported or
     # loaded: it imports matplotlib while this process loads and fits
-    # (gonio.fitting.plot_worker), so the less the fork inherits the sooner it starts
+    # (gonio.figure_worker), so the less the fork inherits the sooner it starts
     worker = _start_plot_worker() if plots else None
     try:
         from rich.console import Console
@@ -191,9 +191,16 @@ def fit(
 
 
 def _start_plot_worker():
-    from gonio.fitting import plot_worker
+    from gonio.figure_worker import FigureWorker
 
-    return plot_worker.start()
+    return FigureWorker(warm=_load_plots)
+
+
+def _load_plots() -> None:
+    """The figure worker's warm-up: matplotlib and the plot module."""
+    from gonio.fitting import plots
+
+    plots.load_matplotlib()
 
 
 def _existing_outputs(out: Path) -> list[Path]:
@@ -245,16 +252,24 @@ def _write_outputs(console, r, samples, out: Path, plots: bool, worker=None) -> 
             # (--force) the set replaces the old one whole: no old material.xml survives
             console.print(f"[yellow]no Mitsuba export: {exc}[/yellow]")
         if plots:
-            if worker is None:
+            if worker is None or not worker.active:
                 from gonio.fitting import plots as fig
 
                 fig.plot_slices(r, samples, stage / "slices.png")
                 fig.plot_residual_map(r, samples, stage / "residuals.png")
-            else:  # both figures drawn by the worker's two processes, one per core
+            else:  # both figures drawn beside this process, one per core
                 from gonio.atomic import atomic_path
+                from gonio.fitting import plots as fig
 
-                worker.submit(r, samples)
-                for name, png in worker.result().items():
+                jobs = {
+                    "slices.png": worker.submit(fig.slices_png, r, samples),
+                    "residuals.png": worker.submit(fig.residuals_png, r, samples),
+                }
+                for name, job in jobs.items():
+                    try:
+                        png = job.result()
+                    except GonioError as exc:
+                        raise FitError(f"drawing {name} failed: {exc}") from None
                     with atomic_path(stage / name) as tmp:
                         tmp.write_bytes(png)
             names += ["slices.png", "residuals.png"]

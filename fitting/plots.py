@@ -461,13 +461,13 @@ RESIDUALS_DPI = 90
 
 def slices_png(r: FitResult, samples: Any, n_bins: int = 6) -> bytes:
     """The PNG file :func:`plot_slices` writes, as bytes (for a process that does not own
-    the output folder: :mod:`gonio.fitting.plot_worker`)."""
+    the output folder: :mod:`gonio.figure_worker`)."""
     return _png(slices_figure(r, samples, n_bins=n_bins), SLICES_DPI)
 
 
 def residuals_png(r: FitResult, samples: Any) -> bytes:
     """The PNG file :func:`plot_residual_map` writes, as bytes (for
-    :mod:`gonio.fitting.plot_worker`)."""
+    :mod:`gonio.figure_worker`)."""
     return _png(residual_map_figure(r, samples), RESIDUALS_DPI)
 
 

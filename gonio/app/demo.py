@@ -295,11 +295,11 @@ def run_demo(
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise SessionError(f"{out} exists and is not empty: choose a new --out (nothing touched)")
-    from gonio.app.demo_figures import FigureWorker
+    from gonio.app.demo_figures import figure_worker as start_figures
 
     t_all = time.perf_counter()
     # Started first: its imports run beside the capture (see gonio.app.demo_figures).
-    with FigureWorker(enabled=figure_worker) as figures:
+    with start_figures(enabled=figure_worker) as figures:
         return _run_demo(
             out, material, figures, t_all, seed=seed, n_poses=n_poses, width=width,
             height=height, model=model, quiet=quiet, say=say, time_scale=time_scale,

@@ -122,9 +122,10 @@ def write_report(
 
     ``calibration`` (a :class:`gonio.app.demo_calibrations.CalibrationSummary`) adds the
     calibrations' residuals and estimates beside the fit (``--world realistic``).
-    ``figures`` (a :class:`gonio.app.demo_figures.FigureWorker`) draws the residual map
+    ``figures`` (a :class:`gonio.figure_worker.FigureWorker`) draws the residual map
     in its process while this one draws the slices and the frames."""
-    from gonio.app.demo_figures import FigureWorker, residual_map, result_path
+    from gonio.app.demo_figures import residual_map, result_path
+    from gonio.figure_worker import FigureWorker
     from gonio.fitting.export import save_json
     from gonio.fitting.plots import plot_slices
 

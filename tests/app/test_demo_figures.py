@@ -1,18 +1,18 @@
 """The demo's figure worker draws the files the main process would draw.
 
-The reference is the plotting functions called in this process (``FigureWorker(enabled=
+The reference is the plotting functions called in this process (``figure_worker(enabled=
 False)`` and the plain functions): the spawned worker must write the same bytes, report
 its errors in the main process, and leave no process behind.
 """
 
 from __future__ import annotations
 
-import multiprocessing
+import os
 
 import numpy as np
 import pytest
 
-from gonio.app.demo_figures import FigureWorker, residual_map, result_path
+from gonio.app.demo_figures import figure_worker, residual_map, result_path
 from gonio.brdf import get_model
 from gonio.dataset import BRDFSamples, save_samples
 from gonio.errors import GonioError
@@ -40,13 +40,17 @@ def test_worker_draws_the_same_files_as_this_process(fitted):
     (d / "here").mkdir()
     (d / "there").mkdir()
     ref_res = residual_map(result, str(path), str(d / "here" / "residuals.png"))
-    with FigureWorker() as worker:
+    with figure_worker() as worker:
+        assert worker.active
+        pid = worker.pid
         job = worker.submit(residual_map, result, str(path), str(d / "there" / "residuals.png"))
         res = result_path(job)
     assert res.read_bytes() == (d / "here" / "residuals.png").read_bytes()
     assert ref_res.endswith("residuals.png")
-    # shut down on exit: no worker process left
-    assert multiprocessing.active_children() == []
+    # shut down and reaped on exit: no worker process left
+    assert not worker.active
+    with pytest.raises(ChildProcessError):
+        os.waitpid(pid, os.WNOHANG)
 
 
 def test_a_figure_error_is_raised_in_the_main_process(fitted, tmp_path):
@@ -54,7 +58,7 @@ def test_a_figure_error_is_raised_in_the_main_process(fitted, tmp_path):
     missing = tmp_path / "nope" / "samples.h5"
     seen = {}
     for enabled in (True, False):
-        with FigureWorker(enabled=enabled) as worker:
+        with figure_worker(enabled=enabled) as worker:
             job = worker.submit(residual_map, result, str(missing), str(tmp_path / "s.png"))
             with pytest.raises(GonioError, match="nope") as info:
                 result_path(job)

@@ -10,7 +10,6 @@ from click.testing import CliRunner
 
 from gonio.cli import cli
 from gonio.dataset import save_samples
-from gonio.errors import FitError
 
 
 def test_fit_samples_file(tmp_path, make_samples):
@@ -304,38 +303,30 @@ def test_a_failing_plot_worker_fails_the_fit_and_keeps_the_old_set(tmp_path, mak
 
 
 def test_the_plot_workers_draw_the_same_pngs_as_this_process(make_samples):
-    from gonio.fitting import fit, plot_worker, plots
+    from gonio.fitting import cli as fit_cli
+    from gonio.fitting import fit, plots
 
     s = make_samples("lambert+ggx", {"albedo": [0.2] * 3, "ks": [0.3] * 3, "alpha": 0.2},
                      n=300, seed=2, noise=1e-4, read=1e-3)  # fmt: skip
     r = fit(s, "lambert+ggx")
-    worker = plot_worker.start()
-    assert worker is not None  # Linux
-    try:
-        worker.submit(r, s)
-        pngs = worker.result()
-    finally:
-        worker.close()
-    here = {"slices.png": plots.slices_png(r, s), "residuals.png": plots.residuals_png(r, s)}
-    assert pngs == here
+    with fit_cli._start_plot_worker() as worker:
+        assert worker.active  # Linux
+        jobs = [worker.submit(plots.slices_png, r, s), worker.submit(plots.residuals_png, r, s)]
+        pngs = [j.result() for j in jobs]
+    assert pngs == [plots.slices_png(r, s), plots.residuals_png(r, s)]
 
 
-def test_a_failing_residual_drawer_is_named(make_samples, monkeypatch):
+def test_a_failing_residual_drawer_is_named(tmp_path, make_samples, monkeypatch):
     import gonio.fitting.plots as plots
-    from gonio.fitting import fit, plot_worker
 
-    s = make_samples("lambert", {"albedo": [0.2] * 3}, n=100, seed=3, noise=1e-4, read=1e-3)
-    r = fit(s, "lambert")
+    src = _samples_file(tmp_path, make_samples)
 
     def broken(*a, **k):
         raise ValueError("bad colours")
 
     monkeypatch.setattr(plots, "residuals_png", broken)  # inherited by the fork
-    worker = plot_worker.start()
-    assert worker is not None
-    try:
-        worker.submit(r, s)
-        with pytest.raises(FitError, match="drawing residuals.png failed: ValueError: bad colo"):
-            worker.result()
-    finally:
-        worker.close()
+    res = CliRunner().invoke(cli, ["fit", str(src), "-m", "lambert", "--out",
+                                   str(tmp_path / "fit")])  # fmt: skip
+    assert res.exit_code != 0
+    assert "drawing residuals.png failed: ValueError: bad colours" in str(res.exception)
+    assert not (tmp_path / "fit" / "fit.json").exists()
