@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gonio.capture.aperture import aperture_bias, region_moments
 from gonio.capture.budget import (
     POSE_MODE_NAMES,
     TERMS,
@@ -560,6 +561,11 @@ class _PoseRun:
             brdf_of(m, It, np.zeros_like(I_var))
             for m, (It, _) in zip(samples_m, light_at, strict=True)
         ]
+        # each region's radiance follows its BRDF (brdf = radiance / irradiance)
+        rad_scale = [np.ones_like(x[0]) for x in parts]
+        if setup.aperture_correction:
+            done = [self._aperture_corrected(m, x) for m, x in zip(samples_m, parts, strict=True)]
+            parts, rad_scale = [p for p, _ in done], [sc for _, sc in done]
         self._radiometric_terms(samples_m, [u for _, u in light_at])
         brdf = np.concatenate([x[0] for x in parts])
         flags = np.concatenate([m.flags for m in samples_m])
@@ -607,7 +613,9 @@ class _PoseRun:
             brdf_std=brdf_std,
             flags=flags,
             channels=CHANNELS,
-            radiance=np.concatenate([m.radiance for m in samples_m]),
+            radiance=np.concatenate(
+                [m.radiance * sc for m, sc in zip(samples_m, rad_scale, strict=True)]
+            ),
             irradiance=np.concatenate([x[2] for x in parts]),
             frames=np.array([";".join(m.frames) for m in samples_m for _ in range(len(m.flags))]),
             attrs=attrs,
@@ -834,6 +842,25 @@ class _PoseRun:
                 f"stated [light] drift_rel_std = {100 * s.drift_rel_std:g} % for every sample"
             )
         return out
+
+    @staticmethod
+    def _aperture_corrected(
+        m: PoseMeasurement, part: tuple[NDArray[np.float64], ...]
+    ) -> tuple[tuple[NDArray[np.float64], ...], NDArray[np.float64]]:
+        """``brdf_of``'s ``(f, f_std, E, E_var)`` of one pose with each region's aperture
+        bias taken out (:mod:`gonio.capture.aperture`): the value at its reported
+        direction, the correction's noise added to ``f_std``; and the factor (n, C) the
+        region's radiance takes with it (so ``brdf = radiance / irradiance`` stays)."""
+        f, f_std, E, E_var = part
+        one = np.ones_like(f)
+        if m.regions is None or m.n_pixels is None or len(m.flags) != m.regions.n_regions:
+            return part, one
+        x, y, _ = m.regions.xyz
+        centroid, cov = region_moments(m.regions.label, x, y, m.regions.n_regions)
+        bias, bias_std = aperture_bias(centroid, cov, f, f_std, m.flags == 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(np.isfinite(f) & (f != 0), (f - bias) / f, one)
+        return (f - bias, np.sqrt(f_std**2 + bias_std**2), E, E_var), scale
 
     def _budget(
         self,

@@ -257,6 +257,9 @@ class ReductionSection(_Strict):
     #: Assumed std of each joint's zero offset (deg) when the rig has no calibration
     #: covariance: the uncertainty budget's session geometry modes (issue 16, H3).
     nominal_joint_std_deg: NonNegative = 0.1
+    #: Correct each region's mean over its pixels to its reported direction
+    #: (:mod:`gonio.capture.aperture`; false: the region's mean as measured).
+    aperture_correction: bool = True
 
 
 class ReductionConfig(_Strict):
@@ -355,6 +358,12 @@ class ReductionSetup:
     nominal_joint_std_deg
         Assumed standard deviation of every joint's zero offset, deg, for the budget's
         geometry when the rig carries no calibration covariance (an assumption).
+    aperture_correction
+        Subtract each region's aperture bias ``1/2 tr(H S)`` (the curvature of the BRDF
+        over the sample, measured from the pose's neighbouring regions, times the
+        covariance of the region's pixel positions; :mod:`gonio.capture.aperture`) so
+        that its value is the BRDF at its reported direction, not the mean over its
+        pixels (default True; False keeps the mean as measured).
     camera_calibration
         The camera calibration's ``[camera.calibration]`` table (standard deviations,
         RMS, camera identity and digest) when the camera came from one, else None.
@@ -397,6 +406,7 @@ class ReductionSetup:
     min_board_corners: int = 10
     max_region_spread_deg: float | None = None
     nominal_joint_std_deg: float = 0.1
+    aperture_correction: bool = True
     camera_calibration: dict[str, Any] | None = None
     camera_file: str | None = None
     light_profile: str | float = "none"
@@ -673,6 +683,7 @@ def setup_from_config(
         prnu=config.noise.prnu if config.noise is not None else 0.01,
         dsnu_e=config.noise.dsnu_e if config.noise is not None else 5.0,
         nominal_joint_std_deg=red.nominal_joint_std_deg,
+        aperture_correction=red.aperture_correction,
     )
     return _camera_setup(setup, cam, cam_file)
 
