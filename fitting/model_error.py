@@ -34,7 +34,14 @@ from typing import Any
 import numpy as np
 from scipy.optimize import brentq
 
-__all__ = ["MISFIT_CHI2_DOF", "chi2_dof", "model_error_scale", "with_model_error"]
+__all__ = [
+    "MISFIT_CHI2_DOF",
+    "chi2_dof",
+    "coverage_weights",
+    "model_error_scale",
+    "with_model_error",
+    "with_weights",
+]
 
 #: chi^2 / dof above which the best candidate is taken as a misfit.  Calibration scale
 #: errors and the reduction's own approximations leave ~1-2 on simulated and real
@@ -126,3 +133,67 @@ def with_model_error(samples: Any, tau: float) -> Any:
         return samples
     s = np.asarray(samples.brdf_std, dtype=np.float64)
     return dataclasses.replace(samples, brdf_std=np.sqrt(s**2 + tau**2))
+
+
+def _features(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """(cos theta_i, cos theta_o, |phi_o - phi_i| / pi): an isotropic BRDF's directions in
+    coordinates where the solid-angle measure of (wi, wo) is uniform."""
+    dphi = np.arctan2(wo[:, 1], wo[:, 0]) - np.arctan2(wi[:, 1], wi[:, 0])
+    dphi = np.abs((dphi + np.pi) % (2.0 * np.pi) - np.pi) / np.pi
+    return np.stack([wi[:, 2], wo[:, 2], dphi], axis=1)
+
+
+def coverage_weights(
+    wi: np.ndarray, wo: np.ndarray, max_theta_deg: float = 80.0, bandwidth: float = 0.1
+) -> np.ndarray:
+    """Importance weights (N,) that make a sample set stand for uniform coverage.
+
+    ``1 / p`` with ``p`` the samples' own density in ``(cos theta_i, cos theta_o, phi_d /
+    pi)`` (uniform there is uniform in solid angle for both directions, the measure of
+    :func:`gonio.fitting.design.hemisphere_directions`), a Gaussian product kernel with
+    reflection at the cap's edges (no boundary bias) and both orders of (wi, wo)
+    (reciprocity).  Normalised to mean 1 and clipped to [0.1, 10] (a lone sample would
+    otherwise carry the fit: a bias traded for variance).  Hand-written: scipy's
+    ``gaussian_kde`` has no boundary reflection.
+
+    Parameters
+    ----------
+    wi, wo
+        (N, 3) unit directions (sample frame).
+    max_theta_deg
+        The cap's edge (deg).
+    bandwidth
+        Kernel sigma in each coordinate (cos theta and phi / pi: dimensionless).
+    """
+    wi, wo = np.asarray(wi, np.float64), np.asarray(wo, np.float64)
+    # a sample without directions (not reduced) is never fitted: weight 1, no density
+    ok = np.all(np.isfinite(wi), axis=1) & np.all(np.isfinite(wo), axis=1)
+    out = np.ones(len(wi))
+    if not ok.any():
+        return out
+    f = _features(wi[ok], wo[ok])
+    ref = np.concatenate([f, f[:, [1, 0, 2]]])
+    lo = float(np.cos(np.radians(max_theta_deg)))
+    bounds = ((lo, 1.0), (lo, 1.0), (0.0, 1.0))
+    p = np.empty(len(f))
+    for i in range(0, len(f), 256):  # 256 x 2N kernel blocks: bounded memory
+        x = f[i : i + 256]
+        k = np.ones((len(x), len(ref)))
+        for d, (a, b) in enumerate(bounds):
+            u, v = x[:, d, None], ref[None, :, d]
+            k *= sum(np.exp(-0.5 * ((u - t) / bandwidth) ** 2) for t in (v, 2 * a - v, 2 * b - v))
+        p[i : i + 256] = k.sum(axis=1)
+    w = 1.0 / p
+    w = np.clip(w / w.mean(), 0.1, 10.0)
+    out[ok] = w / w.mean()
+    return out
+
+
+def with_weights(samples: Any, weights: np.ndarray) -> Any:
+    """``samples`` whose weighted-L2 weights ``1 / sigma^2`` are multiplied by ``weights``
+    (N,): ``brdf_std / sqrt(w)``.  The fit's reported covariance then is that of the
+    weighted estimator under the *scaled* sigmas, not the sandwich covariance of an
+    importance-weighted fit: treat it as indicative."""
+    w = np.asarray(weights, dtype=np.float64)
+    s = np.asarray(samples.brdf_std, dtype=np.float64)
+    return dataclasses.replace(samples, brdf_std=s / np.sqrt(w)[:, None])

@@ -53,3 +53,33 @@ def test_a_model_that_fits_is_left_alone():
     fit = fit_model(s, "lambert", loss="weighted_l2")
     assert model_error.model_error_scale([fit], s) == 0.0
     assert model_error.with_model_error(s, 0.0) is s
+
+
+def _directions(ci, co, pd):
+    """(wi, wo) with cos theta_i, cos theta_o and phi_d / pi as given (isotropic frame)."""
+    si, so, p = np.sqrt(1 - ci**2), np.sqrt(1 - co**2), np.pi * pd
+    wi = np.stack([si, np.zeros_like(si), ci], axis=1)
+    wo = np.stack([so * np.cos(p), so * np.sin(p), co], axis=1)
+    return wi, wo
+
+
+def test_coverage_weights_undo_a_doubled_region():
+    """A lattice uniform in (cos theta_i, cos theta_o, phi_d) -- uniform in solid angle --
+    with one corner's points measured twice: the doubled points weigh half the others
+    (the reference is the sampling density itself, 2 : 1), away from the corner's edge."""
+    lo = np.cos(np.radians(80.0))
+    g = (np.arange(8) + 0.5) / 8
+    c = lo + (1 - lo) * g
+    ci, co, pd = (a.ravel() for a in np.meshgrid(c, c, g, indexing="ij"))
+    twice = (ci > lo + 0.5 * (1 - lo)) & (co > lo + 0.5 * (1 - lo)) & (pd > 0.5)
+    wi, wo = _directions(np.r_[ci, ci[twice]], np.r_[co, co[twice]], np.r_[pd, pd[twice]])
+    w = model_error.coverage_weights(wi, wo, bandwidth=0.06)
+    n = len(ci)
+    deep = twice & (ci > lo + 0.65 * (1 - lo)) & (co > lo + 0.65 * (1 - lo)) & (pd > 0.65)
+    far = (ci < lo + 0.35 * (1 - lo)) & (co < lo + 0.35 * (1 - lo)) & (pd < 0.35)
+    assert np.median(w[:n][deep]) / np.median(w[:n][far]) == pytest.approx(0.5, rel=0.05)
+    # a uniform lattice alone gets equal weights, edges included (the kernel reflects)
+    wi, wo = _directions(ci, co, pd)
+    w = model_error.coverage_weights(wi, wo, bandwidth=0.06)
+    assert np.max(np.abs(w - 1.0)) < 0.05
+    assert w.mean() == pytest.approx(1.0)
