@@ -13,6 +13,10 @@ Issue 17's Must show.  Per material (``lambert+ggx`` at alpha 0.05 and 0.3,
   (:func:`gonio.fitting.design.choose_batch`), "measure" it (take that pose's samples
   from the dense session, i.e. the same simulated rig and reduction).  The pool is the
   dense grid's poses.
+- a misfit (the best candidate's chi^2/dof > 4, :mod:`gonio.fitting.model_error`): every
+  fit adds the discrepancy ``tau`` to the sigmas; the adaptive driver's fits also weigh
+  their samples for uniform coverage (``coverage_weights``) and its design turns
+  space-filling (``design.MISFIT_WEIGHTS``);
 - error = median relative difference of the chosen model (largest BIC weight among the
   candidates) from the ground truth over :func:`gonio.fitting.design.hemisphere_directions`
   (theta to 80 deg, whole hemisphere), all channels;
