@@ -13,6 +13,10 @@ Issue 17's Must show.  Per material (``lambert+ggx`` at alpha 0.05 and 0.3,
   (:func:`gonio.fitting.design.choose_batch`), "measure" it (take that pose's samples
   from the dense session, i.e. the same simulated rig and reduction).  The pool is the
   dense grid's poses.
+- a misfit (the best candidate's chi^2/dof > 4, :mod:`gonio.fitting.model_error`): every
+  fit adds the discrepancy ``tau`` to the sigmas; the adaptive driver's fits also weigh
+  their samples for uniform coverage (``coverage_weights``) and its design turns
+  space-filling (``design.MISFIT_WEIGHTS``);
 - error = median relative difference of the chosen model (largest BIC weight among the
   candidates) from the ground truth over :func:`gonio.fitting.design.hemisphere_directions`
   (theta to 80 deg, whole hemisphere), all channels;
@@ -58,10 +62,43 @@ TARGET = 5.0
 
 # --------------------------------------------------------------------------------------
 # Fits and error
-def fit_candidates(samples: Any, candidates: Sequence[str] = CANDIDATES) -> tuple[list, np.ndarray]:
+def fit_candidates(samples: Any, candidates: Sequence[str] = CANDIDATES, *,
+                   misfit: bool = True,
+                   coverage: bool = False) -> tuple[list, np.ndarray, Any]:  # fmt: skip
     """Every candidate fitted (weighted L2, the samples' sigmas) and the models' weights:
     the BIC posterior, with the model ``gonio fit --model auto`` would report (the BIC's
-    best unless its lobe is matte, :func:`chosen`) given the largest weight."""
+    best unless its lobe is matte, :func:`chosen`) given the largest weight.
+
+    With ``misfit``, when the best candidate's ``chi^2 / dof`` shows a misfit
+    (:mod:`gonio.fitting.model_error`) every candidate is fitted again with the relative
+    model discrepancy the best candidate leaves added to the sigmas (one common ``tau``, so
+    the BIC still compares the models under one noise model); with ``coverage`` too, their
+    weights are also multiplied by :func:`gonio.fitting.model_error.coverage_weights`
+    (what the adaptive driver does: its poses are concentrated by design, and a misfit
+    model's compromise follows the pose mix).  Returns the fits, the
+    weights and the samples they were fitted to (their sigmas, the discrepancy's).
+    """
+    from gonio.fitting import model_error
+
+    fits = _fit_all(samples, candidates)
+    if misfit:
+        tau = model_error.model_error_scale(fits, samples)
+        if tau > 0.0:
+            samples = model_error.with_model_error(samples, tau)
+            if coverage:
+                w = model_error.coverage_weights(samples.wi, samples.wo)
+                samples = model_error.with_weights(samples, w)
+            fits = _fit_all(samples, candidates)
+    w = design.bic_weights(fits)
+    k = chosen(fits, w)
+    if w[k] < w.max():  # the matte rule's prior: the reported model is the one designed for
+        w = w.copy()
+        w[k] = w.max() * (1.0 + 1e-9)
+        w = w / w.sum()
+    return fits, w, samples
+
+
+def _fit_all(samples: Any, candidates: Sequence[str]) -> list:
     from gonio.fitting.fit import fit_model
 
     fits = []
@@ -74,13 +111,7 @@ def fit_candidates(samples: Any, candidates: Sequence[str] = CANDIDATES) -> tupl
             fits.append(r)
     if not fits:
         raise FitError("no candidate model could be fitted")
-    w = design.bic_weights(fits)
-    k = chosen(fits, w)
-    if w[k] < w.max():  # the matte rule's prior: the reported model is the one designed for
-        w = w.copy()
-        w[k] = w.max() * (1.0 + 1e-9)
-        w = w / w.sum()
-    return fits, w
+    return fits
 
 
 def chosen(fits: Sequence[Any], w: np.ndarray) -> int:
@@ -118,14 +149,17 @@ class Truth:
         return float(np.nanmedian(np.where(np.isfinite(rel), rel, np.nan)))
 
 
-def evaluate(pool: Any, positions: Sequence[int], truth: Truth, candidates=CANDIDATES) -> dict:
+def evaluate(pool: Any, positions: Sequence[int], truth: Truth, candidates=CANDIDATES,
+             misfit: bool = True, coverage: bool = False) -> dict:  # fmt: skip
     s = pool.subset(positions)
-    fits, w = fit_candidates(s, candidates)
+    fits, w, fs = fit_candidates(s, candidates, misfit=misfit, coverage=coverage)
     best = fits[int(np.argmax(w))]
     return {
         "fits": fits,
         "weights": w,
-        "samples": s,
+        "samples": s,  # their noise sigmas: the error figure's resolution
+        "fit_samples": fs,  # the sigmas fitted with (the model discrepancy's, on a misfit)
+        "misfit": fs is not s,
         "error": truth.error(best),
         "model": format_model_spec(best.model, best.model_options),
     }
@@ -190,7 +224,8 @@ def adaptive_run(pool: Any, truth: Truth, *, seed_poses: int = 24, batch: int = 
                  max_poses: int = 96, weights: dict | None = None,
                  candidates=CANDIDATES, min_separation_deg: float = 5.0,
                  target_rel_sigma: dict | None = None,
-                 stop_on_target: bool = False) -> list[dict]:  # fmt: skip
+                 stop_on_target: bool = False,
+                 misfit_design: bool = True, coverage: bool = True) -> list[dict]:  # fmt: skip
     """Rounds of the adaptive loop on the measured pool; one record per round."""
     base = sessions.grid_positions(pool, *sessions.GRIDS[0])
     measured = seed_design(pool.wi, pool.wo, seed_poses, base=base)
@@ -199,7 +234,7 @@ def adaptive_run(pool: Any, truth: Truth, *, seed_poses: int = 24, batch: int = 
     ewi, ewo = truth.wi[:1024], truth.wo[:1024]
     while True:
         t0 = time.perf_counter()
-        ev = evaluate(pool, measured, truth, candidates)
+        ev = evaluate(pool, measured, truth, candidates, coverage=coverage)
         t_fit = time.perf_counter() - t0
         reached, status = design.stopping(ev["fits"], ev["weights"], target_rel_sigma, None,
                                           ewi, ewo)  # fmt: skip
@@ -209,18 +244,23 @@ def adaptive_run(pool: Any, truth: Truth, *, seed_poses: int = 24, batch: int = 
             "time_s": sessions.session_time_s(pool, batches),
             "error": ev["error"],
             "model": ev["model"],
+            "misfit": ev["misfit"],
             "stop": status,
             "params": {k: np.asarray(v).tolist() for k, v in best.params.items()},
             "std": {k: np.asarray(v).tolist() for k, v in best.std.items()},
             "fit_s": t_fit,
+            "positions": list(measured),
         })  # fmt: skip
         left = np.setdiff1d(np.arange(len(pool.pose_ids)), measured)
         if len(measured) >= max_poses or not len(left) or (stop_on_target and reached):
             break
         t0 = time.perf_counter()
+        # a misfit (read from the data's chi^2) makes the model's parameter information
+        # beside the point: the design turns space-filling (the model-free term alone)
         sc = design.score_candidates(
-            ev["fits"], ev["weights"], ev["samples"], pool.wi[left], pool.wo[left],
-            sample_rel_std=sample_rel_std(ev["samples"]), weights=weights,
+            ev["fits"], ev["weights"], ev["fit_samples"], pool.wi[left], pool.wo[left],
+            sample_rel_std=sample_rel_std(ev["fit_samples"]),
+            weights=design.MISFIT_WEIGHTS if ev["misfit"] and misfit_design else weights,
         )  # fmt: skip
         n = min(batch, max_poses - len(measured))
         pick = design.choose_batch(sc, ev["fits"], pool.wi[left], pool.wo[left], n,

@@ -58,6 +58,7 @@ from gonio.errors import FitError
 from gonio.fitting.result import FitResult
 
 __all__ = [
+    "MISFIT_WEIGHTS",
     "DEFAULT_WEIGHTS",
     "CandidateScores",
     "bic_weights",
@@ -72,6 +73,10 @@ __all__ = [
 
 #: the terms' weights when a plan names none (``[adaptive] weights``)
 DEFAULT_WEIGHTS = {"d_optimal": 1.0, "discrimination": 1.0, "model_free": 1.0}
+#: the term weights once the data show a misfit (``gonio.fitting.model_error``): no
+#: candidate follows the material, so the information about its parameters is beside the
+#: point and the design fills the pose space (the model-free term alone)
+MISFIT_WEIGHTS = {"d_optimal": 0.0, "discrimination": 0.0, "model_free": 1.0}
 #: width (deg) of the model-free term's kernel and of the batch's damping
 BANDWIDTH_DEG = 10.0
 #: prior sample count of the model-free kernel: where fewer residuals are near, zbar^2 is

@@ -103,6 +103,7 @@ class FitAdvisor:
         self._reduction: Any = None
         self._pool: Any = None
         self._eval: Any = None
+        self._misfit: dict[str, float] | None = None
 
     # -- the parts ---------------------------------------------------------------------
     def _samples(self, state: AdaptiveState) -> Any:
@@ -112,7 +113,25 @@ class FitAdvisor:
             self._reduction = IncrementalReduction(state.session_dir, self.setup)
         return self._reduction.add(state.measured_steps)
 
-    def _fits(self, samples: Any) -> tuple[list[Any], np.ndarray, list[dict[str, Any]]]:
+    def _fits(self, samples: Any) -> tuple[list[Any], np.ndarray, list[dict[str, Any]], Any]:
+        """Every candidate fitted; on a misfit the data show (the best candidate's
+        chi^2/dof, :mod:`gonio.fitting.model_error`) fitted again with the model
+        discrepancy added to the sigmas.  Returns the fits, their BIC weights, the
+        journal rows and the samples fitted (with the discrepancy's sigmas on a misfit)."""
+        from gonio.fitting import model_error
+
+        fits, w, rows = self._fit_candidates(samples)
+        self._misfit = None
+        if fits:
+            chi2 = min(model_error.chi2_dof(r, samples) for r in fits)
+            tau = model_error.model_error_scale(fits, samples)
+            self._misfit = {"chi2_dof": float(chi2), "tau": float(tau)}
+            if tau > 0.0:
+                samples = model_error.with_model_error(samples, tau)
+                fits, w, rows = self._fit_candidates(samples)
+        return fits, w, rows, samples
+
+    def _fit_candidates(self, samples: Any) -> tuple[list[Any], np.ndarray, list[dict[str, Any]]]:
         from gonio.fitting import fit
         from gonio.fitting.select import format_model_spec, information_criterion
 
@@ -191,6 +210,10 @@ class FitAdvisor:
             n_poses = len(np.unique(poses)) if poses is not None and len(poses) else 1
             per_pose = max(1.0, len(samples) / max(n_poses, 1))
             sample_rel = (float(np.median(rel)) if rel.size else 0.01) / math.sqrt(per_pose)
+            # a misfit makes the model's parameter information beside the point: the
+            # design turns space-filling (the model-free term alone)
+            misfit = bool(self._misfit and self._misfit["tau"] > 0.0)
+            weights = dict(design.MISFIT_WEIGHTS) if misfit else a.weights.model_dump()
             scores = design.score_candidates(
                 fits,
                 w,
@@ -198,7 +221,7 @@ class FitAdvisor:
                 state.pool_wi,
                 state.pool_wo,
                 sample_rel_std=sample_rel,
-                weights=a.weights.model_dump(),
+                weights=weights,
             )
             idx = design.choose_batch(
                 scores, fits, state.pool_wi, state.pool_wo, n, min_separation_deg=a.separation_deg
@@ -215,7 +238,8 @@ class FitAdvisor:
                 for i in top
             ]
             why = (
-                f"greedy by expected information (weights {a.weights.model_dump()}), "
+                f"greedy by expected information (weights {weights}"
+                f"{', misfit: space-filling' if misfit else ''}), "
                 f"sample rel sigma {sample_rel:.3g}, min separation {a.separation_deg:g} deg"
             )
             return [int(state.pool_ids[i]) for i in idx], {"scored": scored, "why": why}
@@ -242,12 +266,18 @@ class FitAdvisor:
         except GonioError as exc:  # nothing to fit yet (e.g. no pose could be reduced)
             samples, record["reduction_error"] = None, str(exc)
         t1 = time.perf_counter()
-        fits, w, rows = self._fits(samples) if samples is not None else ([], np.zeros(0), [])
+        self._misfit = None
+        if samples is not None:
+            fits, w, rows, samples = self._fits(samples)
+        else:
+            fits, w, rows = [], np.zeros(0), []
         t2 = time.perf_counter()
         reached, status = self._stop(fits, w, design)
         record.update(
             {"fits": rows, "stopping": status, "samples": 0 if samples is None else len(samples)}
         )
+        if self._misfit is not None:
+            record["misfit"] = self._misfit
         if fits:
             best = fits[int(np.argmax(w))]
             from gonio.fitting.select import format_model_spec

@@ -433,6 +433,9 @@ def test_fit_advisor_session_is_reproducible_and_fits(tmp_path):
     r0 = rounds[0]
     assert {f["model"] for f in r0["fits"]} == {"lambert", "lambert+ggx"}
     assert r0["fit"]["model"] == "lambert+ggx" and r0["advise_s"] > 0 and r0["batch_time_s"] > 0
+    # the scene's own model fits: no misfit is read from the data, the design is the plan's
+    assert r0["misfit"]["tau"] == 0.0 and r0["misfit"]["chi2_dof"] < 4.0, r0["misfit"]
+    assert "misfit" not in r0["why"]
     with (
         h5py.File(tmp_path / "A" / "samples.h5") as fa,
         h5py.File(tmp_path / "B" / "samples.h5") as fb,

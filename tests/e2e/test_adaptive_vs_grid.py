@@ -86,20 +86,16 @@ def _grid_fit(bench, pool, truth, th, ph):
             "error": ev["error"], "sigma": sigma, "model": ev["model"]}  # fmt: skip
 
 
-#: measured at the end of issue 17's design round: at the 30-pose grid's time the adaptive
-#: run (28 poses) fits paper_white's Lambertian to a median relative error of 0.556 against
-#: the grid's 0.533.  No model fits this material (0.53-0.80 whatever the poses); the
-#: weighted-L2 fit's compromise follows the pose mix (70 % of the weight sits on the
-#: grazing 80/80 deg perpendicular poses, where f is 0.02 1/sr), not the information.
-PAPER_MISS = "rgl:paper_white at the 30-pose grid's time: adaptive 0.556 vs grid 0.533"
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "name",
     [
         "lambert+ggx(alpha=0.3)",
-        pytest.param("rgl:paper_white", marks=pytest.mark.xfail(reason=PAPER_MISS, strict=False)),
+        # no candidate follows paper_white (chi^2/dof ~ 500): the fits take the model
+        # discrepancy into their sigmas and the driver's fits weigh its concentrated
+        # poses for uniform coverage (gonio.fitting.model_error); before, the adaptive
+        # run ended at 0.556 against the grid's 0.533 (noise weights)
+        "rgl:paper_white",
     ],
 )
 def test_adaptive_never_ends_worse_than_the_grid_of_the_same_time(bench, pools, name):
