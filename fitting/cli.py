@@ -12,6 +12,7 @@ import click
 
 from gonio.errors import FitError
 from gonio.fitting.library_cli import FIT_SOURCE, library_dispatch
+from gonio.fitting.svbrdf_cli import svbrdf_dispatch
 
 __all__ = ["fit"]
 
@@ -118,12 +119,14 @@ def _split_candidates(text: str) -> tuple[str, ...]:
     "--out",
     "-o",
     "out",
-    required=True,
+    default=None,
     type=click.Path(file_okay=False, path_type=Path),
-    help="Output folder: fit.json, material.xml (Mitsuba 3), slices.png, residuals.png.",
+    help="Output folder: fit.json, material.xml (Mitsuba 3), slices.png, residuals.png "
+    "(required but with --svbrdf, whose default is SESSION/svbrdf/).",
 )
 @click.option("--plots/--no-plots", default=True, show_default=True)
 @click.option("--force", is_flag=True, help="Replace the outputs of an earlier fit in --out.")
+@svbrdf_dispatch  # --svbrdf: SOURCE a texel file, per-texel fits (gonio.fitting.svbrdf)
 @library_dispatch  # SOURCE a folder or a glob: a material library (gonio.fitting.library)
 def fit(
     source: Path,

@@ -84,14 +84,14 @@ def library_dispatch(fn: Callable[..., Any]) -> Callable[..., Any]:
                 "--scheduler",
                 default=None,
                 metavar="tcp://HOST:PORT",
-                help="Library: fit on this dask scheduler's workers (they must see the "
-                "same files at the same paths); default a local cluster.",
+                help="Library and --svbrdf: fit on this dask scheduler's workers (they must "
+                "see the same files at the same paths); default a local cluster.",
             ),
             click.option(
                 "--workers",
                 type=int,
                 default=None,
-                help="Library: worker processes of the local cluster (default one per "
+                help="Library and --svbrdf: worker processes of the local cluster (default one per "
                 "core; 0: no dask, fit in this process).",
             ),
             click.option(
@@ -106,7 +106,7 @@ def library_dispatch(fn: Callable[..., Any]) -> Callable[..., Any]:
                 type=float,
                 default=None,
                 metavar="SECONDS",
-                help="Library: how long to wait for --scheduler (default 10).",
+                help="Library and --svbrdf: how long to wait for --scheduler (default 10).",
             ),
         )
     ):
