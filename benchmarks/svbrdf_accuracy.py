@@ -83,7 +83,11 @@ def plan_document(size: tuple[int, int], grid: dict[str, list[float]], seed: int
         "seed": seed,
         "settle_s": 0.0,
         "grid": {"kind": "spherical", "phi_i_deg": [0.0], **grid},
-        "bracket": {"policy": "adaptive", "exposure_time_s": 0.002, "roi": [0.42, 0.42, 0.58, 0.58]},
+        "bracket": {
+            "policy": "adaptive",
+            "exposure_time_s": 0.002,
+            "roi": [0.42, 0.42, 0.58, 0.58],
+        },
         "darks": {"count": 1},
         "reference": {"poses": [{"theta_i_deg": 0, "theta_o_deg": 30}]},
         "simulation": {"scene": "scene.toml", "width": size[0], "height": size[1]},
