@@ -15,9 +15,10 @@ several.  Each texel's fit depends only on its own samples and a fixed seed, and
 with BLAS on one thread (as ``fit_material`` in the library), so the maps are the same
 bits whatever the block size, the worker or the engine (``workers=0``: this process).
 
-``model="auto"``: model selection (:func:`gonio.fitting.fit` with ``"auto"``) on the
-pooled samples of up to :data:`AUTO_POOL_TEXELS` texels spread over the sample, then
-that model for every texel.
+``model="auto"``: model selection (:func:`gonio.fitting.fit` with ``"auto"``) on each
+of up to :data:`AUTO_TEXELS` texels spread over the sample, the spec most of them chose
+for every texel (pooled samples were tried first and called a glossy map matte: see
+``_choose_model``).
 
 A block that fails (its file unreadable, a worker lost twice) is reported by name
 (``texels T0-T1``); its texels stay NaN with ``success`` False and the other blocks'
@@ -41,7 +42,7 @@ import numpy as np
 from gonio.errors import FitError, GonioError
 
 __all__ = [
-    "AUTO_POOL_TEXELS",
+    "AUTO_TEXELS",
     "TARGET_TASK_S",
     "SVBRDFOptions",
     "SVBRDFResult",
@@ -55,8 +56,8 @@ __all__ = [
 #: Work per task the block size aims at (s): long against dask's per-task overhead
 #: (a few ms), short enough that a lost worker costs little and progress moves.
 TARGET_TASK_S = 1.0
-#: Texels whose pooled samples choose the model for ``model="auto"``.
-AUTO_POOL_TEXELS = 64
+#: Texels whose own model selections choose the model for ``model="auto"`` (by majority).
+AUTO_TEXELS = 16
 #: Texels fitted in the client to measure the per-texel cost.
 _PROBE_TEXELS = 3
 
@@ -262,29 +263,44 @@ def _spread(n_texels: int, k: int) -> np.ndarray:
 
 
 def _choose_model(path: Path, options: SVBRDFOptions) -> tuple[str, Any]:
-    """Model selection on the pooled samples of texels spread over the sample."""
+    """Model selection by the texels: ``fit(samples, "auto")`` on each of up to
+    :data:`AUTO_TEXELS` texels spread over the sample, then the spec most of them chose
+    (ties: the earlier, simpler candidate).
+
+    Not on the pooled samples: pooled, the texels' different albedos are the largest
+    misfit of every candidate, so the diffuse model's cost stays within the matte rule's
+    10x of the lobe's and a glossy sample was called matte (the test map: "lambert").
+    """
     from threadpoolctl import threadpool_limits
 
-    from gonio.dataset import BRDFSamples
     from gonio.fitting import fit
-    from gonio.fitting.select import format_model_spec
+    from gonio.fitting.select import DEFAULT_CANDIDATES, format_model_spec
     from gonio.texels import open_texels
 
-    with open_texels(path) as tf:
-        picks = [tf.samples(int(t)) for t in _spread(tf.n_texels, AUTO_POOL_TEXELS)]
-    keep = [s.valid for s in picks]
-    pooled = BRDFSamples(
-        wi=np.concatenate([s.wi[v] for s, v in zip(picks, keep, strict=True)]),
-        wo=np.concatenate([s.wo[v] for s, v in zip(picks, keep, strict=True)]),
-        brdf=np.concatenate([s.brdf[v] for s, v in zip(picks, keep, strict=True)]),
-        brdf_std=np.concatenate([s.brdf_std[v] for s, v in zip(picks, keep, strict=True)]),
-        channels=picks[0].channels,
-    )
     kw = options.fit_kwargs()
     kw.pop("model_options")
-    with threadpool_limits(limits=1):
-        r = fit(pooled, "auto", candidates=options.candidates, **kw)
-    return format_model_spec(r.model, r.model_options), r.diagnostics.get("selection")
+    votes: dict[str, int] = {}
+    with open_texels(path) as tf, threadpool_limits(limits=1):
+        for t in _spread(tf.n_texels, AUTO_TEXELS):
+            s = tf.samples(int(t))
+            try:
+                r = fit(s, "auto", candidates=options.candidates, **kw)
+            except FitError:
+                continue  # a texel without enough samples has no vote
+            spec = format_model_spec(r.model, r.model_options)
+            votes[spec] = votes.get(spec, 0) + 1
+    if not votes:
+        raise FitError(f"{path}: --model auto: no texel could be fitted to choose a model")
+    order = list(options.candidates or DEFAULT_CANDIDATES)
+    rank = {
+        spec: (-n, order.index(spec) if spec in order else len(order)) for spec, n in votes.items()
+    }
+    best = min(votes, key=lambda spec: rank[spec])
+    table = [
+        {"model": spec, "texels": n}
+        for spec, n in sorted(votes.items(), key=lambda kv: rank[kv[0]])
+    ]
+    return best, table
 
 
 @dataclasses.dataclass
@@ -317,7 +333,7 @@ class SVBRDFResult:
     messages
         Flat texel index -> why, for texels not fitted or not converged.
     selection
-        ``model="auto"``: the selection's table on the pooled samples.
+        ``model="auto"``: ``[{"model": spec, "texels": votes}]``, the winner first.
     smooth
         The regularisation weight applied (0: none); ``params_unsmoothed`` then holds
         the per-texel fits.
@@ -444,8 +460,10 @@ def fit_svbrdf(
     if options.model == "auto":
         spec, selection = _choose_model(path, options)
         console.print(
-            f"model selection on the pooled samples of {min(AUTO_POOL_TEXELS, n_texels)} "
-            f"texels: {spec}, fitted per texel",
+            f"model selection on {sum(row['texels'] for row in selection)} texels spread "
+            f"over the sample: {spec} ("
+            + ", ".join(f"{row['model']} {row['texels']}" for row in selection)
+            + "), fitted per texel",
             markup=False,
             highlight=False,
             soft_wrap=True,

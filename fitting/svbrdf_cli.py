@@ -24,8 +24,8 @@ _SVBRDF_PARAMS = ("svbrdf", "smooth", "block_texels")
 _SVBRDF_HELP = """
 
     With --svbrdf, SOURCE is a texel file (texels.h5 from `gonio capture reduce
-    --texels N`): every texel is fitted with one model (--model; auto chooses it on the
-    pooled samples of texels spread over the sample), as dask tasks of blocks of texels
+    --texels N`): every texel is fitted with one model (--model; auto: the model most of 16
+    texels spread over the sample choose), as dask tasks of blocks of texels
     sized by measurement (a local cluster, --scheduler, or --workers 0: this process).
     --out defaults to SESSION/svbrdf/: svbrdf.h5 (maps and their sigmas), 16-bit PNG maps
     with their ranges in maps.json, residual.png, preview.png, material.xml (Mitsuba 3,

@@ -378,3 +378,15 @@ def test_smooth_closed_form_two_texels_and_fill():
     sd = {"albedo": np.array([0.01, np.nan, 0.01]).reshape(1, 3, 1)}
     filled = smooth_maps(holes, sd, 1.0, model)["albedo"].ravel()
     assert filled[1] == pytest.approx(0.4)  # the mean of its neighbours (symmetric)
+
+
+@pytest.mark.slow
+def test_model_auto_chooses_by_the_texels(texel_file):
+    """--model auto: the texels' own selections find the truth's model, which is then
+    fitted per texel (the same maps as asking for it)."""
+    r = fit_svbrdf(texel_file, SVBRDFOptions(model="auto"), workers=0, block_texels=6)
+    assert r.model == "lambert+ggx"
+    assert r.selection[0]["model"] == "lambert+ggx" and r.selection[0]["texels"] >= 7
+    ref = fit_svbrdf(texel_file, SVBRDFOptions(model="lambert+ggx"), workers=0, block_texels=4)
+    for k in ref.param_names:
+        assert r.params[k].tobytes() == ref.params[k].tobytes()
