@@ -221,6 +221,7 @@ def test_file_layout_and_summary(reduced):
     np.testing.assert_allclose(attrs["sample_size"], [0.05, 0.05])
     assert summary["kept"] == 2 * N * N and summary["texels_without_samples"] == 0
     assert summary["roi_fraction"] == 1.0 and summary["grid"] == [N, N]
+    assert summary["boundary_margin_px"] == TEXEL_MARGIN_PX
     res = summary["resolution"]
     # the texel's side in pixels at the best pose (the frontal one, theta_o = 0): 12.5 mm
     # at 0.40 m with fx = 160 / tan(15 deg) = 597.1 px (320 px over a 30 deg fov)
