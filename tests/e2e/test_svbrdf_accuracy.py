@@ -4,17 +4,20 @@ A simulated session (virtual bus, rendered DNGs, 320 x 240) of the inline 4 x 4
 lambert+ggx maps of ``examples/svbrdf_scene.toml`` on the demo's simulated camera
 (:func:`gonio.app.demo.scene_document`: 2 mm disk light, 3 x 3 anti-aliasing), through
 ``gonio capture run``, ``gonio capture reduce --texels 4`` and ``gonio fit texels.h5
---svbrdf``.  The plan: the two mirror configurations (theta 20/20 and 45/45 deg, through
-every texel's specular lobe: across the sample the half vector moves by a few degrees)
-and their flanks (theta_o 0 and 60 deg, diffuse-dominated, which fix the albedo); two
-poses leave lambert+ggx underdetermined per texel.
+--svbrdf``.  The plan is the fewest poses found to determine lambert+ggx per texel (two
+leave it underdetermined): theta_i 30 deg and theta_o 30 deg opposite, the mirror
+configuration through every texel's specular lobe (across the sample the half vector
+moves by a few degrees, so each texel sees its lobe at another offset), and its flanks
+theta_o 0 and 60 deg (half-vector offsets 15 deg, diffuse-dominated: they fix the
+albedo); 9 values per texel for its 7 parameters (alpha shared by the channels).
+``benchmarks/svbrdf_accuracy.py`` uses 8 poses (errors about half as large).
 
 Independent reference: the simulator's ``SESSION/truth/svbrdf.h5`` (the reduction and the
 fit never read it).  Checked: every texel with all its parameters within 3 reported sigma
 of the truth (issue 18: >= 95 % of texels), the maps' median relative errors, and a real
 ``dask scheduler`` + two ``dask worker`` processes and a LocalCluster giving the same
 bytes (every dataset of svbrdf.h5, every map PNG) as ``--workers 0``.
-``benchmarks/svbrdf_accuracy.py`` runs the same session (and a realistic world).
+``benchmarks/svbrdf_accuracy.py`` runs such sessions (and realistic worlds).
 """
 
 from __future__ import annotations
@@ -40,9 +43,9 @@ PLAN = {
     "settle_s": 0.0,
     "grid": {
         "kind": "spherical",
-        "theta_i_deg": [20, 45],
+        "theta_i_deg": [30],
         "phi_i_deg": [0],
-        "theta_o_deg": [0, 20, 45, 60],
+        "theta_o_deg": [0, 30, 60],
         "phi_o_deg": [180],
     },
     "bracket": {"policy": "adaptive", "exposure_time_s": 0.002, "roi": [0.42, 0.42, 0.58, 0.58]},
@@ -117,8 +120,9 @@ def test_fitted_maps_within_three_sigma_of_the_truth(session, capsys):
     with capsys.disabled():
         print(f"\ntexels with every parameter within 3 sigma: {frac:.3f}; median rel. error {rel}")
     assert frac >= 0.95
-    # measured 0.8 % (albedo), 0.7 % (alpha), 1.4 % (ks); the pooled fit's are 27-64 %
-    assert all(r < 0.02 for r in rel.values()), rel
+    # measured 0.8 % (albedo), 1.1 % (alpha), 2.0 % (ks) on these 3 poses (8 poses: 0.8,
+    # 0.7, 1.4 %); a pooled fit's (one material for the sample) are 21-69 %
+    assert all(r < 0.03 for r in rel.values()), rel
 
 
 @pytest.mark.slow
