@@ -95,26 +95,34 @@ def plan_document(size: tuple[int, int], grid: dict[str, list[float]], seed: int
 
 
 def compare_with_truth(fitted: dict, std: dict, truth: dict) -> dict[str, Any]:
-    """z, the 3-sigma fractions and the median relative error per map.
+    """z, the 3-sigma fractions, the undetermined texels and the median relative error
+    per map.
 
     ``fitted``, ``std``, ``truth``: {name: (ny, nx, C)}.  alpha is one parameter per
     texel (the same value in every channel), so it counts once.
     """
-    per_texel_ok, all_z, rel, zmax = [], [], {}, {}
+    per_texel_ok, all_z, rel, zmax, undetermined = [], [], {}, {}, []
     for k, t in truth.items():
         v, s = np.asarray(fitted[k]), np.asarray(std[k])
-        z = (v - t) / s
+        # a std of inf (a direction the texel's data do not determine) or 0 (at a bound)
+        # would make any error "within 3 sigma": such a value counts as outside
+        bad = ~(np.isfinite(s) & (s > 0) & np.isfinite(v))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(bad, np.inf, (v - t) / s)
         if k == "alpha":
-            z = z[..., :1]
+            z, bad = z[..., :1], bad[..., :1]
         all_z.append(z.reshape(-1))
+        undetermined.append(np.any(bad, axis=-1))
         per_texel_ok.append(np.all(np.abs(z) < 3, axis=-1))
         rel[k] = float(np.median(np.abs(v / t - 1)))
-        zmax[k] = float(np.max(np.abs(z)))
+        zmax[k] = float(np.max(np.abs(z[np.isfinite(z)]), initial=0.0))
     zs = np.concatenate(all_z)
+    fin = zs[np.isfinite(zs)]
     return {
         "texels_all_params_within_3_sigma": float(np.mean(np.all(per_texel_ok, axis=0))),
         "values_within_3_sigma": float(np.mean(np.abs(zs) < 3)),
-        "z_rms": float(np.sqrt(np.mean(zs**2))),
+        "texels_undetermined": int(np.sum(np.any(undetermined, axis=0))),
+        "z_rms": float(np.sqrt(np.mean(fin**2))),
         "max_abs_z": zmax,
         "median_rel_error": rel,
     }
