@@ -26,6 +26,7 @@ from gonio.capture.fiducials import (
     RegionMap,
     angle_between,
     detect_pose_in_frame,
+    edge_margins,
     has_distortion,
     map_regions,
     roi_geometry,
@@ -345,22 +346,39 @@ def _board_vs_rig(
     return flags, reasons
 
 
+#: The largest inner margin region_margin_px may take on each side, as a fraction of the
+#: cell: a third leaves the central third of a region seen at grazing incidence.
+MAX_MARGIN_FRACTION = 1 / 3
+
+
 def region_margins(
     cam: CameraPose, light_position: NDArray[np.float64], setup: ReductionSetup
 ) -> tuple[float, float]:
     """The margins inside each region (metres along x, y) that keep its spread of
     directions, from the camera and from the light, within
     ``setup.max_region_spread_deg`` (:func:`gonio.capture.fiducials.spread_margins`;
-    none when it is None)."""
-    if setup.max_region_spread_deg is None:
-        return (0.0, 0.0)
+    none when it is None), and at least ``setup.region_margin_px`` image pixels clear of
+    the boundaries between regions (:func:`gonio.capture.fiducials.edge_margins`, at
+    most :data:`MAX_MARGIN_FRACTION` of the cell)."""
     hw = 0.5 * setup.roi_fraction * setup.sample_size[0]
     hh = 0.5 * setup.roi_fraction * setup.sample_size[1]
     gx, gy = setup.grid_xy
     cell = (2 * hw / gx, 2 * hh / gy)
-    return spread_margins(
-        [cam.position, light_position], cell, (hw, hh), setup.max_region_spread_deg
-    )
+    margins = (0.0, 0.0)
+    if setup.max_region_spread_deg is not None:
+        margins = spread_margins(
+            [cam.position, light_position], cell, (hw, hh), setup.max_region_spread_deg
+        )
+    if setup.region_margin_px > 0 and (gx > 1 or gy > 1):
+        # metres that region_margin_px image pixels span on the sample, per axis (the
+        # foreshortened axis needs more); capped so that an oblique region a few pixels
+        # across keeps its central part rather than vanishing
+        px = edge_margins(cam, setup.K, setup.sample_size, (hw, hh), setup.region_margin_px)
+        margins = tuple(
+            max(m, min(p, MAX_MARGIN_FRACTION * c) if n > 1 else 0.0)
+            for m, p, c, n in zip(margins, px, cell, (gx, gy), strict=True)
+        )
+    return margins
 
 
 def _horizon_flags(

@@ -371,6 +371,8 @@ def _texel_arrays_and_summary(
         "region_order": "region r = iy * NX + ix (iy from -y) is texel (NY - 1 - iy) * NX + ix",
         "grid": [nx, ny],
         "roi_fraction": run.setup.roi_fraction,
+        # image pixels left out along each texel's boundaries (texel_reduce.TEXEL_MARGIN_PX)
+        "boundary_margin_px": run.setup.region_margin_px,
         "resolution": None if resolution is None else resolution.to_json(),
         "samples_h5": "the same samples pooled (one per texel and sample pose)",
         "geometry_modes": "geometry_modes" in arrays,

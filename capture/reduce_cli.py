@@ -147,10 +147,12 @@ def reduce_cmd(
 
     \b
     Spatially varying samples (--texels): the same per-pose reduction with one region
-    per texel over the whole sample; SESSION/texels.h5 (gonio.texels) holds, per texel
-    and sample pose, wi, wo, the BRDF, its std and budget terms, flags and the geometry
-    modes, and reduction.json gains a "texels" section (pixels per texel at the
-    best-resolving pose, samples kept per texel, chunking).
+    per texel over the whole sample, less 1.5 pixels along each texel's boundaries (a
+    pixel there sees the neighbouring texel too; [reduction] region_margin_px sets more);
+    SESSION/texels.h5 (gonio.texels) holds, per texel and sample pose, wi, wo, the
+    BRDF, its std and budget terms, flags and the geometry modes, and reduction.json
+    gains a "texels" section (pixels per texel at the best-resolving pose, samples kept
+    per texel, chunking).
 
     \b
     Examples:

@@ -254,6 +254,9 @@ class ReductionSection(_Strict):
     max_board_obliquity_deg: Annotated[float, Field(gt=0, le=90, allow_inf_nan=False)] = 60.0
     min_board_corners: Annotated[int, Field(ge=4)] = 10
     max_region_spread_deg: Annotated[float, Field(gt=0, le=90, allow_inf_nan=False)] | None = None
+    #: Image pixels kept clear of the boundaries between regions (a texel reduction
+    #: takes at least gonio.capture.texel_reduce.TEXEL_MARGIN_PX).
+    region_margin_px: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.0
     #: Assumed std of each joint's zero offset (deg) when the rig has no calibration
     #: covariance: the uncertainty budget's session geometry modes (issue 16, H3).
     nominal_joint_std_deg: NonNegative = 0.1
@@ -341,6 +344,12 @@ class ReductionSetup:
         with 10 corners or more; at 60-70 deg the board showed 6-9 corners, its
         direction was off by 0.24 deg in the median and up to 0.40 deg, and beyond 70
         deg it was rarely found at all.
+    region_margin_px
+        Image pixels kept free inside each region along its boundaries with the others
+        (0: none; a texel reduction sets :data:`gonio.capture.texel_reduce.TEXEL_MARGIN_PX`):
+        a pixel whose footprint or whose Bayer interpolation stencil reaches across a
+        boundary mixes the neighbouring region's radiance in, which for a spatially
+        varying sample is another material (:func:`gonio.capture.pose_measure.region_margins`).
     max_region_spread_deg
         Largest spread (full width, degrees) of a region's directions seen from the
         camera and from the light, or None (the default: whole cells, the grid alone
@@ -418,6 +427,7 @@ class ReductionSetup:
     prnu: float = 0.01
     dsnu_e: float = 5.0
     grid_y: int | None = None
+    region_margin_px: float = 0.0
 
     @property
     def grid_xy(self) -> tuple[int, int]:
@@ -673,6 +683,7 @@ def setup_from_config(
         max_board_obliquity_deg=red.max_board_obliquity_deg,
         min_board_corners=red.min_board_corners,
         max_region_spread_deg=red.max_region_spread_deg,
+        region_margin_px=red.region_margin_px,
         light_profile=config.light.profile,
         light_profile_n=(
             float(config.light.profile) if not isinstance(config.light.profile, str) else 0.0

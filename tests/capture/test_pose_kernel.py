@@ -328,3 +328,17 @@ def test_fused_kernel_matches_numpy_path_on_a_rectangular_grid(brackets, monkeyp
     ix = np.floor((pts[:, 0] + w / 2) / (w / 5)).astype(int)
     iy = np.floor((pts[:, 1] + h / 2) / (h / 2)).astype(int)
     assert np.array_equal(lab, iy * 5 + ix)
+
+
+def test_fused_kernel_matches_numpy_path_with_the_texel_margin(brackets, monkeypatch):
+    """A texel reduction's ``region_margin_px``: both paths keep the same pixels, fewer
+    than the whole cells."""
+    from gonio.capture.texel_reduce import texel_setup
+
+    setup, poses = brackets
+    frames, rp = poses[0]
+    ref, got = both_paths(monkeypatch, frames, texel_setup(setup, (4, 4)), rp)
+    assert_same(ref, got)
+    whole, _ = both_paths(monkeypatch, frames, setup.replace(grid=4, roi_fraction=1.0), rp)
+    n_kept, n_whole = (ref.regions.label >= 0).sum(), (whole.regions.label >= 0).sum()
+    assert 0.3 * n_whole < n_kept < 0.95 * n_whole, (n_kept, n_whole)

@@ -4,7 +4,8 @@ The session (real dynamixel-sdk on the virtual bus, rendered DNGs at 320 x 240, 
 poses) has an albedo map that grows along +x and along +y, so that a texel's place on
 the sample shows in its BRDF.  Checked: the per-texel samples equal the region
 samples of an ordinary ``--grid N --roi-fraction 1`` reduction of the same session (the
-existing path, mapped region -> texel by the convention, worked out here by hand); each
+existing path with the texel reduction's ``region_margin_px``, mapped region -> texel by
+the convention, worked out here by hand); each
 texel's BRDF follows the map's mean over that texel's rectangle (the truth, independent
 of the reduction); the chunk layout; the refusals (too fine for the camera, N < 1,
 malformed, with --grid), which write nothing; an NXxNY grid.
@@ -14,12 +15,15 @@ from __future__ import annotations
 
 import json
 import os
+import tomllib
 
 import h5py
 import numpy as np
 import pytest
+import tomli_w
 
 from gonio.app.sim_reduction import write_reduction_toml
+from gonio.capture.texel_reduce import TEXEL_MARGIN_PX
 from gonio.cli import run
 from gonio.dataset import BUDGET_TERMS, Flag, load_samples
 from gonio.rig.config import virtual_rig_document
@@ -111,7 +115,12 @@ def reduced(tmp_path_factory):
         chunks = {k: f[k].chunks for k in ("wi", "brdf", "flags", "budget/noise", "geometry_modes")}
         attrs = dict(f.attrs)
     texel_samples = load_samples(s / "samples.h5")
-    assert run("capture", "reduce", str(s), "--grid", str(N), "--roi-fraction", "1", "--quiet") == 0
+    # the ordinary reduction with the texel reduction's margin between regions
+    config = tomllib.loads((s / "reduction.toml").read_text())
+    config.setdefault("reduction", {})["region_margin_px"] = TEXEL_MARGIN_PX
+    (d / "margin.toml").write_text(tomli_w.dumps(config))
+    grid = ("--grid", str(N), "--roi-fraction", "1", "--config", str(d / "margin.toml"))
+    assert run("capture", "reduce", str(s), *grid, "--quiet") == 0
     return dict(
         session=s,
         rows=rows,
@@ -212,6 +221,7 @@ def test_file_layout_and_summary(reduced):
     np.testing.assert_allclose(attrs["sample_size"], [0.05, 0.05])
     assert summary["kept"] == 2 * N * N and summary["texels_without_samples"] == 0
     assert summary["roi_fraction"] == 1.0 and summary["grid"] == [N, N]
+    assert summary["boundary_margin_px"] == TEXEL_MARGIN_PX
     res = summary["resolution"]
     # the texel's side in pixels at the best pose (the frontal one, theta_o = 0): 12.5 mm
     # at 0.40 m with fx = 160 / tan(15 deg) = 597.1 px (320 px over a 30 deg fov)
