@@ -4,7 +4,8 @@ The session (real dynamixel-sdk on the virtual bus, rendered DNGs at 320 x 240, 
 poses) has an albedo map that grows along +x and along +y, so that a texel's place on
 the sample shows in its BRDF.  Checked: the per-texel samples equal the region
 samples of an ordinary ``--grid N --roi-fraction 1`` reduction of the same session (the
-existing path with the texel reduction's ``region_margin_px``, mapped region -> texel by
+existing path with the texel reduction's ``region_margin_px`` and without its aperture
+correction, mapped region -> texel by
 the convention, worked out here by hand); each
 texel's BRDF follows the map's mean over that texel's rectangle (the truth, independent
 of the reduction); the chunk layout; the refusals (too fine for the camera, N < 1,
@@ -115,9 +116,11 @@ def reduced(tmp_path_factory):
         chunks = {k: f[k].chunks for k in ("wi", "brdf", "flags", "budget/noise", "geometry_modes")}
         attrs = dict(f.attrs)
     texel_samples = load_samples(s / "samples.h5")
-    # the ordinary reduction with the texel reduction's margin between regions
+    # the ordinary reduction with the texel reduction's margin between regions and, as
+    # there, no aperture correction
     config = tomllib.loads((s / "reduction.toml").read_text())
     config.setdefault("reduction", {})["region_margin_px"] = TEXEL_MARGIN_PX
+    config["reduction"]["aperture_correction"] = False
     (d / "margin.toml").write_text(tomli_w.dumps(config))
     grid = ("--grid", str(N), "--roi-fraction", "1", "--config", str(d / "margin.toml"))
     assert run("capture", "reduce", str(s), *grid, "--quiet") == 0

@@ -2,7 +2,7 @@
 
 ``examples/svbrdf_scene.toml`` (inline 4 x 4 maps of albedo, ks and alpha) is captured
 through ``gonio capture run`` (virtual bus, rendered DNGs) at 320 x 240 on two poses and
-reduced by the existing ``gonio capture reduce --grid 4``.  Independent reference: the
+reduced by ``gonio capture reduce --texels 4``.  Independent reference: the
 reduced BRDF of each region against the analytic model evaluated with the parameters of
 the texel the region covers (read from the session's ``truth/svbrdf.h5``).
 """
@@ -57,8 +57,9 @@ def session(tmp_path_factory):
     s = d / "S"
     args = ("capture", "run", str(d / "plan.toml"), "--rig", str(d / "rig.toml"))
     assert run(*args, "--camera", "simulated", "--out", str(s), "--quiet") == 0
-    # the whole sample (roi 1.0): the 4 x 4 region grid then covers the 4 x 4 texels
-    reduce = ("capture", "reduce", str(s), "--grid", "4", "--roi-fraction", "1.0")
+    # a texel reduction: the 4 x 4 region grid covers the 4 x 4 texels (roi 1.0), with
+    # the texel margins and no aperture correction (its neighbours are other materials)
+    reduce = ("capture", "reduce", str(s), "--texels", "4")
     assert run(*reduce, "--quiet", "--no-plot") == 0
     return s
 
