@@ -350,6 +350,23 @@ def _write_fit_files(r: Any, samples: Any, folder: Path, plots: bool) -> list[st
     return notes
 
 
+def load_kernels() -> None:
+    """Load the numba kernels before a task fits (every engine, so the same paths).
+
+    The evaluators take numba for a mid-size batch (4096 to 10^5 pairs) only once its
+    kernels are loaded (``gonio.brdf.microfacet``, ``gonio.fitting.varpro``: a small CLI
+    job never pays numba's import), and numba's sums round differently from numpy's in
+    the last bits.  Without this, whether a fit's energy check or design ran on numba
+    would depend on what the process had fitted before (the first 10^5-pair quadrature
+    loads the kernels): a worker's history, so the bytes would depend on how tasks were
+    spread over workers.  ``GONIO_NUMBA=0`` keeps numpy everywhere.
+    """
+    if os.environ.get("GONIO_NUMBA") == "0":
+        return
+    import gonio.brdf.kernels  # noqa: F401
+    import gonio.fitting.kernels  # noqa: F401
+
+
 def fit_material(task: _Task) -> dict[str, Any]:
     """Read and fit one material; the files of its result folder as bytes (a worker task).
 
@@ -375,6 +392,7 @@ def fit_material(task: _Task) -> dict[str, Any]:
         raise GonioError(f"{m.path}: cannot read: {exc.strerror or exc}") from None
     from threadpoolctl import threadpool_limits
 
+    load_kernels()
     samples = _load(m, o.sampling)
     # BLAS on one thread in every engine: a pool of another size sums in another order,
     # and nlopt's stopping test can then end a candidate's search one step apart

@@ -137,6 +137,12 @@ def nlopt_minimize(
     secant = _SecantStop(xtol_rel, lb, ub) if (gradient_based and n == 1 and ineq is None) else None
 
     def obj(x: np.ndarray, grad: np.ndarray) -> float:
+        if best.get("secant"):
+            # stopped (force_stop below): nlopt may still ask before it looks at the flag;
+            # nothing it asks now is taken, so the result does not depend on when it looks
+            if grad.size:
+                grad[:] = 0.0
+            return best["f"]
         best["n"] += 1
         want = grad.size > 0
         f, g = fun(x, want)
@@ -147,11 +153,11 @@ def nlopt_minimize(
         if f < best["f"] and (ineq is None or _feasible(x)):
             best["f"], best["x"] = float(f), x.copy()
         if secant is not None and want and secant.converged(x, grad, f, best["f"]):
-            # nlopt 2.11 does not always hand the callback's exception back: it may come
-            # out as ForcedStop or a runtime_error (seen under another BLAS thread count,
-            # same cost), so the stop is also remembered here
+            # nlopt's own stop flag, not an exception through its C++ layer: nlopt 2.11
+            # handed a callback's exception back as ForcedStop, a runtime_error or not at
+            # once (the search went on for a step), varying from run to run
             best["secant"] = True
-            raise _Converged
+            opt.force_stop()
         return float(f)
 
     def _feasible(x: np.ndarray) -> bool:
@@ -194,8 +200,6 @@ def nlopt_minimize(
         message = _MESSAGES.get(status, str(status))
     except GonioError:
         raise
-    except _Converged:
-        status, message = 4, "xtol reached (secant step)"
     except nlopt.RoundoffLimited:
         status, message = -4, "roundoff limited (best point kept)"
     except nlopt.ForcedStop:
@@ -221,10 +225,6 @@ def nlopt_minimize(
         # at a minimum that is convergence, not failure.
         status, message = 1, "converged to round-off"
     return NloptResult(best["x"], best["f"], status, message, best["n"], algorithm)
-
-
-class _Converged(Exception):
-    """Raised from the objective to end a 1-D search whose next step is below xtol."""
 
 
 class _SecantStop:

@@ -193,8 +193,10 @@ def fit_block(block: TexelBlock) -> dict[str, Any]:
     """
     from threadpoolctl import threadpool_limits
 
+    from gonio.fitting.library import load_kernels
     from gonio.texels import open_texels
 
+    load_kernels()  # the same evaluation paths whatever the worker fitted before
     start = time.perf_counter()
     o = block.options
     names = tuple(_model_of(o.model, o.model_options).param_names)
