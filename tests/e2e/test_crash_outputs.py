@@ -179,6 +179,10 @@ def test_fit_killed_inside_its_output_phase_keeps_the_old_set(session, tmp_path)
     def die_while_plotting():
         import gonio.fitting.plots as plots
 
+        # the in-process drawing path, so that the command itself dies in its output phase
+        # (with the figure worker the figures are drawn in other processes)
+        os.environ["GONIO_PLOT_WORKER"] = "0"
+
         def killed(*a, **k):  # fit.json and slices.png of the new set are written by now
             os.kill(os.getpid(), signal.SIGKILL)
 
