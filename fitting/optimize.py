@@ -147,6 +147,9 @@ def nlopt_minimize(
         if f < best["f"] and (ineq is None or _feasible(x)):
             best["f"], best["x"] = float(f), x.copy()
         if secant is not None and want and secant.converged(x, grad, f, best["f"]):
+            # nlopt 2.11 swallows an exception raised in the objective and returns with
+            # FORCED_STOP instead of re-raising it: remember why we stopped
+            best["secant"] = True
             raise _Converged
         return float(f)
 
@@ -205,6 +208,8 @@ def nlopt_minimize(
     except Exception as exc:  # noqa: BLE001 - nlopt raises bare Exception subclasses
         status = -1
         message = f"{algorithm} failed ({type(exc).__name__}{': ' + str(exc) if str(exc) else ''})"
+    if status == -5 and best.get("secant"):
+        status, message = 4, "xtol reached (secant step)"
     if not np.isfinite(best["f"]):
         raise FitError(
             f"{algorithm}: no finite cost in {best['n']} evaluations from x0={x0.tolist()} "
