@@ -11,6 +11,37 @@ import pytest
 
 REPO = Path(__file__).resolve().parent.parent
 
+#: The BLAS libraries' thread-count variables (numpy/scipy's OpenBLAS, OpenCV's own
+#: OpenBLAS, MKL where installed).  Not OMP_NUM_THREADS: numba's kernels are tested
+#: multithreaded and keep their own pool (NUMBA_NUM_THREADS).
+BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _pin_blas_under_xdist() -> None:
+    """Under ``pytest -n N`` give each worker's BLAS ``cores // N`` threads (at least 1).
+
+    N workers with a BLAS pool of all cores each oversubscribe the machine N times, and
+    OpenBLAS's idle threads spin: on CI's 2 cores and 2 workers a calibration solve (small
+    dense matrices) took ~1.7x the CPU time with 2 BLAS threads as with 1.  Set here, at
+    the first conftest's import, before any test module imports numpy, and inherited by
+    the ``gonio`` subprocesses the tests start.  A variable the user set is kept.  The
+    values a test computes change by roundoff at most (a sum's order); no test checks a
+    thread count of BLAS.
+    """
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if workers < 2:
+        return
+    n = str(max(1, (os.cpu_count() or 1) // workers))
+    for var in BLAS_THREAD_VARS:
+        os.environ.setdefault(var, n)
+    if "numpy" in sys.modules:  # a plugin loaded it first: its pool already started
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(limits=int(os.environ[BLAS_THREAD_VARS[0]]), user_api="blas")
+
+
+_pin_blas_under_xdist()
+
 
 def refdata_dir() -> Path:
     """``$GONIO_REFDATA`` or ``../shared/data`` next to the repository."""
