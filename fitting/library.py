@@ -560,18 +560,12 @@ def fit_library(
     """
     from rich.console import Console
 
-    from gonio.distributed import DEFAULT_CONNECT_TIMEOUT_S, TaskFailure, open_client
+    from gonio.distributed import TaskFailure, check_engine, run_tasks, task_engine
 
     console = console or Console()
     err_console = err_console or Console(stderr=True)
     lib = Path(lib)
-    if scheduler is not None and workers is not None:
-        raise GonioError(
-            "--workers sets the size of the local cluster; a scheduler's workers are "
-            "started on the cluster with `dask worker ADDRESS`"
-        )
-    if workers is not None and workers < 0:
-        raise GonioError(f"--workers must be >= 0 (0: no dask, this process), got {workers}")
+    check_engine(scheduler, workers)
     options.check()
     materials, rejected = find_materials(source, exclude=lib.resolve() if lib.exists() else None)
     report = LibraryReport()
@@ -585,15 +579,10 @@ def fit_library(
             f"error: {shown}", style="red", markup=False, highlight=False, soft_wrap=True
         )
 
-    timeout = DEFAULT_CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
-    client_cm = (
-        contextlib.nullcontext(None)
-        if workers == 0
-        else open_client(scheduler, workers=workers, timeout_s=timeout)
+    engine = task_engine(
+        scheduler, workers, connect_timeout_s=connect_timeout_s, on_client=on_client
     )
-    with _library_folder(lib), client_cm as client:
-        if client is not None and on_client is not None:
-            on_client(client)
+    with _library_folder(lib), engine as (client, where):
         for path, why in rejected:
             fail(str(path), path, why)
         todo: list[Material] = []
@@ -617,11 +606,6 @@ def fit_library(
                 markup=False,
             )
         by_name = {m.name: m for m in todo}
-        where = (
-            "this process"
-            if client is None
-            else scheduler or f"a local cluster of {len(client.scheduler_info()['workers'])}"
-        )
         console.print(
             f"fitting {len(todo)} material(s) on {where}",
             markup=False,
@@ -629,38 +613,32 @@ def fit_library(
             soft_wrap=True,
         )
 
-        from gonio.distributed import map_tasks, rich_progress
+        def arrived(name: Any, outcome: Any) -> None:
+            m = by_name[name]
+            if isinstance(outcome, TaskFailure):
+                fail(m.name, m.path, outcome.error)
+                return
+            try:
+                report.written.append(_write_material(lib, m, options, outcome))
+            except OSError as exc:
+                fail(m.name, lib / m.name, f"cannot write: {exc.strerror or exc}")
+                return
+            report.fitted.append(m.name)
+            status[m.name] = "fitted"
+            if not outcome["success"]:
+                report.not_converged.append(m.name)
+            for note in outcome["notes"]:
+                console.print(f"{m.name}: {note}", markup=False, highlight=False, soft_wrap=True)
 
-        with rich_progress(len(todo), "fitting", console=console) as bar:
-
-            def arrived(name: Any, outcome: Any, done: int, total: int) -> None:
-                m = by_name[name]
-                if isinstance(outcome, TaskFailure):
-                    fail(m.name, m.path, outcome.error)
-                else:
-                    try:
-                        report.written.append(_write_material(lib, m, options, outcome))
-                    except OSError as exc:
-                        fail(m.name, lib / m.name, f"cannot write: {exc.strerror or exc}")
-                    else:
-                        report.fitted.append(m.name)
-                        status[m.name] = "fitted"
-                        if not outcome["success"]:
-                            report.not_converged.append(m.name)
-                        for note in outcome["notes"]:
-                            console.print(
-                                f"{m.name}: {note}", markup=False, highlight=False, soft_wrap=True
-                            )
-                bar(name, outcome, done, total)
-
-            map_tasks(
-                client,
-                fit_material,
-                [_Task(m, options) for m in todo],
-                key_of=lambda t: t.material.name,
-                retries=1,
-                progress=arrived,
-            )
+        run_tasks(
+            client,
+            fit_material,
+            [_Task(m, options) for m in todo],
+            key_of=lambda t: t.material.name,
+            description="fitting",
+            arrived=arrived,
+            console=console,
+        )
         report.rows = summary_rows(lib, materials, status, report.failed, digests)
         write_summary(lib, report.rows)
     return report

@@ -436,24 +436,12 @@ def fit_svbrdf(
 
     from rich.console import Console
 
-    from gonio.distributed import (
-        DEFAULT_CONNECT_TIMEOUT_S,
-        TaskFailure,
-        map_tasks,
-        open_client,
-        rich_progress,
-    )
+    from gonio.distributed import TaskFailure, check_engine, run_tasks, task_engine
 
     console = console or Console()
     err_console = err_console or Console(stderr=True)
     path = Path(path).absolute()
-    if scheduler is not None and workers is not None:
-        raise GonioError(
-            "--workers sets the size of the local cluster; a scheduler's workers are "
-            "started on the cluster with `dask worker ADDRESS`"
-        )
-    if workers is not None and workers < 0:
-        raise GonioError(f"--workers must be >= 0 (0: no dask, this process), got {workers}")
+    check_engine(scheduler, workers)
     options.check()
     with _texel_file(path) as tf:
         n_texels, shape, channels = tf.n_texels, tuple(tf.shape), tuple(tf.channels)
@@ -480,12 +468,6 @@ def fit_svbrdf(
         cost = float("nan")
         blocks = plan_blocks(n_texels, TARGET_TASK_S / max(int(block_texels), 1), 1)
     items = [TexelBlock(str(path), t0, t1, options) for t0, t1 in blocks]
-    timeout = DEFAULT_CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
-    client_cm = (
-        contextlib.nullcontext(None)
-        if workers == 0
-        else open_client(scheduler, workers=workers, timeout_s=timeout)
-    )
     n_ch = len(channels)
     flat = {
         "params": {k: np.full((n_texels, n_ch), np.nan) for k in names},
@@ -499,14 +481,10 @@ def fit_svbrdf(
     messages: dict[int, str] = {}
     by_name = {b.name: b for b in items}
     result_bytes = 0
-    with client_cm as client:
-        if client is not None and on_client is not None:
-            on_client(client)
-        where = (
-            "this process"
-            if client is None
-            else scheduler or f"a local cluster of {len(client.scheduler_info()['workers'])}"
-        )
+    engine = task_engine(
+        scheduler, workers, connect_timeout_s=connect_timeout_s, on_client=on_client
+    )
+    with engine as (client, where):
         console.print(
             f"fitting {options.model} to {n_texels} texels ({shape[1]} x {shape[0]}) in "
             f"{len(items)} block(s) of {blocks[0][1] - blocks[0][0]} on {where}"
@@ -515,35 +493,39 @@ def fit_svbrdf(
             highlight=False,
             soft_wrap=True,
         )
-        with rich_progress(len(items), "fitting texels", console=console) as bar:
 
-            def arrived(name: Any, outcome: Any, done: int, total: int) -> None:
-                nonlocal result_bytes
-                b = by_name[name]
-                if isinstance(outcome, TaskFailure):
-                    failed[name] = outcome.error
-                    err_console.print(
-                        f"error: {path}: {name}: {outcome.error}",
-                        style="red",
-                        markup=False,
-                        highlight=False,
-                        soft_wrap=True,
-                    )
-                else:
-                    sl = slice(b.t0, b.t1)
-                    for k in names:
-                        flat["params"][k][sl] = outcome["params"][k]
-                        flat["std"][k][sl] = outcome["std"][k]
-                    for k in ("cost", "rms_residual", "n_samples", "success"):
-                        flat[k][sl] = outcome[k]
-                    messages.update(outcome["messages"])
-                    if not result_bytes:
-                        result_bytes = len(pickle.dumps(outcome))
-                bar(name, outcome, done, total)
+        def arrived(name: Any, outcome: Any) -> None:
+            nonlocal result_bytes
+            b = by_name[name]
+            if isinstance(outcome, TaskFailure):
+                failed[name] = outcome.error
+                err_console.print(
+                    f"error: {path}: {name}: {outcome.error}",
+                    style="red",
+                    markup=False,
+                    highlight=False,
+                    soft_wrap=True,
+                )
+            else:
+                sl = slice(b.t0, b.t1)
+                for k in names:
+                    flat["params"][k][sl] = outcome["params"][k]
+                    flat["std"][k][sl] = outcome["std"][k]
+                for k in ("cost", "rms_residual", "n_samples", "success"):
+                    flat[k][sl] = outcome[k]
+                messages.update(outcome["messages"])
+                if not result_bytes:
+                    result_bytes = len(pickle.dumps(outcome))
 
-            map_tasks(
-                client, fit_block, items, key_of=lambda b: b.name, retries=1, progress=arrived
-            )
+        run_tasks(
+            client,
+            fit_block,
+            items,
+            key_of=lambda b: b.name,
+            description="fitting texels",
+            arrived=arrived,
+            console=console,
+        )
     ny, nx = shape
     res = SVBRDFResult(
         source=path,

@@ -43,9 +43,12 @@ __all__ = [
     "SchedulerUnreachable",
     "TaskError",
     "TaskFailure",
+    "check_engine",
     "map_tasks",
     "open_client",
     "rich_progress",
+    "run_tasks",
+    "task_engine",
 ]
 
 #: Seconds to wait for a scheduler to answer (and for its first worker) before giving up.
@@ -441,3 +444,106 @@ def rich_progress(total: int, description: str, console: Any = None) -> Iterator
             bar.update(task, completed=done, description=f"{description} ({key}: {mark})")
 
         yield update
+
+
+def check_engine(scheduler: str | None, workers: int | None) -> None:
+    """Refuse an engine choice that cannot be honoured, before anything is opened.
+
+    Raises
+    ------
+    GonioError
+        ``scheduler`` with ``workers`` (a remote cluster's size is not ours to set), or
+        ``workers`` below 0.
+    """
+    if scheduler is not None and workers is not None:
+        raise GonioError(
+            "--workers sets the size of the local cluster; a scheduler's workers are "
+            "started on the cluster with `dask worker ADDRESS`"
+        )
+    if workers is not None and workers < 0:
+        raise GonioError(f"--workers must be >= 0 (0: no dask, this process), got {workers}")
+
+
+@contextlib.contextmanager
+def task_engine(
+    scheduler: str | None,
+    workers: int | None,
+    *,
+    connect_timeout_s: float | None = None,
+    on_client: Callable[[Any], None] | None = None,
+) -> Iterator[tuple[Client | None, str]]:
+    """The engine the fitting commands run their tasks on, for the duration of the block.
+
+    One place for what the library and the per-texel fits share (``--workers 0``: no
+    dask; else :func:`open_client`), so that both choose and describe it alike.
+
+    Parameters
+    ----------
+    scheduler, workers
+        As :func:`open_client`; ``workers=0``: no client, the tasks run in this process.
+    connect_timeout_s
+        Seconds to wait for ``scheduler`` (default :data:`DEFAULT_CONNECT_TIMEOUT_S`).
+    on_client
+        Called with the client once it is connected (tests, benchmarks); not called
+        without one.
+
+    Yields
+    ------
+    (client or None, where)
+        ``where`` names the engine for the command's output ("this process", the
+        scheduler's address or "a local cluster of N").
+    """
+    timeout = DEFAULT_CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
+    client_cm: contextlib.AbstractContextManager[Client | None] = (
+        contextlib.nullcontext(None)
+        if workers == 0
+        else open_client(scheduler, workers=workers, timeout_s=timeout)
+    )
+    with client_cm as client:
+        if client is not None and on_client is not None:
+            on_client(client)
+        where = (
+            "this process"
+            if client is None
+            else scheduler or f"a local cluster of {len(client.scheduler_info()['workers'])}"
+        )
+        yield client, where
+
+
+def run_tasks(
+    client: Client | None,
+    fn: Callable[[Any], Any],
+    items: Iterable[Any],
+    *,
+    key_of: Callable[[Any], Hashable],
+    description: str,
+    arrived: Callable[[Hashable, Any], None],
+    console: Any = None,
+) -> dict[Hashable, Any]:
+    """:func:`map_tasks` (one retry) under a :func:`rich_progress` bar.
+
+    Parameters
+    ----------
+    client, fn, items, key_of
+        As :func:`map_tasks`.
+    description
+        The bar's label.
+    arrived
+        Called with ``(key, outcome)`` as each task finishes, before the bar moves on
+        (the caller stores or writes the result there: nothing waits for the whole run).
+    console
+        The ``rich.console.Console`` of the bar.
+
+    Returns
+    -------
+    dict
+        As :func:`map_tasks`.
+    """
+    items = list(items)
+    with rich_progress(len(items), description, console=console) as bar:
+
+        def progress(key: Hashable, outcome: Any, done: int, total: int) -> None:
+            arrived(key, outcome)
+            bar(key, outcome, done, total)
+
+        return map_tasks(client, fn, items, key_of=key_of, retries=1, progress=progress)

@@ -1,5 +1,6 @@
 """gonio.distributed: map_tasks' results and failures, retries, the local cluster's
-processes, Ctrl-C, and an unreachable scheduler."""
+processes, Ctrl-C, an unreachable scheduler, and the engine helpers the fitting commands
+share (``check_engine``, ``task_engine``, ``run_tasks``)."""
 
 from __future__ import annotations
 
@@ -16,8 +17,11 @@ from gonio.distributed import (
     SchedulerUnreachable,
     TaskError,
     TaskFailure,
+    check_engine,
     map_tasks,
     open_client,
+    run_tasks,
+    task_engine,
 )
 from gonio.errors import FileFormatError, GonioError
 
@@ -146,3 +150,56 @@ def test_local_cluster_needs_a_worker():
     with pytest.raises(GonioError, match="at least 1 worker"):
         with open_client(workers=0):
             pass
+
+
+@pytest.mark.parametrize(
+    ("scheduler", "workers", "match"),
+    [("tcp://127.0.0.1:8786", 2, "sets the size of the local cluster"), (None, -1, "got -1")],
+)
+def test_engine_choice_refused(scheduler, workers, match):
+    with pytest.raises(GonioError, match=match):
+        check_engine(scheduler, workers)
+
+
+def test_engine_choices_accepted():
+    for scheduler, workers in ((None, None), (None, 0), (None, 2), ("tcp://h:1", None)):
+        check_engine(scheduler, workers)  # nothing raised, nothing opened
+
+
+def test_task_engine_without_dask_and_its_failures_reported():
+    """``workers=0``: no client (``on_client`` not called), the tasks run here; each
+    outcome reaches ``arrived`` (failures as TaskFailure, after the one retry)."""
+    called = []
+    seen = {}
+    with task_engine(None, 0, on_client=called.append) as (client, where):
+        assert (client, where) == (None, "this process")
+        out = run_tasks(
+            client,
+            _square_or_fail,
+            range(5),
+            key_of=lambda x: f"m{x}",
+            description="squares",
+            arrived=seen.__setitem__,
+        )
+    assert called == []
+    assert seen == out and list(out) == [f"m{i}" for i in range(5)]
+    assert [out[f"m{i}"] for i in (0, 1, 2)] == [0, 1, 4]
+    assert out["m3"].error == "/data/three.bsdf: truncated header"
+
+
+def test_task_engine_names_the_local_cluster(inproc_client, monkeypatch):
+    """A local cluster is described by its worker count; ``on_client`` sees the client."""
+    from contextlib import contextmanager
+
+    import gonio.distributed as gd
+
+    @contextmanager
+    def fake_open_client(scheduler=None, *, workers=None, timeout_s=None):
+        assert (scheduler, workers) == (None, 3)
+        yield inproc_client
+
+    monkeypatch.setattr(gd, "open_client", fake_open_client)
+    called = []
+    with task_engine(None, 3, on_client=called.append) as (client, where):
+        assert client is inproc_client and where == "a local cluster of 1"
+    assert called == [inproc_client]
