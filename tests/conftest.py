@@ -11,6 +11,11 @@ import pytest
 
 REPO = Path(__file__).resolve().parent.parent
 
+# The helper modules beside this file (sim_sessions, crash_harness) are imported by name:
+# under --import-mode=importlib pytest puts no test folder on sys.path itself.
+if str(Path(__file__).parent) not in sys.path:
+    sys.path.insert(0, str(Path(__file__).parent))
+
 #: The BLAS libraries' thread-count variables (numpy/scipy's OpenBLAS, OpenCV's own
 #: OpenBLAS, MKL where installed).  Not OMP_NUM_THREADS: numba's kernels are tested
 #: multithreaded and keep their own pool (NUMBA_NUM_THREADS).

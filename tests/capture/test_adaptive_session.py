@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sim_sessions import scene_toml
 
 from gonio.capture.adaptive import Decision, round_records, session_steps
 from gonio.capture.journal import read_journal
@@ -347,33 +348,9 @@ def test_a_pool_that_cannot_hold_the_seed_is_refused(tmp_path):
 # --------------------------------------------------------------------------------------
 # The real advisor, on frames the reduction can measure
 
-SCENE = """
-[sample]
-width = 0.05
-height = 0.05
-[sample.brdf]
-model = "lambert+ggx"
-params = { albedo = [0.5, 0.4, 0.3], ks = 0.3, alpha = 0.2 }
-[holder]
-width = 0.16
-height = 0.16
-[holder.board]
-[[lights]]
-type = "disk"
-position = [0.0, 0.25, 0.433]
-look_at = [0.0, 0.0, 0.0]
-radius = 0.01
-radiance = [2.0e4, 2.0e4, 2.0e4]
-[camera]
-resolution = [320, 240]
-focal_length = 0.016
-fov_deg = 30.0
-position = [0.1, -0.2, 0.35]
-look_at = [0.0, 0.0, 0.0]
-[render]
-strategy = "quadrature"
-quadrature_order = 1
-"""
+SCENE = scene_toml(
+    brdf={"model": "lambert+ggx", "params": {"albedo": [0.5, 0.4, 0.3], "ks": 0.3, "alpha": 0.2}}
+)
 
 FIT_PLAN = """
 name = "adaptive-fit"

@@ -15,86 +15,40 @@ import pytest
 import rawpy
 import tomli_w
 import xxhash
+from sim_sessions import (
+    REFERENCE_NORMAL,
+    REFERENCE_OBLIQUE,
+    capture,
+    grid_plan,
+    scene_toml,
+    write_inputs,
+)
 
 from gonio.app.sim_reduction import write_reduction_toml
 from gonio.capture.journal import read_journal
 from gonio.cli import run
 from gonio.dataset import Flag, load_samples
-from gonio.rig.config import virtual_rig_document
 
 pytestmark = pytest.mark.slow  # captures a simulated session (virtual bus, renders)
 
 ALBEDO = np.array([0.6, 0.5, 0.4])
 
-PLAN = """
-name = "reduce-test"
-seed = 5
-[grid]
-theta_i_deg = [20, 40]
-phi_i_deg = [0]
-theta_o_deg = [30, 50]
-phi_o_deg = [180]
-[bracket]
-policy = "adaptive"
-roi = [0.42, 0.42, 0.58, 0.58]
-exposure_time_s = 0.0005
-[darks]
-count = 2
-[reference]
-poses = [{theta_i_deg = 0, theta_o_deg = 30}, {theta_i_deg = 30, theta_o_deg = 30, phi_o_deg = 180}]
-[simulation]
-scene = "scene.toml"
-"""
-
-SCENE = """
-[sample]
-width = 0.05
-height = 0.05
-[sample.brdf]
-model = "lambert"
-params = { albedo = [0.6, 0.5, 0.4] }
-[holder]
-width = 0.16
-height = 0.16
-[holder.board]
-[[lights]]
-type = "disk"
-position = [0.0, 0.25, 0.433]
-look_at = [0.0, 0.0, 0.0]
-radius = 0.01
-radiance = [2.0e4, 2.0e4, 2.0e4]
-[camera]
-resolution = [400, 300]
-focal_length = 0.016
-fov_deg = 30.0
-position = [0.1, -0.2, 0.35]
-look_at = [0.0, 0.0, 0.0]
-[render]
-strategy = "quadrature"
-quadrature_order = 1
-"""
+PLAN_ARGS = dict(
+    seed=5,
+    theta_i_deg=[20, 40],
+    theta_o_deg=[30, 50],
+    references=[REFERENCE_NORMAL, REFERENCE_OBLIQUE],
+)
+PLAN = grid_plan("reduce-test", darks=2, **PLAN_ARGS)
+SCENE = scene_toml(resolution=(400, 300))
 
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
     """A simulated session: real dynamixel-sdk on the virtual bus, rendered DNGs."""
     d = tmp_path_factory.mktemp("reduce")
-    (d / "rig.toml").write_text(virtual_rig_document())
-    (d / "plan.toml").write_text(PLAN)
-    (d / "scene.toml").write_text(SCENE)
-    code = run(
-        "capture",
-        "run",
-        str(d / "plan.toml"),
-        "--rig",
-        str(d / "rig.toml"),
-        "--camera",
-        "simulated",
-        "--out",
-        str(d / "S"),
-        "--quiet",
-    )
-    assert code == 0
+    write_inputs(d, PLAN, SCENE)
+    capture(d)
     # written at capture time from the camera; the manifest's scene must give the same
     # setup (write_reduction_toml refuses a different file)
     write_reduction_toml(d / "S")
@@ -355,11 +309,8 @@ def test_reference_reflectance_of_the_plan_is_what_the_simulated_camera_renders(
     from gonio.capture.sessions import run_session
     from gonio.rig.config import load_rig_config
 
-    (tmp_path / "rig.toml").write_text(virtual_rig_document())
-    plan_text = PLAN.replace("[darks]\ncount = 2", "[darks]\ncount = 0").replace(
-        "[reference]\n", "[reference]\nreflectance = 0.5\n"
-    )
-    (tmp_path / "plan.toml").write_text(plan_text)
+    plan_text = grid_plan("reduce-test", darks=0, reflectance=0.5, **PLAN_ARGS)
+    write_inputs(tmp_path, plan_text)
     plan = load_plan(tmp_path / "plan.toml")
     assert plan.reference.reflectance == 0.5
     cfg = load_rig_config(tmp_path / "rig.toml")

@@ -22,65 +22,27 @@ import h5py
 import numpy as np
 import pytest
 import tomli_w
+from sim_sessions import REFERENCE_NORMAL, capture, grid_plan, scene_toml, write_inputs
 
 from gonio.app.sim_reduction import write_reduction_toml
 from gonio.capture.texel_reduce import TEXEL_MARGIN_PX
 from gonio.cli import run
 from gonio.dataset import BUDGET_TERMS, Flag, load_samples
-from gonio.rig.config import virtual_rig_document
 from gonio.texels import ORIENTATION, open_texels
 
 pytestmark = pytest.mark.slow  # captures a simulated session (virtual bus, renders)
 
 N = 4
-PLAN = """
-name = "texel-test"
-seed = 5
-[grid]
-theta_i_deg = [30]
-phi_i_deg = [0]
-theta_o_deg = [0, 40]
-phi_o_deg = [180]
-[bracket]
-policy = "adaptive"
-roi = [0.42, 0.42, 0.58, 0.58]
-exposure_time_s = 0.0005
-[darks]
-count = 2
-[reference]
-poses = [{theta_i_deg = 0, theta_o_deg = 30}]
-[simulation]
-scene = "scene.toml"
-"""
-
-SCENE = """
-[sample]
-width = 0.05
-height = 0.05
-albedo_map = "map.npy"
-[sample.brdf]
-model = "lambert"
-params = { albedo = [0.6, 0.5, 0.4] }
-[holder]
-width = 0.16
-height = 0.16
-[holder.board]
-[[lights]]
-type = "disk"
-position = [0.0, 0.25, 0.433]
-look_at = [0.0, 0.0, 0.0]
-radius = 0.01
-radiance = [2.0e4, 2.0e4, 2.0e4]
-[camera]
-resolution = [320, 240]
-focal_length = 0.016
-fov_deg = 30.0
-position = [0.1, -0.2, 0.35]
-look_at = [0.0, 0.0, 0.0]
-[render]
-strategy = "quadrature"
-quadrature_order = 1
-"""
+PLAN = grid_plan(
+    "texel-test",
+    seed=5,
+    theta_i_deg=[30],
+    theta_o_deg=[0, 40],
+    darks=2,
+    references=[REFERENCE_NORMAL],
+)
+# the albedo factor map over a uniform lambert sample
+SCENE = scene_toml(albedo_map="map.npy")
 
 
 def albedo_map(size: int = 64) -> np.ndarray:
@@ -95,13 +57,9 @@ def reduced(tmp_path_factory):
     """The session reduced twice: with --texels N, then (into the same folder) with the
     ordinary --grid N --roi-fraction 1; the texel file's content is kept in memory."""
     d = tmp_path_factory.mktemp("texels")
-    (d / "rig.toml").write_text(virtual_rig_document())
-    (d / "plan.toml").write_text(PLAN)
-    (d / "scene.toml").write_text(SCENE)
+    write_inputs(d, PLAN, SCENE)
     np.save(d / "map.npy", albedo_map())
-    args = ("--rig", str(d / "rig.toml"), "--camera", "simulated", "--out", str(d / "S"))
-    assert run("capture", "run", str(d / "plan.toml"), *args, "--quiet") == 0
-    s = d / "S"
+    s = capture(d)
     write_reduction_toml(s)
     rect = d / "R" / "samples.h5"  # NXxNY, into another folder
     assert run("capture", "reduce", str(s), "--texels", "4x2", "--out", str(rect), "--quiet") == 0

@@ -17,10 +17,10 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import tomllib
 
 import numpy as np
 import pytest
+from sim_sessions import REFERENCE_OBLIQUE, grid_plan, scene
 
 from gonio.app.devices import device_opener
 from gonio.capture.journal import read_journal
@@ -34,55 +34,16 @@ from gonio.rig.kinematics import Kinematics
 
 # Steps: the reference (30, 30) first, the samples theta_i = 20, 30, 40 deg (light arm at
 # -20, -30, -40 deg) in travel order, then the darks.
-PLAN = """
-name = "skip"
-seed = 11
-[grid]
-theta_i_deg = [20, 30, 40]
-phi_i_deg = [0]
-theta_o_deg = [30]
-phi_o_deg = [180]
-[bracket]
-policy = "adaptive"
-exposure_time_s = 0.0005
-roi = [0.4, 0.4, 0.6, 0.6]
-[darks]
-count = 1
-[reference]
-poses = [{theta_i_deg = 30, theta_o_deg = 30, phi_o_deg = 180}]
-[simulation]
-width = 320
-height = 240
-"""
-
-# The reduction finds the reference target through the holder's fiducial board, so the
-# frames must be large enough for ArUco (160 x 120 px) and the scene must carry a board.
-SCENE = """
-[sample]
-width = 0.05
-height = 0.05
-[sample.brdf]
-model = "lambert"
-params = { albedo = [0.6, 0.5, 0.4] }
-[holder]
-width = 0.16
-height = 0.16
-[holder.board]
-[[lights]]
-type = "disk"
-position = [0.0, 0.25, 0.433]
-look_at = [0.0, 0.0, 0.0]
-radius = 0.01
-radiance = [2.0e4, 2.0e4, 2.0e4]
-[camera]
-resolution = [320, 240]
-focal_length = 0.016
-fov_deg = 30.0
-position = [0.1, -0.2, 0.35]
-look_at = [0.0, 0.0, 0.0]
-[render]
-strategy = "point"
-"""
+PLAN = grid_plan(
+    "skip",
+    seed=11,
+    theta_i_deg=[20, 30, 40],
+    theta_o_deg=[30],
+    darks=1,
+    references=[REFERENCE_OBLIQUE],
+    roi=[0.4, 0.4, 0.6, 0.6],
+    simulation={"width": 320, "height": 240},
+)
 
 LIMIT_DEG = -35.0
 
@@ -104,7 +65,10 @@ def files(tmp_path):
 
 def _simulation(plan, time_scale="virtual"):
     return {
-        "scene": tomllib.loads(SCENE),
+        # The reduction finds the reference target through the holder's fiducial board,
+        # so the frames must be large enough for ArUco (160 x 120 px) and the scene must
+        # carry a board (a fresh document each time: a session may keep it).
+        "scene": scene(render={"strategy": "point"}),
         "width": plan.simulation.width,
         "height": plan.simulation.height,
         "time_scale": time_scale,

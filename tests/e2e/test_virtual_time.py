@@ -18,60 +18,29 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from sim_sessions import (
+    REFERENCE_NORMAL,
+    REFERENCE_OBLIQUE,
+    capture,
+    grid_plan,
+    scene_toml,
+    write_inputs,
+)
 
 from gonio.capture.journal import read_journal
 from gonio.cli import run
-from gonio.rig.config import virtual_rig_document
 
-PLAN = """
-name = "virtual-time"
-seed = 11
-settle_s = 0.5
-[grid]
-theta_i_deg = [20, 45]
-phi_i_deg = [0]
-theta_o_deg = [30, 55]
-phi_o_deg = [180]
-[bracket]
-policy = "adaptive"
-roi = [0.42, 0.42, 0.58, 0.58]
-exposure_time_s = 0.0005
-[darks]
-count = 1
-[reference]
-poses = [{theta_i_deg = 0, theta_o_deg = 30}, {theta_i_deg = 30, theta_o_deg = 30, phi_o_deg = 180}]
-[simulation]
-scene = "scene.toml"
-"""
-
-SCENE = """
-[sample]
-width = 0.05
-height = 0.05
-[sample.brdf]
-model = "lambert"
-params = { albedo = [0.6, 0.5, 0.4] }
-[holder]
-width = 0.16
-height = 0.16
-[holder.board]
-[[lights]]
-type = "disk"
-position = [0.0, 0.25, 0.433]
-look_at = [0.0, 0.0, 0.0]
-radius = 0.01
-radiance = [2.0e4, 2.0e4, 2.0e4]
-[camera]
+PLAN = grid_plan(
+    "virtual-time",
+    seed=11,
+    settle_s=0.5,
+    theta_i_deg=[20, 45],
+    theta_o_deg=[30, 55],
+    darks=1,
+    references=[REFERENCE_NORMAL, REFERENCE_OBLIQUE],
+)
 # the reduction needs about this many pixels to find the reference target's region
-resolution = [400, 300]
-focal_length = 0.016
-fov_deg = 30.0
-position = [0.1, -0.2, 0.35]
-look_at = [0.0, 0.0, 0.0]
-[render]
-strategy = "quadrature"
-quadrature_order = 1
-"""
+SCENE = scene_toml(resolution=(400, 300))
 
 #: Journal fields that are clock stamps by design: the wall clock's, and the rig time of
 #: each shot (the servo clock, which on a watched bus runs with the wall clock).
@@ -81,9 +50,7 @@ H5_TIMESTAMPS = {"/@session"}
 
 
 def capture_and_reduce(d: Path, name: str, *speed: str) -> Path:
-    out = d / name
-    args = ["capture", "run", str(d / "plan.toml"), "--rig", str(d / "rig.toml")]
-    assert run(*args, "--camera", "simulated", "--out", str(out), *speed, "--quiet") == 0
+    out = capture(d, name, *speed)
     reduce = ("capture", "reduce", str(out), "--grid", "2")
     assert run(*reduce, "--quiet", "--no-plot") == 0
     return out
@@ -92,9 +59,7 @@ def capture_and_reduce(d: Path, name: str, *speed: str) -> Path:
 @pytest.fixture(scope="module")
 def sessions(tmp_path_factory):
     d = tmp_path_factory.mktemp("vtime")
-    (d / "rig.toml").write_text(virtual_rig_document())
-    (d / "plan.toml").write_text(PLAN)
-    (d / "scene.toml").write_text(SCENE)
+    write_inputs(d, PLAN, SCENE)
     virtual = capture_and_reduce(d, "virtual")  # the default: no --sim-speed
     watched = capture_and_reduce(d, "watched", "--sim-speed", "20")
     return virtual, watched
