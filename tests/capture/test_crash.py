@@ -4,20 +4,26 @@ exactly the planned shots, none twice, every RAW file matching its journal hash.
 Each run or resume is a separate process (forked from this one after the heavy imports,
 so a trial costs the session's work rather than Python's start-up) running the real CLI:
 virtual servo bus on a pty, dynamixel-sdk, rendered DNGs.  The parent kills it with
-SIGKILL at a random time, checks the session directory, and resumes.
+SIGKILL at a random time, checks the session directory, and resumes (the harness,
+``tests/crash_harness.py``, is shared with the adaptive crash test).
 """
 
 from __future__ import annotations
 
-import hashlib
 import os
 import signal
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from crash_harness import (
+    check_consistent,
+    kill_until_complete,
+    run_to_completion,
+    spawn_cli,
+    warm_renderer,
+)
 
 from gonio.capture.journal import read_journal
 from gonio.rig.config import virtual_rig_document
@@ -63,60 +69,11 @@ def _planned(session: Path) -> set[tuple[int, int, float]]:
     return out
 
 
-def _spawn(argv: list[str]) -> int:
-    pid = os.fork()
-    if pid == 0:  # child: run the CLI, never return into pytest
-        code = 70
-        try:
-            fd = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(fd, 1)
-            os.dup2(fd, 2)
-            sys.stdout = open(1, "w", closefd=False)  # noqa: SIM115
-            sys.stderr = open(2, "w", closefd=False)  # noqa: SIM115
-            from gonio.cli import main
-
-            try:
-                main(argv)
-                code = 0
-            except SystemExit as exc:
-                code = exc.code if isinstance(exc.code, int) else 1
-        finally:
-            os._exit(code)
-    return pid
-
-
-def _check_consistent(session: Path) -> list[dict]:
-    """What must hold after any crash: journal readable, no duplicate shot, every journaled
-    file present with its hash."""
-    if not (session / "journal.jsonl").exists():
-        return []
-    recs = read_journal(session / "journal.jsonl")
-    shots = [r for r in recs if r["type"] == "shot"]
-    keys = [(r["pose"], r["frame"]) for r in shots]
-    assert len(keys) == len(set(keys)), f"duplicate shot records in {session}"
-    for r in shots:
-        data = (session / r["file"]).read_bytes()
-        assert hashlib.sha256(data).hexdigest() == r["sha256"], r["file"]
-    return recs
-
-
 @pytest.fixture(scope="module")
 def warm():
-    """Import and exercise the renderer once so that forked children start warm."""
-    import gonio.app.capture_cli  # noqa: F401
-    import gonio.app.devices  # noqa: F401
-    import gonio.rig.device  # noqa: F401
-    import gonio.simulator.virtual_bus  # noqa: F401
-    from gonio.rig.config import default_rig_config
-    from gonio.rig.kinematics import Kinematics
-    from gonio.simulator.rig_camera import SimulatedRigCamera
-
-    cfg = default_rig_config()
-    kin = Kinematics(cfg)
-    cam = SimulatedRigCamera(None, lambda: kin.poses(cfg.park_rad), 0, width=16, height=12)
-    cam.capture(0.01, 100, 8)
-    cam.set_light(False)
-    cam.capture(0.01, 100, 8)
+    """Import and exercise the renderer (lit and dark) once so that forked children start
+    warm."""
+    warm_renderer(dark=True)
 
 
 @pytest.mark.slow
@@ -139,52 +96,37 @@ def test_sigkill_at_random_points_then_resume(tmp_path, warm):
     rng = np.random.default_rng(20261122)
 
     # an uninterrupted session: how long one takes (to spread the kills over it)
-    t0 = time.monotonic()
-    pid = _spawn([*run_args, str(tmp_path / "ref")])
-    assert os.waitpid(pid, 0)[1] == 0
-    t_session = time.monotonic() - t0
+    t_session = run_to_completion([*run_args, str(tmp_path / "ref")])
     planned = _planned(tmp_path / "ref")
 
     kills = 0
     orphans_seen = 0
     n_session = 0
+
+    def after_kill(session: Path) -> None:
+        nonlocal orphans_seen
+        recs = check_consistent(session)
+        journaled = {r["file"] for r in recs if r["type"] == "shot"}
+        if (session / "raw").is_dir():
+            orphans_seen += sum(
+                1 for p in (session / "raw").iterdir() if f"raw/{p.name}" not in journaled
+            )
+
     while kills < MIN_KILLS:
         session = tmp_path / f"S{n_session}"
         n_session += 1
-        cycles = 0
-        while True:
-            started = (session / "manifest.json").exists()
-            argv = (
-                ["capture", "resume", str(session), "--quiet", "--sim-speed", "200"]
-                if started
-                else [*run_args, str(session)]
-            )
-            pid = _spawn(argv)
-            deadline = time.monotonic() + rng.uniform(0.0, 1.1 * t_session)
-            finished = None
-            while time.monotonic() < deadline:
-                done, status = os.waitpid(pid, os.WNOHANG)
-                if done:
-                    finished = status
-                    break
-                time.sleep(0.002)
-            if finished is None:
-                os.kill(pid, signal.SIGKILL)
-                os.waitpid(pid, 0)
-                kills += 1
-                recs = _check_consistent(session)
-                journaled = {r["file"] for r in recs if r["type"] == "shot"}
-                if (session / "raw").is_dir():
-                    orphans_seen += sum(
-                        1 for p in (session / "raw").iterdir() if f"raw/{p.name}" not in journaled
-                    )
-            else:
-                assert os.waitstatus_to_exitcode(finished) == 0, f"{argv} failed"
-                break
-            cycles += 1
-            assert cycles < 60, "session makes no progress under repeated kills"
+        resume = ["capture", "resume", str(session), "--quiet", "--sim-speed", "200"]
+        kills += kill_until_complete(
+            session,
+            [*run_args, str(session)],
+            resume,
+            rng,
+            t_session,
+            max_cycles=60,
+            after_kill=after_kill,
+        )
         # finished: exactly the planned shots, each once, every file matching its hash
-        recs = _check_consistent(session)
+        recs = check_consistent(session)
         shots = [r for r in recs if r["type"] == "shot"]
         got = {(r["pose"], r["frame"], r["exposure_time"]) for r in shots}
         assert len(shots) == len(planned) and got == planned
@@ -200,7 +142,7 @@ def test_sigterm_stops_with_the_finalizer(tmp_path, warm):
     (tmp_path / "rig.toml").write_text(virtual_rig_document())
     (tmp_path / "plan.toml").write_text(PLAN)
     session = tmp_path / "S"
-    pid = _spawn(
+    pid = spawn_cli(
         [
             "capture",
             "run",
@@ -225,7 +167,7 @@ def test_sigterm_stops_with_the_finalizer(tmp_path, warm):
     os.kill(pid, signal.SIGTERM)
     status = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
     assert status == 1
-    recs = _check_consistent(session)
+    recs = check_consistent(session)
     stop = recs[-1]
     assert stop["type"] == "stop" and stop["status"] == "interrupted"
     assert stop["torque_off"] is True

@@ -4,7 +4,8 @@ its journal hash, and ends with the same rounds.
 
 Each run or resume is the real CLI (``gonio capture run|resume``, so the advisor is the
 composition root's FitAdvisor) in a process forked from this one after the heavy
-imports; the parent kills it at a random time, checks the session, and resumes.  The
+imports; the parent kills it at a random time, checks the session, and resumes (the
+harness, ``tests/crash_harness.py``, is shared with the grid sessions' crash test).  The
 frames are 16 x 12 (the advisor then has nothing it can reduce: the reference target is
 not found at that size, and it falls back to its data-independent choice -- which is
 what a kill must not change either).
@@ -12,16 +13,13 @@ what a kill must not change either).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
-import signal
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from crash_harness import check_consistent, kill_until_complete, run_to_completion, warm_renderer
 
 from gonio.capture.adaptive import round_records, session_steps
 from gonio.capture.journal import read_journal
@@ -58,39 +56,10 @@ height = 12
 MIN_KILLS = 10
 
 
-def _spawn(argv: list[str]) -> int:
-    pid = os.fork()
-    if pid == 0:  # child: run the CLI, never return into pytest
-        code = 70
-        try:
-            fd = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(fd, 1)
-            os.dup2(fd, 2)
-            sys.stdout = open(1, "w", closefd=False)  # noqa: SIM115
-            sys.stderr = open(2, "w", closefd=False)  # noqa: SIM115
-            from gonio.cli import main
-
-            try:
-                main(argv)
-                code = 0
-            except SystemExit as exc:
-                code = exc.code if isinstance(exc.code, int) else 1
-        finally:
-            os._exit(code)
-    return pid
-
-
 def _consistent(session: Path) -> list[dict]:
     """After any kill: journal readable, no shot twice, every journaled file present
     with its hash, and a round's record always before the shots of its steps."""
-    if not (session / "journal.jsonl").exists():
-        return []
-    recs = read_journal(session / "journal.jsonl")
-    shots = [r for r in recs if r["type"] == "shot"]
-    keys = [(r["pose"], r["frame"]) for r in shots]
-    assert len(keys) == len(set(keys)), f"duplicate shot records in {session}"
-    for r in shots:
-        assert hashlib.sha256((session / r["file"]).read_bytes()).hexdigest() == r["sha256"]
+    recs = check_consistent(session)
     first_shot: dict[int, int] = {}
     for i, r in enumerate(recs):
         if r["type"] == "shot":
@@ -116,20 +85,11 @@ def _taken(session: Path) -> tuple[list, set, list]:
 
 @pytest.fixture(scope="module")
 def warm():
-    """Import and exercise the renderer once so that forked children start warm."""
+    """Import and exercise the renderer once so that forked children start warm (and
+    import the advisor's modules)."""
     import gonio.app.adaptive_advisor  # noqa: F401
-    import gonio.app.capture_cli  # noqa: F401
-    import gonio.app.devices  # noqa: F401
-    import gonio.rig.device  # noqa: F401
-    import gonio.simulator.virtual_bus  # noqa: F401
-    from gonio.rig.config import default_rig_config
-    from gonio.rig.kinematics import Kinematics
-    from gonio.simulator.rig_camera import SimulatedRigCamera
 
-    cfg = default_rig_config()
-    kin = Kinematics(cfg)
-    cam = SimulatedRigCamera(None, lambda: kin.poses(cfg.park_rad), 0, width=16, height=12)
-    cam.capture(0.01, 100, 8)
+    warm_renderer()
     import gonio.capture.adaptive_reduce  # noqa: F401
     import gonio.fitting  # noqa: F401
 
@@ -142,10 +102,7 @@ def test_sigkill_during_an_adaptive_session_then_resume(tmp_path, warm):
                 "--camera", "simulated", "--sim-speed", "200", "--quiet", "--out"]  # fmt: skip
     rng = np.random.default_rng(20261202)
 
-    t0 = time.monotonic()
-    pid = _spawn([*run_args, str(tmp_path / "ref")])
-    assert os.waitpid(pid, 0)[1] == 0
-    t_session = time.monotonic() - t0
+    t_session = run_to_completion([*run_args, str(tmp_path / "ref")])
     ref_poses, ref_shots, ref_rounds = _taken(tmp_path / "ref")
     # the plan's own numbers: seed 5 + rounds of 3 up to 11 poses, darks at the end
     assert sum(p[0] == "sample" for p in ref_poses) == 11
@@ -157,33 +114,16 @@ def test_sigkill_during_an_adaptive_session_then_resume(tmp_path, warm):
     while kills < MIN_KILLS:
         session = tmp_path / f"S{n_session}"
         n_session += 1
-        cycles = 0
-        while True:
-            started = (session / "manifest.json").exists()
-            argv = (
-                ["capture", "resume", str(session), "--quiet", "--sim-speed", "200"]
-                if started
-                else [*run_args, str(session)]
-            )
-            pid = _spawn(argv)
-            deadline = time.monotonic() + rng.uniform(0.0, 1.1 * t_session)
-            finished = None
-            while time.monotonic() < deadline:
-                done, status = os.waitpid(pid, os.WNOHANG)
-                if done:
-                    finished = status
-                    break
-                time.sleep(0.002)
-            if finished is None:
-                os.kill(pid, signal.SIGKILL)
-                os.waitpid(pid, 0)
-                kills += 1
-                _consistent(session)
-            else:
-                assert os.waitstatus_to_exitcode(finished) == 0, f"{argv} failed"
-                break
-            cycles += 1
-            assert cycles < 40, "session makes no progress under repeated kills"
+        resume = ["capture", "resume", str(session), "--quiet", "--sim-speed", "200"]
+        kills += kill_until_complete(
+            session,
+            [*run_args, str(session)],
+            resume,
+            rng,
+            t_session,
+            max_cycles=40,
+            after_kill=_consistent,
+        )
         recs = _consistent(session)
         assert recs[-1]["type"] == "stop" and recs[-1]["status"] == "completed"
         poses, shots, rounds = _taken(session)
