@@ -20,7 +20,8 @@ accuracy on an as-built world (with gonio's own calibrations) is the benchmark's
 
 Independent reference: the simulator's ``SESSION/truth/svbrdf.h5`` (the reduction and the
 fit never read it).  Checked: every texel with all its parameters within 3 reported sigma
-of the truth (issue 18: >= 95 % of texels), the maps' median relative errors, and a real
+of the truth (issue 18: >= 95 % of texels), the maps' median relative errors, the default
+output folder (beside texels.h5) with its Mitsuba 3 and MaterialX exports, and a real
 ``dask scheduler`` + two ``dask worker`` processes and a LocalCluster giving the same
 bytes (every dataset of svbrdf.h5, every map PNG) as ``--workers 0``.
 ``benchmarks/svbrdf_accuracy.py`` runs such sessions (and realistic worlds).
@@ -28,6 +29,8 @@ bytes (every dataset of svbrdf.h5, every map PNG) as ``--workers 0``.
 
 from __future__ import annotations
 
+import json
+import re
 import tomllib
 from pathlib import Path
 
@@ -85,10 +88,9 @@ def session(tmp_path_factory):
     args = ("--rig", str(d / "rig.toml"), "--camera", "simulated", "--out", str(s), "--quiet")
     assert run("capture", "run", str(d / "plan.toml"), *args) == 0
     assert run("capture", "reduce", str(s), "--texels", str(N), "--quiet", "--no-plot") == 0
-    out = d / "single"
     fit = ("fit", str(s / "texels.h5"), "--svbrdf", *FIT, "--workers", "0")
-    assert run(*fit, "--out", str(out)) == 0
-    return s, out
+    assert run(*fit) == 0
+    return s, s / "svbrdf"  # the default folder: beside texels.h5
 
 
 def _datasets(f: h5py.File) -> list[str]:
@@ -131,6 +133,25 @@ def test_fitted_maps_within_three_sigma_of_the_truth(session, capsys):
     # measured 0.6 % (albedo), 0.6 % (alpha), 1.4 % (ks); a pooled fit's (one material
     # for the whole sample) are 21-69 %
     assert all(r < 0.025 for r in rel.values()), rel
+
+
+@pytest.mark.slow
+def test_default_folder_holds_the_renderer_exports(session):
+    """Without ``--out`` the maps go beside texels.h5, with both renderer exports: the
+    Mitsuba 3 scene and the MaterialX document, each with its textures, and the MaterialX
+    mapping's error stated in maps.json (finite, for every texel)."""
+    s, out = session
+    assert out == s / "svbrdf" and (out / "svbrdf.h5").is_file()
+    for doc, prefix in (("material.xml", "mitsuba_"), ("material.mtlx", "mtlx_")):
+        assert (out / doc).is_file(), doc
+        textures = {p.name for p in out.glob(f"{prefix}*.png")}
+        assert textures, prefix
+        # every texture the document names is in the folder
+        named = set(re.findall(rf"{prefix}\w+\.png", (out / doc).read_text()))
+        assert named and named <= textures, (doc, named - textures)
+    err = json.loads((out / "maps.json").read_text())["exports"]["materialx"]["relative_rmse"]
+    assert err["texels"] == N * N
+    assert 0 < err["median"] <= err["max"] < np.inf, err
 
 
 @pytest.mark.slow
