@@ -446,45 +446,47 @@ def fit_svbrdf(
     with _texel_file(path) as tf:
         n_texels, shape, channels = tf.n_texels, tuple(tf.shape), tuple(tf.channels)
         sample_size, chunk = tuple(tf.sample_size), int(tf.chunk_texels)
-    selection = None
-    if options.model == "auto":
-        spec, selection = _choose_model(path, options)
-        console.print(
-            f"model selection on {sum(row['texels'] for row in selection)} texels spread "
-            f"over the sample: {spec} ("
-            + ", ".join(f"{row['model']} {row['texels']}" for row in selection)
-            + "), fitted per texel",
-            markup=False,
-            highlight=False,
-            soft_wrap=True,
-        )
-        options = dataclasses.replace(options, model=spec, model_options=(), candidates=None)
-    names = tuple(_model_of(options.model, options.model_options).param_names)
-    start = time.perf_counter()
-    if block_texels is None:
-        cost = _measure_cost(path, options)
-        blocks = plan_blocks(n_texels, cost, chunk)
-    else:
-        cost = float("nan")
-        blocks = plan_blocks(n_texels, TARGET_TASK_S / max(int(block_texels), 1), 1)
-    items = [TexelBlock(str(path), t0, t1, options) for t0, t1 in blocks]
-    n_ch = len(channels)
-    flat = {
-        "params": {k: np.full((n_texels, n_ch), np.nan) for k in names},
-        "std": {k: np.full((n_texels, n_ch), np.nan) for k in names},
-        "cost": np.full(n_texels, np.nan),
-        "rms_residual": np.full(n_texels, np.nan),
-        "n_samples": np.zeros(n_texels, dtype=np.int64),
-        "success": np.zeros(n_texels, dtype=bool),
-    }
-    failed: dict[str, str] = {}
-    messages: dict[int, str] = {}
-    by_name = {b.name: b for b in items}
-    result_bytes = 0
+    # The engine first: a scheduler that cannot be reached is reported before any work
+    # (the model vote and the cost probe fit texels here).
     engine = task_engine(
         scheduler, workers, connect_timeout_s=connect_timeout_s, on_client=on_client
     )
     with engine as (client, where):
+        selection = None
+        if options.model == "auto":
+            spec, selection = _choose_model(path, options)
+            console.print(
+                f"model selection on {sum(row['texels'] for row in selection)} texels spread "
+                f"over the sample: {spec} ("
+                + ", ".join(f"{row['model']} {row['texels']}" for row in selection)
+                + "), fitted per texel",
+                markup=False,
+                highlight=False,
+                soft_wrap=True,
+            )
+            options = dataclasses.replace(options, model=spec, model_options=(), candidates=None)
+        names = tuple(_model_of(options.model, options.model_options).param_names)
+        start = time.perf_counter()
+        if block_texels is None:
+            cost = _measure_cost(path, options)
+            blocks = plan_blocks(n_texels, cost, chunk)
+        else:
+            cost = float("nan")
+            blocks = plan_blocks(n_texels, TARGET_TASK_S / max(int(block_texels), 1), 1)
+        items = [TexelBlock(str(path), t0, t1, options) for t0, t1 in blocks]
+        n_ch = len(channels)
+        flat = {
+            "params": {k: np.full((n_texels, n_ch), np.nan) for k in names},
+            "std": {k: np.full((n_texels, n_ch), np.nan) for k in names},
+            "cost": np.full(n_texels, np.nan),
+            "rms_residual": np.full(n_texels, np.nan),
+            "n_samples": np.zeros(n_texels, dtype=np.int64),
+            "success": np.zeros(n_texels, dtype=bool),
+        }
+        failed: dict[str, str] = {}
+        messages: dict[int, str] = {}
+        by_name = {b.name: b for b in items}
+        result_bytes = 0
         console.print(
             f"fitting {options.model} to {n_texels} texels ({shape[1]} x {shape[0]}) in "
             f"{len(items)} block(s) of {blocks[0][1] - blocks[0][0]} on {where}"

@@ -233,6 +233,34 @@ def test_not_a_texel_file_refused(tmp_path, capsys):
     assert str(other) in err and "Traceback" not in err and not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("model", ["lambert+ggx", "auto"])
+def test_unreachable_scheduler_named_before_any_texel_is_fitted(
+    texel_file, tmp_path, capsys, monkeypatch, model
+):
+    """``--scheduler`` where nothing listens: exit 1, the address named, no output folder,
+    and no texel fitted first (neither the cost probe nor the ``auto`` vote)."""
+    import socket
+
+    import gonio.fitting
+
+    # every texel fit (probe, vote, block) goes through gonio.fitting.fit: count them
+    fitted = []
+    real = gonio.fitting.fit
+    monkeypatch.setattr(gonio.fitting, "fit", lambda *a, **k: fitted.append(a) or real(*a, **k))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        address = f"tcp://127.0.0.1:{s.getsockname()[1]}"  # closed again: nothing listens
+    out = tmp_path / "o"
+    code = run(
+        "fit", str(texel_file), "--svbrdf", "-m", model, "--scheduler", address,
+        "--connect-timeout", "1", "--out", str(out),
+    )  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 1
+    assert address in err and "error:" in err and "Traceback" not in err
+    assert fitted == [] and not out.exists()
+
+
 def test_unknown_model_refused_before_work(texel_file, tmp_path, capsys):
     out = tmp_path / "o"
     assert run("fit", str(texel_file), "--svbrdf", "-m", "lambert+ggz", "--out", str(out)) == 1
