@@ -47,6 +47,40 @@ log = logging.getLogger("gonio.rig.bus")
 _RETRYABLE = (COMM_RX_TIMEOUT, COMM_RX_CORRUPT)
 
 
+def sync_read_culprit(
+    ids: tuple[int, ...], failures: list[tuple[int | None, int]], cause: str
+) -> tuple[int | None, str]:
+    """The servo to name, and why, after every attempt of a SYNC_READ failed.
+
+    Parameters
+    ----------
+    ids
+        The IDs read, in the order their replies come.
+    failures
+        One ``(index into ids of the first reply that failed, or None; SDK result)`` per
+        failed attempt, in order.
+    cause
+        What the attempts' classification gave (the last attempt's): ``"timeout"``,
+        ``"corrupt"`` or ``"port"``.
+
+    Returns
+    -------
+    (servo or None, cause)
+        The servo at which the attempt that got furthest stopped: every servo before it
+        answered in that attempt, so it is the one evidence points to (the last attempt
+        alone can stop earlier, at a servo whose reply was merely late on a loaded
+        machine).  ``"timeout"`` if that servo ever failed with no reply at all: a silent
+        servo's wait can also end with another servo's reply half-received (the SDK
+        calls that corrupt), which says nothing about the silent one.
+    """
+    found = [(k, r) for k, r in failures if k is not None]
+    if not found or cause == "port":
+        return None, cause
+    furthest = max(k for k, _ in found)
+    timed_out = any(k == furthest and r == COMM_RX_TIMEOUT for k, r in found)
+    return ids[furthest], "timeout" if timed_out else cause
+
+
 class _Port(PortHandler):
     """PortHandler with a per-instance reply timeout.
 
@@ -348,17 +382,24 @@ class Transport:
                     group.addParam(i)
                 self._sync_reads[key] = group
 
+            failures: list[tuple[int | None, int]] = []
+
             def fn():
                 result = group.txRxPacket()
+                if result != COMM_SUCCESS:
+                    # the SDK reads the replies in ID order and stops at the first that
+                    # fails, leaving its data empty: the first short one failed
+                    at = next(
+                        (k for k, i in enumerate(ids) if len(group.data_dict[i]) != length), None
+                    )
+                    failures.append((at, result))
                 return None, result, 0
 
             try:
                 self._attempt(f"SYNC_READ {address}+{length}", ",".join(map(str, ids)), fn)
             except BusError as exc:
-                # the SDK reads the replies in ID order and stops at the first that fails,
-                # leaving its data empty: that servo is the one to name
-                silent = next((i for i in ids if len(group.data_dict[i]) != length), None)
-                raise BusError(str(exc), servo=silent, cause=exc.cause) from None
+                silent, cause = sync_read_culprit(ids, failures, exc.cause)
+                raise BusError(str(exc), servo=silent, cause=cause) from None
             return {i: bytes(group.data_dict[i]) for i in ids}
 
     def sync_write(self, reg: Register, values: Mapping[int, int]) -> None:

@@ -105,3 +105,28 @@ def test_a_late_reply_is_never_taken_for_the_retrys(gil_handover):
             assert bus.ping(1) == (1020, 45)
             assert bus.read(1, REG["present_position"]) == 1234
         assert bus.counters["retries"] > 5  # replies did come late
+
+
+@pytest.mark.parametrize(
+    ("failures", "cause", "expected"),
+    [
+        # the flake seen on a loaded machine: servo 2 silent, its last wait ended with
+        # servo 3's reply half-received (the SDK: corrupt)
+        ([(1, "T"), (1, "T"), (1, "T"), (1, "C")], "corrupt", (2, "timeout")),
+        # the last attempt stopped at servo 1, merely late: the furthest attempt names 2
+        ([(1, "T"), (0, "T")], "timeout", (2, "timeout")),
+        # a servo that answers garbage every time stays corrupt
+        ([(2, "C"), (2, "C")], "corrupt", (3, "corrupt")),
+        # nothing could be sent: no servo to name
+        ([(None, "C")], "port", (None, "port")),
+        ([], "timeout", (None, "timeout")),
+    ],
+)
+def test_sync_read_names_the_servo_every_attempt_points_to(failures, cause, expected):
+    from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT
+
+    from gonio.rig.transport import sync_read_culprit
+
+    code = {"T": COMM_RX_TIMEOUT, "C": COMM_RX_CORRUPT}
+    got = sync_read_culprit((1, 2, 3, 4), [(k, code[r]) for k, r in failures], cause)
+    assert got == expected
