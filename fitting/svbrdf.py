@@ -175,6 +175,19 @@ def _fit_texel(samples: Any, options: SVBRDFOptions, names: tuple[str, ...], n_c
     }
 
 
+def _unfitted(n: int, n_ch: int, names: tuple[str, ...]) -> dict[str, Any]:
+    """The per-texel arrays of ``n`` texels before any fit: NaN values, 0 samples, no
+    success (what a texel that cannot be fitted, or a failed block, keeps)."""
+    return {
+        "params": {k: np.full((n, n_ch), np.nan) for k in names},
+        "std": {k: np.full((n, n_ch), np.nan) for k in names},
+        "cost": np.full(n, np.nan),
+        "rms_residual": np.full(n, np.nan),
+        "n_samples": np.zeros(n, dtype=np.int64),
+        "success": np.zeros(n, dtype=bool),
+    }
+
+
 def fit_block(block: TexelBlock) -> dict[str, Any]:
     """Read and fit one block of texels (a worker task).
 
@@ -204,15 +217,7 @@ def fit_block(block: TexelBlock) -> dict[str, Any]:
         texels = tf.block(block.t0, block.t1)
         n_ch = len(tf.channels)
     n = block.t1 - block.t0
-    out: dict[str, Any] = {
-        "params": {k: np.full((n, n_ch), np.nan) for k in names},
-        "std": {k: np.full((n, n_ch), np.nan) for k in names},
-        "cost": np.full(n, np.nan),
-        "rms_residual": np.full(n, np.nan),
-        "n_samples": np.zeros(n, dtype=np.int64),
-        "success": np.zeros(n, dtype=bool),
-        "messages": {},
-    }
+    out: dict[str, Any] = {**_unfitted(n, n_ch, names), "messages": {}}
     # BLAS on one thread: a pool of another size sums in another order, and the result
     # would depend on where the block ran (see fitting/library.py, fit_material).
     with threadpool_limits(limits=1):
@@ -475,14 +480,7 @@ def fit_svbrdf(
             blocks = plan_blocks(n_texels, TARGET_TASK_S / max(int(block_texels), 1), 1)
         items = [TexelBlock(str(path), t0, t1, options) for t0, t1 in blocks]
         n_ch = len(channels)
-        flat = {
-            "params": {k: np.full((n_texels, n_ch), np.nan) for k in names},
-            "std": {k: np.full((n_texels, n_ch), np.nan) for k in names},
-            "cost": np.full(n_texels, np.nan),
-            "rms_residual": np.full(n_texels, np.nan),
-            "n_samples": np.zeros(n_texels, dtype=np.int64),
-            "success": np.zeros(n_texels, dtype=bool),
-        }
+        flat = _unfitted(n_texels, n_ch, names)
         failed: dict[str, str] = {}
         messages: dict[int, str] = {}
         by_name = {b.name: b for b in items}
