@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import psutil
 import pytest
 
@@ -363,6 +364,29 @@ def test_samples_files_same_as_single_fit(tmp_path, make_samples, capsys):
     assert run("fit", str(sessions), "-m", "lambert+ggx", "--out", str(lib), "--workers", "0",
                "--sampling", "coarse") == 0  # fmt: skip
     assert "1 material(s) unchanged" in capsys.readouterr().out
+
+
+def test_a_merl_file_is_fitted_to_its_closed_form(tmp_path):
+    """A MERL ``.binary`` in the library's folder is found and fitted like the RGL files:
+    a table written with ``write_merl`` whose every bin holds a lambertian rho / pi (the
+    closed form, stored as value / channel scale) gives lambert with albedo rho, and its
+    input record names the file."""
+    from gonio.brdf.merl import DIMS, MERLBRDF, SCALES, write_merl
+
+    rho = np.array([0.7, 0.5, 0.3])
+    src = tmp_path / "src"
+    src.mkdir()
+    raw = np.broadcast_to((rho / np.pi / SCALES)[:, None, None, None], (3, *DIMS))
+    write_merl(src / "matte.binary", MERLBRDF(raw))
+    lib = tmp_path / "LIB"
+    options = FitOptions(model="lambert", plots=False, sampling="coarse")
+    report = fit_library(src, lib, options, workers=0)
+    assert report.fitted == ["matte"] and not report.failed
+    doc = _fit_doc(lib / "matte")
+    assert doc["model"] == "lambert"
+    np.testing.assert_allclose(doc["params"]["albedo"], rho, rtol=1e-6)
+    record = json.loads((lib / "matte" / "input.json").read_text())
+    assert record["kind"] == "measured" and record["source"] == str(src / "matte.binary")
 
 
 def test_unknown_model_refused_before_work(rgl_folder, tmp_path, capsys):
