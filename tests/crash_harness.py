@@ -122,6 +122,41 @@ def kill_until_complete(
         assert cycles < max_cycles, "session makes no progress under repeated kills"
 
 
+def kill_sessions(
+    folder: Path,
+    run_argv: list[str],
+    resume_options: list[str],
+    rng: np.random.Generator,
+    t_session: float,
+    *,
+    min_kills: int,
+    max_cycles: int,
+    after_kill: Callable[[Path], None],
+    completed: Callable[[Path], None],
+) -> tuple[int, int]:
+    """Sessions ``folder/S0``, ``S1``, ... each through :func:`kill_until_complete` until
+    ``min_kills`` kills in all; ``completed(session)`` checks each finished one.
+
+    ``run_argv`` ends with ``--out`` (the session folder is appended); a resume is
+    ``capture resume SESSION *resume_options``.  Returns (kills, sessions).
+    """
+    kills, n = 0, 0
+    while kills < min_kills:
+        session = folder / f"S{n}"
+        n += 1
+        kills += kill_until_complete(
+            session,
+            [*run_argv, str(session)],
+            ["capture", "resume", str(session), *resume_options],
+            rng,
+            t_session,
+            max_cycles=max_cycles,
+            after_kill=after_kill,
+        )
+        completed(session)
+    return kills, n
+
+
 def warm_renderer(*, dark: bool = False) -> None:
     """Import the session's modules and render one small frame (and a dark one), so that
     forked children start warm."""

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from crash_harness import (
     check_consistent,
-    kill_until_complete,
+    kill_sessions,
     run_to_completion,
     spawn_cli,
     warm_renderer,
@@ -99,9 +99,7 @@ def test_sigkill_at_random_points_then_resume(tmp_path, warm):
     t_session = run_to_completion([*run_args, str(tmp_path / "ref")])
     planned = _planned(tmp_path / "ref")
 
-    kills = 0
     orphans_seen = 0
-    n_session = 0
 
     def after_kill(session: Path) -> None:
         nonlocal orphans_seen
@@ -112,26 +110,26 @@ def test_sigkill_at_random_points_then_resume(tmp_path, warm):
                 1 for p in (session / "raw").iterdir() if f"raw/{p.name}" not in journaled
             )
 
-    while kills < MIN_KILLS:
-        session = tmp_path / f"S{n_session}"
-        n_session += 1
-        resume = ["capture", "resume", str(session), "--quiet", "--sim-speed", "200"]
-        kills += kill_until_complete(
-            session,
-            [*run_args, str(session)],
-            resume,
-            rng,
-            t_session,
-            max_cycles=60,
-            after_kill=after_kill,
-        )
-        # finished: exactly the planned shots, each once, every file matching its hash
+    def completed(session: Path) -> None:
+        # exactly the planned shots, each once, every file matching its hash
         recs = check_consistent(session)
         shots = [r for r in recs if r["type"] == "shot"]
         got = {(r["pose"], r["frame"], r["exposure_time"]) for r in shots}
         assert len(shots) == len(planned) and got == planned
         assert {f"raw/{p.name}" for p in (session / "raw").iterdir()} == {r["file"] for r in shots}
         assert recs[-1]["type"] == "stop" and recs[-1]["status"] == "completed"
+
+    kills, n_session = kill_sessions(
+        tmp_path,
+        run_args,
+        ["--quiet", "--sim-speed", "200"],
+        rng,
+        t_session,
+        min_kills=MIN_KILLS,
+        max_cycles=60,
+        after_kill=after_kill,
+        completed=completed,
+    )
     print(
         f"\n{kills} kills over {n_session} sessions (one session {t_session:.2f} s); "
         f"orphan RAW files seen after kills: {orphans_seen}"

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from crash_harness import check_consistent, kill_until_complete, run_to_completion, warm_renderer
+from crash_harness import check_consistent, kill_sessions, run_to_completion, warm_renderer
 
 from gonio.capture.adaptive import round_records, session_steps
 from gonio.capture.journal import read_journal
@@ -110,20 +110,7 @@ def test_sigkill_during_an_adaptive_session_then_resume(tmp_path, warm):
     assert ref_poses[-1][0] == "dark"
     assert len(ref_shots) == 2 * (len(ref_poses) - 1) + 2  # two exposures, two darks
 
-    kills, n_session = 0, 0
-    while kills < MIN_KILLS:
-        session = tmp_path / f"S{n_session}"
-        n_session += 1
-        resume = ["capture", "resume", str(session), "--quiet", "--sim-speed", "200"]
-        kills += kill_until_complete(
-            session,
-            [*run_args, str(session)],
-            resume,
-            rng,
-            t_session,
-            max_cycles=40,
-            after_kill=_consistent,
-        )
+    def completed(session: Path) -> None:
         recs = _consistent(session)
         assert recs[-1]["type"] == "stop" and recs[-1]["status"] == "completed"
         poses, shots, rounds = _taken(session)
@@ -133,4 +120,16 @@ def test_sigkill_during_an_adaptive_session_then_resume(tmp_path, warm):
         assert {f"raw/{p.name}" for p in (session / "raw").iterdir()} == {
             r["file"] for r in recs if r["type"] == "shot"
         }
+
+    kills, n_session = kill_sessions(
+        tmp_path,
+        run_args,
+        ["--quiet", "--sim-speed", "200"],
+        rng,
+        t_session,
+        min_kills=MIN_KILLS,
+        max_cycles=40,
+        after_kill=_consistent,
+        completed=completed,
+    )
     print(f"\n{kills} kills over {n_session} adaptive sessions (one {t_session:.2f} s)")
