@@ -200,6 +200,22 @@ def test_reduce_twice_gives_the_same_file(session, tmp_path):
     assert (s / "samples.h5").read_bytes() == first
 
 
+def test_direct_dng_reading_gives_libraws_samples(session, tmp_path, monkeypatch):
+    """The simulator's DNGs are read without LibRaw's unpack (gonio.capture.plain_dng):
+    the samples must be those of LibRaw's decoding (GONIO_DIRECT_DNG=0), byte for byte."""
+    from gonio.capture.plain_dng import read_plain_dng
+    from gonio.capture.reduce import reduce_session
+
+    s = copy_session(session, tmp_path / "S")
+    files, _ = sample_files(s)
+    assert read_plain_dng((s / files[0]).read_bytes()) is not None  # the direct path ran
+    monkeypatch.delenv("GONIO_DIRECT_DNG", raising=False)
+    reduce_session(s, out=tmp_path / "direct.h5", plot=False, threads=1)
+    monkeypatch.setenv("GONIO_DIRECT_DNG", "0")
+    reduce_session(s, out=tmp_path / "libraw.h5", plot=False, threads=1)
+    assert (tmp_path / "direct.h5").read_bytes() == (tmp_path / "libraw.h5").read_bytes()
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_threads_give_the_same_file_and_a_changed_byte_is_caught(session, tmp_path, threads):
     """Frames are decoded in worker threads while poses are measured: the output must not
