@@ -115,6 +115,9 @@ class FrameLoader:
         self._pool = ThreadPoolExecutor(threads - 1, "gonio-reduce") if threads > 1 else None
         self._pending: dict[int, Future] = {}
         self._poses: dict[int, Future] = {}
+        #: whether the last pose queued by prefetch_pose was not ready when asked for
+        #: (the worker is behind the measurement: give it less to do ahead)
+        self.behind = False
 
     def __enter__(self) -> FrameLoader:
         return self
@@ -128,8 +131,9 @@ class FrameLoader:
             self._pool.shutdown(wait=True, cancel_futures=True)
 
     def prefetch(self, recs: list[dict[str, Any]]) -> None:
-        """Queue these frames for decoding (no-op with one thread or when already queued)."""
-        if self._pool is None:
+        """Queue these frames for decoding (no-op with one thread or when already queued,
+        here or as a pose by :meth:`prefetch_pose`)."""
+        if self._pool is None or id(recs) in self._poses:
             return
         for rec in recs:
             if id(rec) not in self._pending:
@@ -143,8 +147,13 @@ class FrameLoader:
         """Queue a pose's frames as one job that, once they are decoded, also runs
         ``then(results)`` in the worker (the board detection: OpenCV releases the GIL, so
         it overlaps the measurement of the previous pose); :meth:`pose_results` returns
-        both.  No-op with one thread or when the pose is already queued."""
-        if self._pool is None or id(recs) in self._poses:
+        both.  No-op with one thread or when the pose or any of its frames is already
+        queued."""
+        if (
+            self._pool is None
+            or id(recs) in self._poses
+            or any(id(rec) in self._pending for rec in recs)  # queued frame by frame
+        ):
             return
 
         def job() -> tuple[list[tuple[RawFrame | None, str | None]], Any]:
@@ -161,7 +170,14 @@ class FrameLoader:
         thread then decodes the frames, and the caller runs ``then``'s work itself)."""
         fut = self._poses.pop(id(recs), None)
         if fut is not None and not fut.cancel():
+            self.behind = not fut.done()
             return fut.result()
+        if fut is not None:  # cancelled: no worker had started it
+            self.behind = True
+        else:  # queued frame by frame (or not at all): behind unless all were decoded
+            queued = [self._pending.get(id(rec)) for rec in recs]
+            if any(f is not None for f in queued):
+                self.behind = not all(f is not None and f.done() for f in queued)
         return self.results(recs), None
 
     def results(self, recs: list[dict[str, Any]]) -> list[tuple[RawFrame | None, str | None]]:

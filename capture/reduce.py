@@ -456,7 +456,12 @@ class _PoseRun:
     def _prefetch(self, p: int, recs: list[dict[str, Any]], loader: FrameLoader) -> None:
         """Queue pose ``p``'s frames and its board detection for the loader's worker
         (:func:`gonio.capture.pose_measure.detect_board`: the same result as in
-        :meth:`_measure`, computed while the previous pose is measured)."""
+        :meth:`_measure`, computed while the previous pose is measured); only the
+        frames while the worker is behind (LibRaw's decoding, a slow disk), so that
+        this thread detects instead of waiting: the output is the same either way."""
+        if loader.behind:
+            loader.prefetch(recs)
+            return
         try:
             rig = self._rig_of(p, recs)
         except ReductionError:  # _measure says so
