@@ -10,7 +10,7 @@ from __future__ import annotations
 import ctypes
 import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -114,24 +114,71 @@ class FrameLoader:
         # ``threads`` counts this thread: the pool has the others
         self._pool = ThreadPoolExecutor(threads - 1, "gonio-reduce") if threads > 1 else None
         self._pending: dict[int, Future] = {}
+        self._poses: dict[int, Future] = {}
+        #: whether the last pose queued by prefetch_pose was not ready when asked for
+        #: (the worker is behind the measurement: give it less to do ahead)
+        self.behind = False
 
     def __enter__(self) -> FrameLoader:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        for fut in self._pending.values():
+        for fut in [*self._pending.values(), *self._poses.values()]:
             fut.cancel()
         self._pending.clear()
+        self._poses.clear()
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
 
     def prefetch(self, recs: list[dict[str, Any]]) -> None:
-        """Queue these frames for decoding (no-op with one thread or when already queued)."""
-        if self._pool is None:
+        """Queue these frames for decoding (no-op with one thread or when already queued,
+        here or as a pose by :meth:`prefetch_pose`)."""
+        if self._pool is None or id(recs) in self._poses:
             return
         for rec in recs:
             if id(rec) not in self._pending:
                 self._pending[id(rec)] = self._pool.submit(load_frame, *self._args, rec)
+
+    def prefetch_pose(
+        self,
+        recs: list[dict[str, Any]],
+        then: Callable[[list[tuple[RawFrame | None, str | None]]], Any],
+    ) -> None:
+        """Queue a pose's frames as one job that, once they are decoded, also runs
+        ``then(results)`` in the worker (the board detection: OpenCV releases the GIL, so
+        it overlaps the measurement of the previous pose); :meth:`pose_results` returns
+        both.  No-op with one thread or when the pose or any of its frames is already
+        queued."""
+        if (
+            self._pool is None
+            or id(recs) in self._poses
+            or any(id(rec) in self._pending for rec in recs)  # queued frame by frame
+        ):
+            return
+
+        def job() -> tuple[list[tuple[RawFrame | None, str | None]], Any]:
+            out = [load_frame(*self._args, rec) for rec in recs]
+            return out, then(out)
+
+        self._poses[id(recs)] = self._pool.submit(job)
+
+    def pose_results(
+        self, recs: list[dict[str, Any]]
+    ) -> tuple[list[tuple[RawFrame | None, str | None]], Any]:
+        """``(results(recs), then's value)`` of a pose queued by :meth:`prefetch_pose`;
+        ``(results(recs), None)`` when it was not, or no worker had started it (this
+        thread then decodes the frames, and the caller runs ``then``'s work itself)."""
+        fut = self._poses.pop(id(recs), None)
+        if fut is not None and not fut.cancel():
+            self.behind = not fut.done()
+            return fut.result()
+        if fut is not None:  # cancelled: no worker had started it
+            self.behind = True
+        else:  # queued frame by frame (or not at all): behind unless all were decoded
+            queued = [self._pending.get(id(rec)) for rec in recs]
+            if any(f is not None for f in queued):
+                self.behind = not all(f is not None and f.done() for f in queued)
+        return self.results(recs), None
 
     def results(self, recs: list[dict[str, Any]]) -> list[tuple[RawFrame | None, str | None]]:
         """``(frame, problem)`` of each record, in the order given."""

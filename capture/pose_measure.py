@@ -42,6 +42,7 @@ __all__ = [
     "GeometrySource",
     "PoseMeasurement",
     "board_obliquity_deg",
+    "detect_board",
     "invalid_pose",
     "measure_pose",
     "region_margins",
@@ -148,6 +149,7 @@ def measure_pose(
     reported_camera: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     dark_variance: float | NDArray[np.float64] = 0.0,
     pixel_mask: NDArray[np.bool_] | None = None,
+    detected: CameraPose | ReductionError | None = None,
 ) -> PoseMeasurement:
     """Measure one pose's bracket: camera pose, regions, merged radiance per region.
 
@@ -174,6 +176,10 @@ def measure_pose(
         (H, W) hot or dead pixels (from the master darks and flat): their sites weigh 0
         in every region's sums, in both paths; None for none.  The light's ``cos^n``
         radiance profile in G is ``setup.light_profile_n``.
+    detected
+        What :func:`detect_board` gave for these frames and ``reported_camera``, computed
+        ahead (the reduction runs it in the thread that decodes the frames); None: it is
+        run here.  The result is the same either way.
 
     Raises
     ------
@@ -181,7 +187,7 @@ def measure_pose(
         When neither the board nor a reported camera pose gives the geometry.
     """
     cam, pose_flags, pose_reasons, source = _camera_pose(
-        frames, setup, reported_wo, reported_camera
+        frames, setup, reported_wo, reported_camera, detected
     )
     lp = np.asarray(light_position, float)
     ln = None if light_normal is None else np.asarray(light_normal, float)
@@ -244,11 +250,32 @@ def _checked_mask(mask: NDArray[np.bool_] | None, frame: RawFrame) -> NDArray[np
     return m if m.any() else None
 
 
+def detect_board(
+    frames: list[RawFrame],
+    setup: ReductionSetup,
+    reported_camera: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+) -> CameraPose | ReductionError:
+    """The board's camera pose in the bracket's best-exposed frame, or the
+    :class:`ReductionError` saying why there is none (returned, not raised, so that it
+    can be computed ahead in another thread and handed to :func:`measure_pose`).
+
+    Reads only the frames' raw mosaics (not their dark or flat corrections), so the
+    frames may be given before those are applied.
+    """
+    det = _detection_frame(frames)
+    expected = None if reported_camera is None else _reported_pose(reported_camera, math.nan, 0)
+    try:
+        return detect_pose_in_frame(det, setup.board, setup.K, setup.dist, expected=expected)
+    except ReductionError as exc:
+        return exc
+
+
 def _camera_pose(
     frames: list[RawFrame],
     setup: ReductionSetup,
     reported_wo: NDArray[np.float64] | None,
     reported_camera: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+    detected: CameraPose | ReductionError | None = None,
 ) -> tuple[CameraPose, int, list[str], GeometrySource]:
     """The pose's camera by ``setup.geometry``: ``(camera, flags, reasons, source)``, the
     flags and reasons shared by every region of the pose, ``source`` ``"board"`` or
@@ -264,17 +291,16 @@ def _camera_pose(
 
     Without a reported camera pose the board is the only source (refused without one).
     """
-    det = _detection_frame(frames)
-    expected = None if reported_camera is None else _reported_pose(reported_camera, math.nan, 0)
-    try:
-        cam: CameraPose | None = detect_pose_in_frame(
-            det, setup.board, setup.K, setup.dist, expected=expected
-        )
-        lost = ""
-    except ReductionError as exc:
+    if detected is None:
+        detected = detect_board(frames, setup, reported_camera)
+    cam: CameraPose | None = None
+    lost = ""
+    if isinstance(detected, ReductionError):
         if reported_camera is None:
-            raise
-        cam, lost = None, str(exc)
+            raise detected
+        lost = str(detected)
+    else:
+        cam = detected
     if reported_camera is None:
         assert cam is not None
         return cam, 0, [], "board"

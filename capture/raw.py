@@ -36,6 +36,7 @@ import numpy as np
 import rawpy
 from numpy.typing import ArrayLike, NDArray
 
+from gonio.capture.plain_dng import direct_enabled, read_plain_dng
 from gonio.errors import FileFormatError, ReductionError
 
 #: Channel names in the order of the channel index used everywhere in the capture path.
@@ -484,6 +485,56 @@ def read_raw(
     if len(data) == 0:
         raise FileFormatError(nm, "empty file")
     _check_tiff_strips(data, nm)
+    plain = read_plain_dng(data) if direct_enabled() else None
+    if plain is not None:  # the simulator's DNG: its strip is the mosaic (plain_dng)
+        pattern, mosaic, white = plain.cfa_pattern, plain.mosaic, plain.white_level
+        cell_channel = np.array([CHANNELS.index(ch) for ch in pattern], dtype=np.int8).reshape(2, 2)
+        cell_black = plain.cell_black
+        exp = dict(exposure_time=plain.exposure_time, iso=plain.iso, f_number=plain.f_number)
+        handle = None  # nothing to close: the mosaic is a view of ``data``
+    else:
+        pattern, mosaic, cell_channel, cell_black, white, exp, handle = _libraw_decode(data, nm)
+    if expect is not None:
+        if pattern != expect.cfa_pattern:
+            if handle is not None:
+                handle.close()
+            raise FileFormatError(
+                nm,
+                f"CFA pattern is {pattern}, the session's camera has {expect.cfa_pattern}",
+                "CFAPattern",
+            )
+        if tuple(mosaic.shape) != tuple(expect.shape):
+            if handle is not None:
+                handle.close()
+            raise FileFormatError(
+                nm,
+                f"mosaic is {mosaic.shape[0]}x{mosaic.shape[1]}, the "
+                f"session's camera gives {expect.shape[0]}x{expect.shape[1]}",
+                "ImageSize",
+            )
+    if not 0.0 <= saturation_margin < 1.0:
+        raise ValueError(f"saturation_margin must be in [0, 1), got {saturation_margin}")
+    threshold = white - saturation_margin * (white - cell_black)
+    return RawFrame(
+        nm,
+        None,
+        None,
+        None,
+        None,
+        white,
+        pattern,
+        **exp,
+        raw=mosaic,
+        cell_channel=cell_channel,
+        cell_black=cell_black,
+        saturation_threshold=threshold,
+    )
+
+
+def _libraw_decode(
+    data: bytes, nm: str
+) -> tuple[str, NDArray[np.uint16], NDArray[np.int8], NDArray[np.float64], float, dict, Any]:
+    """``(pattern, mosaic, cell_channel, cell_black, white, exposure, handle)`` by LibRaw."""
     # The handle is not closed here: the mosaic below is a view of LibRaw's buffer (which
     # keeps the handle alive and frees it with the last view), so the full frame is never
     # copied.  A copy of a fresh 4-bytes-per-2-pixels buffer costs half an unpack.
@@ -527,39 +578,7 @@ def read_raw(
     except BaseException:
         raw.close()
         raise
-    if expect is not None:
-        if pattern != expect.cfa_pattern:
-            raw.close()
-            raise FileFormatError(
-                nm,
-                f"CFA pattern is {pattern}, the session's camera has {expect.cfa_pattern}",
-                "CFAPattern",
-            )
-        if tuple(mosaic.shape) != tuple(expect.shape):
-            raw.close()
-            raise FileFormatError(
-                nm,
-                f"mosaic is {mosaic.shape[0]}x{mosaic.shape[1]}, the "
-                f"session's camera gives {expect.shape[0]}x{expect.shape[1]}",
-                "ImageSize",
-            )
-    if not 0.0 <= saturation_margin < 1.0:
-        raise ValueError(f"saturation_margin must be in [0, 1), got {saturation_margin}")
-    threshold = white - saturation_margin * (white - cell_black)
-    return RawFrame(
-        nm,
-        None,
-        None,
-        None,
-        None,
-        white,
-        pattern,
-        **exp,
-        raw=mosaic,
-        cell_channel=cell_channel,
-        cell_black=cell_black,
-        saturation_threshold=threshold,
-    )
+    return pattern, mosaic, cell_channel, cell_black, white, exp, raw
 
 
 def subtract_dark(frame: RawFrame, dark: RawFrame | NDArray[np.float64]) -> RawFrame:

@@ -53,7 +53,12 @@ from gonio.capture.budget import (
 from gonio.capture.frame_loader import PREFETCH_POSES, FrameLoader, default_threads, load_frame
 from gonio.capture.noise import NoiseModel
 from gonio.capture.output_set import output_set
-from gonio.capture.pose_measure import PoseMeasurement, invalid_pose, measure_pose
+from gonio.capture.pose_measure import (
+    PoseMeasurement,
+    detect_board,
+    invalid_pose,
+    measure_pose,
+)
 from gonio.capture.radiometric import (
     DriftModel,
     LightProfile,
@@ -409,6 +414,8 @@ class _PoseRun:
     budget_summary: dict[str, Any] = field(default_factory=dict)
     #: (nx, ny) of a texel reduction (its regions are texels), else None
     texels: tuple[int, int] | None = None
+    #: pose -> _rig_of's value (the rig's kinematics, once per pose)
+    _rig_cache: dict[int, tuple[Any, ...]] = field(default_factory=dict)
 
     def measure_all(self, threads: int, progress: Callable[[int, int], None] | None) -> None:
         """Decode and measure every sample and reference pose, in journal order."""
@@ -437,7 +444,7 @@ class _PoseRun:
                 if p in done:
                     # keep the worker two completed poses ahead of the measurement
                     for q in [q for q in poses[i + 1 :] if q in done][:PREFETCH_POSES]:
-                        loader.prefetch(shots[q])
+                        self._prefetch(q, shots[q], loader)
                     self._measure(p, shots[p], loader, masters)
                 else:
                     kind = shots[p][0]["kind"]
@@ -445,6 +452,42 @@ class _PoseRun:
                     self.rejected["pose not completed"] += 1
                 if progress:
                     progress(i + 1, len(poses))
+
+    def _prefetch(self, p: int, recs: list[dict[str, Any]], loader: FrameLoader) -> None:
+        """Queue pose ``p``'s frames and its board detection for the loader's worker
+        (:func:`gonio.capture.pose_measure.detect_board`: the same result as in
+        :meth:`_measure`, computed while the previous pose is measured); only the
+        frames while the worker is behind (LibRaw's decoding, a slow disk), so that
+        this thread detects instead of waiting: the output is the same either way."""
+        if loader.behind:
+            loader.prefetch(recs)
+            return
+        try:
+            rig = self._rig_of(p, recs)
+        except ReductionError:  # _measure says so
+            loader.prefetch(recs)
+            return
+        setup, cam_rep = self.setup, rig[2]
+
+        def detect(results: list[tuple[RawFrame | None, str | None]]) -> Any:
+            frames = [fr for fr, _ in results if fr is not None]
+            return (setup, detect_board(frames, setup, cam_rep)) if frames else None
+
+        loader.prefetch_pose(recs, detect)
+
+    def _rig_of(self, p: int, recs: list[dict[str, Any]]) -> tuple[Any, ...]:
+        """``(light position, light normal, reported camera, wi, wo)`` of pose ``p`` by
+        the rig (its journal's last shot), computed once per pose."""
+        if p not in self._rig_cache:
+            last = recs[-1]
+            wi = np.asarray(last.get("wi_achieved") or last.get("wi_requested"), float)
+            wo = np.asarray(last.get("wo_achieved") or last.get("wo_requested"), float)
+            self._rig_cache[p] = (
+                *_rig_pose(self.kin, last.get("joints"), wi, wo, last.get("approach")),
+                wi,
+                wo,
+            )
+        return self._rig_cache[p]
 
     def _checked(
         self, recs: list[dict[str, Any]], results: list[tuple[RawFrame | None, str | None]]
@@ -481,7 +524,10 @@ class _PoseRun:
         kind = recs[0]["kind"]
         frames = []
         dvar = 0.0
-        for fr in self._checked(recs, loader.results(recs)):
+        results, ahead = loader.pose_results(recs)
+        # the board found in the worker, for this very setup (a profile fit replaces it)
+        detected = ahead[1] if ahead is not None and ahead[0] is self.setup else None
+        for fr in self._checked(recs, results):
             if fr is None:
                 continue
             key = (round(fr.exposure_time, 9), fr.iso)
@@ -495,11 +541,7 @@ class _PoseRun:
                 fr = apply_flat(fr, self.cal.flat.gain)
             frames.append(fr)
         last = recs[-1]
-        wi_rep = np.asarray(last.get("wi_achieved") or last.get("wi_requested"), float)
-        wo_rep = np.asarray(last.get("wo_achieved") or last.get("wo_requested"), float)
-        light_pos, light_n, cam_rep = _rig_pose(
-            self.kin, last.get("joints"), wi_rep, wo_rep, last.get("approach")
-        )
+        light_pos, light_n, cam_rep, wi_rep, wo_rep = self._rig_of(p, recs)
         self.pose_inputs[p] = (light_pos, last.get("joints"), last.get("approach"))
         if not frames:
             why = "; ".join(self.frame_problems.get(r.get("file", ""), "?") for r in recs)
@@ -523,6 +565,7 @@ class _PoseRun:
                 reported_camera=cam_rep,
                 dark_variance=dvar,
                 pixel_mask=self.cal.mask,
+                detected=detected,
             )
         except ReductionError as exc:
             self._fail(p, kind, str(exc))

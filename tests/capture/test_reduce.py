@@ -154,6 +154,66 @@ def test_reduce_twice_gives_the_same_file(session, tmp_path):
     assert (s / "samples.h5").read_bytes() == first
 
 
+def test_direct_dng_reading_gives_libraws_samples(session, tmp_path, monkeypatch):
+    """The simulator's DNGs are read without LibRaw's unpack (gonio.capture.plain_dng):
+    the samples must be those of LibRaw's decoding (GONIO_DIRECT_DNG=0), byte for byte."""
+    from gonio.capture.plain_dng import read_plain_dng
+    from gonio.capture.reduce import reduce_session
+
+    s = copy_session(session, tmp_path / "S")
+    files, _ = sample_files(s)
+    assert read_plain_dng((s / files[0]).read_bytes()) is not None  # the direct path ran
+    monkeypatch.delenv("GONIO_DIRECT_DNG", raising=False)
+    reduce_session(s, out=tmp_path / "direct.h5", plot=False, threads=1)
+    monkeypatch.setenv("GONIO_DIRECT_DNG", "0")
+    reduce_session(s, out=tmp_path / "libraw.h5", plot=False, threads=1)
+    assert (tmp_path / "direct.h5").read_bytes() == (tmp_path / "libraw.h5").read_bytes()
+
+
+def test_board_detection_ahead_in_the_worker(session, tmp_path, monkeypatch):
+    """With two threads the next poses' boards are found in the loader's worker, with
+    their decoding (pose_measure.detect_board); the samples are those of one thread,
+    and a pose queued that way hands back what its job computed."""
+    import threading
+
+    import gonio.capture.pose_measure as pm
+    import gonio.capture.reduce as red
+    from gonio.capture.frame_loader import FrameLoader
+
+    s = copy_session(session, tmp_path / "S")
+    where = []
+    detect = red.detect_board
+
+    def recorded(*a, **kw):
+        where.append(threading.current_thread().name)
+        return detect(*a, **kw)
+
+    monkeypatch.setattr(red, "detect_board", recorded)  # ahead, in the loader's worker
+    monkeypatch.setattr(pm, "detect_board", recorded)  # in measure_pose
+    red.reduce_session(s, out=tmp_path / "one.h5", plot=False, threads=1)
+    assert where and not any(w.startswith("gonio-reduce") for w in where)
+    where.clear()
+    red.reduce_session(s, out=tmp_path / "two.h5", plot=False, threads=2)
+    assert any(w.startswith("gonio-reduce") for w in where)  # some ran ahead
+    assert (tmp_path / "one.h5").read_bytes() == (tmp_path / "two.h5").read_bytes()
+    recs = [r for r in read_journal(s / "journal.jsonl") if r.get("type") == "shot"][:2]
+    started = threading.Event()
+
+    def then(results):
+        started.set()
+        return [fr is not None for fr, _ in results]
+
+    with FrameLoader(s, None, 2) as loader:
+        loader.prefetch_pose(recs, then)
+        assert started.wait(60)
+        results, value = loader.pose_results(recs)
+        assert value == [True, True] and all(fr is not None for fr, _ in results)
+        assert loader.pose_results(recs)[1] is None  # not queued (any more): done here
+    with FrameLoader(s, None, 1) as loader:  # one thread: nothing runs ahead
+        loader.prefetch_pose(recs, then)
+        assert loader.pose_results(recs)[1] is None
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_threads_give_the_same_file_and_a_changed_byte_is_caught(session, tmp_path, threads):
     """Frames are decoded in worker threads while poses are measured: the output must not
