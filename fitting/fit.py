@@ -72,6 +72,8 @@ def resolve_loss(loss: str, samples: Any) -> str:
     if std is None:
         return "cosine_l2"
     std = np.asarray(std, dtype=np.float64)
+    if std.size and np.isfinite(std).all():
+        return "weighted_l2"  # every sigma finite: the valid ones too (no mask to build)
     valid = getattr(samples, "valid", None)
     if valid is not None:
         std = std[np.asarray(valid)]
@@ -357,11 +359,15 @@ def fit_model(
         if np.all(np.isfinite(th)):
             user_u = vp_tmp.to_u(np.clip(th, vp_tmp.lb_shape, vp_tmp.ub_shape))
 
+    # the variable projection that found x_best, when it is the fitted problem's own: its
+    # kernels' sums at the optimum give the covariance's J^T J (VarPro.jtj)
+    vp_best: VarPro | None = None
     if varpro or not linear_ok:
-        x_best, status, message = _varpro_stage(
+        x_best, status, message, vp_best = _varpro_stage(
             init_prob, algorithm, local_alg, user_u, n_starts, maxeval, seed, path, say
         )
         if not linear_ok:
+            vp_best = None
             # the search variables are the same in both problems (same model and samples
             # apart from the log-loss exclusions), so x carries over
             x_best, status, message = _full_local(prob, x_best, local_alg, maxeval, path, say)
@@ -398,9 +404,20 @@ def fit_model(
             say("energy conservation")
             x_best, status, message = _energy_stage(prob, x_best, maxeval, path)
             max_alb = _max_albedo(prob, x_best)
-
+            vp_best = None
+    jtj = None if vp_best is None else vp_best.jtj(x_best)
     return _finish(
-        prob, x_best, status, message, path, absolute_sigma, max_alb, model_name, opts, modes
+        prob,
+        x_best,
+        status,
+        message,
+        path,
+        absolute_sigma,
+        max_alb,
+        model_name,
+        opts,
+        modes,
+        jtj,
     )
 
 
@@ -412,7 +429,7 @@ def _varpro_stage(
     if S == 0:
         _, _, a = vp.evaluate(np.zeros(0), want_grad=False)
         path.append("linear-lsq")
-        return prob.pack(np.zeros(0), a), 1, "linear least squares (exact)"
+        return prob.pack(np.zeros(0), a), 1, "linear least squares (exact)", vp
     lo, hi = prob.u_bounds
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise FitError(
@@ -461,7 +478,9 @@ def _varpro_stage(
         starts.append(prob.to_u(vp.default_theta()))
     best: NloptResult | None = None
     for s in starts:
-        r = nlopt_minimize(fun_s, s, lo, hi, local_alg, maxeval=maxeval, seed=seed)
+        r = nlopt_minimize(
+            fun_s, s, lo, hi, local_alg, maxeval=maxeval, seed=seed, x_scale=_scale(vs, s, lo, hi)
+        )
         if best is None or r.fun < best.fun:
             best = r
     assert best is not None
@@ -471,12 +490,31 @@ def _varpro_stage(
         path[-1] += f" (subset {screen.wi.shape[0]})"
         # a step of 1e-9 in ln(alpha) changes the cost by ~1e-18 relative at the minimum
         best = nlopt_minimize(
-            fun, best.x, lo, hi, local_alg, maxeval=maxeval, seed=seed, xtol_rel=1e-9
+            fun,
+            best.x,
+            lo,
+            hi,
+            local_alg,
+            maxeval=maxeval,
+            seed=seed,
+            xtol_rel=1e-9,
+            x_scale=_scale(vp, best.x, lo, hi),
         )
         path.append(f"{local_alg}(all {prob.wi.shape[0]})")
     say("local search")
     _, _, a = vp.evaluate(best.x, want_grad=False)
-    return np.concatenate([best.x, a.ravel()]), best.status, best.message
+    return np.concatenate([best.x, a.ravel()]), best.status, best.message, vp
+
+
+def _scale(vp: VarPro, u: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
+    """The local search's preconditioner at its start ``u``: the square root of the
+    reduced cost's Gauss-Newton curvature (``VarPro.curvature``), so that the search's
+    first step is Newton's; None when unknown.  (Measured on 10^5 samples: the polish
+    from the subset's optimum took 5 evaluations, its first step going to a bound.)"""
+    curv = vp.curvature(np.clip(np.asarray(u, dtype=np.float64), lo, hi))
+    if curv is None or not np.all(np.isfinite(curv) & (curv > 0)):
+        return None
+    return np.sqrt(curv)
 
 
 def _screen_problem(prob: Problem, seed: int) -> Problem:
@@ -690,13 +728,14 @@ def _finish(
     model_name: str,
     opts: dict[str, Any],
     modes: GeometricModes | None = None,
+    jtj: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> FitResult:
     if not np.all(np.isfinite(x)):
         raise FitError(
             f"fit of {model_name} produced non-finite parameters ({message}); x={x.tolist()}"
         )
     theta, a = prob.unpack(x)
-    unc = covariance_at(prob, x, absolute_sigma)
+    unc = covariance_at(prob, x, absolute_sigma, jtj)
     cost = unc.cost
     finite = bool(np.all(np.isfinite(x)) and np.isfinite(cost))
     if not finite:
@@ -722,8 +761,11 @@ def _finish(
     params = {n: params[n] for n in names}
     std = {n: std[n] for n in names}
     r = unc.residuals
-    full_r = np.full((prob.used.size, C), np.nan)
-    full_r[prob.used] = r
+    if prob.used.all():
+        full_r = np.array(r, dtype=np.float64)  # (a copy: boolean assignment is ~50x slower)
+    else:
+        full_r = np.full((prob.used.size, C), np.nan)
+        full_r[prob.used] = r
     m = r.size
     p = int(unc.free.sum())
     if absolute_sigma:

@@ -37,6 +37,8 @@ __all__ = [
     "basis_microfacet_serial",
     "cost_grad",
     "cost_grad_serial",
+    "gauss_newton_sums",
+    "gauss_newton_sums_serial",
     "normal_equations",
     "normal_equations_serial",
 ]
@@ -336,3 +338,121 @@ def cost_grad_serial(G, dG, coupling, a, w2, y, grad):
     for task in range(nblk * C):
         _cg_task(G, dG, coupling, a, w2, y, cp, gp, task)
     return _cg_total(cp, gp, grad)
+
+
+@njit(**_JIT, inline="always")
+def _gn_task(G, dG, w2, Hp, Dp, Ep, task):
+    n, K = G.shape
+    C = w2.shape[1]
+    S = dG.shape[1]
+    blk = task // C
+    c = task % C
+    lo = blk * BLOCK
+    hi = min(n, lo + BLOCK)
+    if K == 2 and S == 1:  # lambert + one lobe, one shape parameter: in registers
+        h00 = 0.0
+        h01 = 0.0
+        h11 = 0.0
+        d0 = 0.0
+        d1 = 0.0
+        e = 0.0
+        for i in range(lo, hi):
+            w = w2[i, c]
+            g0 = G[i, 0] * w
+            g1 = G[i, 1] * w
+            ds = dG[i, 0]
+            h00 += g0 * G[i, 0]
+            h01 += g0 * G[i, 1]
+            h11 += g1 * G[i, 1]
+            d0 += g0 * ds
+            d1 += g1 * ds
+            e += ds * w * ds
+        Hp[blk, c, 0, 0] = h00
+        Hp[blk, c, 0, 1] = h01
+        Hp[blk, c, 1, 1] = h11
+        Dp[blk, c, 0, 0] = d0
+        Dp[blk, c, 0, 1] = d1
+        Ep[blk, c, 0, 0] = e
+    else:
+        for i in range(lo, hi):
+            w = w2[i, c]
+            for j in range(K):
+                gj = G[i, j] * w
+                for k in range(j, K):
+                    Hp[blk, c, j, k] += gj * G[i, k]
+                for s in range(S):
+                    Dp[blk, c, s, j] += gj * dG[i, s]
+            for s in range(S):
+                ws = dG[i, s] * w
+                for t in range(s, S):
+                    Ep[blk, c, s, t] += ws * dG[i, t]
+
+
+@njit(**_JIT, inline="always")
+def _gn_total(Hp, Dp, Ep, H, D, E):
+    nblk, C, K, _ = Hp.shape
+    S = Dp.shape[2]
+    H[:] = 0.0
+    D[:] = 0.0
+    E[:] = 0.0
+    for blk in range(nblk):
+        for c in range(C):
+            for j in range(K):
+                for k in range(j, K):
+                    H[c, j, k] += Hp[blk, c, j, k]
+            for s in range(S):
+                for j in range(K):
+                    D[c, s, j] += Dp[blk, c, s, j]
+                for t in range(s, S):
+                    E[c, s, t] += Ep[blk, c, s, t]
+    for c in range(C):
+        for j in range(K):
+            for k in range(j):
+                H[c, j, k] = H[c, k, j]
+        for s in range(S):
+            for t in range(s):
+                E[c, s, t] = E[c, t, s]
+
+
+@njit(**_JIT, parallel=True)
+def gauss_newton_sums(G, dG, w2, H, D, E):
+    """The weighted products of the basis and its shape derivatives, per channel, in
+    blocked sums: the Gauss-Newton matrix ``J^T J`` of a linear-loss fit in pieces.
+
+    Parameters
+    ----------
+    G : (N, K)
+        Basis at unit linear parameters.
+    dG : (N, S)
+        Shape derivatives of the coupled basis columns (natural units).
+    w2 : (N, C)
+        Squared weights.
+    H : (C, K, K), D : (C, S, K), E : (C, S, S)
+        Written: ``H[c] = G^T diag(w2_c) G``, ``D[c] = dG^T diag(w2_c) G``, ``E[c] =
+        dG^T diag(w2_c) dG``.
+    """
+    n, K = G.shape
+    C = w2.shape[1]
+    S = dG.shape[1]
+    nblk = (n + BLOCK - 1) // BLOCK
+    Hp = np.zeros((nblk, C, K, K))
+    Dp = np.zeros((nblk, C, S, K))
+    Ep = np.zeros((nblk, C, S, S))
+    for task in prange(nblk * C):
+        _gn_task(G, dG, w2, Hp, Dp, Ep, task)
+    _gn_total(Hp, Dp, Ep, H, D, E)
+
+
+@njit(**_JIT)
+def gauss_newton_sums_serial(G, dG, w2, H, D, E):
+    """:func:`gauss_newton_sums` on the calling thread (the same bits)."""
+    n, K = G.shape
+    C = w2.shape[1]
+    S = dG.shape[1]
+    nblk = (n + BLOCK - 1) // BLOCK
+    Hp = np.zeros((nblk, C, K, K))
+    Dp = np.zeros((nblk, C, S, K))
+    Ep = np.zeros((nblk, C, S, S))
+    for task in range(nblk * C):
+        _gn_task(G, dG, w2, Hp, Dp, Ep, task)
+    _gn_total(Hp, Dp, Ep, H, D, E)

@@ -97,6 +97,7 @@ def nlopt_minimize(
     ineq_tol: float = 1e-10,
     population: int = 0,
     seed: int = 0,
+    x_scale: np.ndarray | None = None,
 ) -> NloptResult:
     """Minimise ``fun`` with nlopt and check the outcome.
 
@@ -117,6 +118,12 @@ def nlopt_minimize(
         ``<= 0``; fill ``grad`` (n_ineq, n) in place when it is non-empty.
     population, seed
         Population of the stochastic global algorithms and nlopt's random seed.
+    x_scale
+        Diagonal preconditioner (n,), finite and positive: nlopt searches ``v = x *
+        x_scale``.  With ``x_scale = sqrt(d^2 fun / dx^2)`` at the start, the first step
+        of a quasi-Newton search (a unit step along ``-grad`` in ``v``) is Newton's step
+        instead of one scaled by the gradient's magnitude (which on a 10^5-sample cost
+        jumped to a bound and back).  ``fun`` still sees ``x``; the result is in ``x``.
 
     Returns
     -------
@@ -131,12 +138,29 @@ def nlopt_minimize(
     code = _algorithm(algorithm)
     x0 = np.clip(np.asarray(x0, dtype=np.float64), lb, ub)
     n = x0.size
+    sc = None if x_scale is None else np.asarray(x_scale, dtype=np.float64).reshape(-1)
+    if sc is not None and not (sc.shape == (n,) and np.all(np.isfinite(sc) & (sc > 0))):
+        sc = None  # an unknown curvature: search x itself
+    if ineq is not None:
+        sc = None  # (the constraints are functions of x; not worth mapping)
+    lb_f = np.asarray(lb, dtype=np.float64)
+    ub_f = np.asarray(ub, dtype=np.float64)
+    v0 = x0 if sc is None else x0 * sc
+    v0_key = v0.tobytes()
+
+    def to_x(v: np.ndarray) -> np.ndarray:
+        if sc is None:
+            return v
+        if v.tobytes() == v0_key:
+            return x0.copy()  # exactly the start (v0 / sc need not round back to x0)
+        return np.clip(v / sc, lb_f, ub_f)
+
     best = {"f": np.inf, "x": x0.copy(), "n": 0}
     gradient_based = algorithm.startswith(("LD_", "GD_"))
 
     secant = _SecantStop(xtol_rel, lb, ub) if (gradient_based and n == 1 and ineq is None) else None
 
-    def obj(x: np.ndarray, grad: np.ndarray) -> float:
+    def obj(v: np.ndarray, grad: np.ndarray) -> float:
         if best.get("secant"):
             # stopped (force_stop below): nlopt may still ask before it looks at the flag;
             # nothing it asks now is taken, so the result does not depend on when it looks
@@ -145,14 +169,18 @@ def nlopt_minimize(
             return best["f"]
         best["n"] += 1
         want = grad.size > 0
+        x = to_x(v)
         f, g = fun(x, want)
+        g_x = None
         if want:
-            grad[:] = g if np.all(np.isfinite(g)) else 0.0
+            g_x = np.asarray(g, dtype=np.float64) if np.all(np.isfinite(g)) else np.zeros(n)
+            grad[:] = g_x if sc is None else g_x / sc
         if not np.isfinite(f):
             return float("inf")
         if f < best["f"] and (ineq is None or _feasible(x)):
             best["f"], best["x"] = float(f), x.copy()
-        if secant is not None and want and secant.converged(x, grad, f, best["f"]):
+        # (the secant's Newton step is the same in x and in v: it is tested in x)
+        if secant is not None and want and secant.converged(x, g_x, f, best["f"]):
             # nlopt's own stop flag, not an exception through its C++ layer: nlopt 2.11
             # handed a callback's exception back as ForcedStop, a runtime_error or not at
             # once (the search went on for a step), varying from run to run
@@ -166,8 +194,8 @@ def nlopt_minimize(
     nlopt.srand(seed)
     try:
         opt = nlopt.opt(code, n)
-        opt.set_lower_bounds(np.asarray(lb, dtype=np.float64))
-        opt.set_upper_bounds(np.asarray(ub, dtype=np.float64))
+        opt.set_lower_bounds(lb_f if sc is None else lb_f * sc)
+        opt.set_upper_bounds(ub_f if sc is None else ub_f * sc)
         opt.set_min_objective(obj)
         opt.set_ftol_rel(ftol_rel)
         opt.set_xtol_rel(xtol_rel)
@@ -195,7 +223,7 @@ def nlopt_minimize(
         ) from exc
     status, message = 0, ""
     try:
-        opt.optimize(x0)
+        opt.optimize(v0)
         status = int(opt.last_optimize_result())
         message = _MESSAGES.get(status, str(status))
     except GonioError:

@@ -64,24 +64,15 @@ def _at_bounds(prob: Problem, x: np.ndarray) -> np.ndarray:
     return out
 
 
-def covariance_at(prob: Problem, x: np.ndarray, absolute_sigma: bool) -> Uncertainty:
-    """Covariance of the parameters ``x`` of ``prob`` (labels ``prob.labels``).
-
-    Parameters
-    ----------
-    prob
-        The fitted problem.
-    x
-        Optimum in search variables (shape parameters possibly in log space).
-    absolute_sigma
-        Treat the residuals as already scaled by the true sigmas (``s^2 = 1``).
-    """
+def _jtj_of_blocks(prob: Problem, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Residuals, ``J^T J`` (with the robust IRLS weights) and the cost at ``x``."""
     r, js, jl = prob.jacobian_blocks(x, natural=True)
     rho, drho = robust_rho(r * r, prob.robust, prob.f_scale)
     cost = 0.5 * float(np.sum(rho))
-    sw = np.sqrt(drho)
-    js = js * sw[..., None]
-    jl = jl * sw[..., None]
+    if prob.robust is not None:  # (without a penalty the IRLS weights are all 1)
+        sw = np.sqrt(drho)
+        js = js * sw[..., None]
+        jl = jl * sw[..., None]
     S, K, C = prob.n_shape, prob.n_linear, prob.n_channels
     P = prob.n_params
     H = np.zeros((P, P))
@@ -93,6 +84,38 @@ def covariance_at(prob: Problem, x: np.ndarray, absolute_sigma: bool) -> Uncerta
     for c in range(C):
         idx = S + np.arange(K) * C + c
         H[np.ix_(idx, idx)] = ll[c]
+    return r, H, cost
+
+
+def covariance_at(
+    prob: Problem,
+    x: np.ndarray,
+    absolute_sigma: bool,
+    jtj: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Uncertainty:
+    """Covariance of the parameters ``x`` of ``prob`` (labels ``prob.labels``).
+
+    Parameters
+    ----------
+    prob
+        The fitted problem.
+    x
+        Optimum in search variables (shape parameters possibly in log space).
+    absolute_sigma
+        Treat the residuals as already scaled by the true sigmas (``s^2 = 1``).
+    jtj
+        Residuals (N, C) and ``J^T J`` (P, P, natural units, ``prob.labels`` order) at
+        ``x`` when the caller has them (``VarPro.jtj``: the fused kernels' sums; no
+        robust penalty); else they are formed here from ``prob.jacobian_blocks``.
+    """
+    if jtj is not None:
+        if prob.robust is not None:
+            raise ValueError("covariance_at: jtj is the plain J^T J, without robust weights")
+        r, H = jtj
+        cost = 0.5 * float(np.sum(r * r))
+    else:
+        r, H, cost = _jtj_of_blocks(prob, x)
+    P = prob.n_params
     bound = _at_bounds(prob, x)
     free = ~bound
     m = r.size

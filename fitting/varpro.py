@@ -183,9 +183,12 @@ class VarPro:
         self.w2 = problem.weights**2  # (N, C)
         self.w2y = self.w2 * problem.y
         self.unit = unit_values(problem)
-        self.coupling = self._detect_coupling()
         self._fused = _fused_plan(self)
+        # the fused models' alpha scales with ks (linear parameter 1): no need to probe
+        # the model for it (two model evaluations, ~5 ms of a fit)
+        self.coupling = [1] if self._fused is not None else self._detect_coupling()
         self._last: tuple | None = None
+        self._basis: tuple | None = None  # (theta bytes, G, g) of the last numpy basis
 
     def _unit_params(self, theta: np.ndarray) -> dict[str, Any]:
         p: dict[str, Any] = {n: float(t) for n, t in zip(self.p.shape_names, theta, strict=True)}
@@ -279,6 +282,7 @@ class VarPro:
         u = np.asarray(u, dtype=np.float64)
         theta = p.from_u(u)
         G, g = self.basis(theta)
+        self._basis = (theta.tobytes(), G, g)
         a = self.solve_linear(G)
         res = G @ a
         res -= p.y
@@ -299,6 +303,120 @@ class VarPro:
             for s, name in enumerate(p.shape_names):
                 grad[s] = np.sum(wres * np.broadcast_to(gf[name], res.shape)) * dtu[s]
         return cost, grad, a
+
+    def gauss_newton(self, u: np.ndarray):
+        """Gauss-Newton pieces at ``u``: ``H (C, K, K)``, ``D (C, S, K)``, ``E (C, S, S)``
+        (:func:`gonio.fitting.kernels.gauss_newton_sums`, per unit linear parameter) and
+        the linear parameters ``a (K, C)``; None when a shape parameter does not scale
+        with exactly one linear parameter (``coupling``).
+
+        The Jacobian of the residuals ``w (G a - y)`` is ``w G`` for the linear
+        parameters and ``w a_j dG`` for a shape parameter coupled to ``a_j``, so these
+        sums are ``J^T J`` in pieces (natural units).
+        """
+        coupling = self._fused.coupling if self._fused is not None else self.coupling
+        if coupling is None or self.p.n_shape == 0:
+            return None
+        u = np.asarray(u, dtype=np.float64)
+        p = self.p
+        theta = p.from_u(u)
+        _, _, a = self.evaluate(u, want_grad=False)
+        # the remembered evaluation does not say where the basis arrays were last filled
+        # (batch_cost evaluates past the memory): fill them again if elsewhere
+        if self._fused is not None:
+            if self._fused.alpha != float(theta[0]):
+                self._fused.evaluate(u)
+            H, D, E = self._fused.gauss_newton_sums()
+        else:
+            if self._basis is None or self._basis[0] != theta.tobytes():
+                self._evaluate(u, want_grad=False)
+            _, G, g = self._basis
+            n = G.shape[0]
+            dG = np.stack(
+                [
+                    np.broadcast_to(g[name], (n,)) / self.unit[coupling[s]]
+                    for s, name in enumerate(p.shape_names)
+                ],
+                axis=1,
+            )
+            H = np.einsum("nj,nc,nk->cjk", G, self.w2, G)
+            D = np.einsum("ns,nc,nj->csj", dG, self.w2, G)
+            E = np.einsum("ns,nc,nt->cst", dG, self.w2, dG)
+        return H, D, E, a
+
+    def curvature(self, u: np.ndarray) -> np.ndarray | None:
+        """Gauss-Newton estimate of the reduced cost's second derivatives ``d^2 c / du_s^2``
+        (S,) at ``u`` (the diagonal; None when unknown): the preconditioner of the local
+        searches (:func:`gonio.fitting.optimize.nlopt_minimize` ``x_scale``).
+
+        The reduced cost's Gauss-Newton Hessian in theta is the Schur complement of the
+        full one, ``J_s^T J_s - J_s^T J_l (J_l^T J_l)^-1 J_l^T J_s`` per channel over
+        the linear parameters off their bounds; the search variable ``u = ln theta``
+        adds ``dc/dtheta * d^2 theta / du^2``.
+        """
+        u = np.asarray(u, dtype=np.float64)
+        _, g_u, _ = self.evaluate(u, want_grad=True)
+        gn = self.gauss_newton(u)
+        if gn is None:
+            return None
+        H, D, E, a = gn
+        p = self.p
+        coupling = self._fused.coupling if self._fused is not None else self.coupling
+        S, C = p.n_shape, p.n_channels
+        scale = a[np.asarray(coupling)] / self.unit[np.asarray(coupling)][:, None]  # (S, C)
+        hth = np.zeros(S)
+        span = np.maximum(np.abs(a), 1e-300)
+        for c in range(C):
+            Acs = scale[:, c]
+            jss = np.diag(E[c]) * Acs * Acs
+            jsl = Acs[:, None] * D[c]  # (S, K)
+            free = (a[:, c] > p.lb_lin + 1e-12 * span[:, c]) & (
+                a[:, c] < p.ub_lin - 1e-12 * span[:, c]
+            )
+            if free.any():
+                Hf = H[c][np.ix_(free, free)]
+                try:
+                    sol = np.linalg.solve(Hf, jsl[:, free].T)  # (F, S)
+                except np.linalg.LinAlgError:
+                    return None
+                jss = jss - np.einsum("sf,fs->s", jsl[:, free], sol)
+            hth += jss
+        theta = p.from_u(u)
+        dtu = p.dtheta_du(theta)
+        # d^2 theta / du^2 = dtheta/du for theta = exp(u) - offset, 0 for theta = u
+        curv = hth * dtu * dtu + np.where(p.log_shape, g_u, 0.0)
+        gn_only = hth * dtu * dtu
+        curv = np.where(np.isfinite(curv) & (curv > 0), curv, gn_only)
+        return np.where(np.isfinite(curv) & (curv > 0), curv, np.nan)
+
+    def jtj(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Residuals ``r`` (N, C) and the Gauss-Newton matrix ``J^T J`` (P, P) in natural
+        units and ``Problem.labels`` order at ``x``, from the fused kernels' sums (the
+        model's numpy gradients on 10^5 samples were most of the covariance's time);
+        None on the numpy path (``covariance_at`` forms them from the model)."""
+        if self._fused is None or self.p.robust is not None:
+            return None
+        p = self.p
+        S, K, C = p.n_shape, p.n_linear, p.n_channels
+        _, a = p.unpack(x)
+        gn = self.gauss_newton(np.asarray(x, dtype=np.float64)[:S])
+        if gn is None:  # pragma: no cover - the fused models are all coupled
+            return None
+        H, D, E, _ = gn
+        coupling = np.asarray(self._fused.coupling)
+        A = a[coupling]  # (S, C): the linear parameter each shape parameter scales with
+        P = p.n_params
+        J = np.zeros((P, P))
+        J[:S, :S] = np.einsum("sc,tc,cst->st", A, A, E)
+        for c in range(C):
+            idx = S + np.arange(K) * C + c
+            J[:S, idx] = A[:, c, None] * D[c]
+            J[idx, :S] = J[:S, idx].T
+            J[np.ix_(idx, idx)] = H[c]
+        G = self._fused.G
+        f = G[:, 0, None] * a[0][None, :] + G[:, 1, None] * a[1][None, :]
+        r = p.weights * (f - p.y)
+        return r, J
 
     def batch_cost(self, U: np.ndarray) -> np.ndarray:
         """Reduced cost at many points ``U`` (M, S) at once (one broadcast model call)."""
@@ -374,6 +492,7 @@ class _FusedVarPro:
 
         self.vp = vp
         parallel = vp.p.wi.shape[0] >= kernels.PARALLEL_ROWS
+        self.gn_sums = kernels.gauss_newton_sums if parallel else kernels.gauss_newton_sums_serial
         self.kernels = (
             (kernels.basis_microfacet, kernels.normal_equations, kernels.cost_grad)
             if parallel
@@ -400,6 +519,14 @@ class _FusedVarPro:
         C = self.y.shape[1]
         self.H = np.empty((C, 2, 2))
         self.b = np.empty((C, 2))
+        self.alpha = np.nan
+
+    def gauss_newton_sums(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:func:`~gonio.fitting.kernels.gauss_newton_sums` of the current basis."""
+        C = self.y.shape[1]
+        H, D, E = np.empty((C, 2, 2)), np.empty((C, 1, 2)), np.empty((C, 1, 1))
+        self.gn_sums(self.G, self.dG, self.w2, H, D, E)
+        return H, D, E
 
     def evaluate(self, u: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         p = self.vp.p
@@ -407,6 +534,7 @@ class _FusedVarPro:
         p.njev += 1
         basis, normal, cost_grad = self.kernels
         basis(self.wi, self.wo, float(theta[0]), self.dist, self.g1, self.G, 1, self.dG)
+        self.alpha = float(theta[0])  # where G and dG are now
         normal(self.G, self.w2, self.w2y, self.H, self.b)
         a = np.ascontiguousarray(solve_box_qp(self.H, self.b, p.lb_lin, p.ub_lin).T)
         grad = np.empty(1)

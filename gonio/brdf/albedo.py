@@ -69,6 +69,12 @@ def _theta_nodes(theta_i: Array, width: Array) -> tuple[Array, Array]:
     )
     ends = np.sort(np.minimum(ends, t_max[:, None]), axis=1)
     a, b = ends[:, :-1, None], ends[:, 1:, None]
+    # Segments of zero length in every case (ends past t_max, clipped onto it; near_max
+    # ends below 0) carry zero weight: leaving them out drops a third of the nodes of a
+    # GGX lobe at alpha 0.15 (11 of 35 segments), the same integral.
+    live = np.any(b[..., 0] > a[..., 0], axis=0)
+    if live.any():
+        a, b = a[:, live], b[:, live]
     half = 0.5 * (b - a)
     nodes = (a + half * (_xt + 1.0)).reshape(len(theta_i), -1)
     weights = (half * _wt).reshape(len(theta_i), -1)

@@ -330,3 +330,18 @@ def test_a_failing_residual_drawer_is_named(tmp_path, make_samples, monkeypatch)
     assert res.exit_code != 0
     assert "drawing residuals.png failed: ValueError: bad colours" in str(res.exception)
     assert not (tmp_path / "fit" / "fit.json").exists()
+
+
+def test_fitting_a_measured_file_imports_neither_h5py_nor_numba():
+    # start-up is most of `gonio fit FILE.bsdf` (issue 19): what its path imports, in a
+    # fresh interpreter (h5py ~0.15 s, numba ~0.5 s of CPU; neither is needed for it)
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, gonio.cli, gonio.fitting.cli, gonio.fitting.sampling, gonio.brdf, "
+        "gonio.fitting.fit, gonio.fitting.select, gonio.fitting.export; "
+        "print(sorted(m for m in ('h5py', 'numba', 'matplotlib') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

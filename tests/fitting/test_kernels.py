@@ -141,3 +141,63 @@ def test_whole_fit_equals_the_numpy_fit(monkeypatch, make_samples):
     for name in ("albedo", "ks", "alpha"):
         np.testing.assert_allclose(r1.params[name], r0.params[name], rtol=1e-7, atol=1e-10)
     np.testing.assert_allclose(r1.params["alpha"], 0.15, rtol=0.01)  # and near the truth
+
+
+def test_gauss_newton_sums_match_dense_numpy():
+    rng = np.random.default_rng(6)
+    for n, K, S in ((10_001, 2, 1), (5_000, 3, 2)):  # the register branch and the generic one
+        G, dG, w2 = rng.random((n, K)), rng.standard_normal((n, S)), rng.random((n, 3))
+        H, D, E = np.empty((3, K, K)), np.empty((3, S, K)), np.empty((3, S, S))
+        k.gauss_newton_sums(G, dG, w2, H, D, E)
+        for c in range(3):
+            np.testing.assert_allclose(H[c], (G * w2[:, c, None]).T @ G, rtol=1e-12)
+            np.testing.assert_allclose(D[c], (dG * w2[:, c, None]).T @ G, rtol=1e-12)
+            np.testing.assert_allclose(E[c], (dG * w2[:, c, None]).T @ dG, rtol=1e-12)
+        H2, D2, E2 = np.empty_like(H), np.empty_like(D), np.empty_like(E)
+        k.gauss_newton_sums_serial(G, dG, w2, H2, D2, E2)
+        assert np.array_equal(H, H2) and np.array_equal(D, D2) and np.array_equal(E, E2)
+
+
+def test_covariance_from_the_kernels_sums_is_the_models(make_samples):
+    # the fused path's J^T J (VarPro.jtj) against covariance_at's own, formed from the
+    # model's numpy gradients (Problem.jacobian_blocks)
+    from gonio.fitting.uncertainty import _jtj_of_blocks, covariance_at
+
+    s = make_samples("lambert+ggx", TRUTH, n=60_000, seed=7, noise=1e-4, read=1e-3)
+    prob = prepare_problem(get_model("lambert+ggx"), s, get_loss("weighted_l2"))
+    vp = VarPro(prob)
+    assert vp._fused is not None
+    x = prob.pack(np.array([0.17]), np.array([[0.21, 0.38, 0.01], [0.11, 0.19, 0.31]]))
+    jtj = vp.jtj(x)
+    fast = covariance_at(prob, x, True, jtj)
+    ref = covariance_at(prob, x, True)
+    np.testing.assert_allclose(fast.cost, ref.cost, rtol=1e-13)
+    np.testing.assert_allclose(fast.residuals, ref.residuals, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(fast.covariance, ref.covariance, rtol=1e-10, atol=1e-20)
+    np.testing.assert_allclose(jtj[1], _jtj_of_blocks(prob, x)[1], rtol=1e-12)
+
+
+@pytest.mark.parametrize("numba_path", [True, False])
+def test_curvature_is_the_reduced_costs_second_derivative_at_an_exact_fit(
+    monkeypatch, make_samples, numba_path
+):
+    # noise-free samples at the truth: the residuals vanish, so the Gauss-Newton
+    # curvature of the reduced cost is its exact second derivative (central differences
+    # of the exact reduced gradient as the reference)
+    if not numba_path:
+        monkeypatch.setenv("GONIO_NUMBA", "0")
+    truth = {"albedo": [0.2, 0.4, 0.3], "ks": [0.1, 0.2, 0.3], "alpha": [0.15] * 3}
+    s = make_samples("lambert+ggx", truth, n=60_000, seed=8)
+    prob = prepare_problem(get_model("lambert+ggx"), s, get_loss("l2"))
+    vp = VarPro(prob)
+    assert (vp._fused is not None) == numba_path
+    u = np.log([0.15])
+    h = 1e-4
+    fd = (vp.evaluate(u + h)[1][0] - vp.evaluate(u - h)[1][0]) / (2 * h)
+    curv = vp.curvature(u)
+    np.testing.assert_allclose(curv, [fd], rtol=1e-6)
+    # off the minimum the reduced cost's slope term (u = ln alpha) is in it too, and the
+    # estimate stays positive and of the right size
+    c2 = vp.curvature(u + 0.5)
+    fd2 = (vp.evaluate(u + 0.5 + h)[1][0] - vp.evaluate(u + 0.5 - h)[1][0]) / (2 * h)
+    assert 0.3 * fd2 < c2[0] < 3 * fd2

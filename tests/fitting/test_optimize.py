@@ -176,3 +176,46 @@ def test_every_algorithm_reaches_the_default_cost(alg, make_samples):
     assert r.success, r.message
     assert any(alg in step for step in r.algorithm)
     assert abs(r.cost - ref.cost) <= 1e-9 * ref.cost
+
+
+def test_preconditioned_search_takes_newtons_step_first():
+    # c = 0.5 k (u - m)^2 + 0.01 k (u - m)^4 from u = 0: unscaled, L-BFGS's first step is
+    # the gradient itself (k = 1e8: far past the bound); with x_scale = sqrt(c''(0)) it is
+    # Newton's step, and the search ends at the same minimum in fewer evaluations
+    k, m = 1.0e8, -1.9
+
+    def run(x_scale):
+        seen = []
+
+        def fun(u, want):
+            d = u[0] - m
+            seen.append(float(u[0]))
+            return 0.5 * k * d * d + 0.01 * k * d**4, np.array([k * d + 0.04 * k * d**3])
+
+        lo, hi = np.array([-5.0]), np.array([0.5])
+        return nlopt_minimize(fun, np.array([0.0]), lo, hi, "LD_LBFGS", x_scale=x_scale), seen
+
+    curv0 = k + 0.12 * k * m * m  # c''(0)
+    r1, seen1 = run(np.array([np.sqrt(curv0)]))
+    r0, seen0 = run(None)
+    assert seen1[0] == 0.0 and seen0[0] == 0.0  # the start itself, exactly
+    g0 = k * (0 - m) + 0.04 * k * (0 - m) ** 3
+    assert seen1[1] == pytest.approx(-g0 / curv0, rel=1e-12)  # Newton's step from 0
+    assert seen0[1] == -5.0  # the unscaled step: to the lower bound
+    for r in (r0, r1):
+        assert r.success and abs(r.x[0] - m) <= 1e-9 * abs(m)
+    assert len(seen1) < len(seen0)
+    # a scale that is not finite and positive is ignored (the search is the unscaled one)
+    r2, seen2 = run(np.array([np.nan]))
+    assert seen2 == seen0 and r2.x[0] == r0.x[0]
+
+
+def test_row_helpers_are_numpys_reductions_bit_for_bit():
+    from gonio.fitting.objective import _row_norm, _rows_all
+
+    rng = np.random.default_rng(0)
+    v = rng.standard_normal((10_000, 3)) * 10.0 ** rng.integers(-3, 3, (10_000, 1))
+    assert np.array_equal(_row_norm(v), np.linalg.norm(v, axis=1))
+    mask = rng.random((10_000, 3)) > 0.1
+    assert np.array_equal(_rows_all(mask), np.all(mask, axis=1))
+    assert np.array_equal(_rows_all(np.ones((4, 0), bool)), np.ones(4, bool))
