@@ -515,6 +515,8 @@ class _Integrator:
         light = self.light
         m, k = x.shape[0], y.shape[-2]
         rk = _kernels(m * k)
+        if rk is not None and not self.occ:
+            return self._shade_nodes_fused(rk, x, region, white, y, w)
         if rk is None:
             d = y - x[:, None, :]
             r2 = np.einsum("mki,mki->mk", d, d)
@@ -579,6 +581,48 @@ class _Integrator:
             scale = self.surface.albedo_scale(xs)
             out[smp] = val if scale is None else val * scale
         return out * light.rgb
+
+    def _shade_nodes_fused(self, rk, x, region, white, y, w) -> np.ndarray:
+        """:meth:`_shade_nodes` without occluders by the kernels (the same expressions
+        in the same order): the holder's and patch's points in one fused pass
+        (``lambert_shade``), the node directions only for the sample's points."""
+        light = self.light
+        m, k = x.shape[0], y.shape[-2]
+        yk = np.ascontiguousarray(np.reshape(y, (-1, k, 3)), dtype=np.float64)
+        wk = np.ascontiguousarray(np.reshape(w, (-1, k)), dtype=np.float64)
+        face = None if light.is_point else light.face(y)
+        fk = np.zeros((0, k)) if face is None else np.ascontiguousarray(np.reshape(face, (-1, k)))
+        normal = np.ascontiguousarray(light.normal, dtype=np.float64)
+        rgb = np.ascontiguousarray(np.broadcast_to(light.rgb, (3,)), dtype=np.float64)
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        out = np.zeros((m, 3))
+        table = self.surface.albedo_rows()
+        point, n_prof = bool(light.is_point), float(light.profile_n)
+        rk.lambert_shade(x, region, white, yk, wk, normal, point, n_prof, fk, table, rgb, out)
+        smp = region == SAMPLE
+        if not np.any(smp):
+            return out
+        xs = x[smp]
+        ms = xs.shape[0]
+
+        # per-point node rows (stratified MC) follow their points; one row serves all
+        def rows(a):
+            return a if a.shape[0] <= 1 else np.ascontiguousarray(a[smp])
+
+        wis, g = np.empty((ms, k, 3)), np.empty((ms, k))
+        rk.node_geometry(xs, rows(yk), rows(wk), normal, point, n_prof, rows(fk), wis, g)
+        wo = self.camera - xs
+        wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+        wob = np.broadcast_to(wo[:, None, :], wis.shape)
+        if self.surface.spatial:
+            f = np.asarray(self.surface.brdf.eval_at(xs, wis, wob))
+        else:
+            f = np.asarray(self.surface.brdf.eval(wis, wob))
+        f = np.nan_to_num(f, nan=0.0)
+        val = np.einsum("mkc,mk->mc", f, g)
+        scale = self.surface.albedo_scale(xs)
+        out[smp] = (val if scale is None else val * scale) * light.rgb
+        return out
 
 
 def _levels_for(light: PreparedLight) -> tuple[int, ...]:
