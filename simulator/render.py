@@ -692,6 +692,16 @@ def _kernel(rk: Any, name: str, points: int) -> Any:
     return getattr(rk, name if points >= rk.PARALLEL_POINTS else name + "_serial")
 
 
+def _box_filter(sub: np.ndarray, n: int, ej: np.ndarray, ei: np.ndarray, image: np.ndarray):
+    """``image[ej, ei]`` (H, W, 3) = the mean of each pixel's ``n`` sub-samples (rows of
+    ``sub`` (P n, 3), pixel by pixel): numpy, or the kernel (the same bits) for many."""
+    rk = _kernels(sub.shape[0])
+    if rk is None:
+        image[ej, ei] = sub.reshape(len(ej), n, 3).mean(1)
+    else:
+        rk.subsample_mean(np.ascontiguousarray(sub), int(n), ej, ei, image)
+
+
 def _hits(
     surface: Surface, C: np.ndarray, R: np.ndarray, xn: np.ndarray, yn: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -1058,11 +1068,11 @@ def render(
         ok = (rsub > 0) & (rsub != OCCLUDED)
         lsub = np.zeros((len(rsub), 3))
         lsub[ok] = shade_all(xsub[ok], rsub[ok], wsub[ok])
-        radiance[ej, ei] = lsub.reshape(len(ej), n_aa * n_aa, 3).mean(1)
+        _box_filter(lsub, n_aa * n_aa, ej, ei, radiance)
         if diff is not None:
             dsub = np.zeros((len(rsub), 3))
             dsub[ok] = diffuse_all(xsub[ok], rsub[ok], wsub[ok])
-            diff[ej, ei] = dsub.reshape(len(ej), n_aa * n_aa, 3).mean(1)
+            _box_filter(dsub, n_aa * n_aa, ej, ei, diff)
         n_sub += len(rsub)
     edge = edge | spot_rim
 

@@ -35,6 +35,7 @@ __all__ = [
     "node_geometry",
     "subpixel_normalized",
     "subpixel_normalized_serial",
+    "subsample_mean",
 ]
 
 #: From this many points on, the multi-threaded kernels are used (below, a thread launch
@@ -389,7 +390,10 @@ def lambert_shade(x, region, white, y, w, normal, is_point, profile_n, face, tab
     ny, nw, nf = y.shape[0] - 1, w.shape[0] - 1, face.shape[0] - 1
     has_face = face.shape[0] > 0
     kk = y.shape[1]
-    tab = table / math.pi
+    # table[row, c] / pi as lambert_radiance divides it, read once (see label_points)
+    b0, b1, b2 = table[0, 0] / math.pi, table[0, 1] / math.pi, table[0, 2] / math.pi
+    w0_, w1_, w2_ = table[1, 0] / math.pi, table[1, 1] / math.pi, table[1, 2] / math.pi
+    p0, p1, p2 = table[2, 0] / math.pi, table[2, 1] / math.pi, table[2, 2] / math.pi
     c0, c1, c2 = rgb[0], rgb[1], rgb[2]
     for i in range(x.shape[0]):
         reg = region[i]
@@ -420,22 +424,52 @@ def lambert_shade(x, region, white, y, w, normal, is_point, profile_n, face, tab
                 if has_face:
                     g = g * face[fi, k]
             gs += g
-        row = 2 if reg == PATCH else (1 if white[i] else 0)
-        out[i, 0] = tab[row, 0] * gs * c0
-        out[i, 1] = tab[row, 1] * gs * c1
-        out[i, 2] = tab[row, 2] * gs * c2
+        if reg == PATCH:
+            a0, a1, a2 = p0, p1, p2
+        elif white[i]:
+            a0, a1, a2 = w0_, w1_, w2_
+        else:
+            a0, a1, a2 = b0, b1, b2
+        out[i, 0] = a0 * gs * c0
+        out[i, 1] = a1 * gs * c1
+        out[i, 2] = a2 * gs * c2
 
 
 @njit(**_JIT)
 def lambert_albedo(region, white, table, out):
-    """The albedo (3,) of every point that is not the sample, into ``out`` (M, 3)."""
+    """The albedo (3,) of every point that is not the sample, into ``out`` (M, 3); the
+    table's rows read once (see :func:`label_points`)."""
+    b0, b1, b2 = table[0, 0], table[0, 1], table[0, 2]
+    w0, w1, w2 = table[1, 0], table[1, 1], table[1, 2]
+    p0, p1, p2 = table[2, 0], table[2, 1], table[2, 2]
     for i in range(region.shape[0]):
         reg = region[i]
         if reg == SAMPLE:
             continue
-        row = 2 if reg == PATCH else (1 if white[i] else 0)
-        for c in range(3):
-            out[i, c] = table[row, c]
+        if reg == PATCH:
+            out[i, 0], out[i, 1], out[i, 2] = p0, p1, p2
+        elif white[i]:
+            out[i, 0], out[i, 1], out[i, 2] = w0, w1, w2
+        else:
+            out[i, 0], out[i, 1], out[i, 2] = b0, b1, b2
+
+
+@njit(**_JIT)
+def subsample_mean(sub, n, ej, ei, out):
+    """Box-filter the anti-aliasing sub-samples: ``out[ej[p], ei[p]]`` (H, W, 3) = the
+    mean of rows ``p n .. p n + n - 1`` of ``sub`` (P n, 3), summed in row order from the
+    first row and divided by n, as numpy's ``sub.reshape(P, n, 3).mean(1)`` does."""
+    for p in range(ej.shape[0]):
+        base = p * n
+        s0, s1, s2 = sub[base, 0], sub[base, 1], sub[base, 2]
+        for q in range(1, n):
+            s0 += sub[base + q, 0]
+            s1 += sub[base + q, 1]
+            s2 += sub[base + q, 2]
+        j, i = ej[p], ei[p]
+        out[j, i, 0] = s0 / n
+        out[j, i, 1] = s1 / n
+        out[j, i, 2] = s2 / n
 
 
 def board_uint8(img: np.ndarray | None) -> np.ndarray:
