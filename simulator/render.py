@@ -692,6 +692,19 @@ def _kernel(rk: Any, name: str, points: int) -> Any:
     return getattr(rk, name if points >= rk.PARALLEL_POINTS else name + "_serial")
 
 
+def _edges(code_c: np.ndarray, code_k: np.ndarray) -> np.ndarray:
+    """Pixels (H, W) bool whose centre's code (H, W) differs from any of its four
+    corners' (H + 1, W + 1): numpy, or the kernel (the same booleans) for many."""
+    rk = _kernels(code_c.size)
+    if rk is None:
+        k = code_k
+        corners = np.stack([k[:-1, :-1], k[1:, :-1], k[:-1, 1:], k[1:, 1:]])
+        return np.any(corners != code_c[None], axis=0)
+    out = np.empty(code_c.shape, bool)
+    rk.edge_pixels(np.ascontiguousarray(code_c), np.ascontiguousarray(code_k), out)
+    return out
+
+
 def _box_filter(sub: np.ndarray, n: int, ej: np.ndarray, ei: np.ndarray, image: np.ndarray):
     """``image[ej, ei]`` (H, W, 3) = the mean of each pixel's ``n`` sub-samples (rows of
     ``sub`` (P n, 3), pixel by pixel): numpy, or the kernel (the same bits) for many."""
@@ -937,12 +950,7 @@ def render(
             f"({scene.sample.width:g} x {scene.sample.height:g} m at the origin); "
             "check camera.position, look_at/rotation and the field of view"
         )
-    corners = np.stack([code_k[:-1, :-1], code_k[1:, :-1], code_k[:-1, 1:], code_k[1:, 1:]])
-    edge = (
-        np.any(corners != code_c[None], axis=0)
-        if settings.antialias > 1
-        else np.zeros((H, W), bool)
-    )
+    edge = _edges(code_c, code_k) if settings.antialias > 1 else np.zeros((H, W), bool)
     surf = (region > 0) & (region != OCCLUDED)
     mirror = surface.mirror is not None
     spot_rim = np.zeros((H, W), bool)
@@ -965,8 +973,12 @@ def render(
         integrators, light_occ = [], []
     xs, rs, ws = x[surf], region[surf], white[surf]
     # the mirror is not integrated over the lights: the strategy is chosen without it
-    lit = np.flatnonzero(rs != SAMPLE) if mirror else np.arange(len(xs))
-    pilot = lit[np.unique(np.linspace(0, len(lit) - 1, min(_PILOT_PIXELS, len(lit))).astype(int))]
+    # only "auto" estimates on pilot pixels (and only for area lights): none otherwise
+    pilot = np.zeros(0, np.intp)
+    if settings.strategy == "auto" and any(not i.light.is_point for i in integrators):
+        lit = np.flatnonzero(rs != SAMPLE) if mirror else np.arange(len(xs))
+        n_pilot = min(_PILOT_PIXELS, len(lit))
+        pilot = lit[np.unique(np.linspace(0, len(lit) - 1, n_pilot).astype(int))]
     light_stats = []
     plans = []
     for integ, oc in zip(integrators, light_occ, strict=True):

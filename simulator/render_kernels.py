@@ -27,6 +27,7 @@ from numba import njit, prange
 
 __all__ = [
     "PARALLEL_POINTS",
+    "edge_pixels",
     "lambert_albedo",
     "lambert_radiance",
     "lambert_shade",
@@ -452,6 +453,21 @@ def lambert_albedo(region, white, table, out):
             out[i, 0], out[i, 1], out[i, 2] = w0, w1, w2
         else:
             out[i, 0], out[i, 1], out[i, 2] = b0, b1, b2
+
+
+@njit(**_JIT)
+def edge_pixels(code_c, code_k, out):
+    """``out`` (H, W) = whether a pixel's centre code ``code_c`` (H, W) differs from any
+    of its four corners' ``code_k`` (H + 1, W + 1) (the anti-aliasing's edge test)."""
+    for j in range(code_c.shape[0]):
+        for i in range(code_c.shape[1]):
+            c = code_c[j, i]
+            out[j, i] = (
+                code_k[j, i] != c
+                or code_k[j + 1, i] != c
+                or code_k[j, i + 1] != c
+                or code_k[j + 1, i + 1] != c
+            )
 
 
 @njit(**_JIT)
