@@ -515,6 +515,8 @@ class _Integrator:
         light = self.light
         m, k = x.shape[0], y.shape[-2]
         rk = _kernels(m * k)
+        if rk is not None and not self.occ:
+            return self._shade_nodes_fused(rk, x, region, white, y, w)
         if rk is None:
             d = y - x[:, None, :]
             r2 = np.einsum("mki,mki->mk", d, d)
@@ -579,6 +581,48 @@ class _Integrator:
             scale = self.surface.albedo_scale(xs)
             out[smp] = val if scale is None else val * scale
         return out * light.rgb
+
+    def _shade_nodes_fused(self, rk, x, region, white, y, w) -> np.ndarray:
+        """:meth:`_shade_nodes` without occluders by the kernels (the same expressions
+        in the same order): the holder's and patch's points in one fused pass
+        (``lambert_shade``), the node directions only for the sample's points."""
+        light = self.light
+        m, k = x.shape[0], y.shape[-2]
+        yk = np.ascontiguousarray(np.reshape(y, (-1, k, 3)), dtype=np.float64)
+        wk = np.ascontiguousarray(np.reshape(w, (-1, k)), dtype=np.float64)
+        face = None if light.is_point else light.face(y)
+        fk = np.zeros((0, k)) if face is None else np.ascontiguousarray(np.reshape(face, (-1, k)))
+        normal = np.ascontiguousarray(light.normal, dtype=np.float64)
+        rgb = np.ascontiguousarray(np.broadcast_to(light.rgb, (3,)), dtype=np.float64)
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        out = np.zeros((m, 3))
+        table = self.surface.albedo_rows()
+        point, n_prof = bool(light.is_point), float(light.profile_n)
+        rk.lambert_shade(x, region, white, yk, wk, normal, point, n_prof, fk, table, rgb, out)
+        smp = region == SAMPLE
+        if not np.any(smp):
+            return out
+        xs = x[smp]
+        ms = xs.shape[0]
+
+        # per-point node rows (stratified MC) follow their points; one row serves all
+        def rows(a):
+            return a if a.shape[0] <= 1 else np.ascontiguousarray(a[smp])
+
+        wis, g = np.empty((ms, k, 3)), np.empty((ms, k))
+        rk.node_geometry(xs, rows(yk), rows(wk), normal, point, n_prof, rows(fk), wis, g)
+        wo = self.camera - xs
+        wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+        wob = np.broadcast_to(wo[:, None, :], wis.shape)
+        if self.surface.spatial:
+            f = np.asarray(self.surface.brdf.eval_at(xs, wis, wob))
+        else:
+            f = np.asarray(self.surface.brdf.eval(wis, wob))
+        f = np.nan_to_num(f, nan=0.0)
+        val = np.einsum("mkc,mk->mc", f, g)
+        scale = self.surface.albedo_scale(xs)
+        out[smp] = (val if scale is None else val * scale) * light.rgb
+        return out
 
 
 def _levels_for(light: PreparedLight) -> tuple[int, ...]:
@@ -646,6 +690,29 @@ def _kernels(points: int) -> Any:
 def _kernel(rk: Any, name: str, points: int) -> Any:
     """Kernel ``name`` of module ``rk``: its multi-threaded build for large batches."""
     return getattr(rk, name if points >= rk.PARALLEL_POINTS else name + "_serial")
+
+
+def _edges(code_c: np.ndarray, code_k: np.ndarray) -> np.ndarray:
+    """Pixels (H, W) bool whose centre's code (H, W) differs from any of its four
+    corners' (H + 1, W + 1): numpy, or the kernel (the same booleans) for many."""
+    rk = _kernels(code_c.size)
+    if rk is None:
+        k = code_k
+        corners = np.stack([k[:-1, :-1], k[1:, :-1], k[:-1, 1:], k[1:, 1:]])
+        return np.any(corners != code_c[None], axis=0)
+    out = np.empty(code_c.shape, bool)
+    rk.edge_pixels(np.ascontiguousarray(code_c), np.ascontiguousarray(code_k), out)
+    return out
+
+
+def _box_filter(sub: np.ndarray, n: int, ej: np.ndarray, ei: np.ndarray, image: np.ndarray):
+    """``image[ej, ei]`` (H, W, 3) = the mean of each pixel's ``n`` sub-samples (rows of
+    ``sub`` (P n, 3), pixel by pixel): numpy, or the kernel (the same bits) for many."""
+    rk = _kernels(sub.shape[0])
+    if rk is None:
+        image[ej, ei] = sub.reshape(len(ej), n, 3).mean(1)
+    else:
+        rk.subsample_mean(np.ascontiguousarray(sub), int(n), ej, ei, image)
 
 
 def _hits(
@@ -883,12 +950,7 @@ def render(
             f"({scene.sample.width:g} x {scene.sample.height:g} m at the origin); "
             "check camera.position, look_at/rotation and the field of view"
         )
-    corners = np.stack([code_k[:-1, :-1], code_k[1:, :-1], code_k[:-1, 1:], code_k[1:, 1:]])
-    edge = (
-        np.any(corners != code_c[None], axis=0)
-        if settings.antialias > 1
-        else np.zeros((H, W), bool)
-    )
+    edge = _edges(code_c, code_k) if settings.antialias > 1 else np.zeros((H, W), bool)
     surf = (region > 0) & (region != OCCLUDED)
     mirror = surface.mirror is not None
     spot_rim = np.zeros((H, W), bool)
@@ -911,8 +973,12 @@ def render(
         integrators, light_occ = [], []
     xs, rs, ws = x[surf], region[surf], white[surf]
     # the mirror is not integrated over the lights: the strategy is chosen without it
-    lit = np.flatnonzero(rs != SAMPLE) if mirror else np.arange(len(xs))
-    pilot = lit[np.unique(np.linspace(0, len(lit) - 1, min(_PILOT_PIXELS, len(lit))).astype(int))]
+    # only "auto" estimates on pilot pixels (and only for area lights): none otherwise
+    pilot = np.zeros(0, np.intp)
+    if settings.strategy == "auto" and any(not i.light.is_point for i in integrators):
+        lit = np.flatnonzero(rs != SAMPLE) if mirror else np.arange(len(xs))
+        n_pilot = min(_PILOT_PIXELS, len(lit))
+        pilot = lit[np.unique(np.linspace(0, len(lit) - 1, n_pilot).astype(int))]
     light_stats = []
     plans = []
     for integ, oc in zip(integrators, light_occ, strict=True):
@@ -1014,11 +1080,11 @@ def render(
         ok = (rsub > 0) & (rsub != OCCLUDED)
         lsub = np.zeros((len(rsub), 3))
         lsub[ok] = shade_all(xsub[ok], rsub[ok], wsub[ok])
-        radiance[ej, ei] = lsub.reshape(len(ej), n_aa * n_aa, 3).mean(1)
+        _box_filter(lsub, n_aa * n_aa, ej, ei, radiance)
         if diff is not None:
             dsub = np.zeros((len(rsub), 3))
             dsub[ok] = diffuse_all(xsub[ok], rsub[ok], wsub[ok])
-            diff[ej, ei] = dsub.reshape(len(ej), n_aa * n_aa, 3).mean(1)
+            _box_filter(dsub, n_aa * n_aa, ej, ei, diff)
         n_sub += len(rsub)
     edge = edge | spot_rim
 

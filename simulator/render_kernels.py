@@ -27,13 +27,16 @@ from numba import njit, prange
 
 __all__ = [
     "PARALLEL_POINTS",
+    "edge_pixels",
     "lambert_albedo",
     "lambert_radiance",
+    "lambert_shade",
     "label_points",
     "label_points_serial",
     "node_geometry",
     "subpixel_normalized",
     "subpixel_normalized_serial",
+    "subsample_mean",
 ]
 
 #: From this many points on, the multi-threaded kernels are used (below, a thread launch
@@ -46,49 +49,11 @@ _JIT = {"cache": True, "fastmath": False, "error_model": "numpy", "nogil": True}
 NONE, SAMPLE, HOLDER, PATCH = 0, 1, 2, 3
 
 
-@njit(**_JIT, inline="always")
-def _label_one(
-    i, xn, yn, R, C, half, holder, board, board_half, patch, out_x, out_front, out_region, out_white
-):
-    has_holder = holder.shape[0] == 2
-    has_board = board.shape[0] > 0
-    has_patch = patch.shape[0] == 4
-    rows, cols = board.shape[0], board.shape[1]
-    x, y = xn[i], yn[i]
-    d0 = x * R[0, 0] + y * R[1, 0] + R[2, 0]
-    d1 = x * R[0, 1] + y * R[1, 1] + R[2, 1]
-    d2 = x * R[0, 2] + y * R[1, 2] + R[2, 2]
-    norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
-    t = -C[2] / d2
-    front = math.isfinite(t) and t > 0
-    if not front:
-        t = 0.0
-    p0 = C[0] + t * d0
-    p1 = C[1] + t * d1
-    out_x[i, 0] = p0
-    out_x[i, 1] = p1
-    out_x[i, 2] = C[2] + t * d2
-    out_front[i] = front
-    ax, ay = abs(p0), abs(p1)
-    region = NONE
-    white = False
-    if has_holder and front and ax <= holder[0] and ay <= holder[1]:
-        region = HOLDER
-        white = True
-        if has_board:
-            c = math.floor((p0 + board_half[0]) / (2 * board_half[0]) * cols)
-            r = math.floor((board_half[1] - p1) / (2 * board_half[1]) * rows)
-            if c >= 0 and c < cols and r >= 0 and r < rows:
-                white = board[int(r), int(c)] != 0
-        if has_patch and abs(p0 - patch[0]) <= patch[2] and abs(p1 - patch[1]) <= patch[3]:
-            region = PATCH
-    if front and ax <= half[0] and ay <= half[1]:
-        region = SAMPLE
-    out_region[i] = region
-    out_white[i] = white and region == HOLDER
-
-
+# The loop's invariants are read into locals before the loop: indexing these small arrays
+# inside it (a per-point helper taking them) made the kernel ~10x slower -- measured 54 ns
+# a point on a 320 x 240 frame against 13 ns hoisted, whatever LLVM could not prove about
+# their aliasing the outputs.  The serial twin repeats the loop on purpose (see
+# gonio.brdf.kernels: numba's cache index does not tell two builds of one function apart).
 @njit(**_JIT, parallel=True)
 def label_points(
     xn, yn, R, C, half, holder, board, board_half, patch, out_x, out_front, out_region, out_white
@@ -114,25 +79,113 @@ def label_points(
         (N, 3) hit points (the camera centre where the ray misses), (N,) bool in front,
         (N,) uint8 region code, (N,) bool board print white (holder points only).
     """
+    has_holder = holder.shape[0] == 2
+    has_board = board.shape[0] > 0
+    has_patch = patch.shape[0] == 4
+    rows, cols = board.shape[0], board.shape[1]
+    r00, r10, r20 = R[0, 0], R[1, 0], R[2, 0]
+    r01, r11, r21 = R[0, 1], R[1, 1], R[2, 1]
+    r02, r12, r22 = R[0, 2], R[1, 2], R[2, 2]
+    c0, c1, c2 = C[0], C[1], C[2]
+    h0, h1 = half[0], half[1]
+    hh0 = holder[0] if has_holder else 0.0
+    hh1 = holder[1] if has_holder else 0.0
+    bh0, bh1 = board_half[0], board_half[1]
+    pa0 = patch[0] if has_patch else 0.0
+    pa1 = patch[1] if has_patch else 0.0
+    pa2 = patch[2] if has_patch else 0.0
+    pa3 = patch[3] if has_patch else 0.0
     for i in prange(xn.shape[0]):
-        _label_one(
-            i, xn, yn, R, C, half, holder, board, board_half, patch,
-            out_x, out_front, out_region, out_white,
-        )  # fmt: skip
+        x, y = xn[i], yn[i]
+        d0 = x * r00 + y * r10 + r20
+        d1 = x * r01 + y * r11 + r21
+        d2 = x * r02 + y * r12 + r22
+        norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
+        t = -c2 / d2
+        front = math.isfinite(t) and t > 0
+        if not front:
+            t = 0.0
+        p0 = c0 + t * d0
+        p1 = c1 + t * d1
+        out_x[i, 0] = p0
+        out_x[i, 1] = p1
+        out_x[i, 2] = c2 + t * d2
+        out_front[i] = front
+        ax, ay = abs(p0), abs(p1)
+        region = NONE
+        white = False
+        if has_holder and front and ax <= hh0 and ay <= hh1:
+            region = HOLDER
+            white = True
+            if has_board:
+                c = math.floor((p0 + bh0) / (2 * bh0) * cols)
+                r = math.floor((bh1 - p1) / (2 * bh1) * rows)
+                if c >= 0 and c < cols and r >= 0 and r < rows:
+                    white = board[int(r), int(c)] != 0
+            if has_patch and abs(p0 - pa0) <= pa2 and abs(p1 - pa1) <= pa3:
+                region = PATCH
+        if front and ax <= h0 and ay <= h1:
+            region = SAMPLE
+        out_region[i] = region
+        out_white[i] = white and region == HOLDER
 
 
-# The serial twins repeat their parallel kernels' loops on purpose (see gonio.brdf.kernels:
-# numba's cache index does not tell two builds of one function apart).
 @njit(**_JIT)
 def label_points_serial(
     xn, yn, R, C, half, holder, board, board_half, patch, out_x, out_front, out_region, out_white
 ):
     """:func:`label_points` on the calling thread (no thread launch: small batches)."""
+    has_holder = holder.shape[0] == 2
+    has_board = board.shape[0] > 0
+    has_patch = patch.shape[0] == 4
+    rows, cols = board.shape[0], board.shape[1]
+    r00, r10, r20 = R[0, 0], R[1, 0], R[2, 0]
+    r01, r11, r21 = R[0, 1], R[1, 1], R[2, 1]
+    r02, r12, r22 = R[0, 2], R[1, 2], R[2, 2]
+    c0, c1, c2 = C[0], C[1], C[2]
+    h0, h1 = half[0], half[1]
+    hh0 = holder[0] if has_holder else 0.0
+    hh1 = holder[1] if has_holder else 0.0
+    bh0, bh1 = board_half[0], board_half[1]
+    pa0 = patch[0] if has_patch else 0.0
+    pa1 = patch[1] if has_patch else 0.0
+    pa2 = patch[2] if has_patch else 0.0
+    pa3 = patch[3] if has_patch else 0.0
     for i in range(xn.shape[0]):
-        _label_one(
-            i, xn, yn, R, C, half, holder, board, board_half, patch,
-            out_x, out_front, out_region, out_white,
-        )  # fmt: skip
+        x, y = xn[i], yn[i]
+        d0 = x * r00 + y * r10 + r20
+        d1 = x * r01 + y * r11 + r21
+        d2 = x * r02 + y * r12 + r22
+        norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
+        t = -c2 / d2
+        front = math.isfinite(t) and t > 0
+        if not front:
+            t = 0.0
+        p0 = c0 + t * d0
+        p1 = c1 + t * d1
+        out_x[i, 0] = p0
+        out_x[i, 1] = p1
+        out_x[i, 2] = c2 + t * d2
+        out_front[i] = front
+        ax, ay = abs(p0), abs(p1)
+        region = NONE
+        white = False
+        if has_holder and front and ax <= hh0 and ay <= hh1:
+            region = HOLDER
+            white = True
+            if has_board:
+                c = math.floor((p0 + bh0) / (2 * bh0) * cols)
+                r = math.floor((bh1 - p1) / (2 * bh1) * rows)
+                if c >= 0 and c < cols and r >= 0 and r < rows:
+                    white = board[int(r), int(c)] != 0
+            if has_patch and abs(p0 - pa0) <= pa2 and abs(p1 - pa1) <= pa3:
+                region = PATCH
+        if front and ax <= h0 and ay <= h1:
+            region = SAMPLE
+        out_region[i] = region
+        out_white[i] = white and region == HOLDER
 
 
 @njit(**_JIT, inline="always")
@@ -166,35 +219,6 @@ def _undistort(xd, yd, x0, y0, k1, k2, p1, p2, k3, tol, max_iter):
     return x, y, math.hypot(xr - xd, yr - yd)
 
 
-@njit(**_JIT, inline="always")
-def _subpixel_one(p, ei, ej, n_aa, K, dist, grid_x, grid_y, tol, max_iter, out_x, out_y, out_err):
-    has_dist = dist.shape[0] == 5
-    nn = n_aa * n_aa
-    i, j = ei[p], ej[p]
-    # Newton starts from the pixel centre's undistorted point shifted by the sub-pixel
-    # offset (the lens is locally a near-identity map): two steps fewer than from the
-    # distorted point, the same root
-    xc = (i + 0.5 - K[0, 2]) / K[0, 0]
-    yc = (j + 0.5 - K[1, 2]) / K[1, 1]
-    for a in range(n_aa):
-        ou = (a + 0.5) / n_aa
-        for b in range(n_aa):
-            ov = (b + 0.5) / n_aa
-            k = p * nn + a * n_aa + b
-            x = (i + ou - K[0, 2]) / K[0, 0]
-            y = (j + ov - K[1, 2]) / K[1, 1]
-            err = 0.0
-            if has_dist:
-                x0 = grid_x[j, i] + (x - xc)
-                y0 = grid_y[j, i] + (y - yc)
-                x, y, err = _undistort(
-                    x, y, x0, y0, dist[0], dist[1], dist[2], dist[3], dist[4], tol, max_iter
-                )
-            out_x[k] = x
-            out_y[k] = y
-            out_err[k] = err
-
-
 @njit(**_JIT, parallel=True)
 def subpixel_normalized(
     ei, ej, n_aa, K, dist, grid_x, grid_y, tol, max_iter, out_x, out_y, out_err
@@ -205,12 +229,40 @@ def subpixel_normalized(
     ``dist`` (5,) or (0,) for a pinhole; ``grid_x``, ``grid_y`` (H, W) the pixel
     centres' undistorted coordinates (:func:`gonio.simulator.geometry.pixel_grid`; the
     starting point); ``out_err`` (M,) the distortion's residual at the result (0 for a
-    pinhole).
+    pinhole).  The invariants are read before the loop (see :func:`label_points`).
     """
+    has_dist = dist.shape[0] == 5
+    nn = n_aa * n_aa
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    k1 = dist[0] if has_dist else 0.0
+    k2 = dist[1] if has_dist else 0.0
+    q1 = dist[2] if has_dist else 0.0
+    q2 = dist[3] if has_dist else 0.0
+    k3 = dist[4] if has_dist else 0.0
     for p in prange(ei.shape[0]):
-        _subpixel_one(
-            p, ei, ej, n_aa, K, dist, grid_x, grid_y, tol, max_iter, out_x, out_y, out_err
-        )
+        i, j = ei[p], ej[p]
+        # Newton starts from the pixel centre's undistorted point shifted by the sub-pixel
+        # offset (the lens is locally a near-identity map): two steps fewer than from the
+        # distorted point, the same root
+        xc = (i + 0.5 - cx) / fx
+        yc = (j + 0.5 - cy) / fy
+        gx = grid_x[j, i] if has_dist else 0.0
+        gy = grid_y[j, i] if has_dist else 0.0
+        for a in range(n_aa):
+            ou = (a + 0.5) / n_aa
+            for b in range(n_aa):
+                ov = (b + 0.5) / n_aa
+                k = p * nn + a * n_aa + b
+                x = (i + ou - cx) / fx
+                y = (j + ov - cy) / fy
+                err = 0.0
+                if has_dist:
+                    x0 = gx + (x - xc)
+                    y0 = gy + (y - yc)
+                    x, y, err = _undistort(x, y, x0, y0, k1, k2, q1, q2, k3, tol, max_iter)
+                out_x[k] = x
+                out_y[k] = y
+                out_err[k] = err
 
 
 @njit(**_JIT)
@@ -218,43 +270,38 @@ def subpixel_normalized_serial(
     ei, ej, n_aa, K, dist, grid_x, grid_y, tol, max_iter, out_x, out_y, out_err
 ):
     """:func:`subpixel_normalized` on the calling thread."""
+    has_dist = dist.shape[0] == 5
+    nn = n_aa * n_aa
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    k1 = dist[0] if has_dist else 0.0
+    k2 = dist[1] if has_dist else 0.0
+    q1 = dist[2] if has_dist else 0.0
+    q2 = dist[3] if has_dist else 0.0
+    k3 = dist[4] if has_dist else 0.0
     for p in range(ei.shape[0]):
-        _subpixel_one(
-            p, ei, ej, n_aa, K, dist, grid_x, grid_y, tol, max_iter, out_x, out_y, out_err
-        )
-
-
-@njit(**_JIT, inline="always")
-def _nodes_one(i, x, y, w, normal, is_point, profile_n, face, out_wi, out_g):
-    # render._Integrator._shade_nodes' geometry, in its operation order
-    # one row of nodes, weights, face for all points, or a row per point (integer
-    # arithmetic: a conditional index does not type inside a parallel loop)
-    yi = min(i, y.shape[0] - 1)
-    wj = min(i, w.shape[0] - 1)
-    fi = min(i, face.shape[0] - 1)
-    has_face = face.shape[0] > 0
-    for k in range(y.shape[1]):
-        d0 = y[yi, k, 0] - x[i, 0]
-        d1 = y[yi, k, 1] - x[i, 1]
-        d2 = y[yi, k, 2] - x[i, 2]
-        r2 = d0 * d0 + d1 * d1 + d2 * d2
-        r = math.sqrt(r2)
-        w0, w1, w2 = d0 / r, d1 / r, d2 / r
-        out_wi[i, k, 0] = w0
-        out_wi[i, k, 1] = w1
-        out_wi[i, k, 2] = w2
-        cos_s = 0.0 if w2 < 0.0 else w2
-        if is_point:
-            g = cos_s / r2
-        else:
-            c = -(w0 * normal[0] + w1 * normal[1] + w2 * normal[2])
-            cos_l = 0.0 if c < 0.0 else c
-            g = w[wj, k] * cos_s * cos_l / r2
-            if profile_n != 0.0:
-                g = g * cos_l**profile_n
-            if has_face:
-                g = g * face[fi, k]
-        out_g[i, k] = g
+        i, j = ei[p], ej[p]
+        # Newton starts from the pixel centre's undistorted point shifted by the sub-pixel
+        # offset (the lens is locally a near-identity map): two steps fewer than from the
+        # distorted point, the same root
+        xc = (i + 0.5 - cx) / fx
+        yc = (j + 0.5 - cy) / fy
+        gx = grid_x[j, i] if has_dist else 0.0
+        gy = grid_y[j, i] if has_dist else 0.0
+        for a in range(n_aa):
+            ou = (a + 0.5) / n_aa
+            for b in range(n_aa):
+                ov = (b + 0.5) / n_aa
+                k = p * nn + a * n_aa + b
+                x = (i + ou - cx) / fx
+                y = (j + ov - cy) / fy
+                err = 0.0
+                if has_dist:
+                    x0 = gx + (x - xc)
+                    y0 = gy + (y - yc)
+                    x, y, err = _undistort(x, y, x0, y0, k1, k2, q1, q2, k3, tol, max_iter)
+                out_x[k] = x
+                out_y[k] = y
+                out_err[k] = err
 
 
 # One thread only: numba's parallel lowering of this loop mistypes the node row index
@@ -279,8 +326,40 @@ def node_geometry(x, y, w, normal, is_point, profile_n, face, out_wi, out_g):
         (M, K, 3) unit directions to the nodes, (M, K) ``w cos cos' prof face / r^2``
         (1/sr for a point light's unit intensity).
     """
+    # render._Integrator._shade_nodes' geometry, in its operation order; one row of
+    # nodes, weights, face for all points, or a row per point.  Invariants read before
+    # the loop (see label_points).
+    n0, n1, n2 = normal[0], normal[1], normal[2]
+    ny, nw, nf = y.shape[0] - 1, w.shape[0] - 1, face.shape[0] - 1
+    has_face = face.shape[0] > 0
+    kk = y.shape[1]
     for i in range(x.shape[0]):
-        _nodes_one(i, x, y, w, normal, is_point, profile_n, face, out_wi, out_g)
+        yi = min(i, ny)
+        wj = min(i, nw)
+        fi = min(i, nf)
+        x0, x1, x2 = x[i, 0], x[i, 1], x[i, 2]
+        for k in range(kk):
+            d0 = y[yi, k, 0] - x0
+            d1 = y[yi, k, 1] - x1
+            d2 = y[yi, k, 2] - x2
+            r2 = d0 * d0 + d1 * d1 + d2 * d2
+            r = math.sqrt(r2)
+            w0, w1, w2 = d0 / r, d1 / r, d2 / r
+            out_wi[i, k, 0] = w0
+            out_wi[i, k, 1] = w1
+            out_wi[i, k, 2] = w2
+            cos_s = 0.0 if w2 < 0.0 else w2
+            if is_point:
+                g = cos_s / r2
+            else:
+                c = -(w0 * n0 + w1 * n1 + w2 * n2)
+                cos_l = 0.0 if c < 0.0 else c
+                g = w[wj, k] * cos_s * cos_l / r2
+                if profile_n != 0.0:
+                    g = g * cos_l**profile_n
+                if has_face:
+                    g = g * face[fi, k]
+            out_g[i, k] = g
 
 
 @njit(**_JIT)
@@ -288,28 +367,125 @@ def lambert_radiance(region, white, g, table, out):
     """``albedo / pi * sum_k g`` (M, 3) into the rows of ``out`` that are not the sample
     (region 1); ``table`` (3, 3) the black print's, white print's and reference patch's
     albedo (Surface.lambert_albedo)."""
+    tab = table / math.pi  # (3, 3): table[row, c] / pi as the loop divided it, once
+    kk = g.shape[1]
     for i in range(region.shape[0]):
         reg = region[i]
         if reg == SAMPLE:
             continue
         row = 2 if reg == PATCH else (1 if white[i] else 0)
         gs = 0.0
-        for k in range(g.shape[1]):
+        for k in range(kk):
             gs += g[i, k]
         for c in range(3):
-            out[i, c] = table[row, c] / math.pi * gs
+            out[i, c] = tab[row, c] * gs
+
+
+@njit(**_JIT)
+def lambert_shade(x, region, white, y, w, normal, is_point, profile_n, face, table, rgb, out):
+    """:func:`node_geometry` and :func:`lambert_radiance` fused, times the light's colour,
+    for the points that are not the sample (region 1; their rows of ``out`` (M, 3) are
+    left as they are): ``albedo / pi * sum_k g * rgb`` without the (M, K, 3) directions
+    (only the sample's BRDF needs them).  Arguments as there; ``rgb`` (3,)."""
+    n0, n1, n2 = normal[0], normal[1], normal[2]
+    ny, nw, nf = y.shape[0] - 1, w.shape[0] - 1, face.shape[0] - 1
+    has_face = face.shape[0] > 0
+    kk = y.shape[1]
+    # table[row, c] / pi as lambert_radiance divides it, read once (see label_points)
+    b0, b1, b2 = table[0, 0] / math.pi, table[0, 1] / math.pi, table[0, 2] / math.pi
+    w0_, w1_, w2_ = table[1, 0] / math.pi, table[1, 1] / math.pi, table[1, 2] / math.pi
+    p0, p1, p2 = table[2, 0] / math.pi, table[2, 1] / math.pi, table[2, 2] / math.pi
+    c0, c1, c2 = rgb[0], rgb[1], rgb[2]
+    for i in range(x.shape[0]):
+        reg = region[i]
+        if reg == SAMPLE:
+            continue
+        yi = min(i, ny)
+        wj = min(i, nw)
+        fi = min(i, nf)
+        x0, x1, x2 = x[i, 0], x[i, 1], x[i, 2]
+        gs = 0.0
+        for k in range(kk):
+            # node_geometry's expressions, in its order
+            d0 = y[yi, k, 0] - x0
+            d1 = y[yi, k, 1] - x1
+            d2 = y[yi, k, 2] - x2
+            r2 = d0 * d0 + d1 * d1 + d2 * d2
+            r = math.sqrt(r2)
+            w0, w1, w2 = d0 / r, d1 / r, d2 / r
+            cos_s = 0.0 if w2 < 0.0 else w2
+            if is_point:
+                g = cos_s / r2
+            else:
+                c = -(w0 * n0 + w1 * n1 + w2 * n2)
+                cos_l = 0.0 if c < 0.0 else c
+                g = w[wj, k] * cos_s * cos_l / r2
+                if profile_n != 0.0:
+                    g = g * cos_l**profile_n
+                if has_face:
+                    g = g * face[fi, k]
+            gs += g
+        if reg == PATCH:
+            a0, a1, a2 = p0, p1, p2
+        elif white[i]:
+            a0, a1, a2 = w0_, w1_, w2_
+        else:
+            a0, a1, a2 = b0, b1, b2
+        out[i, 0] = a0 * gs * c0
+        out[i, 1] = a1 * gs * c1
+        out[i, 2] = a2 * gs * c2
 
 
 @njit(**_JIT)
 def lambert_albedo(region, white, table, out):
-    """The albedo (3,) of every point that is not the sample, into ``out`` (M, 3)."""
+    """The albedo (3,) of every point that is not the sample, into ``out`` (M, 3); the
+    table's rows read once (see :func:`label_points`)."""
+    b0, b1, b2 = table[0, 0], table[0, 1], table[0, 2]
+    w0, w1, w2 = table[1, 0], table[1, 1], table[1, 2]
+    p0, p1, p2 = table[2, 0], table[2, 1], table[2, 2]
     for i in range(region.shape[0]):
         reg = region[i]
         if reg == SAMPLE:
             continue
-        row = 2 if reg == PATCH else (1 if white[i] else 0)
-        for c in range(3):
-            out[i, c] = table[row, c]
+        if reg == PATCH:
+            out[i, 0], out[i, 1], out[i, 2] = p0, p1, p2
+        elif white[i]:
+            out[i, 0], out[i, 1], out[i, 2] = w0, w1, w2
+        else:
+            out[i, 0], out[i, 1], out[i, 2] = b0, b1, b2
+
+
+@njit(**_JIT)
+def edge_pixels(code_c, code_k, out):
+    """``out`` (H, W) = whether a pixel's centre code ``code_c`` (H, W) differs from any
+    of its four corners' ``code_k`` (H + 1, W + 1) (the anti-aliasing's edge test)."""
+    for j in range(code_c.shape[0]):
+        for i in range(code_c.shape[1]):
+            c = code_c[j, i]
+            out[j, i] = (
+                code_k[j, i] != c
+                or code_k[j + 1, i] != c
+                or code_k[j, i + 1] != c
+                or code_k[j + 1, i + 1] != c
+            )
+
+
+@njit(**_JIT)
+def subsample_mean(sub, n, ej, ei, out):
+    """Box-filter the anti-aliasing sub-samples: ``out[ej[p], ei[p]]`` (H, W, 3) = the
+    mean of rows ``p n .. p n + n - 1`` of ``sub`` (P n, 3), summed in row order from the
+    first row and divided by n, as numpy's ``sub.reshape(P, n, 3).mean(1)`` does."""
+    for p in range(ej.shape[0]):
+        base = p * n
+        s0, s1, s2 = sub[base, 0], sub[base, 1], sub[base, 2]
+        for q in range(1, n):
+            s0 += sub[base + q, 0]
+            s1 += sub[base + q, 1]
+            s2 += sub[base + q, 2]
+        j, i = ej[p], ei[p]
+        out[j, i, 0] = s0 / n
+        out[j, i, 1] = s1 / n
+        out[j, i, 2] = s2 / n
 
 
 def board_uint8(img: np.ndarray | None) -> np.ndarray:

@@ -16,10 +16,15 @@ Per pixel, for the channel its colour filter passes (camera RGB):
 Only the channel the colour filter passes is simulated at each site (selecting the
 channel first and drawing the noise afterwards is statistically the same as mosaicking at
 the end, and three times cheaper).  Every draw comes from the given seed.
+
+The arithmetic around the draws runs in fused numba kernels
+(:mod:`gonio.simulator.sensor_kernels`, the same bits) for frames of
+``_MIN_KERNEL_SITES`` sites or more; ``GONIO_NUMBA=0`` keeps it on numpy (the reference).
 """
 
 from __future__ import annotations
 
+import os
 from collections import OrderedDict
 from dataclasses import dataclass, field
 
@@ -95,6 +100,9 @@ def cfa_indices(pattern: str, shape: tuple[int, int]) -> np.ndarray:
 #: so such pixels are set to the full well without a draw.  Below it the draws are
 #: exactly those of a plain ``rng.poisson(mu)`` (same frames for the same seed).
 _POISSON_MAX = 1e18
+#: Frames from this many sites on run the fused kernels (below, numba's import and the
+#: call cost more than they save).
+_MIN_KERNEL_SITES = 4096
 
 
 def _check(name: str, value: float, upper: float = np.inf) -> float:
@@ -264,40 +272,43 @@ def simulate_mosaic(
     s = camera.sensor
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     k = _constants(camera, sites.shape)
-    # mean_electrons' products in its order (same bits), on the site's channel only
-    with np.errstate(over="ignore"):  # an overflow is a saturated pixel (below)
-        mu = sites * (np.pi / (4.0 * n**2))
-        if k.vignette is not None:
-            mu *= k.vignette
-        mu *= camera.pitch**2
-        mu *= t
-        mu *= k.photons_per_joule
-        mu *= k.qe
-    if fixed_pattern is None:
-        mu += s.dark_current * t
-    else:
-        if fixed_pattern.shape != mu.shape:
-            raise ParameterError(
-                f"fixed pattern of a {fixed_pattern.shape} frame given for a {mu.shape} frame"
-            )
-        with np.errstate(invalid="ignore"):  # inf * gain: saturated below
-            mu = fixed_pattern.apply(mu, t, s.dark_current * t)
-    # A mean beyond numpy's range (a huge radiance or exposure) is a saturated pixel.
-    over = ~(mu <= _POISSON_MAX)
-    any_over = bool(over.any())
-    if any_over:
-        mu[over] = 0.0
-    electrons = rng.poisson(mu).astype(np.float64)
-    if s.read_noise > 0:
-        electrons += rng.normal(0.0, s.read_noise, mu.shape)
-    np.minimum(electrons, s.full_well, out=electrons)
-    if any_over:
-        electrons[over] = s.full_well
+    if fixed_pattern is not None and fixed_pattern.shape != sites.shape:
+        raise ParameterError(
+            f"fixed pattern of a {fixed_pattern.shape} frame given for a {sites.shape} frame"
+        )
     gain = s.gain_at_base_iso * iso_v / s.base_iso
-    electrons *= gain
-    electrons += s.black_level
-    np.rint(electrons, out=electrons)
-    mosaic = np.clip(electrons, 0, s.white_level, out=electrons).astype(np.uint16)
+    kernels = sites.size >= _MIN_KERNEL_SITES and os.environ.get("GONIO_NUMBA") != "0"
+    if kernels:
+        mu, over, any_over = _mean_kernel(sites, camera, k, t, n, fixed_pattern)
+    else:
+        mu, over, any_over = _mean_numpy(sites, camera, k, t, n, fixed_pattern)
+    counts = rng.poisson(mu)
+    read = rng.normal(0.0, s.read_noise, mu.shape) if s.read_noise > 0 else None
+    if kernels:
+        from gonio.simulator.sensor_kernels import quantise
+
+        mosaic = np.empty(mu.shape, np.uint16)
+        quantise(
+            counts.reshape(-1),
+            np.zeros(0) if read is None else read.reshape(-1),
+            over.reshape(-1),
+            float(s.full_well),
+            float(gain),
+            float(s.black_level),
+            float(s.white_level),
+            mosaic.reshape(-1),
+        )
+    else:
+        electrons = counts.astype(np.float64)
+        if read is not None:
+            electrons += read
+        np.minimum(electrons, s.full_well, out=electrons)
+        if any_over:
+            electrons[over] = s.full_well
+        electrons *= gain
+        electrons += s.black_level
+        np.rint(electrons, out=electrons)
+        mosaic = np.clip(electrons, 0, s.white_level, out=electrons).astype(np.uint16)
     return RawFrame(
         mosaic=mosaic,
         cfa_pattern=s.cfa_pattern,
@@ -312,6 +323,74 @@ def simulate_mosaic(
         model=s.model,
         extra={"gain_dn_per_electron": gain},
     )
+
+
+def _mean_numpy(
+    sites: np.ndarray,
+    camera: Camera,
+    k: _Constants,
+    t: float,
+    n: float,
+    fixed_pattern: FixedPattern | None,
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Mean electrons (H, W) with the fixed patterns, the sites whose mean is beyond
+    numpy's Poisson range (H, W) bool (their mean set to 0) and whether there are any."""
+    s = camera.sensor
+    # mean_electrons' products in its order (same bits), on the site's channel only
+    with np.errstate(over="ignore"):  # an overflow is a saturated pixel (below)
+        mu = sites * (np.pi / (4.0 * n**2))
+        if k.vignette is not None:
+            mu *= k.vignette
+        mu *= camera.pitch**2
+        mu *= t
+        mu *= k.photons_per_joule
+        mu *= k.qe
+    if fixed_pattern is None:
+        mu += s.dark_current * t
+    else:
+        with np.errstate(invalid="ignore"):  # inf * gain: saturated below
+            mu = fixed_pattern.apply(mu, t, s.dark_current * t)
+    # A mean beyond numpy's range (a huge radiance or exposure) is a saturated pixel.
+    over = ~(mu <= _POISSON_MAX)
+    any_over = bool(over.any())
+    if any_over:
+        mu[over] = 0.0
+    return mu, over, any_over
+
+
+def _mean_kernel(
+    sites: np.ndarray,
+    camera: Camera,
+    k: _Constants,
+    t: float,
+    n: float,
+    fixed_pattern: FixedPattern | None,
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """:func:`_mean_numpy` by the fused kernel (the same bits)."""
+    from gonio.simulator.sensor_kernels import mean_electrons
+
+    empty = np.zeros(0)
+    fp = fixed_pattern
+    mu = np.empty(sites.shape)
+    over = np.empty(sites.shape, bool)
+    any_over = mean_electrons(
+        np.ascontiguousarray(sites, dtype=np.float64).reshape(-1),
+        np.pi / (4.0 * n**2),
+        empty if k.vignette is None else k.vignette.reshape(-1),
+        camera.pitch**2,
+        t,
+        k.photons_per_joule.reshape(-1),
+        k.qe.reshape(-1),
+        empty if fp is None or fp.gain is None else fp.gain.reshape(-1),
+        camera.sensor.dark_current * t,
+        empty if fp is None or fp.dark_offset is None else fp.dark_offset.reshape(-1),
+        empty if fp is None or not len(fp.hot_index) else fp.hot_map(),
+        fp is not None,
+        _POISSON_MAX,
+        mu.reshape(-1),
+        over.reshape(-1),
+    )
+    return mu, over, bool(any_over)
 
 
 def _settings(

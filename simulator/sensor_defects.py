@@ -58,6 +58,17 @@ class FixedPattern:
             out.ravel()[self.hot_index] += self.hot_current * exposure_time
         return np.maximum(out, 0.0, out=out)
 
+    def hot_map(self) -> np.ndarray:
+        """The hot pixels' dark current as a (H * W,) map, e-/s (0 elsewhere; built once):
+        what the fused sensor kernel reads per site."""
+        cached = self.__dict__.get("_hot_map")
+        if cached is None:
+            cached = np.zeros(self.shape[0] * self.shape[1])
+            cached[self.hot_index] = self.hot_current
+            cached.flags.writeable = False
+            object.__setattr__(self, "_hot_map", cached)
+        return cached
+
 
 def fixed_pattern(radiometry: Radiometry, seed: int, shape: tuple[int, int]) -> FixedPattern | None:
     """The fixed patterns of a camera of world ``seed`` at frame ``shape`` (H, W), or None
