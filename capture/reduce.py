@@ -60,6 +60,7 @@ from gonio.capture.radiometric import (
     brdf_of,
     dark_offset_rel_std,
     drift_model,
+    effective_sites,
     fit_light_profile,
     flat_rel_std,
     irradiance_rel_std,
@@ -784,9 +785,13 @@ class _PoseRun:
             if m.n_pixels is None:  # an invalid pose: no terms to state
                 m.radiometric_rel_std = {k: np.full((n, 3), np.nan) for k in _TERMS}
                 continue
+            # the sites the region's Bayer weights average over (flat, dark offsets)
+            n_sites = None
+            if cc is not None and m.regions is not None and m.regions.n_regions == n:
+                n_sites = effective_sites(m.regions.label, m.regions.box, cc, n, cal.mask)
             terms = {
                 "drift": np.broadcast_to(u_d, (n, 3)).copy(),
-                "flat": flat_rel_std(m.n_pixels, pix_flat, cc),
+                "flat": flat_rel_std(m.n_pixels, pix_flat, cc, n_sites),
                 "dark": np.zeros((n, 3)),
                 "irradiance": irradiance_rel_std(
                     cos_psi.get(m.pose, np.ones(n)), cal.cos_psi_ref, n_std
@@ -795,7 +800,13 @@ class _PoseRun:
             }
             if m.pose in cal.undarked:
                 terms["dark"] = dark_offset_rel_std(
-                    m.radiance, m.n_pixels, cal.exposures.get(m.pose, []), s.noise, s.dsnu_e, cc
+                    m.radiance,
+                    m.n_pixels,
+                    cal.exposures.get(m.pose, []),
+                    s.noise,
+                    s.dsnu_e,
+                    cc,
+                    n_sites,
                 )
             m.radiometric_rel_std = terms
         self.warnings.extend(self._missing_calibration_warnings(samples_m))

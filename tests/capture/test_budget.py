@@ -459,3 +459,48 @@ def test_local_log_gradient_is_the_same_block_by_block(monkeypatch):
     np.testing.assert_array_equal(budget.local_log_gradient(wi, wo, f), whole)
     # a sample without a usable BRDF is not a neighbour, but still gets its neighbours' slope
     assert np.isfinite(whole).all()
+
+
+@pytest.mark.parametrize("shape", [(4, 30), (3, 41), (10, 10), (21, 16)])
+@pytest.mark.parametrize("offset", [(0, 0), (1, 0), (1, 1)])
+def test_effective_sites_are_those_of_bilinear_interpolation(shape, offset):
+    """A region's value is the mean over its pixels of each channel bilinearly
+    interpolated to every pixel; site errors of std u average to u sqrt(sum W^2) / N with
+    W_q = sum over the region's pixels of the interpolation kernel at q (here by a
+    convolution, not the reduction's stencil filters).  N_eff = N^2 / sum W^2 exceeds
+    the pixel count times the channel's share (the sites just outside the edge count)."""
+    from scipy.ndimage import correlate
+
+    from gonio.capture.radiometric import _sites_per_channel, effective_sites, flat_rel_std
+
+    H, W = 40, 60
+    r0, c0 = 5 + offset[0], 7 + offset[1]  # the crop's place in the frame (CFA phase)
+    cell = np.array([[0, 1], [1, 2]])  # RGGB
+    yy, xx = np.mgrid[0:H, 0:W]
+    channel = cell[(yy + r0) % 2, (xx + c0) % 2]
+    label = -np.ones((H, W), int)
+    a, b = shape
+    label[8 : 8 + a, 9 : 9 + b] = 0
+    inside = (label == 0).astype(float)
+    kernels = {
+        0: np.array([[0.25, 0.5, 0.25], [0.5, 1.0, 0.5], [0.25, 0.5, 0.25]]),
+        1: np.array([[0.0, 0.25, 0.0], [0.25, 1.0, 0.25], [0.0, 0.25, 0.0]]),
+    }
+    kernels[2] = kernels[0]
+    want = []
+    for c in range(3):
+        w = correlate(inside, kernels[c], mode="constant") * (channel == c)
+        want.append(w.sum() ** 2 / np.sum(w**2))
+    box = (slice(r0, r0 + H), slice(c0, c0 + W))
+    got = effective_sites(label, box, cell, 1)
+    np.testing.assert_allclose(got[0], want, rtol=1e-12)
+    share = _sites_per_channel(np.array([a * b]), cell)[0]
+    assert np.all(got[0] > share)
+    u = np.array([0.004, 0.003, 0.005])
+    np.testing.assert_allclose(
+        flat_rel_std(np.array([a * b]), u, cell, got)[0], u / np.sqrt(want), rtol=1e-12
+    )
+    # a masked site leaves the sums: fewer effective sites
+    mask = np.zeros((200, 200), bool)
+    mask[r0 + 8 + a // 2, c0 + 9 + b // 2] = True
+    assert np.all(effective_sites(label, box, cell, 1, mask)[0] <= got[0] + 1e-12)
