@@ -38,6 +38,7 @@ __all__ = [
     "irradiance_rel_std",
     "light_scale",
     "reference_ratio",
+    "region_flat_rel_std",
     "stray_rel_std",
 ]
 
@@ -416,6 +417,32 @@ def _sites_per_channel(n_pixels: NDArray, cell_channel: NDArray | None) -> NDArr
     return np.asarray(n_pixels, float)[:, None] * frac[None, :]
 
 
+def _region_site_weights(
+    label: NDArray[np.integer],
+    box: tuple[slice, slice],
+    cell_channel: NDArray[np.integer],
+    n_regions: int,
+    mask: NDArray[np.bool_] | None,
+) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
+    """``(site, row, weight)`` of :func:`gonio.capture.bayer.bayer_region_entries` for the
+    crop ``box`` of the frame (its CFA phase from the frame's 2x2 ``cell_channel``), the
+    sites under ``mask`` left out as the measurement leaves them; ``site`` indexes the
+    flattened crop."""
+    from gonio.capture.bayer import bayer_region_entries
+
+    lab = np.asarray(label)
+    h, w = lab.shape
+    r0 = box[0].start or 0
+    c0 = box[1].start or 0
+    cc = np.asarray(cell_channel).reshape(2, 2)
+    channel = cc[((np.arange(h) + r0) % 2)[:, None], ((np.arange(w) + c0) % 2)[None, :]]
+    site, row, wt = bayer_region_entries(lab, channel, n_regions)
+    if mask is not None:
+        keep = ~np.asarray(mask, bool)[box].reshape(-1)[site]
+        site, row, wt = site[keep], row[keep], wt[keep]
+    return site, row, wt
+
+
 def effective_sites(
     label: NDArray[np.integer],
     box: tuple[slice, slice],
@@ -455,23 +482,39 @@ def effective_sites(
     ndarray
         (n, 3); NaN where a region has no site of the channel.
     """
-    from gonio.capture.bayer import bayer_region_entries
-
-    lab = np.asarray(label)
-    h, w = lab.shape
-    r0 = box[0].start or 0
-    c0 = box[1].start or 0
-    cc = np.asarray(cell_channel).reshape(2, 2)
-    channel = cc[((np.arange(h) + r0) % 2)[:, None], ((np.arange(w) + c0) % 2)[None, :]]
-    site, row, wt = bayer_region_entries(lab, channel, n_regions)
-    if mask is not None:
-        keep = ~np.asarray(mask, bool)[box].reshape(-1)[site]
-        site, row, wt = site[keep], row[keep], wt[keep]
+    _, row, wt = _region_site_weights(label, box, cell_channel, n_regions, mask)
     nr = n_regions * len(CHANNELS)
     s1 = np.bincount(row, wt, minlength=nr)
     s2 = np.bincount(row, wt * wt, minlength=nr)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.where(s2 > 0, s1 * s1 / s2, np.nan)
+    return out.reshape(n_regions, len(CHANNELS))
+
+
+def region_flat_rel_std(
+    label: NDArray[np.integer],
+    box: tuple[slice, slice],
+    cell_channel: NDArray[np.integer],
+    n_regions: int,
+    pixel_rel_map: NDArray[np.float64],
+    mask: NDArray[np.bool_] | None = None,
+) -> NDArray[np.float64]:
+    """The ``flat`` term of each region from the per-pixel map, (n, 3):
+    ``sqrt(sum_q W_q^2 u_q^2) / sum_q W_q``.
+
+    ``u_q`` is the relative std of site q's gain estimate at its own flat signal
+    (:attr:`gonio.capture.pixel_calibration.FlatField.pixel_rel_map`), ``W_q`` the
+    region's Bayer weights (:func:`effective_sites`); the errors are independent from
+    site to site (the flats' and the master dark's noise).  Arguments as
+    :func:`effective_sites`.
+    """
+    site, row, wt = _region_site_weights(label, box, cell_channel, n_regions, mask)
+    u = np.asarray(pixel_rel_map, dtype=np.float64)[box].reshape(-1)[site]
+    nr = n_regions * len(CHANNELS)
+    s1 = np.bincount(row, wt, minlength=nr)
+    s2 = np.bincount(row, wt * wt * u * u, minlength=nr)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(s1 > 0, np.sqrt(s2) / s1, np.nan)
     return out.reshape(n_regions, len(CHANNELS))
 
 

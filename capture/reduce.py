@@ -65,6 +65,7 @@ from gonio.capture.radiometric import (
     flat_rel_std,
     irradiance_rel_std,
     light_scale,
+    region_flat_rel_std,
     stray_rel_std,
 )
 from gonio.capture.raw import CHANNELS, RawFrame, apply_flat, subtract_dark
@@ -786,12 +787,21 @@ class _PoseRun:
                 m.radiometric_rel_std = {k: np.full((n, 3), np.nan) for k in _TERMS}
                 continue
             # the sites the region's Bayer weights average over (flat, dark offsets)
-            n_sites = None
+            n_sites = flat = None
             if cc is not None and m.regions is not None and m.regions.n_regions == n:
-                n_sites = effective_sites(m.regions.label, m.regions.box, cc, n, cal.mask)
+                reg = m.regions
+                n_sites = effective_sites(reg.label, reg.box, cc, n, cal.mask)
+                if cal.flat is not None and cal.flat.pixel_rel_map is not None:
+                    # each site's gain error at its own flat level (the sample sits where
+                    # the flat is brightest)
+                    flat = region_flat_rel_std(
+                        reg.label, reg.box, cc, n, cal.flat.pixel_rel_map, cal.mask
+                    )
+            if flat is None:
+                flat = flat_rel_std(m.n_pixels, pix_flat, cc, n_sites)
             terms = {
                 "drift": np.broadcast_to(u_d, (n, 3)).copy(),
-                "flat": flat_rel_std(m.n_pixels, pix_flat, cc, n_sites),
+                "flat": flat,
                 "dark": np.zeros((n, 3)),
                 "irradiance": irradiance_rel_std(
                     cos_psi.get(m.pose, np.ones(n)), cal.cos_psi_ref, n_std
