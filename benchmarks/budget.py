@@ -10,13 +10,26 @@ Per material, pooled over the seeds:
 
 - z RMS ``(brdf - f_true) / sigma`` per channel and per theta band of
   ``max(theta_i, theta_o)`` (0-10 ... 70-80 deg), with the full budget (``brdf_std`` and
-  the shared calibration scale) and with the noise term only (target: [0.8, 1.25]);
+  the shared calibration scale) and with the noise term only;
+- the full-budget z RMS after whitening by the covariance the budget states
+  (``z_rms_whitened``: ``sqrt(r^T S^-1 r / n)``, :func:`gonio.app.budget_harness.error_model`;
+  target [0.8, 1.25]; pooled over seeds as ``sqrt(sum n z^2 / sum n)``).  Why this is the
+  judged figure: a band's samples share their poses' errors (board pose, drift) and the
+  session's (rig modes, stray light), so a band of few poses has a raw z RMS that spreads
+  far more than 1/sqrt(2n) under an exact budget (world 1603's 20-30 deg band, 4 poses:
+  raw z RMS 0.76, inside its own 99 % interval 0.56-1.80; world 1604's 1.31 inside
+  0.64-1.72), while the whitened RMS spreads as n independent normals whatever the
+  correlations.  Per seed, ``z_raw_interval`` gives each band's raw RMS beside its 99 %
+  interval under the budget's covariance (1000 draws), so the raw figure is judged too,
+  against its honest spread;
 - the fraction of fitted parameters within 3 reported sigma of the truth (a measured
   file: of the same model fitted to the noise-free truth), the largest |z|;
 - the median relative BRDF error of the fit (median over the seeds, and the worst).
 
-Headline: ``figure`` = the worst full-budget z RMS over materials, bands (>= 30 samples)
-and channels, ``baseline`` = the same with noise only, ``ratio`` = baseline / figure.
+Headline: ``figure`` = the worst whitened full-budget z RMS over materials, bands (>=
+:data:`~gonio.app.budget_harness.MIN_BAND_SAMPLES` samples, below 80 deg) and channels,
+pooled over the seeds; ``figure_worst_seed`` the same over single seeds (what the test
+judges); ``baseline`` = the worst noise-only z RMS, ``ratio`` = baseline / figure.
 ``capabilities`` says what of issue 16 the installation has (world radiometry, flats,
 repeated reference groups) and ``budget`` whether the samples carried budget terms.
 Prints one JSON object.
@@ -63,14 +76,40 @@ def _pool(tables: list[dict]) -> dict:
     }
 
 
-def _worst(pooled: dict, min_n: int) -> float:
-    vals = [v for r in pooled.values() if r["n"] >= min_n for c, v in r.items() if c != "n"]
+def _worst(pooled: dict, min_n: int, max_deg: float = math.inf) -> float:
+    vals = [
+        v
+        for b, r in pooled.items()
+        if r["n"] >= min_n and float(b.split("-")[0]) < max_deg
+        for c, v in r.items()
+        if c != "n"
+    ]
     return max(vals, key=lambda v: abs(math.log(v))) if vals else math.nan
+
+
+def _interval_rows(interval: dict) -> dict:
+    """Per band: channel -> [observed raw z RMS, 0.5 % quantile, 99.5 % quantile]."""
+    return {
+        b: {
+            "n": row["n"],
+            **{
+                c: [
+                    round(v["observed"], 3),
+                    round(v["quantiles"][0], 3),
+                    round(v["quantiles"][-1], 3),
+                ]
+                for c, v in row.items()
+                if c != "n"
+            },
+        }
+        for b, row in interval["bands"].items()
+    }
 
 
 def main() -> None:
     from gonio.app.budget_harness import (
         LARGE_GRID,
+        MAX_JUDGED_DEG,
         MIN_BAND_SAMPLES,
         SMALL_GRID,
         capabilities,
@@ -106,19 +145,26 @@ def main() -> None:
                 )
             )
     per_material = {}
-    worst_full, worst_noise = [], []
+    worst_full, worst_noise, worst_white, worst_seed = [], [], [], []
     for m in materials:
         reps = [r.materials[m.name] for r in runs]
         full = _pool([r["samples"]["full"] for r in reps])
+        white = _pool([r["samples"]["whitened"] for r in reps])
         noise = _pool([r["samples"]["noise_only"] for r in reps])
-        worst_full.append(_worst(full, MIN_BAND_SAMPLES))
-        worst_noise.append(_worst(noise, MIN_BAND_SAMPLES))
+        worst_full.append(_worst(full, MIN_BAND_SAMPLES, MAX_JUDGED_DEG))
+        worst_white.append(_worst(white, MIN_BAND_SAMPLES, MAX_JUDGED_DEG))
+        worst_noise.append(_worst(noise, MIN_BAND_SAMPLES, MAX_JUDGED_DEG))
+        worst_seed += [
+            _worst(_pool([r["samples"]["whitened"]]), MIN_BAND_SAMPLES, MAX_JUDGED_DEG)
+            for r in reps
+        ]
         zs = [x for r in reps for v in r["fit"]["z"].values() for x in v if math.isfinite(x)]
         errs = [r["fit"]["median_rel_brdf_error"] for r in reps]
         per_material[m.name] = {
             "samples": sum(r["samples"]["n_usable"] for r in reps),
             "budget": all(r["samples"]["budget"] for r in reps),
             "budget_terms": reps[0]["samples"]["budget_terms"],
+            "z_rms_whitened": white,
             "z_rms_full": full,
             "z_rms_noise_only": noise,
             "fit_model": sorted({r["fit"]["model"] for r in reps}),
@@ -138,19 +184,33 @@ def main() -> None:
                         run.materials[m.name]["fit"]["median_rel_brdf_error"], 5
                     ),
                     "failures": judge(run.materials[m.name]),
+                    "z_whitened": _pool([run.materials[m.name]["samples"]["whitened"]]),
+                    "z_raw_interval": _interval_rows(
+                        run.materials[m.name]["samples"]["full_interval"]
+                    ),
                     "warnings": run.materials[m.name]["warnings"],
                 }
                 for run in runs
             },
         }
-    figure = max(worst_full, key=lambda v: abs(math.log(v)))
-    baseline = max(worst_noise, key=lambda v: abs(math.log(v)))
+
+    def worst(v: list[float]) -> float:
+        return max(v, key=lambda x: abs(math.log(x)))
+
+    figure = worst(worst_white)
+    baseline = worst(worst_noise)
     out = {
         "benchmark": "budget",
         "figure": round(figure, 3),
-        "figure_is": "worst full-budget z RMS over materials, bands (>= 30 samples), channels",
+        "figure_is": (
+            "worst whitened full-budget z RMS over materials, bands (>= "
+            f"{MIN_BAND_SAMPLES} samples, below {MAX_JUDGED_DEG} deg) and channels, "
+            "pooled over the seeds"
+        ),
+        "figure_worst_seed": round(worst(worst_seed), 3),
+        "raw_full_budget_worst": round(worst(worst_full), 3),
         "baseline": round(baseline, 3),
-        "baseline_is": "the same with the noise term only",
+        "baseline_is": "the worst noise-only z RMS (raw), pooled over the seeds",
         "ratio": round(baseline / figure, 3),
         "target": {"z_rms": [0.8, 1.25], "median_rel_brdf_error": 0.01, "params_sigma": 3},
         "seeds": seeds,

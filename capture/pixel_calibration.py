@@ -107,6 +107,11 @@ class FlatField:
         dark's), per channel: the budget's ``flat`` term before averaging.
     n_frames
         Flat frames averaged.
+    pixel_rel_map
+        (H, W) the same per pixel, at the pixel's own flat signal (None: not known).
+        The sample sits near the image centre, where the flat is brighter than its mean
+        over the frame (cos^4, vignetting: 7 % on the realistic world), so its pixels'
+        gains are known better than ``pixel_rel_std`` says.
     """
 
     gain: NDArray[np.float64]
@@ -114,6 +119,7 @@ class FlatField:
     level: NDArray[np.float64]
     pixel_rel_std: NDArray[np.float64]
     n_frames: int
+    pixel_rel_map: NDArray[np.float64] | None = None
 
 
 def prnu_gain(
@@ -165,6 +171,11 @@ def prnu_gain(
         bad |= saturated
     level = np.empty(len(CHANNELS))
     rel = np.zeros(len(CHANNELS))
+    rel_map = None
+    if pixel_variance is not None:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            v_pix = np.asarray(pixel_variance(np.maximum(mean, 0.0)), dtype=np.float64)  # type: ignore[operator]
+            rel_map = np.where(mean > 0, np.sqrt(v_pix / len(flats) + dark_variance) / mean, np.inf)
     gain = np.ones_like(seen)
     for c in range(len(CHANNELS)):
         m = (channel == c) & ~bad
@@ -182,4 +193,4 @@ def prnu_gain(
             m = (channel == c) & ~odd
             gain[channel == c] /= float(np.mean(gain[m]))
     gain[odd] = 1.0
-    return FlatField(gain, odd, level, rel, len(flats))
+    return FlatField(gain, odd, level, rel, len(flats), rel_map)

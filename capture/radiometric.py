@@ -32,11 +32,13 @@ __all__ = [
     "brdf_of",
     "dark_offset_rel_std",
     "drift_model",
+    "effective_sites",
     "fit_light_profile",
     "flat_rel_std",
     "irradiance_rel_std",
     "light_scale",
     "reference_ratio",
+    "region_flat_rel_std",
     "stray_rel_std",
 ]
 
@@ -415,17 +417,123 @@ def _sites_per_channel(n_pixels: NDArray, cell_channel: NDArray | None) -> NDArr
     return np.asarray(n_pixels, float)[:, None] * frac[None, :]
 
 
+def _region_site_weights(
+    label: NDArray[np.integer],
+    box: tuple[slice, slice],
+    cell_channel: NDArray[np.integer],
+    n_regions: int,
+    mask: NDArray[np.bool_] | None,
+) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
+    """``(site, row, weight)`` of :func:`gonio.capture.bayer.bayer_region_entries` for the
+    crop ``box`` of the frame (its CFA phase from the frame's 2x2 ``cell_channel``), the
+    sites under ``mask`` left out as the measurement leaves them; ``site`` indexes the
+    flattened crop."""
+    from gonio.capture.bayer import bayer_region_entries
+
+    lab = np.asarray(label)
+    h, w = lab.shape
+    r0 = box[0].start or 0
+    c0 = box[1].start or 0
+    cc = np.asarray(cell_channel).reshape(2, 2)
+    channel = cc[((np.arange(h) + r0) % 2)[:, None], ((np.arange(w) + c0) % 2)[None, :]]
+    site, row, wt = bayer_region_entries(lab, channel, n_regions)
+    if mask is not None:
+        keep = ~np.asarray(mask, bool)[box].reshape(-1)[site]
+        site, row, wt = site[keep], row[keep], wt[keep]
+    return site, row, wt
+
+
+def effective_sites(
+    label: NDArray[np.integer],
+    box: tuple[slice, slice],
+    cell_channel: NDArray[np.integer],
+    n_regions: int,
+    mask: NDArray[np.bool_] | None = None,
+) -> NDArray[np.float64]:
+    """(n, 3) each region's effective number of independent CFA sites per channel.
+
+    A region's value is the weighted mean of its sites with the Bayer weights ``W_q``
+    (:func:`gonio.capture.bayer.bayer_region_entries`, the adjoint of bilinear
+    interpolation, sites under ``mask`` left out, as the measurement does), so an error
+    of std ``u`` independent from site to site (the master flat's noise, the DSNU)
+    averages to ``u sqrt(sum W_q^2) / sum W_q``: the region counts as
+    ``N_eff = (sum W_q)^2 / sum W_q^2`` sites.  That is not the ``N_c`` of
+    :func:`_sites_per_channel` (the pixel count times the channel's share of the 2x2
+    cell): the weights reach the sites just outside the region's edge, so a region of
+    a few pixels' width has 10-35 % more in R and B (a 4 x 30 region: 1.26 N_c), and
+    the ``flat`` term taken with ``N_c`` was that much too large (issue 16: 60-70 deg B
+    z RMS 0.75 with a flat share of the budget up to 0.5).
+
+    Parameters
+    ----------
+    label
+        (h, w) region index of each pixel of the crop ``box``, -1 outside every region.
+    box
+        ``(row_slice, col_slice)``: where the crop lies in the frame (its CFA phase).
+    cell_channel
+        (2, 2) the frame's CFA channel of each cell position.
+    n_regions
+        Number of regions.
+    mask
+        (H, W) frame pixels left out of every region's sums, or None.
+
+    Returns
+    -------
+    ndarray
+        (n, 3); NaN where a region has no site of the channel.
+    """
+    _, row, wt = _region_site_weights(label, box, cell_channel, n_regions, mask)
+    nr = n_regions * len(CHANNELS)
+    s1 = np.bincount(row, wt, minlength=nr)
+    s2 = np.bincount(row, wt * wt, minlength=nr)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(s2 > 0, s1 * s1 / s2, np.nan)
+    return out.reshape(n_regions, len(CHANNELS))
+
+
+def region_flat_rel_std(
+    label: NDArray[np.integer],
+    box: tuple[slice, slice],
+    cell_channel: NDArray[np.integer],
+    n_regions: int,
+    pixel_rel_map: NDArray[np.float64],
+    mask: NDArray[np.bool_] | None = None,
+) -> NDArray[np.float64]:
+    """The ``flat`` term of each region from the per-pixel map, (n, 3):
+    ``sqrt(sum_q W_q^2 u_q^2) / sum_q W_q``.
+
+    ``u_q`` is the relative std of site q's gain estimate at its own flat signal
+    (:attr:`gonio.capture.pixel_calibration.FlatField.pixel_rel_map`), ``W_q`` the
+    region's Bayer weights (:func:`effective_sites`); the errors are independent from
+    site to site (the flats' and the master dark's noise).  Arguments as
+    :func:`effective_sites`.
+    """
+    site, row, wt = _region_site_weights(label, box, cell_channel, n_regions, mask)
+    u = np.asarray(pixel_rel_map, dtype=np.float64)[box].reshape(-1)[site]
+    nr = n_regions * len(CHANNELS)
+    s1 = np.bincount(row, wt, minlength=nr)
+    s2 = np.bincount(row, wt * wt * u * u, minlength=nr)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(s1 > 0, np.sqrt(s2) / s1, np.nan)
+    return out.reshape(n_regions, len(CHANNELS))
+
+
 def flat_rel_std(
-    n_pixels: NDArray, pixel_rel_std: NDArray, cell_channel: NDArray | None = None
+    n_pixels: NDArray,
+    pixel_rel_std: NDArray,
+    cell_channel: NDArray | None = None,
+    n_sites: NDArray | None = None,
 ) -> NDArray[np.float64]:
     """The ``flat`` term: ``u_pix,c / sqrt(N_c)``, (n, 3).
 
     ``u_pix,c`` is the relative std of one pixel's gain in channel c: with flats the
     master flat's own noise (type A: ``sqrt(var(S_c)/N_flat + var_dark) / S_c`` at the
     flats' mean level ``S_c``), without flats the sensor's PRNU (type B: ``[noise]
-    prnu``); independent pixels average it down over the region's ``N_c`` sites.
+    prnu``); independent pixels average it down over the region's ``N_c`` sites:
+    ``n_sites`` ((n, 3), :func:`effective_sites`) when given, else the pixel count
+    times the channel's share of the cell (an underestimate of the count).
     """
-    n_c = _sites_per_channel(n_pixels, cell_channel)
+    n_c = _sites_per_channel(n_pixels, cell_channel) if n_sites is None else n_sites
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.asarray(pixel_rel_std, float)[None, :] / np.sqrt(n_c)
 
@@ -437,6 +545,7 @@ def dark_offset_rel_std(
     noise: Any,
     dsnu_e: float,
     cell_channel: NDArray | None = None,
+    n_sites: NDArray | None = None,
 ) -> NDArray[np.float64]:
     """The ``dark`` term of a pose whose frames were not dark-subtracted, (n, 3).
 
@@ -458,6 +567,8 @@ def dark_offset_rel_std(
         The camera's :class:`~gonio.capture.noise.NoiseModel`.
     dsnu_e
         DSNU, electrons rms.
+    cell_channel, n_sites
+        As :func:`flat_rel_std`: the sites the offset averages over.
     """
     L = np.asarray(radiance, float)
     num = np.zeros_like(L)
@@ -470,7 +581,7 @@ def dark_offset_rel_std(
             w = np.where(S < headroom, e * e / var, 0.0)
         num += w * (dsnu_e * model.gain) / e
         den += w
-    n_c = _sites_per_channel(n_pixels, cell_channel)
+    n_c = _sites_per_channel(n_pixels, cell_channel) if n_sites is None else n_sites
     with np.errstate(invalid="ignore", divide="ignore"):
         return num / den / np.sqrt(n_c) / np.abs(L)
 

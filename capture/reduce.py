@@ -65,10 +65,12 @@ from gonio.capture.radiometric import (
     brdf_of,
     dark_offset_rel_std,
     drift_model,
+    effective_sites,
     fit_light_profile,
     flat_rel_std,
     irradiance_rel_std,
     light_scale,
+    region_flat_rel_std,
     stray_rel_std,
 )
 from gonio.capture.raw import CHANNELS, RawFrame, apply_flat, subtract_dark
@@ -827,9 +829,22 @@ class _PoseRun:
             if m.n_pixels is None:  # an invalid pose: no terms to state
                 m.radiometric_rel_std = {k: np.full((n, 3), np.nan) for k in _TERMS}
                 continue
+            # the sites the region's Bayer weights average over (flat, dark offsets)
+            n_sites = flat = None
+            if cc is not None and m.regions is not None and m.regions.n_regions == n:
+                reg = m.regions
+                n_sites = effective_sites(reg.label, reg.box, cc, n, cal.mask)
+                if cal.flat is not None and cal.flat.pixel_rel_map is not None:
+                    # each site's gain error at its own flat level (the sample sits where
+                    # the flat is brightest)
+                    flat = region_flat_rel_std(
+                        reg.label, reg.box, cc, n, cal.flat.pixel_rel_map, cal.mask
+                    )
+            if flat is None:
+                flat = flat_rel_std(m.n_pixels, pix_flat, cc, n_sites)
             terms = {
                 "drift": np.broadcast_to(u_d, (n, 3)).copy(),
-                "flat": flat_rel_std(m.n_pixels, pix_flat, cc),
+                "flat": flat,
                 "dark": np.zeros((n, 3)),
                 "irradiance": irradiance_rel_std(
                     cos_psi.get(m.pose, np.ones(n)), cal.cos_psi_ref, n_std
@@ -838,7 +853,13 @@ class _PoseRun:
             }
             if m.pose in cal.undarked:
                 terms["dark"] = dark_offset_rel_std(
-                    m.radiance, m.n_pixels, cal.exposures.get(m.pose, []), s.noise, s.dsnu_e, cc
+                    m.radiance,
+                    m.n_pixels,
+                    cal.exposures.get(m.pose, []),
+                    s.noise,
+                    s.dsnu_e,
+                    cc,
+                    n_sites,
                 )
             m.radiometric_rel_std = terms
         self.warnings.extend(self._missing_calibration_warnings(samples_m))

@@ -16,7 +16,10 @@ What it measures, per material:
   shared calibration scale ``calibration_rel_std`` added in quadrature) or noise only
   (``budget["noise"]``; ``brdf_std`` when the samples carry no budget).  The spread is
   the RMS of z about 0 (a bias the budget does not cover counts), per channel and per
-  band of ``max(theta_i, theta_o)``: 0-10, ..., 70-80 (and 80-90) deg;
+  band of ``max(theta_i, theta_o)``: 0-10, ..., 70-80 (and 80-90) deg; and, what is
+  judged, the same after whitening by the covariance the budget states (its geometric
+  modes, correlated radiometric terms and calibration scale shared between samples:
+  :func:`error_model`), whose spread does not depend on how few poses a band holds;
 - **fit**: the material's model fitted (weighted L2, absolute sigmas, the samples'
   geometric modes when present), each parameter's z against the truth (for a measured
   file: against the same model fitted to the noise-free truth at the same directions,
@@ -46,11 +49,14 @@ import numpy as np
 
 __all__ = [
     "BANDS_DEG",
+    "ErrorModel",
     "HarnessMaterial",
     "capabilities",
     "default_materials",
+    "error_model",
     "fit_statistics",
     "harness_plan",
+    "room_stray_bound",
     "run_world",
     "sample_statistics",
 ]
@@ -244,6 +250,165 @@ def _z_table(z: np.ndarray, theta: np.ndarray, channels: tuple[str, ...]) -> dic
     return out
 
 
+@dataclass
+class ErrorModel:
+    """The budget's own model of the usable samples' errors: ``e = d * eps + U xi``.
+
+    ``eps`` (n, C) and ``xi`` (k,) independent standard normals: ``d`` the terms
+    independent from sample to sample, ``U`` one column per error shared by several
+    samples, each its 1-sigma effect on every sample and channel.  Its covariance per
+    channel c is ``diag(d[:, c]^2) + U[:, c] U[:, c]^T``, and its diagonal is the full
+    budget's ``sigma^2`` (``brdf_std^2 + (f calibration_rel_std)^2``).
+
+    Attributes
+    ----------
+    independent
+        (n, C) std of the independent part, 1/sr.
+    shared
+        (n, C, k) the shared errors' columns, 1/sr.
+    names
+        (k,) what each column is.
+    """
+
+    independent: np.ndarray
+    shared: np.ndarray
+    names: list[str]
+
+    def covariance(self, rows: np.ndarray, channel: int) -> np.ndarray:
+        """(m, m) the modelled covariance of the samples ``rows`` in ``channel``."""
+        U = self.shared[rows, channel]
+        return np.diag(self.independent[rows, channel] ** 2) + U @ U.T
+
+    def draw(self, rows: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+        """(k, m, C) ``k`` draws of the errors of the samples ``rows``."""
+        U = self.shared[rows]
+        used = np.flatnonzero(np.any(U != 0, axis=(0, 1)))
+        xi = rng.standard_normal((k, len(used)))
+        eps = rng.standard_normal((k, *self.independent[rows].shape))
+        return np.einsum("mcj,kj->kmc", U[..., used], xi) + self.independent[rows] * eps
+
+
+def error_model(samples: Any, f_ref: np.ndarray) -> ErrorModel:
+    """The covariance the samples' own budget states, for the usable samples.
+
+    The shared columns are the ones :func:`gonio.fitting.fit` treats as correlated, so
+    the harness tests the covariance the fit propagates: every geometric mode
+    (``geometry_modes`` through the budget's own model-free gradient,
+    :func:`gonio.capture.budget.local_log_gradient`, as the reduction computed
+    ``budget["geometry"]``; a ``"session"`` mode shared by all samples, a ``"pose"``
+    mode by its pose's), the correlated radiometric terms
+    (:data:`gonio.fitting.geometric_uncertainty.CORRELATED_TERMS`: one error of one
+    sign for the session) and the shared calibration scale per channel
+    (``calibration_rel_std`` times ``f_ref``).  The rest of ``brdf_std`` (noise, flat,
+    dark) is independent.  Samples without modes: the geometry term is independent too.
+
+    Parameters
+    ----------
+    samples
+        The reduced samples (all of them; the usable ones are modelled).
+    f_ref
+        (n_usable, C) the BRDF the calibration scale multiplies (the truth), 1/sr.
+    """
+    from gonio.capture.budget import local_log_gradient
+    from gonio.fitting.geometric_uncertainty import CORRELATED_TERMS
+
+    ok = np.asarray(samples.valid)
+    std = np.asarray(samples.brdf_std, dtype=np.float64)
+    budget = getattr(samples, "budget", None) or {}
+    rel = np.asarray(samples.attrs.get("calibration_rel_std", 0.0), dtype=np.float64)
+    C = std.shape[1]
+    rel = np.broadcast_to(rel, (C,))
+    cols: list[np.ndarray] = []
+    names: list[str] = []
+    var_shared = np.zeros((int(ok.sum()), C))
+    modes = getattr(samples, "geometry_modes", None)
+    pose = getattr(samples, "pose", None)
+    if modes is not None and pose is not None and "geometry" in budget and modes.shape[1]:
+        usable = np.asarray(samples.flags) == 0
+        grad = local_log_gradient(samples.wi, samples.wo, samples.brdf, usable)
+        dX = np.asarray(modes, dtype=np.float64)[..., [0, 1, 3, 4]]
+        G = np.abs(np.asarray(samples.brdf))[:, :, None] * np.einsum(
+            "ncf,nmf->ncm", np.nan_to_num(grad), dX
+        )
+        G = np.nan_to_num(G[ok])
+        scope = np.asarray(samples.geometry_mode_scope).astype(str)
+        mnames = np.asarray(samples.geometry_mode_names).astype(str)
+        pz = np.asarray(pose)[ok]
+        for j in np.flatnonzero(scope == "session"):
+            cols.append(G[:, :, j])
+            names.append(str(mnames[j]))
+        for p in np.unique(pz):
+            here = (pz == p)[:, None]
+            for j in np.flatnonzero(scope == "pose"):
+                cols.append(np.where(here, G[:, :, j], 0.0))
+                names.append(f"pose {int(p)}: {mnames[j]}")
+        var_shared += np.asarray(budget["geometry"], dtype=np.float64)[ok] ** 2
+    for term in CORRELATED_TERMS:
+        if term in budget:
+            v = np.nan_to_num(np.asarray(budget[term], dtype=np.float64)[ok])
+            cols.append(v)
+            names.append(term)
+            var_shared += v**2
+    for c in range(C):
+        col = np.zeros((int(ok.sum()), C))
+        col[:, c] = np.abs(f_ref[:, c]) * rel[c]
+        if np.any(col):
+            cols.append(col)
+            names.append(f"calibration {c}")
+    indep = np.sqrt(np.clip(np.nan_to_num(std[ok]) ** 2 - var_shared, 0.0, None))
+    U = np.stack(cols, axis=-1) if cols else np.zeros((int(ok.sum()), C, 0))
+    return ErrorModel(indep, U, names)
+
+
+#: draws of the modelled errors for the raw z RMS's interval
+INTERVAL_DRAWS = 1000
+#: the interval's quantiles (a two-sided 99 % interval and the median)
+INTERVAL_QUANTILES = (0.005, 0.5, 0.995)
+
+
+def _whitened_table(
+    r: np.ndarray,
+    sigma: np.ndarray,
+    model: ErrorModel,
+    theta: np.ndarray,
+    channels: tuple[str, ...],
+    seed: int = 0,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Per band and channel: the z RMS after whitening by the modelled covariance,
+    ``sqrt(r^T S^-1 r / n)``, and where the raw z RMS falls in its own distribution
+    under the model (``INTERVAL_DRAWS`` draws: quantiles, and the fraction of draws
+    below the observed value)."""
+    from scipy.linalg import cho_factor, cho_solve
+
+    rng = np.random.default_rng(seed)
+    white: dict[str, Any] = {}
+    interval: dict[str, Any] = {}
+    for lo, hi in BANDS_DEG:
+        rows = np.flatnonzero((theta >= lo) & (theta < hi))
+        if not rows.size:
+            continue
+        wrow: dict[str, Any] = {"n": int(rows.size)}
+        irow: dict[str, Any] = {"n": int(rows.size)}
+        e = model.draw(rows, INTERVAL_DRAWS, rng) / sigma[rows][None]
+        raw = np.sqrt(np.mean(e * e, axis=1))  # (draws, C)
+        for k, c in enumerate(channels):
+            S = model.covariance(rows, k)
+            # a tiny ridge: a sample whose every term is zero (none usable) stays finite
+            S[np.diag_indices_from(S)] += 1e-30 + 1e-12 * np.max(np.diag(S))
+            x = r[rows, k]
+            wrow[c] = float(np.sqrt(x @ cho_solve(cho_factor(S, lower=True), x) / rows.size))
+            obs = float(np.sqrt(np.mean((x / sigma[rows, k]) ** 2)))
+            q = np.quantile(raw[:, k], INTERVAL_QUANTILES)
+            irow[c] = {
+                "observed": obs,
+                "quantiles": [float(v) for v in q],
+                "fraction_below": float(np.mean(raw[:, k] < obs)),
+            }
+        white[f"{lo}-{hi}"] = wrow
+        interval[f"{lo}-{hi}"] = irow
+    return {"bands": white}, {"quantiles": list(INTERVAL_QUANTILES), "bands": interval}
+
+
 def sample_statistics(samples: Any, truth: Any) -> dict[str, Any]:
     """z-scores of the usable samples against ``truth`` at their reported directions.
 
@@ -251,9 +416,15 @@ def sample_statistics(samples: Any, truth: Any) -> dict[str, Any]:
     -------
     dict
         ``full`` and ``noise_only``: z RMS per channel over all samples (``all``) and per
-        theta band (``bands``, with counts ``n``), the mean z per channel; ``budget``:
-        whether the samples carry budget terms; ``median_rel_error``: median over samples
-        and channels of |brdf - f_true| / f_true.
+        theta band (``bands``, with counts ``n``), the mean z per channel; ``whitened``:
+        per band and channel the z RMS after whitening by the budget's own covariance
+        (:func:`error_model`: ``sqrt(r^T S^-1 r / n)``, what :func:`judge` tests);
+        ``full_interval``: per band and channel the raw full-budget z RMS with the
+        quantiles :data:`INTERVAL_QUANTILES` of its distribution under that covariance
+        and the fraction of draws below it; ``shared_columns``: the shared errors the
+        covariance holds; ``budget``: whether the samples carry budget terms;
+        ``median_rel_error``: median over samples and channels of |brdf - f_true| /
+        f_true.
     """
     ok = np.asarray(samples.valid)
     wi, wo = samples.wi[ok], samples.wo[ok]
@@ -268,12 +439,17 @@ def sample_statistics(samples: Any, truth: Any) -> dict[str, Any]:
     ch = tuple(samples.channels)
     with np.errstate(divide="ignore", invalid="ignore"):
         rel_err = np.abs(y - f) / np.abs(f)
+    model = error_model(samples, f)
+    whitened, interval = _whitened_table(y - f, full, model, theta, ch)
     return {
         "n_samples": int(len(samples)),
         "n_usable": int(ok.sum()),
         "budget": budget is not None,
         "budget_terms": sorted(budget) if budget else [],
+        "shared_columns": len(model.names),
         "full": _z_table((y - f) / full, theta, ch),
+        "whitened": whitened,
+        "full_interval": interval,
         "noise_only": _z_table((y - f) / noise, theta, ch),
         "median_rel_error": float(np.nanmedian(rel_err)) if rel_err.size else math.nan,
     }
@@ -369,6 +545,26 @@ def calibrate_world(root: Path, seed: int, size: tuple[int, int] = SIZE, world: 
     )  # fmt: skip
 
 
+def room_stray_bound(world: str = "realistic") -> float:
+    """The ``[light] stray_fraction`` a lab in the simulated room states: the bound of
+    the diffuse light the preset's room can hold, its stray light's and its ambient
+    light's upper limits added (the ranges the preset documents, not a world's draw).
+
+    The reduction's default (5e-4) bounds the stray light alone, but the ambient light
+    reaches the sample in the sample frames too: on world 1606 (stray 4.5e-4, ambient
+    1.9e-4) every theta_i = 75 deg pose of paper white and of lambert+ggx came out
+    +0.25-0.35 % high in all channels, against 0.17 % from its stray light alone and the
+    stated term's 0.11 %.
+    """
+    if world != "realistic":
+        from gonio.capture.reduction_config import ReductionSetup
+
+        return float(ReductionSetup.__dataclass_fields__["stray_fraction"].default)
+    from gonio.simulator.world_radiometry import REALISTIC_RADIOMETRY
+
+    return REALISTIC_RADIOMETRY["stray_fraction"][1] + REALISTIC_RADIOMETRY["ambient_fraction"][1]
+
+
 def measure(
     root: Path,
     material: HarnessMaterial,
@@ -399,7 +595,7 @@ def measure(
     setup = resolve_setup(
         session, load_manifest(session), camera_calibration=calibration.camera_file
     )
-    setup = dataclasses.replace(setup, grid=6)
+    setup = dataclasses.replace(setup, grid=6, stray_fraction=room_stray_bound(world))
     red = reduce_session(session, setup=setup, plot=False)
     return load_samples(red.path), list(getattr(red, "warnings", []) or [])
 
@@ -433,12 +629,23 @@ def judge(rep: dict[str, Any]) -> dict[str, Any]:
     """The issue's targets on one material's report: the failures, by name (empty: met).
 
     ``z_full``: bands (>= :data:`MIN_BAND_SAMPLES` samples) and channels whose full-budget
-    z RMS is outside :data:`Z_RANGE`; ``rel_error``: median relative BRDF error of the
-    fit above 1 %; ``params``: parameters more than 3 reported sigma off.
+    z RMS after whitening by the budget's covariance (``whitened``; the raw z RMS for a
+    report without it) is outside :data:`Z_RANGE`; ``rel_error``: median relative BRDF
+    error of the fit above 1 %; ``params``: parameters more than 3 reported sigma off.
+
+    Why whitened: errors shared by a pose's regions (its board pose, the drift at its
+    time) and by the session (the rig's modes, the stray light) make a band's samples
+    correlated, and a band of a few poses then has a raw z RMS whose spread under an
+    exact budget is several times 1/sqrt(2n) (world 1603, 20-30 deg, 4 poses: a 99 %
+    interval of 0.56-1.75 in G): the window would test chance, not the budget.  The
+    whitened RMS ``sqrt(r^T S^-1 r / n)`` of n samples whose errors follow the budget's
+    covariance S has the spread of n independent standard normals whatever the
+    correlations, so the window is the 3-sigma test :data:`MIN_BAND_SAMPLES` intends.
+    The raw RMS is reported beside it with its own 99 % interval (``full_interval``).
     """
     s, f = rep["samples"], rep["fit"]
     bad_z = {}
-    for band, row in s["full"]["bands"].items():
+    for band, row in s.get("whitened", s["full"])["bands"].items():
         if row["n"] < MIN_BAND_SAMPLES or _band_lo(band) >= MAX_JUDGED_DEG:
             continue
         for c, v in row.items():

@@ -459,3 +459,110 @@ def test_local_log_gradient_is_the_same_block_by_block(monkeypatch):
     np.testing.assert_array_equal(budget.local_log_gradient(wi, wo, f), whole)
     # a sample without a usable BRDF is not a neighbour, but still gets its neighbours' slope
     assert np.isfinite(whole).all()
+
+
+@pytest.mark.parametrize("shape", [(4, 30), (3, 41), (10, 10), (21, 16)])
+@pytest.mark.parametrize("offset", [(0, 0), (1, 0), (1, 1)])
+def test_effective_sites_are_those_of_bilinear_interpolation(shape, offset):
+    """A region's value is the mean over its pixels of each channel bilinearly
+    interpolated to every pixel; site errors of std u average to u sqrt(sum W^2) / N with
+    W_q = sum over the region's pixels of the interpolation kernel at q (here by a
+    convolution, not the reduction's stencil filters).  N_eff = N^2 / sum W^2 exceeds
+    the pixel count times the channel's share (the sites just outside the edge count)."""
+    from scipy.ndimage import correlate
+
+    from gonio.capture.radiometric import (
+        _sites_per_channel,
+        effective_sites,
+        flat_rel_std,
+        region_flat_rel_std,
+    )
+
+    H, W = 40, 60
+    r0, c0 = 5 + offset[0], 7 + offset[1]  # the crop's place in the frame (CFA phase)
+    cell = np.array([[0, 1], [1, 2]])  # RGGB
+    yy, xx = np.mgrid[0:H, 0:W]
+    channel = cell[(yy + r0) % 2, (xx + c0) % 2]
+    label = -np.ones((H, W), int)
+    a, b = shape
+    label[8 : 8 + a, 9 : 9 + b] = 0
+    inside = (label == 0).astype(float)
+    kernels = {
+        0: np.array([[0.25, 0.5, 0.25], [0.5, 1.0, 0.5], [0.25, 0.5, 0.25]]),
+        1: np.array([[0.0, 0.25, 0.0], [0.25, 1.0, 0.25], [0.0, 0.25, 0.0]]),
+    }
+    kernels[2] = kernels[0]
+    want = []
+    for c in range(3):
+        w = correlate(inside, kernels[c], mode="constant") * (channel == c)
+        want.append(w.sum() ** 2 / np.sum(w**2))
+    box = (slice(r0, r0 + H), slice(c0, c0 + W))
+    got = effective_sites(label, box, cell, 1)
+    np.testing.assert_allclose(got[0], want, rtol=1e-12)
+    share = _sites_per_channel(np.array([a * b]), cell)[0]
+    assert np.all(got[0] > share)
+    u = np.array([0.004, 0.003, 0.005])
+    np.testing.assert_allclose(
+        flat_rel_std(np.array([a * b]), u, cell, got)[0], u / np.sqrt(want), rtol=1e-12
+    )
+    # a map of per-site stds: sqrt(sum W^2 u^2) / sum W (a uniform map: u / sqrt(N_eff))
+    u_map = np.random.default_rng(3).uniform(0.002, 0.006, (200, 200))
+    want_map = []
+    for c in range(3):
+        w = correlate(inside, kernels[c], mode="constant") * (channel == c)
+        want_map.append(np.sqrt(np.sum(w**2 * u_map[box] ** 2)) / w.sum())
+    got_map = region_flat_rel_std(label, box, cell, 1, u_map)
+    np.testing.assert_allclose(got_map[0], want_map, rtol=1e-12)
+    flat_map = np.full((200, 200), 0.004)
+    np.testing.assert_allclose(
+        region_flat_rel_std(label, box, cell, 1, flat_map)[0], 0.004 / np.sqrt(want), rtol=1e-12
+    )
+    # a masked site leaves the sums: fewer effective sites
+    mask = np.zeros((200, 200), bool)
+    mask[r0 + 8 + a // 2, c0 + 9 + b // 2] = True
+    assert np.all(effective_sites(label, box, cell, 1, mask)[0] <= got[0] + 1e-12)
+
+
+def test_the_flat_maps_pixel_std_is_the_scatter_of_the_gain_over_flat_draws():
+    """The master flat's per-pixel relative std (``FlatField.pixel_rel_map``) against
+    the scatter of the gain estimate over 400 independent sets of noisy flats of a scene
+    twice as bright at the centre as at the edge (Gaussian photon + read noise of a known
+    model): the map follows each pixel's own level, the channel's ``pixel_rel_std`` its
+    mean level only."""
+    from gonio.capture.noise import NoiseModel
+    from gonio.capture.pixel_calibration import cos4_inverse, prnu_gain
+
+    H, W = 24, 32
+    K = np.array([[40.0, 0, W / 2 - 0.5], [0, 40.0, H / 2 - 0.5], [0, 0, 1]])
+    cell = np.array([[0, 1], [1, 2]])
+    ch = cell[np.arange(H)[:, None] % 2, np.arange(W)[None, :] % 2]
+    yy, xx = np.mgrid[0:H, 0:W]
+    r2 = ((yy - H / 2) / H) ** 2 + ((xx - W / 2) / W) ** 2
+    S = 3000.0 * (2.0 - r2 / r2.max()) / cos4_inverse((H, W), K)
+    noise = NoiseModel(gain=0.4, read_noise=1.2, iso=100.0, quantisation=False)
+    sd = np.sqrt(noise.variance(S))
+    rng = np.random.default_rng(5)
+    n_flats, draws = 3, 400
+    gains, maps = [], []
+    for _ in range(draws):
+        flats = [S + sd * rng.standard_normal((H, W)) for _ in range(n_flats)]
+        ff = prnu_gain(flats, ch, K, pixel_variance=noise.variance, dark_variance=0.0)
+        # the per-channel normalisation moves every pixel alike: take it out
+        g = ff.gain.copy()
+        for c in range(3):
+            g[ch == c] /= np.mean((S * cos4_inverse((H, W), K))[ch == c])
+        gains.append(g)
+        maps.append(ff.pixel_rel_map)
+    gains = np.array(gains)
+    rel = gains.std(axis=0) / gains.mean(axis=0)
+    want = np.sqrt(noise.variance(S) / n_flats) / S
+    # 400 draws: the std of a std is 1/sqrt(800) = 3.5 %; over 768 pixels the median
+    # ratio is within 1 %
+    assert np.median(rel / want) == pytest.approx(1.0, abs=0.01)
+    assert np.median(np.mean(maps, axis=0) / want) == pytest.approx(1.0, abs=0.005)
+    # the centre's pixels are known better than the channel's mean level says (by the
+    # square root of their level over the mean: 0.87 here)
+    centre = r2 < 0.1 * r2.max()
+    at_mean = ff.pixel_rel_std[ch[centre]]
+    assert np.median(want[centre] / at_mean) < 0.9
+    assert np.median(np.mean(maps, axis=0)[centre] / at_mean) < 0.9
