@@ -278,6 +278,7 @@ def run_demo(
     world: str = "perfect",
     world_seed: int = 0,
     figure_worker: bool = True,
+    render_ahead: bool = True,
 ) -> DemoResult:
     """Run capture, reduction and fit of a simulated session into ``out``.
 
@@ -290,20 +291,29 @@ def run_demo(
     on the calibrated rig and the reduction uses the calibrated camera.
     ``figure_worker``: draw the figures in a second process beside the main one
     (:mod:`gonio.app.demo_figures`); False: all in this process (the same files).
+    ``render_ahead``: render the capture's next poses in a second process
+    (:mod:`gonio.app.render_ahead`, perfect world); False: the camera renders each
+    pose when it shoots (the same frames).
     """
 
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise SessionError(f"{out} exists and is not empty: choose a new --out (nothing touched)")
     from gonio.app.demo_figures import figure_worker as start_figures
+    from gonio.app.render_ahead import RenderAhead
 
     t_all = time.perf_counter()
-    # Started first: its imports run beside the capture (see gonio.app.demo_figures).
-    with start_figures(enabled=figure_worker) as figures:
+    # Started first, before any thread: the figures' imports run beside the capture (see
+    # gonio.app.demo_figures), and the capture's poses are rendered ahead on the second
+    # core (gonio.app.render_ahead; a perfect world's camera only).
+    with (
+        start_figures(enabled=figure_worker) as figures,
+        RenderAhead(enabled=render_ahead and world == "perfect") as ahead,
+    ):
         return _run_demo(
             out, material, figures, t_all, seed=seed, n_poses=n_poses, width=width,
             height=height, model=model, quiet=quiet, say=say, time_scale=time_scale,
-            world=world, world_seed=world_seed,
+            world=world, world_seed=world_seed, render_ahead=ahead,
         )  # fmt: skip
 
 
@@ -323,6 +333,7 @@ def _run_demo(
     time_scale: float | str,
     world: str,
     world_seed: int,
+    render_ahead: Any = None,
 ) -> DemoResult:
     from gonio.app.simulation import run_simulated_session
     from gonio.capture.manifest import load_manifest
@@ -382,7 +393,10 @@ def _run_demo(
         world=None if world == "perfect" else world,
         world_seed=None if world == "perfect" else world_seed,
         quiet=quiet,
+        render_ahead=render_ahead,
     )
+    if render_ahead is not None:
+        render_ahead.close()  # its core is the reduction's and the figures' from here
     say(f"session {session} completed")
     seconds["capture"] = time.perf_counter() - t
     say("reducing RAW brackets to BRDF samples")
