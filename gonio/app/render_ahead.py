@@ -75,6 +75,8 @@ def _serve(conn: Any) -> None:
             msg = conn.recv()
         except (EOFError, OSError):
             break
+        if msg[0] == "close":
+            break
         if msg[0] == "setup":
             _, scene, reference_albedo = msg
             cam = SimulatedCamera(
@@ -199,8 +201,11 @@ class RenderAhead(contextlib.AbstractContextManager):
         self._conn = self._proc = None
         self._pending.clear()
         if conn is not None:
+            # said, not only an end of input: a process forked later may hold this end
+            with contextlib.suppress(OSError, ValueError):
+                conn.send(("close",))
             with contextlib.suppress(OSError):
-                conn.close()  # the worker's end of input: it exits after its render
+                conn.close()
         if proc is not None:
             proc.join(timeout=5.0)
             if proc.is_alive():

@@ -222,13 +222,15 @@ def run_simulated_session(
     world_seed: int | None = None,
     quiet: bool = False,
     render_ahead: Any = None,
+    subscribers: Any = (),
 ) -> None:
     """Capture ``plan_path`` on the simulated rig of ``rig_path`` into ``session``.
 
     What ``gonio capture run PLAN --rig RIG --camera simulated`` does, through the
     library (for the demo): the API prints nothing, a progress bar shows unless
     ``quiet``.  ``scene_path``, ``world``, ``world_seed``, ``render_ahead``: as
-    :func:`simulated_run`.
+    :func:`simulated_run`; ``subscribers`` receive every document after the progress
+    bar.
     """
     from gonio.app.progress import SessionProgress
     from gonio.capture.plan import load_plan
@@ -248,5 +250,5 @@ def run_simulated_session(
             dry_run=plan_session(plan, cfg),
             simulation=sim.simulation,
             attachments=sim.attachments,
-            subscribers=[progress],
+            subscribers=[progress, *subscribers],
         )
