@@ -36,6 +36,25 @@ DEFAULT_POSES = 240
 MAX_THETA_DEG = 80.0
 #: The demo's regions: their directions' spread (deg) seen from camera and light.
 REGION_SPREAD_DEG = 0.3
+#: The perfect world's reduction (``ReductionSetup`` fields over the session's
+#: reduction.toml) = ``--geometry rig --grid 6 --max-region-spread-deg 0.3``.
+#: The simulated rig's geometry is exact, so the camera pose comes from the rig's
+#: read-back through its kinematics; the board checks it (flagging disagreements).
+#: From the board alone, a ~0.04 deg pose error per view at this resolution is a
+#: percent of BRDF on a lobe's flank, shared by the pose's regions.
+#: Regions of ~5 mm: a region's mean over its spread of directions flattens a lobe's
+#: peak in proportion to (spread / lobe width)^2; 6 x 6 regions, each trimmed to a
+#: spread of 0.3 deg from the camera and the light (~2.1 mm at normal view, the whole
+#: cell along the tilt of a grazing view), keep that below the noise for alpha >= 0.1.
+#: The perfect world's rig is exactly its configuration (the demo's own statement about
+#: its simulated rig, a self-consistency case), so the budget's assumed joint tolerance
+#: (``nominal_joint_std_deg``) is 0 here.
+PERFECT_WORLD_REDUCTION: dict[str, Any] = {
+    "geometry": "rig",
+    "grid": 6,
+    "max_region_spread_deg": REGION_SPREAD_DEG,
+    "nominal_joint_std_deg": 0.0,
+}
 
 
 # --------------------------------------------------------------------------------------
@@ -278,6 +297,7 @@ def run_demo(
     world: str = "perfect",
     world_seed: int = 0,
     figure_worker: bool = True,
+    overlap: bool = True,
 ) -> DemoResult:
     """Run capture, reduction and fit of a simulated session into ``out``.
 
@@ -290,20 +310,35 @@ def run_demo(
     on the calibrated rig and the reduction uses the calibrated camera.
     ``figure_worker``: draw the figures in a second process beside the main one
     (:mod:`gonio.app.demo_figures`); False: all in this process (the same files).
+    ``overlap``: render the capture's next poses and reduce its finished ones in two
+    processes beside it (:mod:`gonio.app.render_ahead`, :mod:`gonio.app.reduce_ahead`;
+    perfect world); False: the camera renders each pose when it shoots and the
+    reduction starts after the capture (the same files).
     """
 
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise SessionError(f"{out} exists and is not empty: choose a new --out (nothing touched)")
     from gonio.app.demo_figures import figure_worker as start_figures
+    from gonio.app.reduce_ahead import ReduceAhead
+    from gonio.app.render_ahead import RenderAhead
 
     t_all = time.perf_counter()
-    # Started first: its imports run beside the capture (see gonio.app.demo_figures).
-    with start_figures(enabled=figure_worker) as figures:
+    # Started first, before any thread: the figures' imports run beside the capture (see
+    # gonio.app.demo_figures); in a perfect world the capture's poses are rendered
+    # ahead (gonio.app.render_ahead) and reduced as they are done (gonio.app.
+    # reduce_ahead), both on the second core.  The reducer is forked before the
+    # renderer, which ends first: neither holds the other's pipe open.
+    overlap = overlap and world == "perfect"
+    with (
+        start_figures(enabled=figure_worker) as figures,
+        ReduceAhead(enabled=overlap) as reducer,
+        RenderAhead(enabled=overlap) as ahead,
+    ):
         return _run_demo(
             out, material, figures, t_all, seed=seed, n_poses=n_poses, width=width,
             height=height, model=model, quiet=quiet, say=say, time_scale=time_scale,
-            world=world, world_seed=world_seed,
+            world=world, world_seed=world_seed, render_ahead=ahead, reducer=reducer,
         )  # fmt: skip
 
 
@@ -323,6 +358,8 @@ def _run_demo(
     time_scale: float | str,
     world: str,
     world_seed: int,
+    render_ahead: Any = None,
+    reducer: Any = None,
 ) -> DemoResult:
     from gonio.app.simulation import run_simulated_session
     from gonio.capture.manifest import load_manifest
@@ -372,6 +409,10 @@ def _run_demo(
     session = out / "session"
     say(f"capturing into {session} (virtual servo bus on a pty, simulated camera)")
     t = time.perf_counter()
+    # The perfect world's poses are reduced as the capture finishes them, by the
+    # reducer process (gonio.app.reduce_ahead; the same files as a reduction after it).
+    live = calibration is None and reducer is not None and reducer.active
+    subscribers = [reducer.subscriber(session, **PERFECT_WORLD_REDUCTION)] if live else []
     # What 'gonio capture run plan.toml --rig rig.toml --camera simulated' does, through
     # the library: the API prints nothing, the demo says what it does through ``say``.
     run_simulated_session(
@@ -382,32 +423,22 @@ def _run_demo(
         world=None if world == "perfect" else world,
         world_seed=None if world == "perfect" else world_seed,
         quiet=quiet,
+        render_ahead=render_ahead,
+        subscribers=subscribers,
     )
+    if render_ahead is not None:
+        render_ahead.close()  # its core is the reduction's and the figures' from here
     say(f"session {session} completed")
     seconds["capture"] = time.perf_counter() - t
     say("reducing RAW brackets to BRDF samples")
     t = time.perf_counter()
-    # The simulated rig's geometry is exact, so the camera pose comes from the rig's
-    # read-back through its kinematics; the board checks it (flagging disagreements).
-    # From the board alone, a ~0.04 deg pose error per view at this resolution is a
-    # percent of BRDF on a lobe's flank, shared by the pose's regions.
-    # Regions of ~5 mm: a region's mean over its spread of directions flattens a lobe's
-    # peak in proportion to (spread / lobe width)^2; 6 x 6 regions, each trimmed to a
-    # spread of 0.3 deg from the camera and the light (~2.1 mm at normal view, the whole
-    # cell along the tilt of a grazing view), keep that below the noise for alpha >= 0.1.
-    if calibration is None:
-        setup = resolve_setup(session, load_manifest(session))
-        # = --geometry rig --grid 6 --max-region-spread-deg 0.3; the perfect world's rig is
-        # exactly its configuration (the demo's own statement about its simulated rig, a
-        # self-consistency case), so the budget's assumed joint tolerance
-        # (nominal_joint_std_deg) is 0 here
+    if live:
+        red = reducer.finish(plot=True)
+    elif calibration is None:
         setup = dataclasses.replace(
-            setup,
-            geometry="rig",
-            grid=6,
-            max_region_spread_deg=REGION_SPREAD_DEG,
-            nominal_joint_std_deg=0.0,
+            resolve_setup(session, load_manifest(session)), **PERFECT_WORLD_REDUCTION
         )
+        red = reduce_session(session, setup=setup, plot=True)
     else:
         # = --camera-calibration camera.toml --grid 6 --max-region-spread-deg 0.3: the
         # calibrated camera; each view's pose from the board where it shows enough of it
@@ -417,7 +448,7 @@ def _run_demo(
             session, load_manifest(session), camera_calibration=calibration.camera_file
         )
         setup = dataclasses.replace(setup, grid=6, max_region_spread_deg=REGION_SPREAD_DEG)
-    red = reduce_session(session, setup=setup, plot=True)
+        red = reduce_session(session, setup=setup, plot=True)
     seconds["reduce"] = time.perf_counter() - t
 
     say(f"fitting (model={model})")

@@ -78,6 +78,7 @@ def open_session_devices(
     scene: Mapping[str, Any] | None = None,
     scene_base: Path | None = None,
     light_spec: str | None = None,
+    render_ahead: Any = None,
 ) -> Iterator[SessionDevices]:
     """Open the rig, its kinematics and the camera a session asks for.
 
@@ -94,6 +95,10 @@ def open_session_devices(
     scene, scene_base
         The scene to render and the folder its paths start from (a new run: the user's
         files); by default the simulation record's scene, relative to the session.
+    render_ahead
+        A :class:`gonio.app.render_ahead.RenderAhead` worker (forked by the caller
+        before any thread): a simulated camera of a perfect world then has its next
+        poses rendered ahead on the second core (the same frames); None: no worker.
 
     Everything opened is closed on exit (torque off is the session finalizer's job and
     is repeated by the rig's own exit as a last resort).
@@ -199,6 +204,17 @@ def open_session_devices(
                 sleep=sleep if bus is not None else None,
             )
             stack.callback(camera.close)
+            if (
+                render_ahead is not None
+                and render_ahead.active
+                and bus is not None
+                and world.perfect
+                and not simulated_camera_kwargs(world)
+                and refl is not None
+            ):
+                camera = _rendered_ahead(
+                    camera, render_ahead, poses, rig, kin, request, refl, sleep
+                )
             from gonio.app.sim_reduction import CONFIG_FILE, reduction_document, reduction_toml_text
 
             # The reduction learns the simulated camera as a lab's reduction learns its
@@ -238,6 +254,36 @@ def open_session_devices(
         )
 
 
+def _rendered_ahead(
+    camera: Any,
+    ahead: Any,
+    poses: Callable[[], Any],
+    rig: Any,
+    kin: Any,
+    request: DeviceRequest,
+    reference_albedo: Any,
+    sleep: Callable[[float], None],
+) -> Any:
+    """``camera`` with its next poses rendered by ``ahead``'s worker
+    (:class:`gonio.app.render_ahead.RenderAheadCamera`): the schedule comes from the
+    session's manifest, written once the devices are open."""
+    from gonio.app.render_ahead import RenderAheadCamera, predicted_poses
+    from gonio.capture.manifest import load_manifest
+
+    def steps() -> list[dict[str, Any]]:
+        return list(load_manifest(request.session_dir).get("schedule") or [])
+
+    return RenderAheadCamera(
+        camera,
+        ahead,
+        poses,
+        steps,
+        lambda step: predicted_poses(rig, kin, step),
+        reference_albedo,
+        sleep,
+    )
+
+
 def _nominal_of(cfg: Any) -> Any:
     """The nominal rig a configuration describes (itself, unless it is a calibrated one)."""
     record = getattr(cfg, "calibration", None)
@@ -255,6 +301,7 @@ def device_opener(
     scene: Mapping[str, Any] | None = None,
     scene_base: Path | None = None,
     light_spec: str | None = None,
+    render_ahead: Any = None,
 ) -> DeviceOpener:
     """A device opener for :func:`gonio.capture.sessions.run_session` /
     :func:`~gonio.capture.sessions.resume_session` (see :func:`open_session_devices`)."""
@@ -267,6 +314,7 @@ def device_opener(
             scene=scene,
             scene_base=scene_base,
             light_spec=light_spec,
+            render_ahead=render_ahead,
         )
 
     return opener

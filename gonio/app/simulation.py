@@ -162,6 +162,7 @@ def simulated_run(
     time_scale: Any,
     world: str | None = None,
     world_seed: int | None = None,
+    render_ahead: Any = None,
 ) -> SimulatedRun:
     """Everything ``gonio capture run --camera simulated`` and the demo wire the same way.
 
@@ -177,6 +178,9 @@ def simulated_run(
         ``--world`` (``perfect``, ``realistic`` or a world TOML) and ``--world-seed``;
         None: the plan's ``[simulation] world``, else the scene's ``[world]``, else
         perfect.  The record holds the whole world, so resume rebuilds it.
+    render_ahead
+        A :class:`gonio.app.render_ahead.RenderAhead` worker for the camera (see
+        :func:`gonio.app.devices.open_session_devices`), or None.
     """
     from gonio.app.devices import device_opener
     from gonio.app.world_wiring import resolve_world
@@ -198,7 +202,12 @@ def simulated_run(
         "time_scale": time_scale,
         "world": world_document(the_world),
     }
-    opener = device_opener(scene=source.document, scene_base=source.base_dir, time_scale=time_scale)
+    opener = device_opener(
+        scene=source.document,
+        scene_base=source.base_dir,
+        time_scale=time_scale,
+        render_ahead=render_ahead,
+    )
     return SimulatedRun(simulation, attachments, opener)
 
 
@@ -212,12 +221,16 @@ def run_simulated_session(
     world: str | None = None,
     world_seed: int | None = None,
     quiet: bool = False,
+    render_ahead: Any = None,
+    subscribers: Any = (),
 ) -> None:
     """Capture ``plan_path`` on the simulated rig of ``rig_path`` into ``session``.
 
     What ``gonio capture run PLAN --rig RIG --camera simulated`` does, through the
     library (for the demo): the API prints nothing, a progress bar shows unless
-    ``quiet``.  ``scene_path``, ``world``, ``world_seed``: as :func:`simulated_run`.
+    ``quiet``.  ``scene_path``, ``world``, ``world_seed``, ``render_ahead``: as
+    :func:`simulated_run`; ``subscribers`` receive every document after the progress
+    bar.
     """
     from gonio.app.progress import SessionProgress
     from gonio.capture.plan import load_plan
@@ -226,7 +239,7 @@ def run_simulated_session(
 
     plan = load_plan(plan_path)
     cfg = load_rig_config(rig_path)
-    sim = simulated_run(plan, plan_path, scene_path, time_scale, world, world_seed)
+    sim = simulated_run(plan, plan_path, scene_path, time_scale, world, world_seed, render_ahead)
     with SessionProgress(quiet) as progress:
         run_session(
             session,
@@ -237,5 +250,5 @@ def run_simulated_session(
             dry_run=plan_session(plan, cfg),
             simulation=sim.simulation,
             attachments=sim.attachments,
-            subscribers=[progress],
+            subscribers=[progress, *subscribers],
         )
