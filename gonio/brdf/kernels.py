@@ -61,6 +61,8 @@ FRESNEL_CODES = {"none": 0, "schlick": 1, "conductor": 2, "dielectric": 3}
 _INV_PI = 1.0 / math.pi
 _INV_2SQRTPI = 0.5 / math.sqrt(math.pi)
 _HALF_PI = 0.5 * math.pi
+_INV_HALF_PI = 1.0 / _HALF_PI  # gonio.brdf.rgl's reciprocals of constants
+_INV_2PI = 0.5 / math.pi
 
 _JIT = {"cache": True, "fastmath": False, "error_model": "numpy", "nogil": True}
 
@@ -462,13 +464,13 @@ def _rgl_block(
             rel = phi_m - phi_i if isotropic else phi_m
             if relative_only:
                 phi_i = 0.0
-        um_y = (rel + math.pi) / (2 * math.pi)
+        um_y = (rel + math.pi) * _INV_2PI
         um_y -= math.floor(um_y)
         f[0, j] = theta_i
         f[1, j] = phi_i
-        f[2, j] = math.sqrt(theta_i / _HALF_PI)  # u_wi
-        f[3, j] = (phi_i + math.pi) / (2 * math.pi)
-        f[4, j] = math.sqrt(theta_m / _HALF_PI)  # u_m
+        f[2, j] = math.sqrt(theta_i * _INV_HALF_PI)  # u_wi
+        f[3, j] = (phi_i + math.pi) * _INV_2PI
+        f[4, j] = math.sqrt(theta_m * _INV_HALF_PI)  # u_m
         f[5, j] = um_y
     # 2. (phi_i, theta_i) slices and weights (_Slices); the VNDF cell
     for j in range(nb):
@@ -503,6 +505,8 @@ def _rgl_block(
         g[10, j] = rec64[h + _U6]
         g[11, j] = rec64[h + _U7]
     # 4. inverse VNDF warp (_invert_vndf) -> the sample-space cell
+    inv_w1 = 1.0 / (vw - 1)
+    inv_h1 = 1.0 / (vh - 1)
     for j in range(nb):
         s0 = k[0, j]
         cy = k[3, j]
@@ -540,10 +544,10 @@ def _rgl_block(
             marg_prev = marg_prev + w2 * rows[cy, s2, 2] + w3 * rows[cy, s2 + 1, 2]
         c0 = v00 + (v01 - v00) * fy
         c1 = v10 + (v11 - v10) * fy
-        s_x = fx * (c0 + (c1 - c0) * 0.5 * fx) / (vw - 1) + prev0 + (prev1 - prev0) * fy
+        s_x = fx * (c0 + (c1 - c0) * 0.5 * fx) * inv_w1 + prev0 + (prev1 - prev0) * fy
         row = r0 + (r1 - r0) * fy
         s_x = s_x / row if row > 0 else fx
-        s_y = fy * (r0 + (r1 - r0) * 0.5 * fy) / (vh - 1) + marg_prev
+        s_y = fy * (r0 + (r1 - r0) * 0.5 * fy) * inv_h1 + marg_prev
         cx, cy, fx, fy = _cell(s_x, s_y, rx, ry)
         k[4, j] = cy * (rx - 1) + cx
         f[11, j] = fx
@@ -574,7 +578,7 @@ def _rgl_block(
             scale = _bilinear(ndf, f[4, j], f[5, j]) / (4.0 * _bilinear(sigma, f[2, j], f[3, j]))
         flag = k[5, j]
         masked = 0.0 if flag == 1 else np.nan
-        woz = f[6, j]
+        inv_z = 1.0 / f[6, j]  # one division for all channels, as the numpy path
         if n_ch == 3 and n_p == 1:
             # RGB, isotropic: channels padded to 4 (lane 3 is computed and dropped), the
             # same operations on four adjacent values, which LLVM's SLP pass packs into
@@ -612,10 +616,10 @@ def _rgl_block(
             v3 += c10 * x13
             v3 += c01 * x23
             v3 += c11 * x33
-            v0 = v0 * scale / woz
-            v1 = v1 * scale / woz
-            v2 = v2 * scale / woz
-            v3 = v3 * scale / woz
+            v0 = v0 * scale * inv_z
+            v1 = v1 * scale * inv_z
+            v2 = v2 * scale * inv_z
+            v3 = v3 * scale * inv_z
             out[b0 + j, 0] = v0 if flag == 0 else masked
             out[b0 + j, 1] = v1 if flag == 0 else masked
             out[b0 + j, 2] = v2 if flag == 0 else masked
@@ -643,7 +647,7 @@ def _rgl_block(
             v += c01 * a2
             v += c11 * a3
             v = v * scale
-            out[b0 + j, ch] = v / woz if flag == 0 else masked
+            out[b0 + j, ch] = v * inv_z if flag == 0 else masked
 
 
 @njit(**_JIT, parallel=True)
@@ -679,6 +683,6 @@ def rgl_eval(
             b0 = blk * _RGL_BLOCK
             _rgl_block(
                 wi, wo, b0, min(b0 + _RGL_BLOCK, n), phi_vals, theta_vals, n_t2, rec32, rec64,
-                rows, spec, spec_stride, ndf, sigma, vh, vw, ry, rx, reduction, isotropic, relative_only,
-                jacobian, atan_table, out, f, k, g,
+                rows, spec, spec_stride, ndf, sigma, vh, vw, ry, rx, reduction, isotropic,
+                relative_only, jacobian, atan_table, out, f, k, g,
             )  # fmt: skip
