@@ -61,6 +61,8 @@ FRESNEL_CODES = {"none": 0, "schlick": 1, "conductor": 2, "dielectric": 3}
 _INV_PI = 1.0 / math.pi
 _INV_2SQRTPI = 0.5 / math.sqrt(math.pi)
 _HALF_PI = 0.5 * math.pi
+_INV_HALF_PI = 1.0 / _HALF_PI  # gonio.brdf.rgl's reciprocals of constants
+_INV_2PI = 0.5 / math.pi
 
 _JIT = {"cache": True, "fastmath": False, "error_model": "numpy", "nogil": True}
 
@@ -315,6 +317,10 @@ def ggx_hot_serial(wi, wo, ks, alpha, out):
 #   in L2), the two theta_i slices one look-up blends side by side.
 
 _RGL_BLOCK = 64
+# unsigned offsets: numba indexes with them without the negative-index wraparound select
+_U1, _U2, _U3, _U4, _U5, _U6, _U7, _U8, _U9, _U10, _U11, _U12, _U13, _U14, _U15 = (
+    np.uint64(i) for i in range(1, 16)
+)
 # prange iterations (each with its scratch): get_num_threads() would keep the code uncached
 _RGL_CHUNKS = 64
 
@@ -357,12 +363,13 @@ def _bilinear(table, u, v):
 
 @njit(**_JIT)
 def _rgl_block(
-    wi, wo, b0, b1, phi_vals, theta_vals, n_t2, cdf, vndf, rows, spec, ndf, sigma,
+    wi, wo, b0, b1, phi_vals, theta_vals, n_t2, rec32, rec64, rows, spec, spec_stride, ndf, sigma,
     vh, vw, ry, rx, reduction, isotropic, relative_only, jacobian, atan_table, out, f, k, g,
 ):  # fmt: skip
     """Pairs ``b0 .. b1`` (at most _RGL_BLOCK); ``f``, ``k``, ``g`` are scratch."""
     nb = b1 - b0
     n_p = phi_vals.size
+    n_s = n_p * n_t2  # slices
     n_ch = out.shape[1]
     # 1. directions -> angles -> unit-square coordinates.  The four arctangents of a pair
     # go through passes of their own (arguments; reduction to [0, 1] and table index;
@@ -457,13 +464,13 @@ def _rgl_block(
             rel = phi_m - phi_i if isotropic else phi_m
             if relative_only:
                 phi_i = 0.0
-        um_y = (rel + math.pi) / (2 * math.pi)
+        um_y = (rel + math.pi) * _INV_2PI
         um_y -= math.floor(um_y)
         f[0, j] = theta_i
         f[1, j] = phi_i
-        f[2, j] = math.sqrt(theta_i / _HALF_PI)  # u_wi
-        f[3, j] = (phi_i + math.pi) / (2 * math.pi)
-        f[4, j] = math.sqrt(theta_m / _HALF_PI)  # u_m
+        f[2, j] = math.sqrt(theta_i * _INV_HALF_PI)  # u_wi
+        f[3, j] = (phi_i + math.pi) * _INV_2PI
+        f[4, j] = math.sqrt(theta_m * _INV_HALF_PI)  # u_m
         f[5, j] = um_y
     # 2. (phi_i, theta_i) slices and weights (_Slices); the VNDF cell
     for j in range(nb):
@@ -480,25 +487,26 @@ def _rgl_block(
         k[3, j] = cy
         f[11, j] = fx
         f[12, j] = fy
-    # 3. gather the patch entries of the two theta_i slices (a loop of loads only)
+    # 3. gather the patch entries of the two theta_i slices (a loop of loads only): one
+    # 32-byte record per (VNDF cell, slice), the two slices side by side
     for j in range(nb):
-        s0 = k[0, j]
-        c = k[2, j]
-        y = k[3, j]
-        x = c - y * (vw - 1)
-        g[0, j] = vndf[y, x, s0]
-        g[6, j] = vndf[y, x, s0 + 1]
-        g[1, j] = vndf[y, x + 1, s0]
-        g[7, j] = vndf[y, x + 1, s0 + 1]
-        g[2, j] = vndf[y + 1, x, s0]
-        g[8, j] = vndf[y + 1, x, s0 + 1]
-        g[3, j] = vndf[y + 1, x + 1, s0]
-        g[9, j] = vndf[y + 1, x + 1, s0 + 1]
-        g[4, j] = cdf[y, x, s0]
-        g[10, j] = cdf[y, x, s0 + 1]
-        g[5, j] = cdf[y + 1, x, s0]
-        g[11, j] = cdf[y + 1, x, s0 + 1]
+        q = np.uint64((k[2, j] * n_s + k[0, j]) * 8)  # float32 slot of (cell, s0)
+        h = q >> _U1  # its float64 slot
+        g[0, j] = rec32[q]
+        g[1, j] = rec32[q + _U1]
+        g[2, j] = rec32[q + _U2]
+        g[3, j] = rec32[q + _U3]
+        g[4, j] = rec64[h + _U2]
+        g[5, j] = rec64[h + _U3]
+        g[6, j] = rec32[q + _U8]
+        g[7, j] = rec32[q + _U9]
+        g[8, j] = rec32[q + _U10]
+        g[9, j] = rec32[q + _U11]
+        g[10, j] = rec64[h + _U6]
+        g[11, j] = rec64[h + _U7]
     # 4. inverse VNDF warp (_invert_vndf) -> the sample-space cell
+    inv_w1 = 1.0 / (vw - 1)
+    inv_h1 = 1.0 / (vh - 1)
     for j in range(nb):
         s0 = k[0, j]
         cy = k[3, j]
@@ -519,36 +527,44 @@ def _rgl_block(
         marg_prev = w0 * rows[cy, s0, 2] + w1 * rows[cy, s0 + 1, 2]
         if n_p > 1:
             s2 = k[1, j]
-            x = k[2, j] - cy * (vw - 1)
             w2 = f[9, j]
             w3 = f[10, j]
             n2 = rows[cy, s2, 3]
             n3 = rows[cy, s2 + 1, 3]
-            v00 = v00 + w2 * (vndf[cy, x, s2] * n2) + w3 * (vndf[cy, x, s2 + 1] * n3)
-            v10 = v10 + w2 * (vndf[cy, x + 1, s2] * n2) + w3 * (vndf[cy, x + 1, s2 + 1] * n3)
-            v01 = v01 + w2 * (vndf[cy + 1, x, s2] * n2) + w3 * (vndf[cy + 1, x, s2 + 1] * n3)
-            v11 = v11 + w2 * (vndf[cy + 1, x + 1, s2] * n2) + w3 * (
-                vndf[cy + 1, x + 1, s2 + 1] * n3
-            )
-            prev0 = prev0 + w2 * cdf[cy, x, s2] + w3 * cdf[cy, x, s2 + 1]
-            prev1 = prev1 + w2 * cdf[cy + 1, x, s2] + w3 * cdf[cy + 1, x, s2 + 1]
+            q = np.uint64((k[2, j] * n_s + s2) * 8)
+            h = q >> _U1
+            v00 = v00 + w2 * (rec32[q] * n2) + w3 * (rec32[q + _U8] * n3)
+            v10 = v10 + w2 * (rec32[q + _U1] * n2) + w3 * (rec32[q + _U9] * n3)
+            v01 = v01 + w2 * (rec32[q + _U2] * n2) + w3 * (rec32[q + _U10] * n3)
+            v11 = v11 + w2 * (rec32[q + _U3] * n2) + w3 * (rec32[q + _U11] * n3)
+            prev0 = prev0 + w2 * rec64[h + _U2] + w3 * rec64[h + _U6]
+            prev1 = prev1 + w2 * rec64[h + _U3] + w3 * rec64[h + _U7]
             r0 = r0 + w2 * rows[cy, s2, 0] + w3 * rows[cy, s2 + 1, 0]
             r1 = r1 + w2 * rows[cy, s2, 1] + w3 * rows[cy, s2 + 1, 1]
             marg_prev = marg_prev + w2 * rows[cy, s2, 2] + w3 * rows[cy, s2 + 1, 2]
         c0 = v00 + (v01 - v00) * fy
         c1 = v10 + (v11 - v10) * fy
-        s_x = fx * (c0 + (c1 - c0) * 0.5 * fx) / (vw - 1) + prev0 + (prev1 - prev0) * fy
+        s_x = fx * (c0 + (c1 - c0) * 0.5 * fx) * inv_w1 + prev0 + (prev1 - prev0) * fy
         row = r0 + (r1 - r0) * fy
         s_x = s_x / row if row > 0 else fx
-        s_y = fy * (r0 + (r1 - r0) * 0.5 * fy) / (vh - 1) + marg_prev
+        s_y = fy * (r0 + (r1 - r0) * 0.5 * fy) * inv_h1 + marg_prev
         cx, cy, fx, fy = _cell(s_x, s_y, rx, ry)
         k[4, j] = cy * (rx - 1) + cx
         f[11, j] = fx
         f[12, j] = fy
-    # 5. bilinear over the sample-space position, multilinear over (phi_i, theta_i)
+    # 5. bilinear over the sample-space position, multilinear over (phi_i, theta_i): one
+    # record of ps float32 per (cell, slice), the corners of every channel (corner-major)
+    ps = np.uint64(spec_stride)
+    # First only touch the two lines of every pair's records: a loop of independent loads
+    # keeps many cache misses in flight, while the loop below, ~150 instructions a pair,
+    # would wait for each in turn (the table does not stay in L2 beside the VNDF's).
+    touch = 0.0
     for j in range(nb):
-        s0 = k[0, j]
-        c = k[4, j]
+        q = np.uint64((k[4, j] * n_s + k[0, j]) * spec_stride)
+        touch += spec[q] + spec[q + ps]
+    g[0, 0] = touch  # keeps the loads (g is scratch, free again here)
+    for j in range(nb):
+        q = np.uint64((k[4, j] * n_s + k[0, j]) * spec_stride)
         w0 = f[7, j]
         w1 = f[8, j]
         fx = f[11, j]
@@ -557,38 +573,86 @@ def _rgl_block(
         c10 = fx * (1 - fy)
         c01 = (1 - fx) * fy
         c11 = fx * fy
-        scale = 1.0
+        scale = 1.0  # v * 1.0 == v: no branch on jacobian below
         if jacobian:
             scale = _bilinear(ndf, f[4, j], f[5, j]) / (4.0 * _bilinear(sigma, f[2, j], f[3, j]))
-        if k[5, j] != 0:
-            for ch in range(n_ch):
-                out[b0 + j, ch] = 0.0 if k[5, j] == 1 else np.nan
+        flag = k[5, j]
+        masked = 0.0 if flag == 1 else np.nan
+        inv_z = 1.0 / f[6, j]  # one division for all channels, as the numpy path
+        if n_ch == 3 and n_p == 1:
+            # RGB, isotropic: channels padded to 4 (lane 3 is computed and dropped), the
+            # same operations on four adjacent values, which LLVM's SLP pass packs into
+            # vector instructions (no loop, no branch)
+            q1 = q + ps
+            x00 = w0 * spec[q] + w1 * spec[q1]
+            x01 = w0 * spec[q + _U1] + w1 * spec[q1 + _U1]
+            x02 = w0 * spec[q + _U2] + w1 * spec[q1 + _U2]
+            x03 = w0 * spec[q + _U3] + w1 * spec[q1 + _U3]
+            x10 = w0 * spec[q + _U4] + w1 * spec[q1 + _U4]
+            x11 = w0 * spec[q + _U5] + w1 * spec[q1 + _U5]
+            x12 = w0 * spec[q + _U6] + w1 * spec[q1 + _U6]
+            x13 = w0 * spec[q + _U7] + w1 * spec[q1 + _U7]
+            x20 = w0 * spec[q + _U8] + w1 * spec[q1 + _U8]
+            x21 = w0 * spec[q + _U9] + w1 * spec[q1 + _U9]
+            x22 = w0 * spec[q + _U10] + w1 * spec[q1 + _U10]
+            x23 = w0 * spec[q + _U11] + w1 * spec[q1 + _U11]
+            x30 = w0 * spec[q + _U12] + w1 * spec[q1 + _U12]
+            x31 = w0 * spec[q + _U13] + w1 * spec[q1 + _U13]
+            x32 = w0 * spec[q + _U14] + w1 * spec[q1 + _U14]
+            x33 = w0 * spec[q + _U15] + w1 * spec[q1 + _U15]
+            v0 = c00 * x00
+            v0 += c10 * x10
+            v0 += c01 * x20
+            v0 += c11 * x30
+            v1 = c00 * x01
+            v1 += c10 * x11
+            v1 += c01 * x21
+            v1 += c11 * x31
+            v2 = c00 * x02
+            v2 += c10 * x12
+            v2 += c01 * x22
+            v2 += c11 * x32
+            v3 = c00 * x03
+            v3 += c10 * x13
+            v3 += c01 * x23
+            v3 += c11 * x33
+            v0 = v0 * scale * inv_z
+            v1 = v1 * scale * inv_z
+            v2 = v2 * scale * inv_z
+            v3 = v3 * scale * inv_z
+            out[b0 + j, 0] = v0 if flag == 0 else masked
+            out[b0 + j, 1] = v1 if flag == 0 else masked
+            out[b0 + j, 2] = v2 if flag == 0 else masked
             continue
+        q2 = np.uint64((k[4, j] * n_s + k[1, j]) * spec_stride)
+        w2 = f[9, j]
+        w3 = f[10, j]
+        cs = 4 if n_ch == 3 else n_ch  # channel slots per corner (RGBRDF.kernel_tables)
         for ch in range(n_ch):
-            a0 = w0 * spec[c, s0, ch] + w1 * spec[c, s0 + 1, ch]
-            a1 = w0 * spec[c, s0, n_ch + ch] + w1 * spec[c, s0 + 1, n_ch + ch]
-            a2 = w0 * spec[c, s0, 2 * n_ch + ch] + w1 * spec[c, s0 + 1, 2 * n_ch + ch]
-            a3 = w0 * spec[c, s0, 3 * n_ch + ch] + w1 * spec[c, s0 + 1, 3 * n_ch + ch]
+            e0 = np.uint64(ch)
+            e1 = np.uint64(cs + ch)
+            e2 = np.uint64(2 * cs + ch)
+            e3 = np.uint64(3 * cs + ch)
+            a0 = w0 * spec[q + e0] + w1 * spec[q + ps + e0]
+            a1 = w0 * spec[q + e1] + w1 * spec[q + ps + e1]
+            a2 = w0 * spec[q + e2] + w1 * spec[q + ps + e2]
+            a3 = w0 * spec[q + e3] + w1 * spec[q + ps + e3]
             if n_p > 1:
-                s2 = k[1, j]
-                w2 = f[9, j]
-                w3 = f[10, j]
-                a0 = a0 + w2 * spec[c, s2, ch] + w3 * spec[c, s2 + 1, ch]
-                a1 = a1 + w2 * spec[c, s2, n_ch + ch] + w3 * spec[c, s2 + 1, n_ch + ch]
-                a2 = a2 + w2 * spec[c, s2, 2 * n_ch + ch] + w3 * spec[c, s2 + 1, 2 * n_ch + ch]
-                a3 = a3 + w2 * spec[c, s2, 3 * n_ch + ch] + w3 * spec[c, s2 + 1, 3 * n_ch + ch]
+                a0 = a0 + w2 * spec[q2 + e0] + w3 * spec[q2 + ps + e0]
+                a1 = a1 + w2 * spec[q2 + e1] + w3 * spec[q2 + ps + e1]
+                a2 = a2 + w2 * spec[q2 + e2] + w3 * spec[q2 + ps + e2]
+                a3 = a3 + w2 * spec[q2 + e3] + w3 * spec[q2 + ps + e3]
             v = c00 * a0
             v += c10 * a1
             v += c01 * a2
             v += c11 * a3
-            if jacobian:
-                v = v * scale
-            out[b0 + j, ch] = v / f[6, j]
+            v = v * scale
+            out[b0 + j, ch] = v * inv_z if flag == 0 else masked
 
 
 @njit(**_JIT, parallel=True)
 def rgl_eval(
-    wi, wo, phi_vals, theta_vals, n_t2, cdf, vndf, rows, spec, ndf, sigma,
+    wi, wo, phi_vals, theta_vals, n_t2, rec32, rec64, rows, spec, spec_stride, ndf, sigma,
     vh, vw, ry, rx, reduction, isotropic, relative_only, jacobian, atan_table, out,
 ):  # fmt: skip
     """``f_r`` (1/sr) of an RGL measured BRDF for ``(N, 3)`` pairs: 0 where either
@@ -618,7 +682,7 @@ def rgl_eval(
         for blk in range(chunk * n_blocks // n_chunks, (chunk + 1) * n_blocks // n_chunks):
             b0 = blk * _RGL_BLOCK
             _rgl_block(
-                wi, wo, b0, min(b0 + _RGL_BLOCK, n), phi_vals, theta_vals, n_t2, cdf, vndf,
-                rows, spec, ndf, sigma, vh, vw, ry, rx, reduction, isotropic, relative_only,
-                jacobian, atan_table, out, f, k, g,
+                wi, wo, b0, min(b0 + _RGL_BLOCK, n), phi_vals, theta_vals, n_t2, rec32, rec64,
+                rows, spec, spec_stride, ndf, sigma, vh, vw, ry, rx, reduction, isotropic,
+                relative_only, jacobian, atan_table, out, f, k, g,
             )  # fmt: skip

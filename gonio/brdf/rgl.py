@@ -48,6 +48,10 @@ __all__ = ["RGLBRDF", "read_rgl"]
 Array = NDArray[np.float64]
 
 _HALF_PI = 0.5 * np.pi
+# Divisions by constants are multiplications by their reciprocals in both paths (within an
+# ulp of the quotient; a division costs ~4x a multiplication in the kernel's throughput).
+_INV_HALF_PI = 1.0 / _HALF_PI
+_INV_2PI = 0.5 / np.pi
 # Batch sizes for the numba kernel (see gonio.brdf.microfacet for the same two thresholds).
 _MIN_FUSED = 4096
 _FIRST_FUSED = 100_000
@@ -328,10 +332,10 @@ class RGLBRDF:
             phi_m = _atan2(m[:, 1], m[:, 0])
             rel = phi_m - phi_i if self.isotropic else phi_m
 
-        u_wi = (np.sqrt(theta_i / _HALF_PI), (phi_i + np.pi) / (2 * np.pi))
-        um_y = (rel + np.pi) / (2 * np.pi)
+        u_wi = (np.sqrt(theta_i * _INV_HALF_PI), (phi_i + np.pi) * _INV_2PI)
+        um_y = (rel + np.pi) * _INV_2PI
         um_y -= np.floor(um_y)
-        u_m = (np.sqrt(theta_m / _HALF_PI), um_y)
+        u_m = (np.sqrt(theta_m * _INV_HALF_PI), um_y)
 
         sl = _Slices(self.phi_i, self.theta_i, phi_i, theta_i)
         sx_, sy_ = self._invert_vndf(sl, *u_m)
@@ -353,7 +357,7 @@ class RGLBRDF:
             ndf = _bilinear(self._ndf, *u_m)
             sigma = _bilinear(self._sigma, *u_wi)
             spec = spec * (ndf / (4.0 * sigma))[:, None]
-        return spec / wo[:, 2:3]
+        return spec * (1.0 / wo[:, 2:3])  # one division for all channels
 
     def _eval_fused(self, wi: Array, wo: Array) -> Array | None:
         """``eval_channels`` of flat pairs by the numba kernel of :mod:`gonio.brdf.kernels`
@@ -398,31 +402,65 @@ class RGLBRDF:
         Slices last, so that the two theta_i slices a pair blends are adjacent (slice
         ``s`` and ``s + 1``; theta_i is padded to two slices when the file has one);
         values the file holds in float32 stay float32 (exact), the derived CDFs float64.
-        Returns ``(n_t2, cdf, vndf, rows, spec, ndf, sigma)``, see ``rgl_eval``.
+        What one pair reads is packed in records, so that a pair touches one or two cache
+        lines per table instead of one per value (the tables do not fit in L2: the
+        gathers' cache misses were the kernel's largest cost):
+
+        - ``rec32`` / ``rec64``: two views of one 64-byte-aligned buffer of 32-byte
+          records, one per (VNDF cell, slice): float32 slots 0-3 the cell's corner
+          densities (00, 10, 01, 11, as in the file), float64 slots 2-3 the normalised
+          conditional CDF before the cell in its lower and upper row;
+        - ``rows[y, slice]``: the two row totals of row ``y``'s patches, the marginal CDF
+          before the row and the slice's normalisation;
+        - ``spec``: per (RGB cell, slice) a record of ``spec_stride`` float32 (a multiple
+          of 16: 64-byte lines), the four corners of every channel, corner-major (RGB
+          with a fourth, zero channel: the kernel's vector lanes).
+
+        Returns ``(n_t2, rec32, rec64, rows, spec, spec_stride, ndf, sigma)``.
         """
         n_p, n_t = self.phi_i.size, self.theta_i.size
         n_t2 = max(n_t, 2)
         # slice index of the kernel's tables -> slice of the numpy tables
         src = (np.arange(n_p)[:, None] * n_t + np.minimum(np.arange(n_t2), n_t - 1)).ravel()
+        n_s = src.size
         h, w = self._vndf_shape
-        raw = self._vndf_raw.reshape(n_p * n_t, h, w)[src]
-        vndf = np.ascontiguousarray(raw.transpose(1, 2, 0))  # (h, w, slices) float32
+        vndf = self._vndf_raw.reshape(n_p * n_t, h, w)[src].transpose(1, 2, 0)  # (h, w, s)
         # conditional CDF before each column: the packed patches' lower rows, and the
         # upper row of the last patch row for the top VNDF row
-        lower = self._patch[4][src].reshape(src.size, h - 1, w - 1)
-        upper = self._patch[5][src].reshape(src.size, h - 1, w - 1)
-        cdf = np.empty((h, w - 1, src.size))
+        lower = self._patch[4][src].reshape(n_s, h - 1, w - 1)
+        upper = self._patch[5][src].reshape(n_s, h - 1, w - 1)
+        cdf = np.empty((h, w - 1, n_s))
         cdf[:-1] = lower.transpose(1, 2, 0)
         cdf[-1] = upper[:, -1].T
+        n_cells = (h - 1) * (w - 1)
+        buf = _aligned_bytes(n_cells * n_s * 32)
+        rec32 = buf.view(np.float32)
+        rec64 = buf.view(np.float64)
+        r32 = rec32.reshape(h - 1, w - 1, n_s, 8)
+        r64 = rec64.reshape(h - 1, w - 1, n_s, 4)
+        r32[..., 0] = vndf[:-1, :-1]
+        r32[..., 1] = vndf[:-1, 1:]
+        r32[..., 2] = vndf[1:, :-1]
+        r32[..., 3] = vndf[1:, 1:]
+        r64[..., 2] = cdf[:-1]
+        r64[..., 3] = cdf[1:]
         first = np.arange(h - 1) * (w - 1)  # the first patch of each VNDF row
-        rows = np.empty((h - 1, src.size, 4))
+        rows = np.empty((h - 1, n_s, 4))
         for j, r in enumerate((6, 7, 8)):
             rows[:, :, j] = self._patch[r][src][:, first].T
         rows[:, :, 3] = self._vndf_norm[src][None, :]
-        spec = np.ascontiguousarray(self._spec[:, src, :].transpose(2, 1, 0).astype(np.float32))
+        n_ch = self._n_ch
+        cs = 4 if n_ch == 3 else n_ch  # RGB padded to 4 channel slots per corner
+        corners = self._spec[:, src, :].transpose(2, 1, 0)  # (cells, slices, 4 n_ch)
+        n_rc = corners.shape[0]
+        stride = -(-4 * cs // 16) * 16
+        spec = _aligned_bytes(n_rc * n_s * stride * 4).view(np.float32)
+        spec[:] = 0.0
+        rec = spec.reshape(n_rc, n_s, stride)[..., : 4 * cs].reshape(n_rc, n_s, 4, cs)
+        rec[..., :n_ch] = corners.reshape(n_rc, n_s, 4, n_ch)
         ndf = np.ascontiguousarray(self._ndf.reshape(self._ndf.shape[-2:]))
         sigma = np.ascontiguousarray(self._sigma.reshape(self._sigma.shape[-2:]))
-        return n_t2, cdf, vndf, rows, spec, ndf, sigma
+        return n_t2, rec32, rec64, rows, spec, stride, ndf, sigma
 
     def _invert_vndf(self, sl: _Slices, ux: Array, uy: Array) -> tuple[Array, Array]:
         """Inverse of the continuous marginal/conditional warp of the VNDF table.
@@ -450,11 +488,11 @@ class RGLBRDF:
         c1 = v10 + (v11 - v10) * fy
         # integral of the linear segment c0 -> c1 over [0, fx] (patch width 1/(w-1)), plus
         # the whole patches to the left of it in this row (blend of the bounding rows)
-        sx = fx * (c0 + (c1 - c0) * 0.5 * fx) / (w - 1) + prev0 + (prev1 - prev0) * fy
+        sx = fx * (c0 + (c1 - c0) * 0.5 * fx) * (1.0 / (w - 1)) + prev0 + (prev1 - prev0) * fy
         row = r0 + (r1 - r0) * fy
         with np.errstate(invalid="ignore", divide="ignore"):
             sx = np.where(row > 0, sx / row, fx)
-        sy = fy * (r0 + (r1 - r0) * 0.5 * fy) / (h - 1) + marg_prev
+        sy = fy * (r0 + (r1 - r0) * 0.5 * fy) * (1.0 / (h - 1)) + marg_prev
         return sx, sy
 
     # ------------------------------------------------------------------ integrals
@@ -516,6 +554,14 @@ def _patch_table(vndf: Array, cond: Array, marg: Array) -> Array:
         np.broadcast_to(mprev[:, :, None], shape),
     ]
     return np.ascontiguousarray(np.stack(parts, axis=-1))
+
+
+def _aligned_bytes(n: int, align: int = 64) -> NDArray[np.uint8]:
+    """``n`` bytes starting on an ``align``-byte boundary (a cache line): numpy aligns to
+    16 only, and a record that straddles two lines costs two cache misses."""
+    raw = np.empty(n + align, np.uint8)
+    off = -raw.ctypes.data % align
+    return raw[off : off + n]
 
 
 _REQUIRED = ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance", "description", "jacobian")
