@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sim_sessions import REFERENCE_NORMAL, REFERENCE_OBLIQUE, grid_plan, scene_toml
 
 from gonio.atomic import stale_temporaries
 from gonio.capture.reduce import output_lock
@@ -33,66 +34,21 @@ from gonio.rig.config import virtual_rig_document
 pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
 
 MIN_KILLS = 20
-TESTS = Path(__file__).resolve().parents[1]
-
-
-_PLAN = """
-name = "reduce-test"
-seed = 5
-[grid]
-theta_i_deg = [20, 40]
-phi_i_deg = [0]
-theta_o_deg = [30, 50]
-phi_o_deg = [180]
-[bracket]
-policy = "adaptive"
-roi = [0.42, 0.42, 0.58, 0.58]
-exposure_time_s = 0.0005
-[darks]
-count = 2
-[reference]
-poses = [{theta_i_deg = 0, theta_o_deg = 30}, {theta_i_deg = 30, theta_o_deg = 30, phi_o_deg = 180}]
-[simulation]
-scene = "scene.toml"
-"""
-
-_SCENE = """
-[sample]
-width = 0.05
-height = 0.05
-[sample.brdf]
-model = "lambert"
-params = { albedo = [0.6, 0.5, 0.4] }
-[holder]
-width = 0.16
-height = 0.16
-[holder.board]
-[[lights]]
-type = "disk"
-position = [0.0, 0.25, 0.433]
-look_at = [0.0, 0.0, 0.0]
-radius = 0.01
-radiance = [2.0e4, 2.0e4, 2.0e4]
-[camera]
-resolution = [400, 300]
-focal_length = 0.016
-fov_deg = 30.0
-position = [0.1, -0.2, 0.35]
-look_at = [0.0, 0.0, 0.0]
-[render]
-strategy = "quadrature"
-quadrature_order = 1
-"""
 
 
 def _reduce_test_documents() -> tuple[str, str]:
-    """The reduction tests' plan and scene (a lambertian sample the reduction measures),
-    cut to two sample poses at 320 x 240 so that a reduction takes a fraction of a second."""
-    plan, scene = _PLAN, _SCENE
-    plan = plan.replace("theta_o_deg = [30, 50]", "theta_o_deg = [30]")
-    scene = scene.replace("resolution = [400, 300]", "resolution = [320, 240]")
-    assert "theta_o_deg = [30]" in plan and "[320, 240]" in scene
-    return plan, scene
+    """The reduction tests' plan and scene (a lambertian sample the reduction measures, from
+    the shared session factory), cut to two sample poses at 320 x 240 so that a reduction
+    takes a fraction of a second."""
+    plan = grid_plan(
+        "reduce-test",
+        seed=5,
+        theta_i_deg=[20, 40],
+        theta_o_deg=[30],
+        darks=2,
+        references=[REFERENCE_NORMAL, REFERENCE_OBLIQUE],
+    )
+    return plan, scene_toml(resolution=(320, 240))
 
 
 @pytest.fixture(scope="module")
