@@ -12,16 +12,14 @@ process that died) :meth:`ReduceAhead.finish` reduces the session here.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import multiprocessing
 import os
 import signal
-import sys
 import warnings
 from pathlib import Path
 from typing import Any
 
+from gonio.app.forked_server import ForkedServer
 from gonio.errors import GonioError
 
 __all__ = ["ENV", "ReduceAhead"]
@@ -90,7 +88,7 @@ def _serve(conn: Any) -> None:
     os._exit(0)
 
 
-class ReduceAhead(contextlib.AbstractContextManager):
+class ReduceAhead(ForkedServer):
     """A forked process that reduces a session's poses while it is captured.
 
     Parameters
@@ -100,26 +98,9 @@ class ReduceAhead(contextlib.AbstractContextManager):
     """
 
     def __init__(self, enabled: bool = True) -> None:
-        self._proc: Any = None
-        self._conn: Any = None
         self._session: Path | None = None
         self._overrides: dict[str, Any] = {}
-        if not enabled or os.environ.get(ENV) == "0" or not sys.platform.startswith("linux"):
-            return
-        try:
-            ctx = multiprocessing.get_context("fork")
-            parent, child = ctx.Pipe()
-            proc = ctx.Process(target=_serve, args=(child,), daemon=True, name="reduce-ahead")
-            proc.start()
-        except OSError:
-            return
-        child.close()
-        self._proc, self._conn = proc, parent
-
-    @property
-    def active(self) -> bool:
-        """True while a process reduces beside the capture."""
-        return self._conn is not None
+        super().__init__(_serve, name="reduce-ahead", env=ENV, enabled=enabled)
 
     def subscriber(self, session: Path, **overrides: Any) -> Any:
         """A session subscriber (``run_session(subscribers=...)``) that starts the
@@ -155,31 +136,3 @@ class ReduceAhead(contextlib.AbstractContextManager):
         return reduce_session(
             self._session, setup=_setup(self._session, self._overrides), plot=plot
         )
-
-    def _send(self, msg: tuple) -> bool:
-        if self._conn is None:
-            return False
-        try:
-            self._conn.send(msg)
-            return True
-        except (OSError, ValueError):
-            self.close()
-            return False
-
-    def close(self) -> None:
-        """End the process (idempotent)."""
-        conn, proc = self._conn, self._proc
-        self._conn = self._proc = None
-        if conn is not None:
-            with contextlib.suppress(OSError, ValueError):
-                conn.send(("close",))
-            with contextlib.suppress(OSError):
-                conn.close()
-        if proc is not None:
-            proc.join(timeout=5.0)
-            if proc.is_alive():
-                proc.terminate()
-                proc.join(timeout=5.0)
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

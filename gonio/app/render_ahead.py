@@ -28,15 +28,14 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import multiprocessing
 import os
 import signal
-import sys
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
+from gonio.app.forked_server import ForkedServer
 from gonio.errors import CameraError, GonioError
 
 __all__ = ["ENV", "RenderAhead", "RenderAheadCamera", "predicted_poses"]
@@ -99,7 +98,7 @@ def _serve(conn: Any) -> None:
     os._exit(0)
 
 
-class RenderAhead(contextlib.AbstractContextManager):
+class RenderAhead(ForkedServer):
     """A forked process rendering poses ahead of a simulated capture.
 
     Parameters
@@ -113,28 +112,11 @@ class RenderAhead(contextlib.AbstractContextManager):
     """
 
     def __init__(self, enabled: bool = True) -> None:
-        self._proc: Any = None
-        self._conn: Any = None
         self._pending: set[int] = set()
         self._results: dict[int, tuple] = {}
         self.hits = 0
         self.misses = 0
-        if not enabled or os.environ.get(ENV) == "0" or not sys.platform.startswith("linux"):
-            return
-        try:
-            ctx = multiprocessing.get_context("fork")
-            parent, child = ctx.Pipe()
-            proc = ctx.Process(target=_serve, args=(child,), daemon=True, name="render-ahead")
-            proc.start()
-        except OSError:
-            return
-        child.close()
-        self._proc, self._conn = proc, parent
-
-    @property
-    def active(self) -> bool:
-        """True while a worker process renders."""
-        return self._conn is not None
+        super().__init__(_serve, name="render-ahead", env=ENV, enabled=enabled)
 
     def setup(self, scene: Any, reference_albedo: Any) -> bool:
         """Give the worker the camera's scene (a :class:`~gonio.simulator.scene.Scene`)
@@ -181,39 +163,14 @@ class RenderAhead(contextlib.AbstractContextManager):
         self._pending.discard(step)
         self._results[step] = ("done", msg[2], msg[3]) if msg[0] == "done" else ("failed",)
 
-    def _send(self, msg: tuple) -> bool:
-        if not self.active:
-            return False
-        try:
-            self._conn.send(msg)
-            return True
-        except (OSError, ValueError):  # the worker is gone: the camera renders itself
-            self.close()
-            return False
-
     def close(self) -> None:
         """End the worker (idempotent); renders not taken are dropped."""
         if self._conn is not None:
             log.debug(
                 "render-ahead: %d shots from the worker's renders, %d not", self.hits, self.misses
             )
-        conn, proc = self._conn, self._proc
-        self._conn = self._proc = None
         self._pending.clear()
-        if conn is not None:
-            # said, not only an end of input: a process forked later may hold this end
-            with contextlib.suppress(OSError, ValueError):
-                conn.send(("close",))
-            with contextlib.suppress(OSError):
-                conn.close()
-        if proc is not None:
-            proc.join(timeout=5.0)
-            if proc.is_alive():
-                proc.terminate()
-                proc.join(timeout=5.0)
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+        super().close()
 
 
 def predicted_poses(rig: Any, kinematics: Any, step: Mapping[str, Any]) -> Any:
