@@ -39,8 +39,12 @@ from numpy.typing import NDArray
 _JIT = {"cache": True, "fastmath": False, "error_model": "numpy", "nogil": True}
 
 #: Columns of the per-(region, channel) sums: weight, weight * L, weight^2 * var(L),
-#: weight * G, weight * L / G, weight^2 * var(L) / G^2, weight * saturated.
-SUM_K, SUM_L, SUM_LV, SUM_G, SUM_Q, SUM_QV, SUM_SAT = range(7)
+#: weight * G, weight * L / G, weight^2 * var(L) / G^2, weight * saturated, weight^2
+#: (the last gives a region's effective number of sites, (sum w)^2 / sum w^2, which the
+#: radiometric budget needs: :func:`gonio.capture.radiometric.effective_sites`).
+SUM_K, SUM_L, SUM_LV, SUM_G, SUM_Q, SUM_QV, SUM_SAT, SUM_K2 = range(8)
+#: Columns of the per-(region, channel) sums.
+N_SUMS = 8
 #: Columns of the per-region direction sums: pixels, sum of wi (3), sum of wo (3).
 DIR_N, DIR_WI, DIR_WO = 0, 1, 4
 
@@ -109,7 +113,7 @@ class View(NamedTuple):
 def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     """Region labels of the crop, per-(region, channel) sums and per-region directions.
 
-    Returns ``(label (h, w) int64, sums (n, n_channels, 7), dirs (n, 7))``; see
+    Returns ``(label (h, w) int64, sums (n, n_channels, N_SUMS), dirs (n, 7))``; see
     :data:`SUM_K` and :data:`DIR_N` for the columns.
     """
     # field by field: numba passes a namedtuple as one struct, unpacked here for free
@@ -130,7 +134,7 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     F, h, w = raws.shape
     n = grid * grid_y
     label = np.full((h, w), -1, np.int64)
-    sums = np.zeros((n, n_channels, 7))
+    sums = np.zeros((n, n_channels, N_SUMS))
     dirs = np.zeros((n, 7))
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     hw, hh, cell_x, cell_y, lim_x, lim_y = roi[0], roi[1], roi[2], roi[3], roi[4], roi[5]
@@ -307,6 +311,7 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
                 wt = wts[u]
                 r = regs[u]
                 sums[r, c, SUM_K] += wt
+                sums[r, c, SUM_K2] += wt * wt
                 sums[r, c, SUM_L] += wt * val
                 sums[r, c, SUM_LV] += wt * wt * var
                 sums[r, c, SUM_G] += wt * g

@@ -90,6 +90,11 @@ class PoseMeasurement:
         measurement: :func:`invalid_pose`); see ``[reduction] geometry``.
     n_pixels
         (n,) pixels of each region (None for :func:`invalid_pose`).
+    n_sites
+        (n, 3) each region's effective number of CFA sites per channel,
+        ``(sum w)^2 / sum w^2`` over its Bayer weights (masked sites left out), NaN where
+        a region has none: :func:`gonio.capture.radiometric.effective_sites`' number,
+        summed by the pose's own pass (None for :func:`invalid_pose`).
     radiometric_rel_std
         The radiometric budget terms of each region, relative standard uncertainties of
         the BRDF, (n, 3) per term: ``drift``, ``flat``, ``dark``, ``irradiance``,
@@ -115,6 +120,7 @@ class PoseMeasurement:
     kernel: Literal["numba", "numpy", "none"] = "none"
     geometry_source: GeometrySource = "none"
     n_pixels: NDArray[np.float64] | None = None
+    n_sites: NDArray[np.float64] | None = None
     radiometric_rel_std: dict[str, NDArray[np.float64]] = field(default_factory=dict)
 
 
@@ -201,8 +207,10 @@ def measure_pose(
     else:
         regions, sums, dirs = _pose_sums_numpy(frames, setup, cam, lp, ln, dark_variance, mask)
         kernel = "numpy"
-    k, s_L, s_Lv, s_G, s_Q, s_Qv, s_sat = np.moveaxis(sums, -1, 0)
+    k, s_L, s_Lv, s_G, s_Q, s_Qv, s_sat, s_k2 = np.moveaxis(sums, -1, 0)
     with np.errstate(invalid="ignore", divide="ignore"):
+        # effective_sites' number, from the same weights (dyadic: exact in any order)
+        n_sites = np.where(s_k2 > 0, k * k / s_k2, np.nan)
         L = s_L / k
         Lv = s_Lv / k**2
         G = s_G / k
@@ -236,6 +244,7 @@ def measure_pose(
         kernel,
         source,
         npx,
+        n_sites=n_sites,
     )
 
 
@@ -483,9 +492,9 @@ def _pose_sums_numpy(
 ) -> tuple[RegionMap, NDArray[np.float64], NDArray[np.float64]]:
     """The regions of a pose, their weighted sums per channel and their direction sums.
 
-    Returns ``(regions, sums, dirs)``: ``sums`` (n, 3, 7) holds per region and channel the
-    sums of w, w L, w^2 var(L), w G, w L / G, w^2 var(L) / G^2 and w over saturated sites
-    (w the Bayer weights, :func:`bayer_region_weights`); ``dirs`` (n, 7) the pixel count
+    Returns ``(regions, sums, dirs)``: ``sums`` (n, 3, 8) holds per region and channel the
+    sums of w, w L, w^2 var(L), w G, w L / G, w^2 var(L) / G^2, w over saturated sites
+    and w^2 (w the Bayer weights, :func:`bayer_region_weights`); ``dirs`` (n, 7) the pixel count
     and the sums of the per-pixel unit vectors to the light and to the camera.  The
     reference implementation of :mod:`gonio.capture.pose_kernel`.
     """
@@ -548,7 +557,7 @@ def _pose_sums_numpy(
     var = np.where(sat, 0.0, var)
     wt2 = wt * wt
     with np.errstate(invalid="ignore", divide="ignore"):
-        cols = (wt, wt * val, wt2 * var, wt * g, wt * val / g, wt2 * var / g**2, wt * sat)
+        cols = (wt, wt * val, wt2 * var, wt * g, wt * val / g, wt2 * var / g**2, wt * sat, wt2)
     sums = np.stack([region_sum(x) for x in cols], axis=-1, dtype=float)
     # directions: mean over the region's pixels of the per-pixel unit vectors to the light
     # and to the camera, one component at a time (sums over a trailing axis of 3 are slow)

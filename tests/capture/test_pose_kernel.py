@@ -342,3 +342,27 @@ def test_fused_kernel_matches_numpy_path_with_the_texel_margin(brackets, monkeyp
     whole, _ = both_paths(monkeypatch, frames, setup.replace(grid=4, roi_fraction=1.0), rp)
     n_kept, n_whole = (ref.regions.label >= 0).sum(), (whole.regions.label >= 0).sum()
     assert 0.3 * n_whole < n_kept < 0.95 * n_whole, (n_kept, n_whole)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_effective_sites_of_the_pose_pass_equal_the_budgets_own(brackets, monkeypatch, masked):
+    """``PoseMeasurement.n_sites`` (summed by the pose's own pass, which the reduction's
+    budget now uses) equals :func:`gonio.capture.radiometric.effective_sites` computed
+    from the regions afterwards (the reference, built site by site with OpenCV filters),
+    bit for bit in both paths: the Bayer weights are powers of two, so their sums and
+    sums of squares are exact in any order.  With a pixel mask too, which must change
+    the counts (masked sites leave both)."""
+    from gonio.capture.radiometric import effective_sites
+
+    setup, poses = brackets
+    frames, rp = poses[0]
+    mask = _hot_mask(frames[0].shape) if masked else None
+    ref, got = both_paths(monkeypatch, frames, setup, rp, pixel_mask=mask)
+    n = ref.regions.n_regions
+    want = effective_sites(ref.regions.label, ref.regions.box, frames[0].cell_channel, n, mask)
+    assert np.isfinite(want).sum() > n  # regions with sites, in more than one channel
+    np.testing.assert_array_equal(ref.n_sites, want)
+    np.testing.assert_array_equal(got.n_sites, want)
+    if masked:
+        plain = effective_sites(ref.regions.label, ref.regions.box, frames[0].cell_channel, n)
+        assert not np.array_equal(plain, want)
