@@ -47,6 +47,11 @@ SUM_K, SUM_L, SUM_LV, SUM_G, SUM_Q, SUM_QV, SUM_SAT, SUM_K2 = range(8)
 N_SUMS = 8
 #: Columns of the per-region direction sums: pixels, sum of wi (3), sum of wo (3).
 DIR_N, DIR_WI, DIR_WO = 0, 1, 4
+#: Columns of the per-region position sums on the sample plane: x, y (m), and about the
+#: region's mean position x x, x y, y y (m^2): :func:`gonio.capture.aperture.region_moments`'
+#: sums, in its order (the pixels row by row, the central moments in a second pass), so
+#: its centroids and covariances to the bit without the (h, w) rays it needs.
+MOM_X, MOM_Y, MOM_XX, MOM_XY, MOM_YY = range(5)
 
 
 @njit(**_JIT, inline="always")
@@ -113,8 +118,8 @@ class View(NamedTuple):
 def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     """Region labels of the crop, per-(region, channel) sums and per-region directions.
 
-    Returns ``(label (h, w) int64, sums (n, n_channels, N_SUMS), dirs (n, 7))``; see
-    :data:`SUM_K` and :data:`DIR_N` for the columns.
+    Returns ``(label (h, w) int64, sums (n, n_channels, N_SUMS), dirs (n, 7),
+    moments (n, 5))``; see :data:`SUM_K`, :data:`DIR_N` and :data:`MOM_X` for the columns.
     """
     # field by field: numba passes a namedtuple as one struct, unpacked here for free
     raws, black, sat_level = bracket.raws, bracket.black, bracket.sat_level
@@ -136,6 +141,12 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     label = np.full((h, w), -1, np.int64)
     sums = np.zeros((n, n_channels, N_SUMS))
     dirs = np.zeros((n, 7))
+    moments = np.zeros((n, 5))
+    # the labelled pixels' points, in pass 1's order, for the central moments
+    seen_x = np.empty(h * w)
+    seen_y = np.empty(h * w)
+    seen_r = np.empty(h * w, np.int64)
+    n_seen = 0
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     hw, hh, cell_x, cell_y, lim_x, lim_y = roi[0], roi[1], roi[2], roi[3], roi[4], roi[5]
     mx, my = roi[6], roi[7]
@@ -169,6 +180,12 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
             r = int(iy * grid + ix)
             label[i, j] = r
             dirs[r, DIR_N] += 1.0
+            moments[r, MOM_X] += p0
+            moments[r, MOM_Y] += p1
+            seen_x[n_seen] = p0
+            seen_y[n_seen] = p1
+            seen_r[n_seen] = r
+            n_seen += 1
             v0 = light[0] - p0
             v1 = light[1] - p1
             v2 = light[2] - p2
@@ -183,6 +200,14 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
             dirs[r, DIR_WO] += v0 * inv
             dirs[r, DIR_WO + 1] += v1 * inv
             dirs[r, DIR_WO + 2] += v2 * inv
+    # the positions' second moments about each region's mean (region_moments' second pass)
+    for q in range(n_seen):
+        r = seen_r[q]
+        dx = seen_x[q] - moments[r, MOM_X] / dirs[r, DIR_N]
+        dy = seen_y[q] - moments[r, MOM_Y] / dirs[r, DIR_N]
+        moments[r, MOM_XX] += dx * dx
+        moments[r, MOM_XY] += dx * dy
+        moments[r, MOM_YY] += dy * dy
     # pass 2: every CFA site used by a region (bayer_region_entries), merged and summed
     regs = np.empty(9, np.int64)
     wts = np.empty(9)
@@ -319,7 +344,7 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
                 sums[r, c, SUM_QV] += wt * wt * var * (inv_g * inv_g)
                 if sat:
                     sums[r, c, SUM_SAT] += wt
-    return label, sums, dirs
+    return label, sums, dirs, moments
 
 
 @njit(**_JIT)

@@ -701,8 +701,16 @@ def _pose_sums_fused(
         ray_y=ray_y,
         undistorted=dist is not None,
     )
-    label, sums, dirs = kernel(bracket, stencils, view)
+    label, sums, dirs, mom = kernel(bracket, stencils, view)
     regions = RegionMap(box, label, roi.grid_xy[0] * roi.grid_xy[1], roi.centers, cam, K, dist=dist)
+    # region_moments' centroids and covariances from the kernel's sums, with its divisions
+    # (the aperture correction needs them: without, it computes the crop's rays again)
+    cnt = dirs[:, pk.DIR_N]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mx, my = mom[:, pk.MOM_X] / cnt, mom[:, pk.MOM_Y] / cnt
+        sxx, sxy, syy = (mom[:, c] / cnt for c in (pk.MOM_XX, pk.MOM_XY, pk.MOM_YY))
+    cov = np.stack([np.stack([sxx, sxy], -1), np.stack([sxy, syy], -1)], -2)
+    regions.extra["moments"] = (np.stack([mx, my], -1), cov)
     return regions, sums, dirs
 
 

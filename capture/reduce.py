@@ -925,8 +925,11 @@ class _PoseRun:
         one = np.ones_like(f)
         if m.regions is None or m.n_pixels is None or len(m.flags) != m.regions.n_regions:
             return part, one
-        x, y, _ = m.regions.xyz
-        centroid, cov = region_moments(m.regions.label, x, y, m.regions.n_regions)
+        moments = m.regions.extra.get("moments")  # the fused kernel's, the same to the bit
+        if moments is None:
+            x, y, _ = m.regions.xyz
+            moments = region_moments(m.regions.label, x, y, m.regions.n_regions)
+        centroid, cov = moments
         bias, bias_std = aperture_bias(centroid, cov, f, f_std, m.flags == 0)
         with np.errstate(invalid="ignore", divide="ignore"):
             scale = np.where(np.isfinite(f) & (f != 0), (f - bias) / f, one)

@@ -366,3 +366,25 @@ def test_effective_sites_of_the_pose_pass_equal_the_budgets_own(brackets, monkey
     if masked:
         plain = effective_sites(ref.regions.label, ref.regions.box, frames[0].cell_channel, n)
         assert not np.array_equal(plain, want)
+
+
+@pytest.mark.parametrize("lens", [False, True])
+def test_region_moments_of_the_kernel_equal_region_moments(brackets, monkeypatch, lens):
+    """The fused kernel's centroids and covariances of the regions' points (which the
+    aperture correction uses instead of computing the crop's rays again) are
+    :func:`gonio.capture.aperture.region_moments`' on the regions' own rays, to the bit,
+    pinhole and with a distorting lens."""
+    from gonio.capture.aperture import region_moments
+
+    setup, poses = brackets
+    frames, rp = poses[1]
+    if lens:
+        setup = setup.replace(dist=np.array([-0.3, 0.1, 0.002, -0.001, 0.01]))
+    _, got = both_paths(monkeypatch, frames, setup, rp)
+    reg = got.regions
+    x, y, _ = reg.xyz
+    want_c, want_cov = region_moments(reg.label, x, y, reg.n_regions)
+    c, cov = reg.extra["moments"]
+    assert np.isfinite(want_cov).all() and (want_cov[:, 0, 0] > 0).all()
+    np.testing.assert_array_equal(c, want_c)
+    np.testing.assert_array_equal(cov, want_cov)
