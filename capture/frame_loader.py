@@ -103,8 +103,7 @@ class FrameLoader:
     kernel release the GIL, so with two threads the worker decodes the next poses' frames
     while this thread measures the current pose.  When this thread needs frames the
     worker has not started, it decodes them itself rather than wait (decoding takes
-    longer than measuring, so the two threads share it), and while it waits for a job
-    a worker has started it runs the queued jobs no worker has (:meth:`_help`).  Every frame is decoded
+    longer than measuring, so the two threads share it).  Every frame is decoded
     independently and the results are collected in journal order, so the output does not
     depend on the thread count.  With one thread frames are decoded on demand.
     """
@@ -116,12 +115,6 @@ class FrameLoader:
         self._pool = ThreadPoolExecutor(threads - 1, "gonio-reduce") if threads > 1 else None
         self._pending: dict[int, Future] = {}
         self._poses: dict[int, Future] = {}
-        #: what each queued future runs (its job, so that this thread can run it instead)
-        self._jobs: dict[int, Callable[[], Any]] = {}
-        #: results of queued jobs this thread ran while it waited (see :meth:`_help`)
-        self._done_here: dict[int, Any] = {}
-        #: jobs this thread ran for the worker while waiting (for tests and benchmarks)
-        self.helped = 0
         #: whether the last pose queued by prefetch_pose was not ready when asked for
         #: (the worker is behind the measurement: give it less to do ahead)
         self.behind = False
@@ -134,8 +127,6 @@ class FrameLoader:
             fut.cancel()
         self._pending.clear()
         self._poses.clear()
-        self._jobs.clear()
-        self._done_here.clear()
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
 
@@ -146,31 +137,7 @@ class FrameLoader:
             return
         for rec in recs:
             if id(rec) not in self._pending:
-                job = self._frame_job(rec)
-                self._pending[id(rec)] = self._pool.submit(job)
-                self._jobs[id(rec)] = job
-
-    def _frame_job(self, rec: dict[str, Any]) -> Callable[[], tuple[RawFrame | None, str | None]]:
-        return lambda: load_frame(*self._args, rec)
-
-    def _help(self, waiting: Future) -> None:
-        """Run queued jobs that no worker has started here while ``waiting`` (started by
-        a worker) is not done: the oldest first, frames and poses alike.
-
-        Without it this thread sat idle while the worker finished the pose it needs,
-        and the worker sat idle later while this thread measured (measured with every
-        frame unpacked by LibRaw, 2 threads: this thread waited a quarter of the
-        reduction).  A job's result does not depend on the thread that runs it, so the
-        output stays the same for any thread count.
-        """
-        while not waiting.done():
-            for key, fut in [*self._pending.items(), *self._poses.items()]:
-                if key not in self._done_here and fut.cancel():  # no worker had it
-                    self._done_here[key] = self._jobs[key]()
-                    self.helped += 1
-                    break
-            else:
-                return  # nothing left to take: wait
+                self._pending[id(rec)] = self._pool.submit(load_frame, *self._args, rec)
 
     def prefetch_pose(
         self,
@@ -194,7 +161,6 @@ class FrameLoader:
             return out, then(out)
 
         self._poses[id(recs)] = self._pool.submit(job)
-        self._jobs[id(recs)] = job
 
     def pose_results(
         self, recs: list[dict[str, Any]]
@@ -203,12 +169,8 @@ class FrameLoader:
         ``(results(recs), None)`` when it was not, or no worker had started it (this
         thread then decodes the frames, and the caller runs ``then``'s work itself)."""
         fut = self._poses.pop(id(recs), None)
-        self._jobs.pop(id(recs), None)
-        if id(recs) in self._done_here:  # run here while waiting for another job
-            return self._done_here.pop(id(recs))
         if fut is not None and not fut.cancel():
             self.behind = not fut.done()
-            self._help(fut)
             return fut.result()
         if fut is not None:  # cancelled: no worker had started it
             self.behind = True
@@ -221,20 +183,13 @@ class FrameLoader:
     def results(self, recs: list[dict[str, Any]]) -> list[tuple[RawFrame | None, str | None]]:
         """``(frame, problem)`` of each record, in the order given."""
         futs = [self._pending.pop(id(rec), None) for rec in recs]
-        for rec in recs:
-            self._jobs.pop(id(rec), None)
-        early = [self._done_here.pop(id(rec), None) for rec in recs]
         # frames no worker has started are decoded here (cancel() fails once started)
-        local = [
-            e is None and (fut is None or fut.cancel()) for e, fut in zip(early, futs, strict=True)
-        ]
+        local = [fut is None or fut.cancel() for fut in futs]
         out: list[Any] = [
-            load_frame(*self._args, rec) if here else e
-            for rec, here, e in zip(recs, local, early, strict=True)
+            load_frame(*self._args, rec) if here else None
+            for rec, here in zip(recs, local, strict=True)
         ]
-        for k, (fut, here, e) in enumerate(zip(futs, local, early, strict=True)):
-            if not here and e is None:
-                assert fut is not None
-                self._help(fut)
+        for k, (fut, here) in enumerate(zip(futs, local, strict=True)):
+            if not here:
                 out[k] = fut.result()
         return out
