@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import struct
+from collections import OrderedDict
 from fractions import Fraction
 from pathlib import Path
 
@@ -115,6 +116,13 @@ def _append_exif(data: bytearray, frame: RawFrame) -> bytearray:
 def dng_bytes(frame: RawFrame) -> bytes:
     """The DNG file of a RAW frame, as bytes (deterministic).
 
+    The bytes are those tifffile and :func:`_append_exif` write (:func:`_dng_bytes_tifffile`,
+    the reference): the file of a frame's metadata is built that way once and kept
+    (:data:`_TEMPLATES`), and each frame's mosaic is put in its image strip, which is
+    uncompressed and the only part of the file the pixels reach.  A session's brackets
+    use a handful of exposure settings, so a few templates serve all its frames (the
+    tifffile writer and the EXIF patch cost ~5 ms a frame, the copy ~0.05 ms).
+
     Parameters
     ----------
     frame
@@ -123,6 +131,57 @@ def dng_bytes(frame: RawFrame) -> bytes:
     mosaic = np.ascontiguousarray(frame.mosaic, dtype=np.uint16)
     if mosaic.ndim != 2:
         raise ValueError(f"mosaic must be 2-D, got shape {mosaic.shape}")
+    key = _template_key(frame, mosaic)
+    hit = _TEMPLATES.get(key)
+    if hit is None:
+        hit = _template(frame, mosaic)
+        _TEMPLATES[key] = hit
+        while len(_TEMPLATES) > _TEMPLATES_SIZE:
+            _TEMPLATES.popitem(last=False)
+    else:
+        _TEMPLATES.move_to_end(key)
+    head, tail = hit
+    return b"".join((head, mosaic.astype("<u2", copy=False).tobytes(), tail))
+
+
+#: Files of frames' metadata with the image strip cut out: key -> (head, tail) bytes.
+_TEMPLATES: OrderedDict[tuple, tuple[bytes, bytes]] = OrderedDict()
+_TEMPLATES_SIZE = 32
+
+
+def _template_key(frame: RawFrame, mosaic: np.ndarray) -> tuple:
+    """Everything of a frame that reaches its file's bytes, but the pixels."""
+    return (
+        mosaic.shape,
+        frame.cfa_pattern,
+        int(frame.black_level),
+        int(frame.white_level),
+        np.asarray(frame.colour_matrix, float).tobytes(),
+        np.asarray(frame.as_shot_neutral, float).tobytes(),
+        float(frame.exposure_time),
+        float(frame.f_number),
+        float(frame.iso),
+        float(frame.focal_length),
+        frame.model,
+    )
+
+
+def _template(frame: RawFrame, mosaic: np.ndarray) -> tuple[bytes, bytes]:
+    """The reference file of ``frame``'s metadata split around its image strip."""
+    data = _dng_bytes_tifffile(frame, np.zeros_like(mosaic))
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        page = tif.pages[0]
+        offsets, counts = list(page.dataoffsets), list(page.databytecounts)
+    start = offsets[0]
+    contiguous = all(o == start + sum(counts[:i]) for i, o in enumerate(offsets))
+    if not contiguous or sum(counts) != mosaic.nbytes:
+        # tifffile writes one uncompressed, contiguous strip for such a page
+        raise AssertionError("tifffile wrote the DNG's image data in pieces")
+    return data[:start], data[start + mosaic.nbytes :]
+
+
+def _dng_bytes_tifffile(frame: RawFrame, mosaic: np.ndarray) -> bytes:
+    """:func:`dng_bytes` of ``frame`` with ``mosaic`` (2-D uint16), written by tifffile."""
     buf = io.BytesIO()
     tifffile.imwrite(
         buf,

@@ -177,15 +177,24 @@ def colour_metadata(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     ``QE_c lambda_c`` (normalised to green), and XYZ -> camera is the sRGB matrix scaled by
     that neutral (the DNG convention: the illuminant's XYZ maps to the neutral).
     """
-    import colour
-
     s = camera.sensor
     qe = np.broadcast_to(np.asarray(s.quantum_efficiency, float), (3,))
     neutral = qe * np.asarray(s.wavelength_nm)
     neutral = neutral / neutral[1]
-    m = np.asarray(colour.models.RGB_COLOURSPACE_sRGB.matrix_XYZ_to_RGB, float)
-    cm = np.diag(neutral) @ m
-    return cm / np.abs(cm @ colour.xy_to_XYZ([0.3127, 0.3290])).max(), neutral
+    cm = np.diag(neutral) @ _XYZ_TO_SRGB
+    return cm / np.abs(cm @ _D65_XYZ).max(), neutral
+
+
+# colour-science's sRGB XYZ -> RGB matrix (IEC 61966-2-1) and its ``xy_to_XYZ`` of D65
+# (0.3127, 0.3290), as literals: importing colour costs the capture's process ~1 s of CPU
+# (it imports matplotlib) for two constants; tests/simulator/test_dng.py holds them equal
+# to colour's.
+_XYZ_TO_SRGB = np.array(
+    [[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.204, 1.057]]
+)
+_D65_XYZ = np.array([0.9504559270516716, 1.0, 1.0890577507598784])
+_XYZ_TO_SRGB.flags.writeable = False
+_D65_XYZ.flags.writeable = False
 
 
 def cfa_radiance(radiance: np.ndarray, camera: Camera) -> np.ndarray:

@@ -247,6 +247,8 @@ def look_along_rotation(forward: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) -> 
         with np.errstate(invalid="ignore", divide="ignore"):
             right = np.where(ok[..., None], r / nr, right)
         found |= ok
+        if found.all():
+            break  # the other candidates would change nothing (ok is False everywhere)
     R = np.stack([right, np.cross(f, right), f], axis=-2)
     nan = np.isnan(f).any(axis=-1) | np.isnan(up).any(axis=-1)
     return np.where(nan[..., None, None], np.nan, R)

@@ -90,3 +90,44 @@ def test_write_dng_is_atomic_and_never_overwrites(tmp_path):
     write_dng(p, frame(seed=9), overwrite=True)
     assert p.read_bytes() != before
     assert sorted(x.name for x in tmp_path.iterdir()) == ["a.dng"]
+
+
+def test_template_bytes_are_tifffiles_bytes():
+    """A frame's file from its metadata's cached template is, byte for byte, the file
+    tifffile and the EXIF patch write for it (the reference), whatever the size, the
+    exposure, the pattern or the order in which templates are made and evicted."""
+    from gonio.simulator import dng
+
+    rng = np.random.default_rng(7)
+    shots = []
+    for pattern in ("RGGB", "BGGR"):
+        for exposure in (1 / 125, 1 / 60, 0.02, 1 / 125):  # the last one: a cached template
+            fr = frame(pattern, seed=int(rng.integers(1 << 30)))
+            fr.exposure_time = exposure
+            shots.append(fr)
+    odd = frame()
+    odd.mosaic = rng.integers(0, 4096, (7, 9)).astype(np.uint16)  # odd sizes, one strip
+    shots.append(odd)
+    for fr in shots:
+        assert dng_bytes(fr) == dng._dng_bytes_tifffile(fr, fr.mosaic)
+    # more metadata than the cache holds: evicted templates are rebuilt the same
+    for i in range(dng._TEMPLATES_SIZE + 3):
+        fr = frame(seed=i)
+        fr.iso = 100 + i
+        assert dng_bytes(fr) == dng._dng_bytes_tifffile(fr, fr.mosaic)
+    assert len(dng._TEMPLATES) <= dng._TEMPLATES_SIZE
+    # the pixels do reach the file: two mosaics of the same metadata give two files
+    a, b = frame(seed=1), frame(seed=2)
+    assert not np.array_equal(a.mosaic, b.mosaic) and dng_bytes(a) != dng_bytes(b)
+
+
+def test_colour_constants_are_colour_sciences():
+    """The sRGB matrix and D65 white the DNG's ColorMatrix1 is built from are
+    colour-science's, bit for bit (they are literals so the camera does not import it)."""
+    import colour
+
+    from gonio.simulator import sensor
+
+    m = np.asarray(colour.models.RGB_COLOURSPACE_sRGB.matrix_XYZ_to_RGB, float)
+    assert np.array_equal(sensor._XYZ_TO_SRGB, m)
+    assert np.array_equal(sensor._D65_XYZ, np.asarray(colour.xy_to_XYZ([0.3127, 0.3290])))
