@@ -106,6 +106,20 @@ def _interval_rows(interval: dict) -> dict:
     }
 
 
+def _pole_row(pole: dict | None) -> dict | None:
+    """The set-apart pole samples: truth asymmetry, poses, count, whitened z RMS per band."""
+    if not pole:
+        return None
+    out = {
+        "truth_asymmetry": round(pole["truth_asymmetry"], 4),
+        "poses": pole["poses"],
+        "n": pole["n_set_apart"],
+    }
+    if "samples" in pole:
+        out["z_whitened"] = _pool([pole["samples"]["whitened"]])
+    return out
+
+
 def main() -> None:
     from gonio.app.budget_harness import (
         LARGE_GRID,
@@ -189,6 +203,9 @@ def main() -> None:
                         run.materials[m.name]["samples"]["full_interval"]
                     ),
                     "warnings": run.materials[m.name]["warnings"],
+                    # samples of poses around normal incidence, set apart when the truth
+                    # is multi-valued there (budget_harness.pole_samples)
+                    "pole": _pole_row(run.materials[m.name].get("pole")),
                 }
                 for run in runs
             },
