@@ -47,8 +47,8 @@ MATERIALS = ("lambert+ggx", "lambert+ggx[fresnel=schlick]", "rgl:paper_white")
 #: issue 16's last misses on this world (the 70-80 deg band's G at z RMS 1.27, ks of
 #: lambert+ggx at -3.8 sigma) were the regions' aperture bias at grazing near-specular
 #: poses, now corrected by the reduction (gonio.capture.aperture; DEVELOPING.md).  With
-#: it: 70-80 deg G z RMS 1.16, ks z -1.2/-3.0/-2.3 -- G still at the edge: the rest of
-#: the bias is the board pose of the 70/60 deg pose (-0.65 %, 1.7 sigma of its geometry)
+#: it and the hot pixels found against their neighbourhood (2026-12-02): 70-80 deg G raw
+#: z RMS 1.11, whitened 1.02; ks z -1.7/-2.6/-2.1 (schlick f0 -2.4, alpha 2.1)
 SAMPLE_Z_CASES = MATERIALS
 FIT_CASES = MATERIALS
 
