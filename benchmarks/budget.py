@@ -24,7 +24,10 @@ Per material, pooled over the seeds:
   against its honest spread;
 - the fraction of fitted parameters within 3 reported sigma of the truth (a measured
   file: of the same model fitted to the noise-free truth), the largest |z|;
-- the median relative BRDF error of the fit (median over the seeds, and the worst).
+- the median relative BRDF error of the fit (median over the seeds, and the worst);
+- per seed, ``pole``: for a truth multi-valued at normal incidence (the RGL file), the
+  poses around theta_i = 0 that are reported apart, not judged, and their whitened z RMS
+  (:func:`gonio.app.budget_harness.pole_samples`).
 
 Headline: ``figure`` = the worst whitened full-budget z RMS over materials, bands (>=
 :data:`~gonio.app.budget_harness.MIN_BAND_SAMPLES` samples, below 80 deg) and channels,
