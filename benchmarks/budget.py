@@ -24,7 +24,10 @@ Per material, pooled over the seeds:
   against its honest spread;
 - the fraction of fitted parameters within 3 reported sigma of the truth (a measured
   file: of the same model fitted to the noise-free truth), the largest |z|;
-- the median relative BRDF error of the fit (median over the seeds, and the worst).
+- the median relative BRDF error of the fit (median over the seeds, and the worst);
+- per seed, ``pole``: for a truth multi-valued at normal incidence (the RGL file), the
+  poses around theta_i = 0 that are reported apart, not judged, and their whitened z RMS
+  (:func:`gonio.app.budget_harness.pole_samples`).
 
 Headline: ``figure`` = the worst whitened full-budget z RMS over materials, bands (>=
 :data:`~gonio.app.budget_harness.MIN_BAND_SAMPLES` samples, below 80 deg) and channels,
@@ -104,6 +107,20 @@ def _interval_rows(interval: dict) -> dict:
         }
         for b, row in interval["bands"].items()
     }
+
+
+def _pole_row(pole: dict | None) -> dict | None:
+    """The set-apart pole samples: truth asymmetry, poses, count, whitened z RMS per band."""
+    if not pole:
+        return None
+    out = {
+        "truth_asymmetry": round(pole["truth_asymmetry"], 4),
+        "poses": pole["poses"],
+        "n": pole["n_set_apart"],
+    }
+    if "samples" in pole:
+        out["z_whitened"] = _pool([pole["samples"]["whitened"]])
+    return out
 
 
 def main() -> None:
@@ -189,6 +206,9 @@ def main() -> None:
                         run.materials[m.name]["samples"]["full_interval"]
                     ),
                     "warnings": run.materials[m.name]["warnings"],
+                    # samples of poses around normal incidence, set apart when the truth
+                    # is multi-valued there (budget_harness.pole_samples)
+                    "pole": _pole_row(run.materials[m.name].get("pole")),
                 }
                 for run in runs
             },

@@ -27,6 +27,7 @@ the same files.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 from collections import Counter, defaultdict
@@ -693,7 +694,9 @@ class _PoseRun:
             hot = np.zeros(first[0].shape, bool)
             for (_, iso), (mdark, nd) in masters.items():
                 floor = float(np.sqrt(self.setup.noise.variance(0.0, iso=iso) / nd))
-                hot |= hot_pixels(mdark, channel, floor)
+                # the dark holds the room's ambient image: its photon noise (mean of nd)
+                var = functools.partial(_mean_variance, self.setup.noise, iso, nd)
+                hot |= hot_pixels(mdark, channel, floor, variance=var)
             cal.n_hot = int(hot.sum())
         flat_recs = [r for recs in shots.values() for r in recs if r.get("kind") == "flat"]
         if flat_recs:
@@ -1247,6 +1250,14 @@ def _shots_by_pose(records: list[dict[str, Any]]) -> tuple[dict[int, list[dict]]
         elif r.get("type") == "pose_done":
             done.add(int(r["pose"]))
     return {p: [fr[k] for k in sorted(fr)] for p, fr in shots.items()}, done
+
+
+def _mean_variance(
+    noise: NoiseModel, iso: float, n: int, signal: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Variance (DN^2) of the mean of ``n`` frames at ISO ``iso`` whose pixels expect
+    ``signal`` DN (a master dark's pixel)."""
+    return noise.variance(signal, iso=iso) / n
 
 
 def _reason_key(reason: str) -> str:

@@ -56,6 +56,8 @@ __all__ = [
     "error_model",
     "fit_statistics",
     "harness_plan",
+    "pole_asymmetry",
+    "pole_samples",
     "room_stray_bound",
     "run_world",
     "sample_statistics",
@@ -409,6 +411,63 @@ def _whitened_table(
     return {"bands": white}, {"quantiles": list(INTERVAL_QUANTILES), "bands": interval}
 
 
+#: a truth whose value at normal incidence changes with the outgoing azimuth by more than
+#: this (relative) is multi-valued at theta_i = 0; an analytic model is exactly symmetric
+POLE_ASYMMETRY_TOL = 1e-9
+
+
+def pole_asymmetry(truth: Any, theta_o_deg: tuple[float, ...] = (20.0, 40.0, 60.0, 80.0)) -> float:
+    """How far ``truth`` at normal incidence depends on the outgoing azimuth:
+    ``max over theta_o of (max - min) / mean`` of ``f(theta_i = 0, theta_o, phi_o)`` over
+    ``phi_o`` (every 15 deg) and the channels.
+
+    An isotropic BRDF is rotationally symmetric at ``theta_i = 0``, so a physical one gives
+    0 there and is continuous through the pole; a measured file interpolated in
+    ``(theta_i, phi_d)`` need not be: RGL's paper white varies by 12 % over ``phi_o`` at
+    ``theta_o`` = 80 deg, so its value near the pole depends on the azimuth of the approach
+    (``phi_d = phi_o - phi_i`` with ``phi_i`` turning once around the pole).
+    """
+    ph = np.radians(np.arange(0.0, 360.0, 15.0))
+    out = 0.0
+    for to in np.radians(np.asarray(theta_o_deg, float)):
+        wo = np.stack(
+            [np.sin(to) * np.cos(ph), np.sin(to) * np.sin(ph), np.full_like(ph, np.cos(to))], -1
+        )
+        wi = np.broadcast_to(np.array([0.0, 0.0, 1.0]), wo.shape)
+        f = np.asarray(truth.eval(wi, wo), float)
+        f = f.reshape(len(ph), -1)
+        mean = np.abs(f.mean(axis=0))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            a = np.where(mean > 0, (f.max(axis=0) - f.min(axis=0)) / mean, 0.0)
+        out = max(out, float(np.nanmax(a)))
+    return out
+
+
+def pole_samples(samples: Any) -> np.ndarray:
+    """(N,) the samples of poses whose regions surround normal incidence: the pole
+    ``(wi_x, wi_y) = (0, 0)`` lies inside the convex hull of the pose's incident directions
+    (projected), so the regions' pixels see the light from every azimuth around it."""
+    from scipy.spatial import Delaunay, QhullError
+
+    wi = np.asarray(samples.wi, float)
+    pose = getattr(samples, "pose", None)
+    out = np.zeros(len(wi), bool)
+    if pose is None:
+        return out
+    pose = np.asarray(pose)
+    ok = np.isfinite(wi).all(axis=1)
+    for p in np.unique(pose):
+        rows = np.flatnonzero((pose == p) & ok)
+        if rows.size < 3:
+            continue
+        try:
+            inside = Delaunay(wi[rows, :2]).find_simplex(np.zeros((1, 2)))[0] >= 0
+        except QhullError:  # the pose's directions lie on a line
+            continue
+        out[pose == p] = inside
+    return out
+
+
 def sample_statistics(samples: Any, truth: Any) -> dict[str, Any]:
     """z-scores of the usable samples against ``truth`` at their reported directions.
 
@@ -618,7 +677,23 @@ def run_world(
         t = time.perf_counter()
         say(f"world {seed}: measuring {m.name}")
         samples, warnings = measure(root / m.name.replace(":", "_"), m, cal, seed, plan)
-        rep = {"samples": sample_statistics(samples, m.truth()), "warnings": warnings}
+        truth = m.truth()
+        # A truth that is multi-valued at normal incidence has no value "at the reported
+        # direction" for a region whose pixels surround the pole: its region mean is
+        # the measurement, the truth at the centroid is whichever azimuth it is read
+        # at.  Those samples are reported apart (pole_asymmetry, pole_samples).
+        asym = pole_asymmetry(truth)
+        at_pole = pole_samples(samples) if asym > POLE_ASYMMETRY_TOL else None
+        judged = samples if at_pole is None or not at_pole.any() else samples.subset(~at_pole)
+        rep = {"samples": sample_statistics(judged, truth), "warnings": warnings}
+        rep["pole"] = {"truth_asymmetry": asym, "n_set_apart": 0, "poses": []}
+        if at_pole is not None and at_pole.any():
+            pole = samples.subset(at_pole)
+            rep["pole"].update(
+                n_set_apart=int(np.sum(np.asarray(pole.valid))),
+                poses=sorted({int(x) for x in np.asarray(pole.pose)}),
+                samples=sample_statistics(pole, truth),
+            )
         rep["fit"] = fit_statistics(samples, m)
         run.materials[m.name] = rep
         run.seconds[m.name] = time.perf_counter() - t

@@ -17,6 +17,8 @@ from gonio.app.budget_harness import (
     fit_statistics,
     judge,
     noise_only_outside,
+    pole_asymmetry,
+    pole_samples,
     sample_statistics,
 )
 from gonio.dataset import BRDFSamples
@@ -216,3 +218,32 @@ def test_the_error_models_variance_is_the_full_budget():
     np.testing.assert_allclose(var, want, rtol=1e-9)
     assert np.all(model.independent < s.budget["noise"] * (1 + 1e-12))
     del rng
+
+
+def test_a_truth_multi_valued_at_normal_incidence_and_the_poses_around_it():
+    """An analytic model is symmetric at theta_i = 0 (asymmetry ~1e-16); a truth whose
+    value there follows the outgoing azimuth (as an interpolated measured file may) is
+    caught, and the poses whose incident directions surround the pole are found: one
+    centred 0.5 deg off the pole, not one at 3 deg nor one at 25 deg."""
+    ggx = default_materials(None)[0]
+    assert pole_asymmetry(ggx.truth()) < 1e-12
+
+    class Skewed:
+        def eval(self, wi, wo):
+            phi = np.arctan2(wo[..., 1], wo[..., 0]) - np.arctan2(wi[..., 1], wi[..., 0])
+            return np.stack([0.3 * (1 + 0.05 * np.cos(phi))] * 3, axis=-1)
+
+    assert pole_asymmetry(Skewed()) == pytest.approx(0.1, rel=0.02)
+
+    def pose_dirs(theta_deg, spread_deg=1.0, k=6):
+        a = np.radians(np.linspace(-spread_deg, spread_deg, k))
+        ax, ay = np.meshgrid(a, a)
+        x, y = np.sin(np.radians(theta_deg)) + ax.ravel(), ay.ravel()
+        return np.stack([x, y, np.sqrt(1 - x * x - y * y)], -1)
+
+    wi = np.concatenate([pose_dirs(0.5), pose_dirs(3.0), pose_dirs(25.0)])
+    s = dataclasses.replace(
+        _samples(ggx, n=len(wi)), wi=wi, pose=np.repeat(np.arange(3), 36).astype(np.int32)
+    )
+    got = pole_samples(s)
+    assert got[:36].all() and not got[36:].any()

@@ -101,6 +101,34 @@ def test_hot_pixels_of_a_master_dark_are_found_and_nothing_else():
     assert not odd_gain_pixels(np.ones((H, W)), ch).any()
 
 
+def test_a_dark_holding_the_rooms_image_masks_only_its_hot_pixels():
+    """A dark shot with the light off holds the room's ambient light reflected by the
+    scene: a smooth image up to 100 DN with its photon noise (here a lit sample and a
+    holder edge-free blob), far above the black background that sets the channel's
+    robust spread.  Against the channel's median its whole bright part was "hot" (world
+    1606: 1.5 % of the frame); against the same-colour neighbourhood only the planted
+    hot pixels stand out."""
+    rng = np.random.default_rng(8)
+    ch = rggb()
+    gain, read = 0.5, 1.3  # DN per electron, DN: a photon-transfer model
+    yy, xx = np.mgrid[0:H, 0:W]
+    image = 100.0 * np.exp(-((xx - 45.0) ** 2 + (yy - 28.0) ** 2) / (2 * 9.0**2))
+    n = 2  # the master dark: the mean of two frames
+    var = (gain * image + read**2) / n
+    dark = image + np.sqrt(var) * rng.standard_normal((H, W))
+    hot = rng.choice(H * W, 12, replace=False)
+    dark.reshape(-1)[hot] += rng.uniform(60, 600, hot.size)
+
+    def variance(signal):
+        return (gain * np.maximum(signal, 0.0) + read**2) / n
+
+    found = hot_pixels(dark, ch, read / np.sqrt(n), variance=variance)
+    assert set(np.flatnonzero(found)) == set(hot)
+    # what the channel median saw: the bright part of the image (the old criterion)
+    med = np.array([np.median(dark[ch == c]) for c in range(3)])[ch]
+    assert np.sum((dark - med > 6 * 1.4826 * 1.0) & (image > 20)) > 100
+
+
 # --------------------------------------------------------------------------------------
 # Drift
 
