@@ -216,7 +216,9 @@ def _scaled(d: _Data) -> tuple[np.ndarray, str, float]:
             z = np.where(ok, (d.y - d.f) / np.where(ok, d.sigma, 1.0), np.nan)
         return z, "(measured - fitted) / sigma", Z_LIMIT
     pos = (d.y > 0) & (d.f > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # over: a fitted value below ~1e-308 (a lobe far from its peak) makes y / f inf, which
+    # the colour map clips like any ratio beyond its limit
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         lr = np.where(pos, np.log2(np.where(pos, d.y, 1.0) / np.where(pos, d.f, 1.0)), np.nan)
     return lr, "log2(measured / fitted)  (no sigmas)", LOG2_LIMIT
 
