@@ -197,7 +197,10 @@ def _start_plot_worker():
 
 
 def _load_plots() -> None:
-    """The figure worker's warm-up: matplotlib and the plot module."""
+    """The figure worker's warm-up: matplotlib, the plot module and the module of the
+    samples (each job unpickles them in a process forked from this one: what is imported
+    here is imported once, not once per figure)."""
+    import gonio.dataset  # noqa: F401
     from gonio.fitting import plots
 
     plots.load_matplotlib()

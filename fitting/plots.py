@@ -50,11 +50,12 @@ _OTHER_COLOURS = ["k", "tab:orange", "tab:purple", "tab:brown", "tab:olive", "ta
 def _figure(**kw: Any) -> Any:
     """A matplotlib Figure on an Agg canvas, without pyplot: files only, no figure manager
     to close, and ~0.1 s less import than ``matplotlib.pyplot``."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
+    from gonio.fitting.agg_text import TextCachingCanvas  # Agg, text drawn as in mpl 3.10
+
     fig = Figure(**kw)
-    FigureCanvasAgg(fig)
+    TextCachingCanvas(fig)
     return fig
 
 
@@ -62,6 +63,8 @@ def load_matplotlib() -> None:
     """Import matplotlib (Agg) now: the ~0.5 s a process pays before its first figure."""
     import matplotlib.backends.backend_agg  # noqa: F401
     import matplotlib.figure  # noqa: F401
+
+    import gonio.fitting.agg_text  # noqa: F401
 
 
 def _wrap(text: str, fig: Any) -> str:
@@ -216,7 +219,9 @@ def _scaled(d: _Data) -> tuple[np.ndarray, str, float]:
             z = np.where(ok, (d.y - d.f) / np.where(ok, d.sigma, 1.0), np.nan)
         return z, "(measured - fitted) / sigma", Z_LIMIT
     pos = (d.y > 0) & (d.f > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # over: a fitted value below ~1e-308 (a lobe far from its peak) makes y / f inf, which
+    # the colour map clips like any ratio beyond its limit
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         lr = np.where(pos, np.log2(np.where(pos, d.y, 1.0) / np.where(pos, d.f, 1.0)), np.nan)
     return lr, "log2(measured / fitted)  (no sigmas)", LOG2_LIMIT
 

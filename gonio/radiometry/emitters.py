@@ -24,7 +24,6 @@ import functools
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import special
 
 from gonio.radiometry.frames import as_vectors, dot, frame_from_normal, normalize
 
@@ -152,6 +151,10 @@ def solid_angle_disk(
     h, rho, R = np.broadcast_arrays(h, rho, R)
     rmax = np.sqrt(h**2 + (R + rho) ** 2)
     m = np.clip(4.0 * R * rho / np.where(rmax > 0, rmax, 1.0) ** 2, 0.0, 1.0)
+    # imported here: scipy.special costs ~0.2 s, and gonio.dataset (every command, every
+    # figure process of gonio fit) imports this module for the emitters it never uses
+    from scipy import special
+
     with np.errstate(divide="ignore", invalid="ignore"):
         K = special.ellipk(m)
         xi = np.arctan2(h, np.abs(R - rho))
@@ -305,6 +308,8 @@ def _gauss_legendre(n: int) -> tuple[Array, Array]:
     agree to 2e-16 in the nodes; both integrate exp and sqrt(1 - x^2) on [-1, 1] to
     1e-13 and 8e-12 at 4096 nodes.
     """
+    from scipy import special  # imported here, as in solid_angle_disk
+
     x, w = special.roots_legendre(n)
     x.flags.writeable = False
     w.flags.writeable = False
