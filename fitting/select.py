@@ -178,6 +178,21 @@ def information_criterion(
     return float(m2ll + (p * np.log(me) if criterion == "bic" else 2.0 * p))
 
 
+def _simplest_of_the_best(ok: list[tuple[float, int]], rows: list[dict[str, Any]]) -> int:
+    """Index of the best criterion; among candidates that tie with it, the fewest parameters.
+
+    A nested model whose extra parameter sits at its bound is the simpler model (Schlick
+    with ``f0 = 1`` is ``F = 1``): its cost equals the simpler fit's to rounding and the
+    bound parameter is not counted, so the criteria tie and their last bits would decide.
+    Criteria within ``1e-9`` relative of the best are a tie; the candidate with the fewest
+    nominal parameters wins, then the earlier one in the candidate list.
+    """
+    best = min(ic for ic, _ in ok)
+    tol = 1e-9 * max(1.0, abs(best))
+    tied = [i for ic, i in ok if ic <= best + tol]
+    return min(tied, key=lambda i: (rows[i]["n_params"], i))
+
+
 def select_model(
     samples: Any,
     candidates: tuple[str, ...] | None = None,
@@ -272,7 +287,7 @@ def select_model(
         r = by_name.get(row["model"])
         if r is not None and row["model"] not in DIFFUSE_MODELS:
             row["gloss_60"] = float(np.mean(gloss_units(r.bind())))
-    best_row = min(ok)[1]
+    best_row = _simplest_of_the_best(ok, rows)
     note = ""
     gloss = rows[best_row].get("gloss_60")
     if gloss is not None and gloss < min_gloss:
