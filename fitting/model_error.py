@@ -282,9 +282,11 @@ def aligned_bic(fit: Any) -> float:
     ``-2 ln L = 2 sum w ln(1 + r^2) + const = 4 cost + const`` (the constant, ``sum
     ln(pi sigma')``, is the same for every candidate fitted to the same samples).
     :func:`gonio.fitting.select.information_criterion` takes ``2 cost`` (a Gaussian's):
-    on a robust cost that halves the likelihood's weight against the parameter penalty,
-    and on relative residuals (a few per cent) it is the penalty alone that ranks the
-    models (every misfit fit then chose ``lambert``).
+    on this cost that halves the likelihood's weight against the parameter penalty.
+    (What made every aligned fit "choose" ``lambert`` was not the criterion but
+    :func:`gonio.fitting.select.select_model`'s matte rule, whose cost ratio is
+    calibrated on Gaussian costs: ``benchmarks/adaptive.py`` does not apply it to aligned
+    fits.)
     """
     if not fit.success or not np.isfinite(fit.cost):
         return float("inf")
