@@ -14,9 +14,13 @@ Issue 17's Must show.  Per material (``lambert+ggx`` at alpha 0.05 and 0.3,
   from the dense session, i.e. the same simulated rig and reduction).  The pool is the
   dense grid's poses.
 - a misfit (the best candidate's chi^2/dof > 4, :mod:`gonio.fitting.model_error`): every
-  fit adds the discrepancy ``tau`` to the sigmas; the adaptive driver's fits also weigh
-  their samples for uniform coverage (``coverage_weights``) and its design turns
-  space-filling (``design.MISFIT_WEIGHTS``);
+  candidate is fitted again by the aligned fit (``ALIGNED``:
+  :func:`gonio.fitting.model_error.fit_aligned`, a Cauchy penalty on relative residuals
+  with coverage weights: the figure below is a relative one, and the compromise must
+  not follow the pose mix), the grids' fits and the adaptive run's alike, and ranked by
+  the aligned fits' Cauchy BIC (:func:`gonio.fitting.model_error.aligned_bic`); the
+  design turns space-filling (``design.MISFIT_WEIGHTS``), its model-free term reading
+  the relative residuals;
 - error = median relative difference of the chosen model (largest BIC weight among the
   candidates) from the ground truth over :func:`gonio.fitting.design.hemisphere_directions`
   (theta to 80 deg, whole hemisphere), all channels;
@@ -28,7 +32,12 @@ Prints one JSON object: per material the curves, ``pose_ratio`` (grid poses / ad
 poses at the densest grid's error; where the adaptive run does not reach it, the grid
 poses needed for the adaptive run's final error over its poses), ``error_ratio_at_equal_time``
 (grid error / adaptive error at each grid's session time, the smallest), and the
-top-level ``ratio``: the smallest ``pose_ratio`` over the materials (target 5).
+top-level ``ratio``: the smallest ``pose_ratio`` over the materials (target 5).  Also
+per material ``pose_ratio_reach_and_stay``: the grid poses from which on every denser
+grid's error is <= 1.05 x the densest grid's, over the adaptive poses from which on every
+later round's is (a curve that dips under the level and climbs back has not reached it;
+None when a curve ends above it).  It is reported beside ``pose_ratio``, not in its
+place.
 
 Run: ``.venv/bin/python benchmarks/adaptive.py [--root DIR] [--materials NAME ...]``
 (the sessions are cached in ``--root``).
