@@ -118,6 +118,7 @@ def fit(
     seed: int = 0,
     model_options: dict[str, Any] | None = None,
     progress: Callable[[str], None] | None = None,
+    sample_weight: np.ndarray | None = None,
 ) -> FitResult:
     """Fit a BRDF model to samples.
 
@@ -167,6 +168,9 @@ def fit(
         Keyword options of the model (``{"fresnel": "schlick"}``).
     progress
         Called with a short text after each stage (used by the CLI's progress bar).
+    sample_weight
+        (N,) weights >= 0 of the samples' terms in the cost, ``0.5 * sum(w * rho(r**2))``
+        (importance weights: :func:`gonio.fitting.model_error.coverage_weights`); None: 1.
 
     Returns
     -------
@@ -206,9 +210,10 @@ def fit(
             maxeval=maxeval,
             seed=seed,
             progress=progress,
+            sample_weight=sample_weight,
         )
         if modes is not None:
-            _geometry_after_selection(result, samples, modes, f_scale)
+            _geometry_after_selection(result, samples, modes, f_scale, sample_weight)
     else:
         result = fit_model(
             samples,
@@ -226,6 +231,7 @@ def fit(
             seed=seed,
             model_options=model_options,
             progress=progress,
+            sample_weight=sample_weight,
         )
     rel = getattr(samples, "attrs", {}).get("calibration_rel_std")
     if rel is not None:
@@ -246,13 +252,19 @@ class _WithoutModes:
 
 
 def _geometry_after_selection(
-    result: FitResult, samples: Any, modes: GeometricModes, f_scale: float
+    result: FitResult,
+    samples: Any,
+    modes: GeometricModes,
+    f_scale: float,
+    sample_weight: np.ndarray | None = None,
 ) -> None:
     """Give the selected fit the covariance with the geometric modes (in place)."""
     from gonio.brdf import get_model
 
     m = get_model(result.model, **result.model_options)
-    prob = prepare_problem(m, samples, get_loss(result.loss), result.robust, f_scale)
+    prob = prepare_problem(
+        m, samples, get_loss(result.loss), result.robust, f_scale, sample_weight=sample_weight
+    )
     theta = np.array([result.params[n][0] for n in prob.shape_names])
     a = np.array([result.params[n] for n in prob.linear_names]).reshape(
         prob.n_linear, prob.n_channels
@@ -321,6 +333,7 @@ def fit_model(
     seed: int = 0,
     model_options: dict[str, Any] | None = None,
     progress: Callable[[str], None] | None = None,
+    sample_weight: np.ndarray | None = None,
 ) -> FitResult:
     """Fit one model; the parameters are those of :func:`fit` (without ``model="auto"``)."""
     _check_algorithm(algorithm)
@@ -334,7 +347,7 @@ def fit_model(
             raise UnknownNameError(
                 f"unknown robust penalty {robust!r}; expected one of {', '.join(ROBUST)}"
             )
-    prob = prepare_problem(m, samples, loss_obj, robust, f_scale)
+    prob = prepare_problem(m, samples, loss_obj, robust, f_scale, sample_weight=sample_weight)
     # read (and checked) before the search: a malformed mode table fails fast
     modes = geometric_modes_of(samples)
     if absolute_sigma is None:
@@ -348,7 +361,9 @@ def fit_model(
     linear_ok = loss_obj.linear and robust is None
     # non-linear losses start from the variable-projection fit of the nearest linear loss
     init_loss = loss_obj if loss_obj.linear else get_loss("cosine_l2")
-    init_prob = prob if linear_ok else prepare_problem(m, samples, init_loss)
+    init_prob = (
+        prob if linear_ok else prepare_problem(m, samples, init_loss, sample_weight=sample_weight)
+    )
     local_alg = (
         algorithm if algorithm in ALGORITHMS and algorithm not in GLOBAL_ALGORITHMS else "LD_LBFGS"
     )
@@ -544,6 +559,7 @@ def _screen_problem(prob: Problem, seed: int) -> Problem:
         ub_shape=prob.ub_shape,
         lb_lin=prob.lb_lin,
         ub_lin=prob.ub_lin,
+        sample_weight=None if prob.sample_weight is None else prob.sample_weight[idx],
     )
 
 

@@ -47,7 +47,6 @@ from typing import Any
 import numpy as np
 
 from gonio.errors import FitError
-from gonio.fitting.losses import robust_rho
 from gonio.fitting.objective import Problem
 
 __all__ = ["CORRELATED_TERMS", "GeometricModes", "geometric_modes_of", "sandwich_covariance"]
@@ -258,7 +257,7 @@ def sandwich_covariance(
     theta, a = prob.unpack(x)
     f, _ = prob.model_eval(theta, a, grad=False)
     _, drdf = prob.loss.residual(f, prob.y, prob.weights, prob.cos_i)
-    _, drho = robust_rho(r * r, prob.robust, prob.f_scale)
+    _, drho = prob.rho(r)
     S, K, C = prob.n_shape, prob.n_linear, prob.n_channels
     P = prob.n_params
     # Q = rho' J: the estimating equations' weights (J^T r = 0 without a robust penalty)

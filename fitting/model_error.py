@@ -35,10 +35,18 @@ import numpy as np
 from scipy.optimize import brentq
 
 __all__ = [
+    "ALIGNED_REL_SCALE",
+    "ALIGNED_ROBUST",
     "MISFIT_CHI2_DOF",
+    "aligned_bic",
+    "aligned_bic_weights",
+    "aligned_fit_options",
+    "aligned_samples",
     "chi2_dof",
+    "fit_aligned",
     "coverage_weights",
     "model_error_scale",
+    "relative_model_error_scale",
     "with_model_error",
     "with_weights",
 ]
@@ -197,3 +205,196 @@ def with_weights(samples: Any, weights: np.ndarray) -> Any:
     w = np.asarray(weights, dtype=np.float64)
     s = np.asarray(samples.brdf_std, dtype=np.float64)
     return dataclasses.replace(samples, brdf_std=s / np.sqrt(w)[:, None])
+
+
+# --------------------------------------------------------------------------------------
+# The aligned fit: a misfit's compromise chosen by the figure it is judged by
+#: Scale of the aligned fit's Cauchy penalty, as a relative difference: residuals up to
+#: ~7 % count as in least squares, larger ones (where no candidate follows the
+#: material) grow only logarithmically.  5-10 % gave the same grid errors on
+#: ``rgl:paper_white``; the misfits of the RGL materials leave median relative residuals
+#: of 3-20 %.
+ALIGNED_REL_SCALE = 0.07
+#: The aligned fit's robust penalty (:func:`gonio.fitting.losses.robust_rho`).
+ALIGNED_ROBUST = "cauchy"
+
+
+def relative_model_error_scale(fit: Any, samples: Any) -> float:
+    """Robust scale of ``fit``'s relative residuals on ``samples`` (dimensionless).
+
+    ``1.4826 * median |f - y| / max(|y|, sigma)`` over the usable samples: the typical
+    relative model discrepancy a misfit model leaves (the noise sigma floors the
+    denominator of dark samples).  Reported with the aligned fits; 0 when no sample is
+    usable.
+    """
+    r, s, f = _residuals(fit, samples)
+    if not r.size:
+        return 0.0
+    y = f - r
+    return float(1.4826 * np.median(np.abs(r) / np.maximum(np.abs(y), s)))
+
+
+def aligned_samples(samples: Any, rel_scale: float = ALIGNED_REL_SCALE) -> Any:
+    """``samples`` whose sigmas make the weighted residual a relative difference.
+
+    ``brdf_std' = sqrt(sigma^2 + (rel_scale * y)^2)`` (1/sr): the residual ``(f - y) /
+    sigma'`` is ``(f - y) / (rel_scale |y|)`` where the sample is well above its noise,
+    the noise-standardised residual where it is not (the floor: a dark sample's relative
+    difference is noise).  Fitted with :func:`aligned_fit_options` (a Cauchy penalty of
+    scale 1 on these residuals), the fit minimises a robust relative difference: the
+    figure ``benchmarks/adaptive.py`` judges (the median relative difference), not the
+    absolute one the noise weights give, whose compromise follows the pose mix.
+
+    Parameters
+    ----------
+    samples
+        :class:`gonio.dataset.BRDFSamples` (``brdf``, ``brdf_std`` in 1/sr).
+    rel_scale
+        The relative difference (dimensionless, > 0) one residual unit stands for.
+    """
+    if not rel_scale > 0.0:
+        raise ValueError(f"aligned_samples: rel_scale must be > 0, got {rel_scale!r}")
+    s = np.asarray(samples.brdf_std, dtype=np.float64)
+    y = np.asarray(samples.brdf, dtype=np.float64).reshape(s.shape)
+    return dataclasses.replace(samples, brdf_std=np.sqrt(s**2 + (rel_scale * y) ** 2))
+
+
+def aligned_fit_options(samples: Any, coverage: bool = True) -> dict[str, Any]:
+    """Keyword options of :func:`gonio.fitting.fit.fit_model` for the aligned fit of
+    :func:`aligned_samples` ``(samples)``: weighted L2 with a Cauchy penalty of scale 1
+    and, with ``coverage``, :func:`coverage_weights` as the samples' cost weights (so
+    that the compromise does not follow where the poses happen to be)."""
+    opts: dict[str, Any] = {
+        "loss": "weighted_l2",
+        "robust": ALIGNED_ROBUST,
+        "f_scale": 1.0,
+        "absolute_sigma": True,
+    }
+    if coverage:
+        opts["sample_weight"] = coverage_weights(samples.wi, samples.wo)
+    return opts
+
+
+def aligned_bic(fit: Any) -> float:
+    """BIC of an aligned fit from its Cauchy likelihood (dimensionless).
+
+    The residuals ``r`` of :func:`aligned_samples` under a Cauchy density of scale 1:
+    ``-2 ln L = 2 sum w ln(1 + r^2) + const = 4 cost + const`` (the constant, ``sum
+    ln(pi sigma')``, is the same for every candidate fitted to the same samples).
+    :func:`gonio.fitting.select.information_criterion` takes ``2 cost`` (a Gaussian's):
+    on this cost that halves the likelihood's weight against the parameter penalty.
+    (What made every aligned fit "choose" ``lambert`` was not the criterion but
+    :func:`gonio.fitting.select.select_model`'s matte rule, whose cost ratio is
+    calibrated on Gaussian costs: ``benchmarks/adaptive.py`` does not apply it to aligned
+    fits.)
+    """
+    if not fit.success or not np.isfinite(fit.cost):
+        return float("inf")
+    if fit.robust != ALIGNED_ROBUST or fit.loss != "weighted_l2":
+        raise ValueError(
+            f"aligned_bic: fit of {fit.model} has loss {fit.loss!r}, robust {fit.robust!r}; "
+            f"expected the aligned fit's 'weighted_l2' with {ALIGNED_ROBUST!r}"
+        )
+    m = fit.diagnostics["n_residuals"]
+    p = fit.n_params - len(fit.diagnostics["at_bounds"])
+    return float(4.0 * fit.cost + p * np.log(m))
+
+
+def aligned_bic_weights(fits: Sequence[Any]) -> np.ndarray:
+    """Posterior weights ``exp(-BIC / 2)`` (normalised, (F,)) of aligned fits of the same
+    samples, from :func:`aligned_bic`."""
+    bic = np.array([aligned_bic(r) for r in fits])
+    if not np.any(np.isfinite(bic)):
+        raise ValueError("aligned_bic_weights: no candidate was fitted successfully")
+    w = np.where(np.isfinite(bic), np.exp(-0.5 * (bic - np.min(bic[np.isfinite(bic)]))), 0.0)
+    return w / w.sum()
+
+
+def _irls_chain(al: Any, s0: np.ndarray, y: np.ndarray, sw: np.ndarray, model: Any,
+                iterations: int, rtol: float,
+                fit_kwargs: dict[str, Any]) -> tuple[float, Any, np.ndarray, int]:  # fmt: skip
+    """The IRLS steps of :func:`fit_aligned`: (Cauchy cost, fit, residuals, step) of the
+    step with the lowest Cauchy cost."""
+    from gonio.fitting.fit import fit_model
+
+    irls = np.ones_like(s0)
+    best: tuple[float, Any, np.ndarray, int] | None = None
+    prev = np.inf
+    for step in range(1, iterations + 1):
+        cur = dataclasses.replace(al, brdf_std=s0 / np.sqrt(irls))
+        r = fit_model(cur, model, loss="weighted_l2", absolute_sigma=True,
+                      sample_weight=sw, **fit_kwargs)  # fmt: skip
+        f = np.asarray(r.bind().eval(al.wi, al.wo), dtype=np.float64).reshape(y.shape)
+        z = ((f - y) / s0) ** 2
+        used = np.asarray(r.used, dtype=bool)
+        cost = 0.5 * float(np.sum(sw[used, None] * np.log1p(z[used])))
+        if best is None or cost < best[0]:
+            best = (cost, r, np.sqrt(z[used]) * np.sign((f - y)[used]), step)
+        irls = np.where(np.isfinite(z), 1.0 / (1.0 + z), 1.0)
+        if prev - cost <= rtol * abs(cost):
+            break
+        prev = cost
+    assert best is not None
+    return best
+
+
+def fit_aligned(
+    samples: Any,
+    model: Any,
+    *,
+    coverage: bool = True,
+    rel_scale: float = ALIGNED_REL_SCALE,
+    iterations: int = 6,
+    rtol: float = 1e-4,
+    **fit_kwargs: Any,
+) -> Any:
+    """The aligned fit of one model: Cauchy penalty on relative residuals, coverage weights.
+
+    Minimises ``0.5 * sum w_n ln(1 + r^2)`` with ``r = (f - y) / sigma'`` the residuals of
+    :func:`aligned_samples` and ``w`` :func:`coverage_weights` (with ``coverage``), by
+    iteratively reweighted least squares: each step is an ordinary weighted-L2 fit
+    (:func:`gonio.fitting.fit.fit_model`: variable projection and its global Sobol
+    design over the shape parameters) with the sigmas ``sigma' / sqrt(1 / (1 + r^2))`` of
+    the previous step's residuals.  Each step does not increase the Cauchy cost when it
+    finds its weighted problem's minimum (the reweighted L2 majorises ``ln(1 + z)``,
+    concave in ``z``), and its global design lets a step change basins.  The direct
+    robust fit (``fit_model(robust="cauchy")``) polishes the plain L2 fit's basin
+    locally: on ``rgl:colodur_napoli_4f``'s 10 x 90 deg grid it stopped at a Cauchy cost of
+    6244 where the basin of the 10 x 45 deg grid's fit has 4815 (median relative error
+    0.125 against 0.064).
+
+    Parameters
+    ----------
+    samples
+        :class:`gonio.dataset.BRDFSamples` with noise sigmas (1/sr).
+    model
+        A model spec for :func:`gonio.fitting.fit.fit_model`.
+    coverage
+        Weigh the samples by :func:`coverage_weights` (the compromise independent of
+        where the poses are).
+    rel_scale
+        :func:`aligned_samples`' scale (dimensionless).
+    iterations, rtol
+        At most ``iterations`` reweighting steps; stop when the Cauchy cost falls by less
+        than ``rtol`` (relative).  (Continuing each step locally from the previous one's
+        shape, with extra chains from other starts, was tried: on
+        ``rgl:colodur_napoli_4f`` it ended at higher Cauchy costs, 13426 against 9376 on
+        the 10 x 45 deg grid, than the global design at every step.)
+    fit_kwargs
+        Passed to every step's ``fit_model`` (not ``loss``, ``robust``, ``sample_weight``).
+
+    Returns
+    -------
+    FitResult
+        The step with the lowest Cauchy cost, with ``robust="cauchy"``, ``cost`` that
+        Cauchy cost (what :func:`aligned_bic` ranks), ``residuals`` the unweighted ``r``
+        and ``diagnostics["irls_steps"]``.  Its covariance is the last weighted-L2
+        step's (the IRLS approximation at the robust optimum).
+    """
+    al = aligned_samples(samples, rel_scale)
+    s0 = np.asarray(al.brdf_std, dtype=np.float64)
+    y = np.asarray(al.brdf, dtype=np.float64).reshape(s0.shape)
+    sw = coverage_weights(al.wi, al.wo) if coverage else np.ones(len(y))
+    cost, r, res, steps = _irls_chain(al, s0, y, sw, model, iterations, rtol, dict(fit_kwargs))
+    diag = {**r.diagnostics, "irls_steps": steps, "rms_residual": float(np.sqrt(np.mean(res**2)))}
+    return dataclasses.replace(r, robust=ALIGNED_ROBUST, cost=cost, residuals=res, diagnostics=diag)

@@ -59,11 +59,23 @@ class Problem:
     ub_lin: np.ndarray = field(default_factory=lambda: np.zeros(0))
     nfev: int = 0
     njev: int = 0
+    #: (N,) per-sample weights of the cost, ``0.5 * sum(w * rho(r**2))`` (None: all 1)
+    sample_weight: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.weights = (
             self.loss.weights(self.y, self.sigma, self.cos_i) if self.loss.linear else None
         )
+        # Without a robust penalty a sample weight is a residual scale (sqrt(w) r), which
+        # keeps the loss linear (variable projection, the plain J^T J); with one it must
+        # multiply rho itself: rho(w r^2) != w rho(r^2) for a robust rho.
+        self.rho_weight: np.ndarray | None = None
+        if self.sample_weight is not None:
+            sw = np.asarray(self.sample_weight, dtype=np.float64)[:, None]
+            if self.loss.linear and self.robust is None:
+                self.weights = self.weights * np.sqrt(sw)
+            else:
+                self.rho_weight = sw
         self._wi_c = self.wi[:, None, :]
         self._wo_c = self.wo[:, None, :]
 
@@ -171,14 +183,22 @@ class Problem:
             jl[..., j] = drdf * np.broadcast_to(g[n], shp)
         return r, js, jl
 
+    def rho(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``w * rho(r**2)`` and ``w * rho'(r**2)`` (N, C): the robust penalty of the
+        residuals ``r`` times the per-sample weights (those not folded into ``weights``)."""
+        rho, drho = robust_rho(r * r, self.robust, self.f_scale)
+        if self.rho_weight is not None:
+            return rho * self.rho_weight, drho * self.rho_weight
+        return rho, drho
+
     def full_cost(self, x: np.ndarray, want_grad: bool = True) -> tuple[float, np.ndarray]:
-        """Cost ``0.5 * sum(rho(r**2))`` and its gradient with respect to ``x``."""
+        """Cost ``0.5 * sum(w * rho(r**2))`` and its gradient with respect to ``x``."""
         if not want_grad:
             r = self.residuals(x)
-            rho, _ = robust_rho(r * r, self.robust, self.f_scale)
+            rho, _ = self.rho(r)
             return 0.5 * float(np.sum(rho)), np.empty(0)
         r, js, jl = self.jacobian_blocks(x)
-        rho, drho = robust_rho(r * r, self.robust, self.f_scale)
+        rho, drho = self.rho(r)
         wr = drho * r
         gs = np.einsum("nc,ncs->s", wr, js)
         gl = np.einsum("nc,ncj->jc", wr, jl)
@@ -229,8 +249,13 @@ def prepare_problem(
     robust: str | None = None,
     f_scale: float = 1.0,
     channels: tuple[str, ...] | None = None,
+    sample_weight: np.ndarray | None = None,
 ) -> Problem:
     """Select the usable samples and set up the parameter layout.
+
+    ``sample_weight`` (N,), finite and >= 0, multiplies each sample's term of the cost
+    (``0.5 * sum(w * rho(r**2))``): importance weights, e.g.
+    :func:`gonio.fitting.model_error.coverage_weights`.
 
     Samples are left out (and counted in ``Problem.dropped``) when flagged, when their
     value or direction is not finite, when a direction is at or below the horizon, when the
@@ -293,6 +318,18 @@ def prepare_problem(
                 f"index {i}: {sigma[i].tolist()}); weighted_l2 needs positive sigmas, use "
                 "loss='cosine_l2' or 'l2' for noise-free data"
             )
+    if sample_weight is not None:
+        sample_weight = np.asarray(sample_weight, dtype=np.float64)
+        if (
+            sample_weight.shape != (n_in,)
+            or not np.all(np.isfinite(sample_weight))
+            or np.any(sample_weight < 0)
+        ):
+            raise FitError(
+                f"sample_weight: expected {n_in} finite weights >= 0, got shape "
+                f"{sample_weight.shape} (min {np.min(sample_weight, initial=np.inf)})"
+            )
+        keep = drop(sample_weight == 0, "zero weight", keep)
     all_kept = bool(keep.all())
     norm = _row_norm(wi if all_kept else np.where(keep[:, None], wi, 1.0))
     cos_i = np.where(keep, wi[:, 2] / np.where(norm > 0, norm, 1.0), 0.0)
@@ -362,4 +399,5 @@ def prepare_problem(
         ub_shape=ub_s,
         lb_lin=lb_l,
         ub_lin=ub_l,
+        sample_weight=None if sample_weight is None else kept(sample_weight),
     )

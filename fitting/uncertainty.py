@@ -26,7 +26,6 @@ from typing import Any
 
 import numpy as np
 
-from gonio.fitting.losses import robust_rho
 from gonio.fitting.objective import Problem
 
 __all__ = ["Uncertainty", "add_calibration_uncertainty", "covariance_at"]
@@ -67,9 +66,10 @@ def _at_bounds(prob: Problem, x: np.ndarray) -> np.ndarray:
 def _jtj_of_blocks(prob: Problem, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Residuals, ``J^T J`` (with the robust IRLS weights) and the cost at ``x``."""
     r, js, jl = prob.jacobian_blocks(x, natural=True)
-    rho, drho = robust_rho(r * r, prob.robust, prob.f_scale)
+    rho, drho = prob.rho(r)
     cost = 0.5 * float(np.sum(rho))
-    if prob.robust is not None:  # (without a penalty the IRLS weights are all 1)
+    # (without a penalty or sample weights beyond the residuals' the IRLS weights are 1)
+    if prob.robust is not None or prob.rho_weight is not None:
         sw = np.sqrt(drho)
         js = js * sw[..., None]
         jl = jl * sw[..., None]
