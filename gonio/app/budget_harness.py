@@ -427,12 +427,12 @@ def pole_asymmetry(truth: Any, theta_o_deg: tuple[float, ...] = (20.0, 40.0, 60.
     ``theta_o`` = 80 deg, so its value near the pole depends on the azimuth of the approach
     (``phi_d = phi_o - phi_i`` with ``phi_i`` turning once around the pole).
     """
+    from gonio.radiometry.frames import spherical_to_direction
+
     ph = np.radians(np.arange(0.0, 360.0, 15.0))
     out = 0.0
     for to in np.radians(np.asarray(theta_o_deg, float)):
-        wo = np.stack(
-            [np.sin(to) * np.cos(ph), np.sin(to) * np.sin(ph), np.full_like(ph, np.cos(to))], -1
-        )
+        wo = spherical_to_direction(to, ph)
         wi = np.broadcast_to(np.array([0.0, 0.0, 1.0]), wo.shape)
         f = np.asarray(truth.eval(wi, wo), float)
         f = f.reshape(len(ph), -1)
