@@ -68,7 +68,7 @@ CANDIDATES = (*DEFAULT_CANDIDATES, "lambert+beckmann[fresnel=schlick]")
 N_EVAL = 4096
 TARGET = 5.0
 #: On a misfit, fit every candidate with the aligned fit (relative residuals, Cauchy,
-#: coverage weights: :func:`gonio.fitting.model_error.aligned_fit_options`), grids and
+#: coverage weights: :func:`gonio.fitting.model_error.fit_aligned`), grids and
 #: adaptive runs alike; False: the model discrepancy added to the noise sigmas.
 ALIGNED = True
 
@@ -83,13 +83,14 @@ def fit_candidates(samples: Any, candidates: Sequence[str] = CANDIDATES, *,
     best unless its lobe is matte, :func:`chosen`) given the largest weight.
 
     With ``misfit``, when the best candidate's ``chi^2 / dof`` shows a misfit
-    (:mod:`gonio.fitting.model_error`) every candidate is fitted again with the relative
-    model discrepancy the best candidate leaves added to the sigmas (one common ``tau``, so
-    the BIC still compares the models under one noise model); with ``coverage`` too, their
-    weights are also multiplied by :func:`gonio.fitting.model_error.coverage_weights`
-    (what the adaptive driver does: its poses are concentrated by design, and a misfit
-    model's compromise follows the pose mix).  Returns the fits, the
-    weights and the samples they were fitted to (their sigmas, the discrepancy's).
+    (:mod:`gonio.fitting.model_error`) every candidate is fitted again: with ``aligned``
+    (default :data:`ALIGNED`) by :func:`gonio.fitting.model_error.fit_aligned` and
+    weighted by its Cauchy BIC (what the session's advisor does); otherwise with the
+    model discrepancy the best candidate leaves added to the sigmas (one common ``tau``,
+    so the BIC still compares the models under one noise model), and with ``coverage``
+    their weights also multiplied by :func:`gonio.fitting.model_error.coverage_weights`.
+    Returns the fits, the weights and the samples they were fitted to (their sigmas:
+    the aligned ones or the discrepancy's).
     """
     from gonio.fitting import model_error
 

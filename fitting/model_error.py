@@ -40,11 +40,10 @@ __all__ = [
     "MISFIT_CHI2_DOF",
     "aligned_bic",
     "aligned_bic_weights",
-    "aligned_fit_options",
     "aligned_samples",
     "chi2_dof",
-    "fit_aligned",
     "coverage_weights",
+    "fit_aligned",
     "model_error_scale",
     "relative_model_error_scale",
     "with_model_error",
@@ -240,8 +239,8 @@ def aligned_samples(samples: Any, rel_scale: float = ALIGNED_REL_SCALE) -> Any:
     ``brdf_std' = sqrt(sigma^2 + (rel_scale * y)^2)`` (1/sr): the residual ``(f - y) /
     sigma'`` is ``(f - y) / (rel_scale |y|)`` where the sample is well above its noise,
     the noise-standardised residual where it is not (the floor: a dark sample's relative
-    difference is noise).  Fitted with :func:`aligned_fit_options` (a Cauchy penalty of
-    scale 1 on these residuals), the fit minimises a robust relative difference: the
+    difference is noise).  Fitted by :func:`fit_aligned` (a Cauchy penalty of scale 1 on
+    these residuals), the fit minimises a robust relative difference: the
     figure ``benchmarks/adaptive.py`` judges (the median relative difference), not the
     absolute one the noise weights give, whose compromise follows the pose mix.
 
@@ -257,22 +256,6 @@ def aligned_samples(samples: Any, rel_scale: float = ALIGNED_REL_SCALE) -> Any:
     s = np.asarray(samples.brdf_std, dtype=np.float64)
     y = np.asarray(samples.brdf, dtype=np.float64).reshape(s.shape)
     return dataclasses.replace(samples, brdf_std=np.sqrt(s**2 + (rel_scale * y) ** 2))
-
-
-def aligned_fit_options(samples: Any, coverage: bool = True) -> dict[str, Any]:
-    """Keyword options of :func:`gonio.fitting.fit.fit_model` for the aligned fit of
-    :func:`aligned_samples` ``(samples)``: weighted L2 with a Cauchy penalty of scale 1
-    and, with ``coverage``, :func:`coverage_weights` as the samples' cost weights (so
-    that the compromise does not follow where the poses happen to be)."""
-    opts: dict[str, Any] = {
-        "loss": "weighted_l2",
-        "robust": ALIGNED_ROBUST,
-        "f_scale": 1.0,
-        "absolute_sigma": True,
-    }
-    if coverage:
-        opts["sample_weight"] = coverage_weights(samples.wi, samples.wo)
-    return opts
 
 
 def aligned_bic(fit: Any) -> float:

@@ -115,9 +115,9 @@ class FitAdvisor:
 
     def _fits(self, samples: Any) -> tuple[list[Any], np.ndarray, list[dict[str, Any]], Any]:
         """Every candidate fitted; on a misfit the data show (the best candidate's
-        chi^2/dof, :mod:`gonio.fitting.model_error`) fitted again with the model
-        discrepancy added to the sigmas.  Returns the fits, their BIC weights, the
-        journal rows and the samples fitted (with the discrepancy's sigmas on a misfit)."""
+        chi^2/dof, :mod:`gonio.fitting.model_error`) fitted again by the aligned fit
+        (:func:`gonio.fitting.model_error.fit_aligned`).  Returns the fits, their BIC
+        weights, the journal rows and the samples fitted (the aligned sigmas on a misfit)."""
         from gonio.fitting import model_error
 
         fits, w, rows = self._fit_candidates(samples)
