@@ -17,7 +17,7 @@ Measured accuracy (tests/brdf/test_models_albedo.py, against closed forms and sc
 adaptive cubature): <= 1e-9 relative for the microfacet, Ward and Phong lobes, also at
 alpha = 1e-4 and near-mirror incidence up to 75 deg; ~1e-8 for anisotropic Ward; ~5e-5
 for Oren-Nayar and Blinn-Phong, whose max() terms put kinks inside the domain.
-About 5 ms per incidence angle and parameter set.
+About 1-3 ms per incidence angle and parameter set (the integrand in cache-sized blocks).
 
 Hand-written because scipy's adaptive cubature (``nquad``) is far too slow for vectorised
 use over many incidence angles and parameter sets, and knows nothing about lobe widths.
@@ -38,7 +38,8 @@ _T_ORDER = 12  # Gauss-Legendre nodes per theta_h segment
 _P_ORDER = 32  # Gauss-Legendre nodes over [0, phi_max] (isotropic), twice that otherwise
 _K_GEOM = np.arange(-3, 15)  # segment ends at width * 2^k: 1/8 width ... > pi/2 for 1e-4
 _GRADED = np.array([1 / 256, 1 / 32, 1 / 8, 1 / 4, 1 / 2, 3 / 4, 7 / 8, 31 / 32, 255 / 256])
-_CHUNK = 24  # incidence/parameter cases evaluated at once (bounds memory to ~30 MB)
+_CHUNK = 24  # incidence/parameter cases sharing their theta_h segments (bounds memory)
+_BLOCK_NODES = 32768  # quadrature nodes whose integrand is evaluated at once (256 kB each)
 
 _xt, _wt = np.polynomial.legendre.leggauss(_T_ORDER)
 _xp, _wp = np.polynomial.legendre.leggauss(_P_ORDER)
@@ -129,7 +130,25 @@ def lobe_albedo(
 def _albedo_chunk(lobe: Lobe, th: Array, ph: Array, p: dict[str, Array]) -> Array:
     K = len(th)
     width = np.broadcast_to(lobe.lobe_width(p), (K,))
-    t_nodes, t_w = _theta_nodes(th, width)  # (K, T)
+    t_nodes, t_w = _theta_nodes(th, width)  # (K, T), the chunk's segments
+    # The integrand in blocks of a few cases, ~_BLOCK_NODES nodes each, so that the
+    # lobe's dozens of numpy passes over (K, T, P) temporaries run in L2 cache: 1.5-2x
+    # faster than the whole chunk at once (24 cases of an 8000-node GGX lobe: 1.5 MB per
+    # temporary).  Every case is computed on its own, the same numbers in any block.
+    P = 2 * _P_ORDER if not lobe.isotropic else _P_ORDER
+    block = max(1, _BLOCK_NODES // (t_nodes.shape[1] * P))
+    out = np.empty(K)
+    for s in range(0, K, block):
+        b = slice(s, s + block)
+        out[b] = _integrate(lobe, th[b], ph[b], {k: v[b] for k, v in p.items()}, t_nodes[b], t_w[b])
+    return out
+
+
+def _integrate(
+    lobe: Lobe, th: Array, ph: Array, p: dict[str, Array], t_nodes: Array, t_w: Array
+) -> Array:
+    """The half-vector quadrature of ``K`` cases on their theta_h nodes ``(K, T)``."""
+    K = len(th)
     ci, si = np.cos(th)[:, None], np.sin(th)[:, None]
     with np.errstate(all="ignore"):
         arg = -ci * np.cos(2.0 * t_nodes) / (si * np.sin(2.0 * t_nodes))
@@ -157,17 +176,31 @@ def _albedo_chunk(lobe: Lobe, th: Array, ph: Array, p: dict[str, Array]) -> Arra
         dphi = ax * ay / ((ax * np.cos(psi)) ** 2 + (ay * np.sin(psi)) ** 2)
         pw = half[..., None] * _wpa * dphi
     st = np.sin(t_nodes)[..., None]
-    h = np.stack(
-        np.broadcast_arrays(st * np.cos(phi_h), st * np.sin(phi_h), np.cos(t_nodes)[..., None]),
-        axis=-1,
-    )  # (K, T, P, 3)
-    wi = np.stack([si[:, 0] * np.cos(ph), si[:, 0] * np.sin(ph), ci[:, 0]], axis=-1)
-    wi = wi[:, None, None, :]
-    cos_d = np.einsum("ktpj,kj->ktp", h, wi[:, 0, 0, :])
-    wo = 2.0 * cos_d[..., None] * h - wi
+    # Components in separate contiguous planes (component-major ``(3, K, T, P)``, seen by
+    # the lobe as ``(K, T, P, 3)``), not interleaved ``(..., 3)`` rows: every numpy pass
+    # of the lobe then runs on contiguous memory.  wi stays ``(K, 1, 1, 3)`` and
+    # broadcasts, so per-case terms (G1 of wi) are computed once per case.
+    hx = st * np.cos(phi_h)
+    hy = st * np.sin(phi_h)
+    hz = np.cos(t_nodes)[..., None]
+    wx = (si[:, 0] * np.cos(ph))[:, None, None]
+    wy = (si[:, 0] * np.sin(ph))[:, None, None]
+    wz = ci[..., None]
+    # dot(h, wi), summed x + z first, then y: the order of numpy's einsum over (..., 3)
+    # rows, which the interleaved form used (the same bits; tests/brdf compare them)
+    cos_d = hx * wx
+    cos_d += hz * wz
+    cos_d += hy * wy
+    wo_c = np.empty((3, *cos_d.shape))
+    two_c = 2.0 * cos_d
+    np.subtract(two_c * hx, wx, out=wo_c[0])
+    np.subtract(two_c * hy, wy, out=wo_c[1])
+    np.subtract(two_c * hz, wz, out=wo_c[2])
+    wo = np.moveaxis(wo_c, 0, -1)
+    wi = np.stack(np.broadcast_arrays(wx, wy, wz), axis=-1)  # (K, 1, 1, 3)
     pk = {k: v[:, None, None] for k, v in p.items()}
     with np.errstate(all="ignore"):
-        f, _ = lobe.evaluate(Geometry(np.broadcast_to(wi, wo.shape), wo), pk, False)
-        integrand = np.broadcast_to(f, wo.shape[:-1]) * wo[..., 2] * 4.0 * cos_d * st
-        integrand = np.where((wo[..., 2] > 0.0) & (cos_d > 0.0), integrand, 0.0)
+        f, _ = lobe.evaluate(Geometry(wi, wo), pk, False)
+        integrand = np.broadcast_to(f, wo.shape[:-1]) * wo_c[2] * 4.0 * cos_d * st
+        integrand = np.where((wo_c[2] > 0.0) & (cos_d > 0.0), integrand, 0.0)
     return np.einsum("ktp,ktp,kt->k", integrand, pw, t_w)
