@@ -22,6 +22,7 @@ It implements :class:`gonio.rig.bus.BusTransport`, the interface the rig is give
 from __future__ import annotations
 
 import logging
+import select
 import threading
 import time
 from collections import Counter
@@ -93,6 +94,28 @@ class _Port(PortHandler):
         super().__init__(port_name)
         self.latency_timer_ms = latency_timer_ms
         self.fixed_timeout_ms = timeout_ms
+
+    def readPort(self, length):  # noqa: N802 - SDK name
+        """Up to ``length`` bytes, waiting (in ``select``) until the first one comes or
+        the packet's timeout passes.
+
+        The SDK opens the port non-blocking and its ``rxPacket`` calls this in a loop
+        until a status arrives or the timeout passes: a busy loop that holds a core (and
+        the GIL: a virtual bus served from a thread of this process then gets it only
+        at the interpreter's switch interval, ~5 ms per reply).  Waiting in ``select``
+        ends at the same deadline and returns the same bytes: what the loop would have
+        read by then.
+        """
+        ser = self.ser
+        if length > 0 and ser.fd is not None:
+            # the SDK's own clock (wall time in ms): the deadline its isPacketTimeout checks
+            left_ms = self.packet_start_time + self.packet_timeout - self.getCurrentTime()
+            if left_ms > 0:
+                try:
+                    select.select([ser.fd], [], [], left_ms / 1000.0)
+                except (OSError, ValueError):
+                    pass  # a closed port: the read below says so as the SDK's would
+        return ser.read(length)
 
     def setPacketTimeout(self, packet_length):  # noqa: N802 - SDK name
         self.packet_start_time = self.getCurrentTime()

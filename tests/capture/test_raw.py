@@ -299,3 +299,83 @@ def test_tiff_data_end_walks_strips_tiles_and_subifds():
     damaged[4:8] = (len(data) + 10).to_bytes(4, "big")  # the first IFD past the end
     with pytest.raises(FileFormatError, match="x.dng.*damaged TIFF structure"):
         read_raw(bytes(damaged), name="x.dng")
+
+
+def _sim_dng(mosaic, pattern="RGGB", black=512, white=16383):
+    from gonio.simulator.dng import dng_bytes
+    from gonio.simulator.sensor import RawFrame as SimFrame
+
+    return dng_bytes(
+        SimFrame(mosaic, pattern, black, white, np.eye(3), np.ones(3), 0.01, 8.0, 100.0, 0.035)
+    )
+
+
+def _assert_same_stats(a, b):
+    assert a.saturated_fraction == b.saturated_fraction
+    assert a.headroom_dn == b.headroom_dn
+    np.testing.assert_array_equal(a.signal_dn, b.signal_dn)  # exactly (NaN where empty)
+    np.testing.assert_array_equal(a.snr, b.snr)
+
+
+@pytest.mark.parametrize("noise", [False, True])
+def test_roi_stats_fast_path_equals_the_general_one(refdata, noise):
+    """The bracket's per-shot statistics of a whole box (cached channel indices, medians
+    from a histogram of the raw integers) are the general path's (float conversion of
+    the box, boolean masks, np.median), to the bit: real cameras' files (two CFA
+    layouts, black 512 and 0) and simulated DNGs with clipped pixels, boxes of odd and
+    even offsets and sizes (odd and even channel counts: both median forms)."""
+    from gonio.capture.noise import NoiseModel
+    from gonio.capture.raw import _box_mosaic_stats, _exposure_stats, roi_mask
+
+    rng = np.random.default_rng(7)
+    sat = rng.integers(512, 16383, (60, 90)).astype(np.uint16)
+    sat[10:30, 20:50] = 16383  # a clipped patch
+    frames = [
+        read_raw(refdata / "raw" / "RAW_KODAK_DC50.KDC"),
+        read_raw(refdata / "raw" / "Blackmagic.dng"),
+        read_raw(_sim_dng(sat, "GBRG"), name="sat.dng"),
+        read_raw(_sim_dng(rng.integers(500, 700, (61, 91)).astype(np.uint16)), name="odd.dng"),
+    ]
+    model = NoiseModel(gain=2.0, read_noise=3.0) if noise else None
+    taken = 0
+    for frame in frames:
+        h, w = frame.shape
+        for roi in [
+            None,
+            (0, h, 0, w),
+            (10, 60, 20, 90),
+            (3, 40, 5, 61),
+            (1, 2, 1, 4),
+            (7, 8, 9, 10),
+        ]:
+            mask = roi_mask(frame.shape, roi)
+            rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+            box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+            taken += _box_mosaic_stats(frame, box) is not None
+            _assert_same_stats(
+                _exposure_stats(frame, mask, model), _exposure_stats(frame, mask, model, fast=False)
+            )
+    assert taken == 6 * len(frames)  # every case went through the fast path
+
+
+def test_roi_stats_fast_path_declines_mixed_blacks(monkeypatch):
+    """A channel whose CFA positions have different black levels (both greens here) is
+    left to the general path: one black per channel is what the histogram median needs."""
+    import gonio.simulator.dng as dng
+    from gonio.capture.raw import _box_mosaic_stats
+
+    blacks = (500, 510, 520, 530)
+    tags = dng._tags
+    monkeypatch.setattr(
+        dng,
+        "_tags",
+        lambda f: [(50714, t[1], 4, blacks, True) if t[0] == 50714 else t for t in tags(f)],
+    )
+    mosaic = np.random.default_rng(3).integers(600, 4000, (32, 48)).astype(np.uint16)
+    frame = read_raw(_sim_dng(mosaic))
+    assert _box_mosaic_stats(frame, (slice(0, 32), slice(0, 48))) is None
+    st = roi_exposure_stats(frame, None)
+    g = (mosaic - np.tile(np.array(blacks, float).reshape(2, 2), (16, 24)))[
+        np.tile(np.array([[False, True], [True, False]]), (16, 24))
+    ]
+    assert st.signal_dn[1] == np.median(g)

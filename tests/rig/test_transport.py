@@ -11,6 +11,7 @@ from gonio.errors import BusError, RigError
 from gonio.rig.control_table import MODELS
 from gonio.rig.protocol import build_packet, crc16, stuff, unstuff
 from gonio.rig.transport import Transport
+from gonio.simulator.virtual_bus import VirtualBus
 
 REG = MODELS["XM430-W350"].registers
 
@@ -55,6 +56,33 @@ def test_device_errors_are_raised_not_retried(vbus):
             bus.write(1, REG["operating_mode"], 4)
         assert (info.value.servo, info.value.cause) == (1, "device_error")
         assert bus.counters["retries"] == 0
+
+
+def test_replies_are_waited_for_not_polled():
+    """The SDK opens the port non-blocking and loops on reads until a reply comes: the
+    transport's port waits in select instead (a busy loop holds a core and, with a
+    virtual bus served from a thread, the GIL).  Counted, not timed: a polling client
+    reads hundreds of times per reply, a waiting one a few (a status may arrive in more
+    than one chunk).  No switch-interval fixture: the default interpreter, as the demo."""
+    ids = (1, 2, 3, 4)
+    with VirtualBus(list(ids), time_scale="virtual", seed=0) as vb:
+        with Transport(vb.port, timeout_ms=500) as bus:
+            ser = bus._port.ser
+            calls = []
+            real_read = ser.read
+
+            def counted(n=1):
+                calls.append(n)
+                return real_read(n)
+
+            ser.read = counted
+            for _ in range(20):
+                blocks = bus.sync_read(ids, REG["present_position"].address, 4)
+                assert sorted(blocks) == list(ids)
+            assert bus.read(3, REG["present_position"]) == 2048  # its start position
+        # 4 status packets per SYNC_READ (header, then the rest of each): 8 reads if
+        # every packet comes whole; a few more where the pty splits one
+        assert len(calls) <= 21 * 4 * 4, len(calls)
 
 
 def test_retries_are_counted_and_logged(gil_handover, caplog):
