@@ -292,22 +292,20 @@ def simulate_mosaic(
     else:
         mu, over, any_over = _mean_numpy(sites, camera, k, t, n, fixed_pattern)
     counts = rng.poisson(mu)
-    read = rng.normal(0.0, s.read_noise, mu.shape) if s.read_noise > 0 else None
     if kernels:
-        from gonio.simulator.sensor_kernels import quantise
+        from gonio.simulator.sensor_kernels import quantise, quantise_read
 
         mosaic = np.empty(mu.shape, np.uint16)
-        quantise(
-            counts.reshape(-1),
-            np.zeros(0) if read is None else read.reshape(-1),
-            over.reshape(-1),
-            float(s.full_well),
-            float(gain),
-            float(s.black_level),
-            float(s.white_level),
-            mosaic.reshape(-1),
-        )
+        # the read noise is drawn in the kernel, from rng, as rng.normal below draws it
+        levels = (float(s.full_well), float(gain), float(s.black_level), float(s.white_level))
+        if s.read_noise > 0:
+            quantise_read(counts.reshape(-1), rng, float(s.read_noise), over.reshape(-1),
+                          *levels, mosaic.reshape(-1))  # fmt: skip
+        else:
+            quantise(counts.reshape(-1), np.zeros(0), over.reshape(-1), *levels,
+                     mosaic.reshape(-1))  # fmt: skip
     else:
+        read = rng.normal(0.0, s.read_noise, mu.shape) if s.read_noise > 0 else None
         electrons = counts.astype(np.float64)
         if read is not None:
             electrons += read

@@ -85,3 +85,19 @@ def test_hot_map_holds_the_hot_pixels_current(realistic):
     np.testing.assert_array_equal(np.flatnonzero(m), pattern.hot_index)
     np.testing.assert_array_equal(m[pattern.hot_index], pattern.hot_current)
     assert pattern.hot_map() is m  # built once
+
+
+def test_kernel_read_noise_draws_and_advances_the_generator_as_numpy(realistic, monkeypatch):
+    # the read noise is drawn inside the kernel (numba's Generator.normal): the same
+    # numbers as rng.normal(0, read_noise, n), and the caller's generator left where the
+    # numpy path leaves it (a caller that goes on drawing sees the same stream)
+    cam, pattern, sites = realistic
+    assert cam.sensor.read_noise > 0
+    gens = {}
+    for flag in ("0", "1"):
+        monkeypatch.setenv("GONIO_NUMBA", flag)
+        g = np.random.default_rng(11)
+        m = simulate_mosaic(sites, cam, exposure_time=0.02, seed=g, fixed_pattern=pattern)
+        gens[flag] = (m.mosaic, g.random(4))
+    np.testing.assert_array_equal(gens["1"][0], gens["0"][0])
+    np.testing.assert_array_equal(gens["1"][1], gens["0"][1])
