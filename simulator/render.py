@@ -142,6 +142,9 @@ class RenderStats:
     camera_occluders_tested: int
     lights: list[LightStats] = field(default_factory=list)
     seconds: float = 0.0
+    #: edge pixels (of ``edge_pixels``) anti-aliased by the board print's exact area
+    #: coverage (``render.print_antialias = "exact"``) instead of sub-rays
+    coverage_pixels: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -238,6 +241,7 @@ class Surface:
         self.patch = None
         self._kernel_args: tuple[np.ndarray, ...] | None = None
         self._albedo_rows: np.ndarray | None = None
+        self._print_cells: Any = None
         if h is not None:
             self.black = np.broadcast_to(np.asarray(h.albedo_black, float), (3,))
             self.white = np.broadcast_to(np.asarray(h.albedo_white, float), (3,))
@@ -269,6 +273,15 @@ class Surface:
                 for a in (self.half, holder, board, bh, patch)
             )
         return self._kernel_args
+
+    def print_cells(self) -> Any:
+        """The board print merged into one-colour cells
+        (:func:`gonio.simulator.print_coverage.print_cells`), or None without a board."""
+        if self.board_img is None:
+            return None
+        if self._print_cells is None:
+            self._print_cells = _cached_cells(self.board_img, self.board_half)
+        return self._print_cells
 
     def albedo_rows(self) -> np.ndarray:
         """(3, 3) albedo of the black print, the white print and the reference patch
@@ -374,6 +387,22 @@ class Surface:
 
 
 _BOARD_IMAGES: dict[str, np.ndarray] = {}
+_PRINT_CELLS: dict[tuple[int, bytes], Any] = {}
+
+
+def _cached_cells(img: np.ndarray, half: np.ndarray) -> Any:
+    """:func:`gonio.simulator.print_coverage.print_cells` once per board print."""
+    from gonio.simulator.print_coverage import print_cells
+
+    key = (id(img), np.asarray(half, dtype=np.float64).tobytes())
+    cells = _PRINT_CELLS.get(key)
+    if cells is None:
+        if len(_PRINT_CELLS) >= 8:
+            _PRINT_CELLS.clear()
+        # the print images are kept alive by _BOARD_IMAGES; a cleared one gets a new id
+        cells = (img, print_cells(img, half))
+        _PRINT_CELLS[key] = cells
+    return cells[1] if cells[0] is img else print_cells(img, half)
 
 
 def _board_image(board: Any) -> np.ndarray:
@@ -705,6 +734,40 @@ def _edges(code_c: np.ndarray, code_k: np.ndarray) -> np.ndarray:
     return out
 
 
+def _print_only(code_c: np.ndarray, code_k: np.ndarray) -> np.ndarray:
+    """Pixels (H, W) whose centre sees the holder and whose corners' codes differ from
+    the centre's in the print bit (8) alone (see :func:`_codes`)."""
+    base = code_c & ~np.int64(8)
+    k = code_k & ~np.int64(8)
+    same = (
+        (k[:-1, :-1] == base) & (k[1:, :-1] == base) & (k[:-1, 1:] == base) & (k[1:, 1:] == base)
+    )
+    return same & ((code_c & 7) == HOLDER)
+
+
+def _coverage(quad: np.ndarray, cells: Any, R: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """White print coverage (P,) of pixel footprints ``quad`` (P, 4, 3): the numba kernel,
+    or the numpy reference (:func:`gonio.simulator.print_coverage.coverage_numpy`) for
+    small batches and ``GONIO_NUMBA=0``."""
+    from gonio.simulator.print_coverage import coverage_numpy
+
+    rk = _kernels(16 * quad.shape[0])
+    if rk is None:
+        return coverage_numpy(quad, cells, R, C)
+    out = np.empty(quad.shape[0])
+    rk.print_coverage(
+        np.ascontiguousarray(quad, dtype=np.float64),
+        cells.col_edges,
+        cells.row_edges,
+        cells.black,
+        cells.scale,
+        np.ascontiguousarray(R, dtype=np.float64),
+        np.ascontiguousarray(C, dtype=np.float64),
+        out,
+    )
+    return out
+
+
 def _box_filter(sub: np.ndarray, n: int, ej: np.ndarray, ei: np.ndarray, image: np.ndarray):
     """``image[ej, ei]`` (H, W, 3) = the mean of each pixel's ``n`` sub-samples (rows of
     ``sub`` (P n, 3), pixel by pixel): numpy, or the kernel (the same bits) for many."""
@@ -951,6 +1014,14 @@ def render(
             "check camera.position, look_at/rotation and the field of view"
         )
     edge = _edges(code_c, code_k) if settings.antialias > 1 else np.zeros((H, W), bool)
+    # Edges of the board print alone (centre and corners on the holder, the same light
+    # visibility, only the print's colour differs): their box filter is the print's exact
+    # area coverage times the two albedos' radiances (gonio.simulator.print_coverage),
+    # not antialias^2 sub-rays.  Every other edge keeps its rays.
+    cover = np.zeros((H, W), bool)
+    if settings.print_antialias == "exact" and surface.board_img is not None and edge.any():
+        cover = edge & _print_only(code_c, code_k)
+        edge &= ~cover
     surf = (region > 0) & (region != OCCLUDED)
     mirror = surface.mirror is not None
     spot_rim = np.zeros((H, W), bool)
@@ -1070,6 +1141,23 @@ def render(
         diff = np.zeros((H, W, 3))
         diff.reshape(-1, 3)[at] = diffuse_all(xs, rs, ws)
 
+    if cover.any():
+        # centre shaded with the other print colour: the radiance is the two colours'
+        # radiances weighted by the white print's share of the pixel's area
+        cj, ci = np.nonzero(cover)
+        q = cj * W + ci
+        quad = np.stack([xc[cj, ci], xc[cj, ci + 1], xc[cj + 1, ci + 1], xc[cj + 1, ci]], 1)
+        cw = _coverage(quad, surface.print_cells(), R, C)[:, None]
+        xq, rq, wq = x.reshape(-1, 3)[q], region.reshape(-1)[q], white.reshape(-1)[q]
+        for img, fn in ((radiance, shade_all), (diff, diffuse_all if diff is not None else None)):
+            if img is None:
+                continue
+            flat = img.reshape(-1, 3)
+            own, other = flat[q], fn(xq, rq, ~wq)
+            lw = np.where(wq[:, None], own, other)
+            lb = np.where(wq[:, None], other, own)
+            flat[q] = cw * lw + (1.0 - cw) * lb
+
     # Anti-aliasing: n x n sub-pixel samples (box filter) on edge pixels only.
     n_sub = 0
     for mask, n_aa in ((edge, settings.antialias), (spot_rim, settings.spot_antialias)):
@@ -1091,7 +1179,7 @@ def render(
             dsub[ok] = diffuse_all(xsub, rsub, wsub)
             _box_filter(dsub, n_aa * n_aa, ej, ei, diff)
         n_sub += n_rays
-    edge = edge | spot_rim
+    edge = edge | spot_rim | cover
 
     def truth() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         nan3 = np.full((H, W, 3), np.nan)
@@ -1112,6 +1200,7 @@ def render(
         camera_occluders_tested=len(occ_cam),
         lights=light_stats,
         seconds=time.perf_counter() - t0,
+        coverage_pixels=int(cover.sum()),
     )
     return RenderResult(radiance, None, None, None, region, edge, stats, diff, truth=truth)
 

@@ -34,6 +34,7 @@ __all__ = [
     "label_points",
     "label_points_serial",
     "node_geometry",
+    "print_coverage",
     "subpixel_normalized",
     "subpixel_normalized_serial",
     "subsample_mean",
@@ -493,3 +494,93 @@ def board_uint8(img: np.ndarray | None) -> np.ndarray:
     if img is None:
         return np.zeros((0, 0), np.uint8)
     return np.ascontiguousarray(img, dtype=np.uint8)
+
+
+@njit(**_JIT, inline="always")
+def _clip_poly(su, sv, n, du, dv, axis, bound, above):
+    # one Sutherland-Hodgman pass of print_coverage.coverage_numpy's _clip: the polygon
+    # (su, sv)[:n] against coord >= bound (above) or <= bound, into (du, dv); its count
+    m = 0
+    for i in range(n):
+        j = i + 1 if i + 1 < n else 0
+        a = su[i] if axis == 0 else sv[i]
+        b = su[j] if axis == 0 else sv[j]
+        ina = a >= bound if above else a <= bound
+        inb = b >= bound if above else b <= bound
+        if ina:
+            du[m] = su[i]
+            dv[m] = sv[i]
+            m += 1
+        if ina != inb:
+            t = (bound - a) / (b - a)
+            if axis == 0:
+                du[m] = bound
+                dv[m] = sv[i] + t * (sv[j] - sv[i])
+            else:
+                du[m] = su[i] + t * (su[j] - su[i])
+                dv[m] = bound
+            m += 1
+    return m
+
+
+@njit(**_JIT, inline="always")
+def _image_area(pu, pv, n, s0, s1, s2, s3, R, C):
+    # shoelace area in normalised image coordinates of a raster-coordinate polygon
+    acc = 0.0
+    if n < 3:
+        return 0.0
+    xf, yf, x0, y0 = 0.0, 0.0, 0.0, 0.0
+    for i in range(n):
+        px = pu[i] / s0 - s1
+        py = s3 - pv[i] / s2
+        d0, d1, d2 = px - C[0], py - C[1], -C[2]
+        q0 = R[0, 0] * d0 + R[0, 1] * d1 + R[0, 2] * d2
+        q1 = R[1, 0] * d0 + R[1, 1] * d1 + R[1, 2] * d2
+        q2 = R[2, 0] * d0 + R[2, 1] * d1 + R[2, 2] * d2
+        x, y = q0 / q2, q1 / q2
+        if i == 0:
+            xf, yf = x, y
+        else:
+            acc += x0 * y - x * y0
+        x0, y0 = x, y
+    acc += x0 * yf - xf * y0
+    return 0.5 * abs(acc)
+
+
+@njit(**_JIT)
+def print_coverage(corners, col_edges, row_edges, black, scale, R, C, out):
+    """White-print area fraction of pixels: :func:`gonio.simulator.print_coverage.
+    coverage_numpy` per pixel (its arguments; ``out`` (P,)).  The same algorithm and
+    operations, summed per pixel in cell order rather than numpy's pairwise order."""
+    s0, s1, s2, s3 = scale[0], scale[1], scale[2], scale[3]
+    nc, nr = col_edges.shape[0] - 1, row_edges.shape[0] - 1
+    au, av = np.empty(16), np.empty(16)
+    bu, bv = np.empty(16), np.empty(16)
+    qu, qv = np.empty(4), np.empty(4)
+    for p in range(corners.shape[0]):
+        umin, umax, vmin, vmax = np.inf, -np.inf, np.inf, -np.inf
+        for c in range(4):
+            u = (corners[p, c, 0] + s1) * s0
+            v = (s3 - corners[p, c, 1]) * s2
+            qu[c], qv[c] = u, v
+            umin, umax = min(umin, u), max(umax, u)
+            vmin, vmax = min(vmin, v), max(vmax, v)
+        full = _image_area(qu, qv, 4, s0, s1, s2, s3, R, C)
+        c0 = min(max(np.searchsorted(col_edges, umin, side="right") - 1, 0), nc - 1)
+        c1 = min(max(np.searchsorted(col_edges, umax, side="left") - 1, 0), nc - 1)
+        r0 = min(max(np.searchsorted(row_edges, vmin, side="right") - 1, 0), nr - 1)
+        r1 = min(max(np.searchsorted(row_edges, vmax, side="left") - 1, 0), nr - 1)
+        blk = 0.0
+        for r in range(r0, r1 + 1):
+            for c in range(c0, c1 + 1):
+                if black[r, c] == 0:
+                    continue
+                for k in range(4):
+                    au[k], av[k] = qu[k], qv[k]
+                n = _clip_poly(au, av, 4, bu, bv, 0, col_edges[c], True)
+                n = _clip_poly(bu, bv, n, au, av, 0, col_edges[c + 1], False)
+                n = _clip_poly(au, av, n, bu, bv, 1, row_edges[r], True)
+                n = _clip_poly(bu, bv, n, au, av, 1, row_edges[r + 1], False)
+                blk += _image_area(au, av, n, s0, s1, s2, s3, R, C)
+        cov = 1.0 - blk / full
+        out[p] = 0.0 if cov < 0.0 else (1.0 if cov > 1.0 else cov)

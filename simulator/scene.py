@@ -86,6 +86,9 @@ TOML schema (every length in metres, angles in degrees where the name says ``_de
     strategy = "auto"            # "auto" | "point" | "quadrature" | "mc"
     antialias = 4                # sub-samples per axis on edge pixels (1: off)
     spot_antialias = 16          # the same on the rim of a light's image in the mirror
+    print_antialias = "exact"    # edges of the board print alone: "exact" area coverage
+                                 # (gonio.simulator.print_coverage) or "rays" (the
+                                 # antialias^2 sub-rays; the RAW bytes before schema 2)
 
     [rig]                        # optional: light and camera poses from joint angles
     joints_deg = { light_azimuth = 0.0, camera_azimuth = 180.0, stage_tilt = 30.0,
@@ -600,6 +603,7 @@ class RenderSettings(_Model):
     mc_samples: Annotated[int, Field(ge=1)] = 64
     antialias: Annotated[int, Field(ge=1, le=16)] = 4
     spot_antialias: Annotated[int, Field(ge=1, le=32)] = 16
+    print_antialias: Literal["exact", "rays"] = "exact"
     chunk_size: Annotated[int, Field(ge=1024)] = 262144
     seed: int = 0
 
