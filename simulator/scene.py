@@ -6,6 +6,8 @@ z = 0 with +z their normal, +x the sample's reference direction.
 
 TOML schema (every length in metres, angles in degrees where the name says ``_deg``)::
 
+    schema_version = 2           # optional (the current one); 1: print edges by sub-rays
+
     [sample]
     width = 0.05                 # extent along x
     height = 0.05                # extent along y
@@ -128,6 +130,7 @@ from gonio.errors import ConfigError
 from gonio.radiometry import frames
 
 __all__ = [
+    "SCENE_SCHEMA_VERSION",
     "BRDFSpec",
     "Board",
     "BoxOccluder",
@@ -608,9 +611,17 @@ class RenderSettings(_Model):
     seed: int = 0
 
 
+#: The scene document's schema version.  2: the board print's edges are anti-aliased by
+#: their exact area coverage unless ``render.print_antialias = "rays"`` (different RAW
+#: bytes on those pixels); 1: by sub-rays, as before (a session's manifest without a
+#: version is from then, and resumes as it began).  A document without one is current.
+SCENE_SCHEMA_VERSION = 2
+
+
 class Scene(_Model):
     """Everything the simulated camera sees.  See the module docstring for the schema."""
 
+    schema_version: Literal[1, 2] = SCENE_SCHEMA_VERSION
     sample: Sample
     holder: Holder | None = None
     lights: list[Light] = Field(min_length=1)
@@ -619,6 +630,17 @@ class Scene(_Model):
     render: RenderSettings = Field(default_factory=RenderSettings)
     rig: RigPoseSpec | None = None
     base_dir: Path | None = Field(default=None, exclude=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _schema_defaults(cls, data: Any) -> Any:
+        # a version-1 document renders what it rendered then: print edges by sub-rays
+        if isinstance(data, dict) and data.get("schema_version") == 1:
+            render = data.get("render")
+            render = dict(render) if isinstance(render, dict) else {}
+            if render.get("print_antialias") is None:
+                data = {**data, "render": {**render, "print_antialias": "rays"}}
+        return data
 
     @model_validator(mode="after")
     def _geometry(self) -> Scene:

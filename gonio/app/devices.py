@@ -174,6 +174,9 @@ def open_session_devices(
                 if legacy:  # sessions from before relocatable manifests
                     scene = {k: v for k, v in scene.items() if k != "_base_dir"}
                 scene_base = Path(legacy) if legacy else request.session_dir
+                if isinstance(scene, dict) and "schema_version" not in scene:
+                    # recorded before scene schema 2: resume renders as the session began
+                    scene = {**scene, "schema_version": 1}
             refl = request.reference_reflectance
             if refl is None:
                 refl = sim.get("reference_reflectance")

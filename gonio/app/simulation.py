@@ -184,6 +184,7 @@ def simulated_run(
     """
     from gonio.app.devices import device_opener
     from gonio.app.world_wiring import resolve_world
+    from gonio.simulator.scene import SCENE_SCHEMA_VERSION
     from gonio.simulator.world import world_document
 
     source = scene_source(plan, plan_path, scene_path)
@@ -195,6 +196,9 @@ def simulated_run(
         source.world,
     )
     document, attachments = relocatable(source)
+    # the manifest records the scene schema the session renders with (resume reads it)
+    if isinstance(document, dict):
+        document.setdefault("schema_version", SCENE_SCHEMA_VERSION)
     simulation = {
         "scene": document,
         "width": plan.simulation.width,

@@ -208,3 +208,14 @@ def test_cells_outside_the_print_count_white():
     quad = np.array([[[0.25, 0.1, 0], [0.75, 0.1, 0], [0.75, -0.1, 0], [0.25, -0.1, 0]]], float)
     np.testing.assert_allclose(coverage_numpy(quad, cells, R, C), [0.5], atol=1e-12)
     np.testing.assert_allclose(_kernel(quad, cells, R, C), [0.5], atol=1e-12)
+
+
+def test_schema_version_1_renders_print_edges_by_rays():
+    doc = minimal_scene()
+    assert parse_scene(doc).render.print_antialias == "exact"  # no version: the current
+    assert parse_scene({**doc, "schema_version": 2}).render.print_antialias == "exact"
+    assert parse_scene({**doc, "schema_version": 1}).render.print_antialias == "rays"
+    old = {**doc, "schema_version": 1, "render": {**doc["render"], "print_antialias": "exact"}}
+    assert parse_scene(old).render.print_antialias == "exact"  # said so: as said
+    with pytest.raises(ConfigError, match="schema_version"):
+        parse_scene({**doc, "schema_version": 3})
