@@ -721,17 +721,24 @@ def _kernel(rk: Any, name: str, points: int) -> Any:
     return getattr(rk, name if points >= rk.PARALLEL_POINTS else name + "_serial")
 
 
-def _edges(code_c: np.ndarray, code_k: np.ndarray) -> np.ndarray:
+def _edges(code_c: np.ndarray, code_k: np.ndarray, print_only: bool = False) -> Any:
     """Pixels (H, W) bool whose centre's code (H, W) differs from any of its four
-    corners' (H + 1, W + 1): numpy, or the kernel (the same booleans) for many."""
+    corners' (H + 1, W + 1): numpy, or the kernel (the same booleans) for many; with
+    ``print_only`` also (edge, :func:`_print_only`) in one pass."""
     rk = _kernels(code_c.size)
     if rk is None:
         k = code_k
         corners = np.stack([k[:-1, :-1], k[1:, :-1], k[:-1, 1:], k[1:, 1:]])
-        return np.any(corners != code_c[None], axis=0)
+        edge = np.any(corners != code_c[None], axis=0)
+        return (edge, edge & _print_only(code_c, code_k)) if print_only else edge
     out = np.empty(code_c.shape, bool)
-    rk.edge_pixels(np.ascontiguousarray(code_c), np.ascontiguousarray(code_k), out)
-    return out
+    cc, ck = np.ascontiguousarray(code_c), np.ascontiguousarray(code_k)
+    if not print_only:
+        rk.edge_pixels(cc, ck, out)
+        return out
+    pr = np.empty(code_c.shape, bool)
+    rk.edge_print_pixels(cc, ck, HOLDER, out, pr)
+    return out, pr
 
 
 def _print_only(code_c: np.ndarray, code_k: np.ndarray) -> np.ndarray:
@@ -745,18 +752,24 @@ def _print_only(code_c: np.ndarray, code_k: np.ndarray) -> np.ndarray:
     return same & ((code_c & 7) == HOLDER)
 
 
-def _coverage(quad: np.ndarray, cells: Any, R: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """White print coverage (P,) of pixel footprints ``quad`` (P, 4, 3): the numba kernel,
-    or the numpy reference (:func:`gonio.simulator.print_coverage.coverage_numpy`) for
-    small batches and ``GONIO_NUMBA=0``."""
+def _coverage(
+    xc: np.ndarray, cj: np.ndarray, ci: np.ndarray, cells: Any, R: np.ndarray, C: np.ndarray
+) -> np.ndarray:
+    """White print coverage (P,) of pixels (cj, ci) whose corner rays meet z = 0 at
+    ``xc`` (H + 1, W + 1, 3): the numba kernel, or the numpy reference
+    (:func:`gonio.simulator.print_coverage.coverage_numpy`) for small batches and
+    ``GONIO_NUMBA=0``."""
     from gonio.simulator.print_coverage import coverage_numpy
 
-    rk = _kernels(16 * quad.shape[0])
+    rk = _kernels(16 * len(cj))
     if rk is None:
+        quad = np.stack([xc[cj, ci], xc[cj, ci + 1], xc[cj + 1, ci + 1], xc[cj + 1, ci]], 1)
         return coverage_numpy(quad, cells, R, C)
-    out = np.empty(quad.shape[0])
-    rk.print_coverage(
-        np.ascontiguousarray(quad, dtype=np.float64),
+    out = np.empty(len(cj))
+    rk.print_coverage_grid(
+        np.ascontiguousarray(xc, dtype=np.float64),
+        np.ascontiguousarray(cj, dtype=np.int64),
+        np.ascontiguousarray(ci, dtype=np.int64),
         cells.col_edges,
         cells.row_edges,
         cells.black,
@@ -1013,15 +1026,19 @@ def render(
             f"({scene.sample.width:g} x {scene.sample.height:g} m at the origin); "
             "check camera.position, look_at/rotation and the field of view"
         )
-    edge = _edges(code_c, code_k) if settings.antialias > 1 else np.zeros((H, W), bool)
     # Edges of the board print alone (centre and corners on the holder, the same light
     # visibility, only the print's colour differs): their box filter is the print's exact
     # area coverage times the two albedos' radiances (gonio.simulator.print_coverage),
     # not antialias^2 sub-rays.  Every other edge keeps its rays.
+    exact = settings.print_antialias == "exact" and surface.board_img is not None
     cover = np.zeros((H, W), bool)
-    if settings.print_antialias == "exact" and surface.board_img is not None and edge.any():
-        cover = edge & _print_only(code_c, code_k)
+    if settings.antialias <= 1:
+        edge = np.zeros((H, W), bool)
+    elif exact:
+        edge, cover = _edges(code_c, code_k, print_only=True)
         edge &= ~cover
+    else:
+        edge = _edges(code_c, code_k)
     surf = (region > 0) & (region != OCCLUDED)
     mirror = surface.mirror is not None
     spot_rim = np.zeros((H, W), bool)
@@ -1142,21 +1159,32 @@ def render(
         diff.reshape(-1, 3)[at] = diffuse_all(xs, rs, ws)
 
     if cover.any():
-        # centre shaded with the other print colour: the radiance is the two colours'
-        # radiances weighted by the white print's share of the pixel's area
+        # the two print colours' radiances weighted by the white print's share of the
+        # pixel's area
         cj, ci = np.nonzero(cover)
         q = cj * W + ci
-        quad = np.stack([xc[cj, ci], xc[cj, ci + 1], xc[cj + 1, ci + 1], xc[cj + 1, ci]], 1)
-        cw = _coverage(quad, surface.print_cells(), R, C)[:, None]
-        xq, rq, wq = x.reshape(-1, 3)[q], region.reshape(-1)[q], white.reshape(-1)[q]
-        for img, fn in ((radiance, shade_all), (diff, diffuse_all if diff is not None else None)):
-            if img is None:
-                continue
-            flat = img.reshape(-1, 3)
-            own, other = flat[q], fn(xq, rq, ~wq)
-            lw = np.where(wq[:, None], own, other)
-            lb = np.where(wq[:, None], other, own)
-            flat[q] = cw * lw + (1.0 - cw) * lb
+        cw = _coverage(xc, cj, ci, surface.print_cells(), R, C)[:, None]
+        wq = white.reshape(-1)[q][:, None]
+        a_w, a_b = surface.white, surface.black
+        blend = cw * a_w + (1.0 - cw) * a_b  # the pixel's mean albedo (P, 3)
+        if np.all(a_w > 0) and np.all(a_b > 0):
+            # a Lambertian point's radiance is its albedo times the rest (every strategy,
+            # with or without occluders): rescale the centre's instead of shading again
+            flat = radiance.reshape(-1, 3)
+            flat[q] = flat[q] * (blend / np.where(wq, a_w, a_b))
+            if diff is not None:
+                diff.reshape(-1, 3)[q] = blend / np.pi
+        else:  # an albedo of 0: shade the centre with the other colour
+            xq, rq = x.reshape(-1, 3)[q], region.reshape(-1)[q]
+            fns = ((radiance, shade_all), (diff, diffuse_all if diff is not None else None))
+            for img, fn in fns:
+                if img is None:
+                    continue
+                flat = img.reshape(-1, 3)
+                own, other = flat[q], fn(xq, rq, ~wq[:, 0])
+                lw = np.where(wq, own, other)
+                lb = np.where(wq, other, own)
+                flat[q] = cw * lw + (1.0 - cw) * lb
 
     # Anti-aliasing: n x n sub-pixel samples (box filter) on edge pixels only.
     n_sub = 0

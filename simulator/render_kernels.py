@@ -28,6 +28,7 @@ from numba import njit, prange
 __all__ = [
     "PARALLEL_POINTS",
     "edge_pixels",
+    "edge_print_pixels",
     "lambert_albedo",
     "lambert_radiance",
     "lambert_shade",
@@ -35,6 +36,7 @@ __all__ = [
     "label_points_serial",
     "node_geometry",
     "print_coverage",
+    "print_coverage_grid",
     "subpixel_normalized",
     "subpixel_normalized_serial",
     "subsample_mean",
@@ -547,40 +549,89 @@ def _image_area(pu, pv, n, s0, s1, s2, s3, R, C):
     return 0.5 * abs(acc)
 
 
+@njit(**_JIT, inline="always")
+def _coverage_of(qu, qv, col_edges, row_edges, black, scale, R, C, au, av, bu, bv):
+    # one pixel: its footprint (qu, qv)[:4] in raster coordinates; au..bv scratch (16,)
+    s0, s1, s2, s3 = scale[0], scale[1], scale[2], scale[3]
+    nc, nr = col_edges.shape[0] - 1, row_edges.shape[0] - 1
+    umin, umax, vmin, vmax = qu[0], qu[0], qv[0], qv[0]
+    for c in range(1, 4):
+        umin, umax = min(umin, qu[c]), max(umax, qu[c])
+        vmin, vmax = min(vmin, qv[c]), max(vmax, qv[c])
+    full = _image_area(qu, qv, 4, s0, s1, s2, s3, R, C)
+    c0 = min(max(np.searchsorted(col_edges, umin, side="right") - 1, 0), nc - 1)
+    c1 = min(max(np.searchsorted(col_edges, umax, side="left") - 1, 0), nc - 1)
+    r0 = min(max(np.searchsorted(row_edges, vmin, side="right") - 1, 0), nr - 1)
+    r1 = min(max(np.searchsorted(row_edges, vmax, side="left") - 1, 0), nr - 1)
+    blk = 0.0
+    for r in range(r0, r1 + 1):
+        for c in range(c0, c1 + 1):
+            if black[r, c] == 0:
+                continue
+            for k in range(4):
+                au[k], av[k] = qu[k], qv[k]
+            n = _clip_poly(au, av, 4, bu, bv, 0, col_edges[c], True)
+            n = _clip_poly(bu, bv, n, au, av, 0, col_edges[c + 1], False)
+            n = _clip_poly(au, av, n, bu, bv, 1, row_edges[r], True)
+            n = _clip_poly(bu, bv, n, au, av, 1, row_edges[r + 1], False)
+            blk += _image_area(au, av, n, s0, s1, s2, s3, R, C)
+    cov = 1.0 - blk / full
+    return 0.0 if cov < 0.0 else (1.0 if cov > 1.0 else cov)
+
+
 @njit(**_JIT)
 def print_coverage(corners, col_edges, row_edges, black, scale, R, C, out):
     """White-print area fraction of pixels: :func:`gonio.simulator.print_coverage.
     coverage_numpy` per pixel (its arguments; ``out`` (P,)).  The same algorithm and
     operations, summed per pixel in cell order rather than numpy's pairwise order."""
     s0, s1, s2, s3 = scale[0], scale[1], scale[2], scale[3]
-    nc, nr = col_edges.shape[0] - 1, row_edges.shape[0] - 1
     au, av = np.empty(16), np.empty(16)
     bu, bv = np.empty(16), np.empty(16)
     qu, qv = np.empty(4), np.empty(4)
     for p in range(corners.shape[0]):
-        umin, umax, vmin, vmax = np.inf, -np.inf, np.inf, -np.inf
         for c in range(4):
-            u = (corners[p, c, 0] + s1) * s0
-            v = (s3 - corners[p, c, 1]) * s2
-            qu[c], qv[c] = u, v
-            umin, umax = min(umin, u), max(umax, u)
-            vmin, vmax = min(vmin, v), max(vmax, v)
-        full = _image_area(qu, qv, 4, s0, s1, s2, s3, R, C)
-        c0 = min(max(np.searchsorted(col_edges, umin, side="right") - 1, 0), nc - 1)
-        c1 = min(max(np.searchsorted(col_edges, umax, side="left") - 1, 0), nc - 1)
-        r0 = min(max(np.searchsorted(row_edges, vmin, side="right") - 1, 0), nr - 1)
-        r1 = min(max(np.searchsorted(row_edges, vmax, side="left") - 1, 0), nr - 1)
-        blk = 0.0
-        for r in range(r0, r1 + 1):
-            for c in range(c0, c1 + 1):
-                if black[r, c] == 0:
-                    continue
-                for k in range(4):
-                    au[k], av[k] = qu[k], qv[k]
-                n = _clip_poly(au, av, 4, bu, bv, 0, col_edges[c], True)
-                n = _clip_poly(bu, bv, n, au, av, 0, col_edges[c + 1], False)
-                n = _clip_poly(au, av, n, bu, bv, 1, row_edges[r], True)
-                n = _clip_poly(bu, bv, n, au, av, 1, row_edges[r + 1], False)
-                blk += _image_area(au, av, n, s0, s1, s2, s3, R, C)
-        cov = 1.0 - blk / full
-        out[p] = 0.0 if cov < 0.0 else (1.0 if cov > 1.0 else cov)
+            qu[c] = (corners[p, c, 0] + s1) * s0
+            qv[c] = (s3 - corners[p, c, 1]) * s2
+        out[p] = _coverage_of(qu, qv, col_edges, row_edges, black, scale, R, C, au, av, bu, bv)
+
+
+@njit(**_JIT)
+def print_coverage_grid(grid, rows, cols, col_edges, row_edges, black, scale, R, C, out):
+    """:func:`print_coverage` of pixels (rows, cols) (P,) whose corners are read from the
+    corner rays' points ``grid`` (H + 1, W + 1, 3) (pixel (j, i): corners (j, i),
+    (j, i + 1), (j + 1, i + 1), (j + 1, i)), without gathering them first."""
+    s0, s1, s2, s3 = scale[0], scale[1], scale[2], scale[3]
+    au, av = np.empty(16), np.empty(16)
+    bu, bv = np.empty(16), np.empty(16)
+    qu, qv = np.empty(4), np.empty(4)
+    for p in range(rows.shape[0]):
+        j, i = rows[p], cols[p]
+        for c in range(4):
+            jj = j + (1 if c >= 2 else 0)
+            ii = i + (1 if c == 1 or c == 2 else 0)
+            qu[c] = (grid[jj, ii, 0] + s1) * s0
+            qv[c] = (s3 - grid[jj, ii, 1]) * s2
+        out[p] = _coverage_of(qu, qv, col_edges, row_edges, black, scale, R, C, au, av, bu, bv)
+
+
+@njit(**_JIT)
+def edge_print_pixels(code_c, code_k, holder, out_edge, out_print):
+    """:func:`edge_pixels` into ``out_edge``, and into ``out_print`` the edge pixels whose
+    centre's region (code & 7) is ``holder`` and whose corners differ from it in the
+    print bit (8) alone (render._print_only)."""
+    for j in range(code_c.shape[0]):
+        for i in range(code_c.shape[1]):
+            c = code_c[j, i]
+            k0, k1 = code_k[j, i], code_k[j + 1, i]
+            k2, k3 = code_k[j, i + 1], code_k[j + 1, i + 1]
+            e = k0 != c or k1 != c or k2 != c or k3 != c
+            out_edge[j, i] = e
+            b = c & ~8
+            out_print[j, i] = (
+                e
+                and (c & 7) == holder
+                and (k0 & ~8) == b
+                and (k1 & ~8) == b
+                and (k2 & ~8) == b
+                and (k3 & ~8) == b
+            )

@@ -219,3 +219,19 @@ def test_schema_version_1_renders_print_edges_by_rays():
     assert parse_scene(old).render.print_antialias == "exact"  # said so: as said
     with pytest.raises(ConfigError, match="schema_version"):
         parse_scene({**doc, "schema_version": 3})
+
+
+def test_black_albedo_zero_shades_instead_of_rescaling():
+    """The blend rescales the centre's radiance by the albedos' ratio; a zero albedo has
+    no ratio and is shaded again: the two branches agree where both apply."""
+
+    def scene(black):
+        s = board_scene()
+        return s.model_copy(update={"holder": s.holder.model_copy(update={"albedo_black": black})})
+
+    zero = render(scene(0.0), diffuse=True)
+    tiny = render(scene(1e-9), diffuse=True)
+    assert zero.stats.coverage_pixels == tiny.stats.coverage_pixels > 300
+    scale = zero.radiance.max()
+    np.testing.assert_allclose(zero.radiance, tiny.radiance, rtol=0, atol=2e-9 * scale)
+    np.testing.assert_allclose(zero.diffuse, tiny.diffuse, rtol=0, atol=2e-9)
