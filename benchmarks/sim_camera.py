@@ -27,7 +27,10 @@ render this frame (board print, lens distortion, the combined lambert+ggx lobe a
 the scene export); ``benchmarks/render_vs_mitsuba.py`` compares the renderer with it on
 the scene both can render.
 
-    python benchmarks/sim_camera.py [--quick] [--repeats 5]
+The board print's edges are anti-aliased by their exact area coverage (the scene's
+default) unless ``--print-antialias rays`` (the demo's own scene keeps the sub-rays).
+
+    python benchmarks/sim_camera.py [--quick] [--repeats 5] [--print-antialias rays]
 """
 
 from __future__ import annotations
@@ -89,7 +92,13 @@ def _poses() -> list[dict[str, np.ndarray]]:
 class Case:
     """One camera (world, material, size) with a pose cycle and a cached frame."""
 
-    def __init__(self, world_name: str, material: str, size: tuple[int, int]) -> None:
+    def __init__(
+        self,
+        world_name: str,
+        material: str,
+        size: tuple[int, int],
+        print_antialias: str | None = None,
+    ) -> None:
         from gonio.app.demo import parse_material, scene_document
         from gonio.app.world_wiring import as_built_scene
         from gonio.simulator.camera import SimulatedCamera
@@ -99,7 +108,10 @@ class Case:
         self.poses = _poses()
         self.i = 0
         world = draw_world(world_name, WORLD_SEED)
-        scene = parse_scene(scene_document(parse_material(MATERIALS[material]), *size))
+        doc = scene_document(parse_material(MATERIALS[material]), *size)
+        if print_antialias is not None:  # None: the demo's ("rays")
+            doc["render"]["print_antialias"] = print_antialias
+        scene = parse_scene(doc)
         self.cam = SimulatedCamera(
             as_built_scene(world, scene), world=world, pose_provider=lambda: self.poses[self.i]
         )
@@ -175,6 +187,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--quick", action="store_true", help="320 x 240 only")
+    ap.add_argument("--print-antialias", choices=("exact", "rays"), default="exact",
+                    help="the board print's edges: exact coverage (the scene default) or "
+                    "sub-rays (the demo's scene)")  # fmt: skip
     args = ap.parse_args()
     sizes = [(320, 240)] if args.quick else [(320, 240), (1600, 1200)]
     ref = _refdata()
@@ -186,7 +201,7 @@ def main() -> None:
     for size in sizes:
         for world in ("perfect", "realistic"):
             for material in materials:
-                case = Case(world, material, size)
+                case = Case(world, material, size, args.print_antialias)
                 one = measure(case, args.repeats, 1)
                 cpu = measure(case, args.repeats, 1, clock=time.process_time)
                 many = measure(case, args.repeats, cores) if cores > 1 else None
@@ -199,6 +214,7 @@ def main() -> None:
                         "target_ms": TARGET_MS[size],
                         "pixels_shaded": st.pixels_shaded,
                         "subpixel_samples": st.subpixel_samples,
+                        "coverage_pixels": st.coverage_pixels,
                         "one_thread": one,
                         "one_thread_cpu": cpu,
                         "all_cores": many,
@@ -221,6 +237,7 @@ def main() -> None:
         "case": f"slowest 320x240 frame ({head['world']}, {head['material']}): render + "
         "sensor ms at a new pose; baseline the numpy reference path (GONIO_NUMBA=0)",
         "machine": machine(),
+        "print_antialias": args.print_antialias,
         "one_thread": {
             "gonio": one["gonio"]["frame"],
             "baseline": one["numpy"]["frame"],
