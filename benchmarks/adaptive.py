@@ -60,8 +60,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import adaptive_sessions as sessions  # noqa: E402
 from equal_threads import machine  # noqa: E402
 
-from gonio.errors import FitError  # noqa: E402
 from gonio.fitting import design  # noqa: E402
+from gonio.fitting.candidates import chosen_index  # noqa: E402
+from gonio.fitting.candidates import fit_candidates as candidates_fit  # noqa: E402
 from gonio.fitting.select import DEFAULT_CANDIDATES, format_model_spec  # noqa: E402
 
 CANDIDATES = (*DEFAULT_CANDIDATES, "lambert+beckmann[fresnel=schlick]")
@@ -78,86 +79,17 @@ ALIGNED = True
 def fit_candidates(samples: Any, candidates: Sequence[str] = CANDIDATES, *,
                    misfit: bool = True, coverage: bool = False,
                    aligned: bool | None = None) -> tuple[list, np.ndarray, Any]:  # fmt: skip
-    """Every candidate fitted (weighted L2, the samples' sigmas) and the models' weights:
-    the BIC posterior, with the model ``gonio fit --model auto`` would report (the BIC's
-    best unless its lobe is matte, :func:`chosen`) given the largest weight.
-
-    With ``misfit``, when the best candidate's ``chi^2 / dof`` shows a misfit
-    (:mod:`gonio.fitting.model_error`) every candidate is fitted again: with ``aligned``
-    (default :data:`ALIGNED`) by :func:`gonio.fitting.model_error.fit_aligned` and
-    weighted by its Cauchy BIC (what the session's advisor does); otherwise with the
-    model discrepancy the best candidate leaves added to the sigmas (one common ``tau``,
-    so the BIC still compares the models under one noise model), and with ``coverage``
-    their weights also multiplied by :func:`gonio.fitting.model_error.coverage_weights`.
-    Returns the fits, the weights and the samples they were fitted to (their sigmas:
-    the aligned ones or the discrepancy's).
-    """
-    from gonio.fitting import model_error
-
-    aligned = ALIGNED if aligned is None else aligned
-    fits = _fit_all(samples, candidates)
-    aligned_fit = False
-    if misfit:
-        tau = model_error.model_error_scale(fits, samples)
-        if tau > 0.0 and aligned:
-            fits = _fit_all(samples, candidates, fitter=model_error.fit_aligned)
-            samples = model_error.aligned_samples(samples)
-            aligned_fit = True
-        elif tau > 0.0:
-            samples = model_error.with_model_error(samples, tau)
-            if coverage:
-                w = model_error.coverage_weights(samples.wi, samples.wo)
-                samples = model_error.with_weights(samples, w)
-            fits = _fit_all(samples, candidates)
-    if aligned_fit:
-        # the aligned fits' own likelihood ranks them; select's matte rule is not applied:
-        # its cost ratio (a diffuse fit within 2.2x of the best one's cost) is calibrated
-        # on noise-weighted Gaussian costs, and a Cauchy cost grows only logarithmically
-        # with the residuals, so every misfit then "chose" lambert (error 0.06-1)
-        return fits, model_error.aligned_bic_weights(fits), samples
-    w = design.bic_weights(fits)
-    k = chosen(fits, w)
-    if w[k] < w.max():  # the matte rule's prior: the reported model is the one designed for
-        w = w.copy()
-        w[k] = w.max() * (1.0 + 1e-9)
-        w = w / w.sum()
-    return fits, w, samples
-
-
-def _fit_all(samples: Any, candidates: Sequence[str], fitter: Any = None) -> list:
-    from gonio.fitting.fit import fit_model
-
-    fits = []
-    for c in candidates:
-        try:
-            r = (fitter or fit_model)(samples, c)
-        except FitError:
-            continue
-        if r.success:
-            fits.append(r)
-    if not fits:
-        raise FitError("no candidate model could be fitted")
-    return fits
+    """:func:`gonio.fitting.candidates.fit_candidates` (the session advisor's fit): the
+    fits, the models' weights and the samples fitted (the aligned sigmas on a misfit).
+    ``aligned`` None: :data:`ALIGNED`."""
+    cf = candidates_fit(samples, candidates, misfit=misfit, coverage=coverage,
+                        aligned=ALIGNED if aligned is None else aligned)  # fmt: skip
+    return cf.fits, cf.weights, cf.samples
 
 
 def chosen(fits: Sequence[Any], w: np.ndarray) -> int:
-    """The model :func:`gonio.fitting.select.select_model` reports among ``fits``: the
-    lowest BIC, unless that lobe is matte (< ``MIN_GLOSS`` GU at 60 deg) and a diffuse
-    candidate's cost is within ``MAX_DIFFUSE_COST_RATIO`` of it (select's rule, applied
-    to fits already made instead of fitting every candidate twice)."""
-    from gonio.fitting.select import DIFFUSE_MODELS, MAX_DIFFUSE_COST_RATIO, MIN_GLOSS, gloss_units
-
-    best = int(np.argmax(w))
-    if fits[best].model in DIFFUSE_MODELS:
-        return best
-    if float(np.mean(gloss_units(fits[best].bind()))) >= MIN_GLOSS:
-        return best
-    diffuse = [
-        i
-        for i, r in enumerate(fits)
-        if r.model in DIFFUSE_MODELS and r.cost <= MAX_DIFFUSE_COST_RATIO * fits[best].cost
-    ]
-    return max(diffuse, key=lambda i: w[i]) if diffuse else best
+    """:func:`gonio.fitting.candidates.chosen_index` (select's matte rule on fits made)."""
+    return chosen_index(fits, w)
 
 
 class Truth:
@@ -178,14 +110,15 @@ class Truth:
 def evaluate(pool: Any, positions: Sequence[int], truth: Truth, candidates=CANDIDATES,
              misfit: bool = True, coverage: bool = False) -> dict:  # fmt: skip
     s = pool.subset(positions)
-    fits, w, fs = fit_candidates(s, candidates, misfit=misfit, coverage=coverage)
-    best = fits[int(np.argmax(w))]
+    cf = candidates_fit(s, candidates, misfit=misfit, coverage=coverage, aligned=ALIGNED)
+    best = cf.best
     return {
-        "fits": fits,
-        "weights": w,
+        "fits": cf.fits,
+        "weights": cf.weights,
         "samples": s,  # their noise sigmas: the error figure's resolution
-        "fit_samples": fs,  # the sigmas fitted with (the model discrepancy's, on a misfit)
-        "misfit": fs is not s,
+        "fit_samples": cf.samples,  # the sigmas fitted with (the aligned ones, on a misfit)
+        "misfit": cf.is_misfit,
+        "criterion": cf.criterion,
         "error": truth.error(best),
         "model": format_model_spec(best.model, best.model_options),
     }

@@ -114,72 +114,38 @@ class FitAdvisor:
         return self._reduction.add(state.measured_steps)
 
     def _fits(self, samples: Any) -> tuple[list[Any], np.ndarray, list[dict[str, Any]], Any]:
-        """Every candidate fitted; on a misfit the data show (the best candidate's
-        chi^2/dof, :mod:`gonio.fitting.model_error`) fitted again by the aligned fit
-        (:func:`gonio.fitting.model_error.fit_aligned`).  Returns the fits, their BIC
-        weights, the journal rows and the samples fitted (the aligned sigmas on a misfit)."""
+        """Every candidate fitted by :func:`gonio.fitting.candidates.fit_candidates` (the
+        fit ``benchmarks/adaptive.py`` measures: on a misfit the data show, the aligned
+        fit ranked by its common criterion).  Returns the fits, their weights, the
+        journal rows and the samples fitted (the aligned sigmas on a misfit)."""
         from gonio.fitting import model_error
+        from gonio.fitting.candidates import fit_candidates
+        from gonio.fitting.select import format_model_spec
 
-        fits, w, rows = self._fit_candidates(samples)
+        specs = list(self.plan.adaptive.candidates)  # type: ignore[union-attr]
         self._misfit = None
-        if fits:
-            chi2 = min(model_error.chi2_dof(r, samples) for r in fits)
-            tau = model_error.model_error_scale(fits, samples)
-            self._misfit = {"chi2_dof": float(chi2), "tau": float(tau)}
-            if tau > 0.0:
-                # the benchmark's fit of a misfit (benchmarks/adaptive.py, ALIGNED): what
-                # is measured there is what a session does
-                fits, w, rows = self._fit_candidates(samples, aligned=True)
-                samples = model_error.aligned_samples(samples)
-                self._misfit["fit"] = "aligned"
-                if fits:
-                    best = fits[int(np.argmax(w))]
-                    rel = model_error.relative_model_error_scale(best, samples)
-                    self._misfit["rel_scale"] = float(rel)
-        return fits, w, rows, samples
-
-    def _fit_candidates(
-        self, samples: Any, aligned: bool = False
-    ) -> tuple[list[Any], np.ndarray, list[dict[str, Any]]]:
-        """Every candidate fitted: by :func:`gonio.fitting.fit` with the samples' noise
-        sigmas, or with ``aligned`` by :func:`gonio.fitting.model_error.fit_aligned`
-        (relative residuals, Cauchy, coverage weights) ranked by its Cauchy BIC."""
-        from gonio.fitting import fit, model_error
-        from gonio.fitting.select import format_model_spec, information_criterion
-
-        fits, bics, rows = [], [], []
-        for spec in self.plan.adaptive.candidates:  # type: ignore[union-attr]
-            try:
-                if aligned:
-                    r = model_error.fit_aligned(samples, spec, **self.fit_options)
-                else:
-                    r = fit(samples, spec, **self.fit_options)
-            except GonioError as exc:
-                rows.append({"model": spec, "error": str(exc)})
-                continue
-            bic = model_error.aligned_bic(r) if aligned else information_criterion(r, "bic")
-            if not (r.success and math.isfinite(bic)):
-                rows.append({"model": spec, "error": r.message or "no finite fit"})
-                continue
-            fits.append(r)
-            bics.append(bic)
+        try:
+            cf = fit_candidates(samples, specs, fit_options=self.fit_options)
+        except GonioError as exc:
+            return [], np.zeros(0), [{"model": c, "error": str(exc)} for c in specs], samples
+        self._misfit = cf.misfit
+        rows: list[dict[str, Any]] = [{"model": c, "error": e} for c, e in cf.errors.items()]
+        for r, score, w in zip(cf.fits, cf.scores, cf.weights, strict=True):
             rows.append(
                 {
                     "model": format_model_spec(r.model, r.model_options),
                     "params": {k: np.asarray(v, float).tolist() for k, v in r.params.items()},
                     "rel_sigma": {k: _json_float(v) for k, v in _rel_sigma(r).items()},
-                    "bic": float(bic),
+                    "bic": float(score),
+                    "criterion": cf.criterion,
+                    "weight": float(w),
                 }
             )
-        b = np.asarray(bics, float)
-        w = np.exp(-0.5 * (b - b.min())) if len(b) else b
-        w = w / w.sum() if len(w) else w
-        k = 0
-        for row in rows:
-            if "bic" in row:
-                row["weight"] = float(w[k])
-                k += 1
-        return fits, w, rows
+        if cf.is_misfit and cf.criterion == "aligned_bic" and self._misfit is not None:
+            self._misfit["rel_scale"] = float(
+                model_error.relative_model_error_scale(cf.best, cf.samples)
+            )
+        return cf.fits, cf.weights, rows, cf.samples
 
     def _stop(self, fits: list[Any], w: np.ndarray, design: Any) -> tuple[bool, dict[str, Any]]:
         a = self.plan.adaptive

@@ -115,7 +115,7 @@ def test_the_aligned_fit_and_its_bic_choose_the_model_that_follows_the_data():
     # the Cauchy cost is the lower one, 4 cost + p ln m its BIC
     assert fits[1].cost < fits[0].cost
     m = fits[1].diagnostics["n_residuals"]
-    p = fits[1].n_params - len(fits[1].diagnostics["at_bounds"])
+    p = 7  # albedo and ks per channel, alpha: counted whether or not one is at a bound
     assert model_error.aligned_bic(fits[1]) == pytest.approx(4 * fits[1].cost + p * np.log(m))
 
 
@@ -145,3 +145,34 @@ def test_the_aligned_fit_is_the_minimum_of_its_cauchy_cost():
             assert cost(a + d) >= c0 * (1 - 1e-9)
     # the outliers (x3) did not pull it: the albedo is the inliers' one
     np.testing.assert_allclose(a, ALBEDO, rtol=0.03)
+
+
+def test_the_robust_start_chain_is_kept_when_its_cauchy_cost_is_lower():
+    # one reweighting step per chain: the plain chain's step is the weighted-L2 fit the
+    # outliers (every fifth sample x10) pull up; the second chain starts from the direct
+    # robust fit and its step lands on the inliers' albedo.  The reference is the
+    # Cauchy cost computed here from each result's albedo, and the inliers' ALBEDO.
+    rng = np.random.default_rng(5)
+    n = 300
+    wi, wo = _directions(rng.uniform(0.2, 1, n), rng.uniform(0.2, 1, n), rng.uniform(0, 1, n))
+    out = np.where(np.arange(n) % 5 == 0, 10.0, 1.0)[:, None]
+    brdf = ALBEDO / np.pi * (1.0 + 0.03 * rng.normal(size=(n, 3))) * out
+    s = BRDFSamples(wi=wi, wo=wo, brdf=brdf, brdf_std=np.full_like(brdf, 1e-5))
+    al = model_error.aligned_samples(s)
+
+    def cost(a: np.ndarray) -> float:
+        z = ((a[None, :] / np.pi - al.brdf) / al.brdf_std) ** 2
+        return 0.5 * float(np.sum(np.log1p(z)))
+
+    kw = {"coverage": False, "iterations": 1}
+    plain = model_error.fit_aligned(s, "lambert", robust_start=False, **kw)
+    both = model_error.fit_aligned(s, "lambert", **kw)
+    c_plain, c_both = cost(np.asarray(plain.params["albedo"])), cost(both.params["albedo"])
+    assert plain.cost == pytest.approx(c_plain, rel=1e-9)
+    assert both.cost == pytest.approx(c_both, rel=1e-9)
+    assert plain.diagnostics["irls_chain"] == "plain"
+    assert both.diagnostics["irls_chain"] == "robust_start"
+    assert both.diagnostics["irls_costs"]["plain"] == pytest.approx(c_plain, rel=1e-9)
+    assert c_both < 0.99 * c_plain
+    np.testing.assert_allclose(both.params["albedo"], ALBEDO, rtol=0.01)
+    assert np.max(np.abs(np.asarray(plain.params["albedo"]) / ALBEDO - 1.0)) > 0.01
