@@ -150,7 +150,9 @@ def test_geometry_mismatch_with_the_rig_is_flagged(rig_views):
     from gonio.dataset import Flag
 
     setup, views = rig_views
-    frame, rp, _ = views[1]
+    # the 45 deg view: the 60 deg one sits at max_board_obliquity_deg, where the board's
+    # own obliquity estimate decides whether "auto" trusts it (and checks it) at all
+    frame, rp, _ = views[2]
     reported = (rp.camera_position, rp.camera_rotation.T)
     ok = measure_pose(
         [frame],
@@ -172,6 +174,7 @@ def test_geometry_mismatch_with_the_rig_is_flagged(rig_views):
         reported_wo=wo_claimed,
         reported_camera=reported,
     )
+    assert ok.geometry_source == bad.geometry_source == "board"
     assert (bad.flags & Flag.GEOMETRY_MISMATCH).all()
     assert "deg from the rig's report" in bad.reasons[0][0]
 
