@@ -18,7 +18,8 @@ Issue 17's Must show.  Per material (``lambert+ggx`` at alpha 0.05 and 0.3,
   :func:`gonio.fitting.model_error.fit_aligned`, a Cauchy penalty on relative residuals
   with coverage weights: the figure below is a relative one, and the compromise must
   not follow the pose mix), the grids' fits and the adaptive run's alike, and ranked by
-  the aligned fits' Cauchy BIC (:func:`gonio.fitting.model_error.aligned_bic`); the
+  the aligned fits' Cauchy BIC (:func:`gonio.fitting.model_error.aligned_bic`), all of it
+  through :func:`gonio.fitting.candidates.fit_candidates`, the session advisor's own; the
   design turns space-filling (``design.MISFIT_WEIGHTS``), its model-free term reading
   the relative residuals;
 - error = median relative difference of the chosen model (largest BIC weight among the
