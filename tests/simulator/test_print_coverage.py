@@ -110,13 +110,17 @@ def test_half_plane_edge_matches_the_closed_form(seed):
     np.testing.assert_allclose(_kernel(quad, cells, R, C), ref, rtol=0, atol=1e-9)
 
 
+def _camera(scene):
+    """(surface, C, R, K, distortion or None, W, H) of a scene, as the renderer sets them up."""
+    dist = scene.camera.distortion if scene.camera.has_distortion else None
+    C, R = scene.camera_pose()
+    W, H = scene.camera.resolution
+    return Surface(scene), C, R, scene.camera.intrinsics(), dist, W, H
+
+
 def _holder_only(scene):
     """Pixels (H, W) whose centre and four corners see the holder."""
-    surface = Surface(scene)
-    C, R = scene.camera_pose()
-    K = scene.camera.intrinsics()
-    dist = scene.camera.distortion if scene.camera.has_distortion else None
-    W, H = scene.camera.resolution
+    surface, C, R, K, dist, W, H = _camera(scene)
     _, _, rk, _ = _hits(surface, C, R, *pixel_grid(K, W, H, dist, True))
     _, _, rc, _ = _hits(surface, C, R, *pixel_grid(K, W, H, dist))
     on = rk == HOLDER
@@ -125,11 +129,7 @@ def _holder_only(scene):
 
 def _rays_coverage(scene, ei, ej, n):
     """White share of n x n sub-rays per pixel, labelled by the renderer's rays."""
-    surface = Surface(scene)
-    C, R = scene.camera_pose()
-    K = scene.camera.intrinsics()
-    dist = scene.camera.distortion if scene.camera.has_distortion else None
-    W, H = scene.camera.resolution
+    surface, C, R, K, dist, W, H = _camera(scene)
     xn, yn = _subpixel_normalized(K, ei, ej, n, dist, pixel_grid(K, W, H, dist))
     _, _, region, white = _hits(surface, C, R, xn, yn)
     assert np.all(region == HOLDER)
@@ -142,11 +142,7 @@ def test_many_sub_rays_converge_to_the_exact_coverage(distortion):
     res = render(scene)
     st = res.stats
     assert st.coverage_pixels > 300 and st.edge_pixels > st.coverage_pixels
-    surface = Surface(scene)
-    C, R = scene.camera_pose()
-    K = scene.camera.intrinsics()
-    dist = scene.camera.distortion if scene.camera.has_distortion else None
-    W, H = scene.camera.resolution
+    surface, C, R, K, dist, W, H = _camera(scene)
     xc, _, _, _ = _hits(surface, C, R, *pixel_grid(K, W, H, dist, True))
     # edge pixels whose centre and corners all see the holder (no occluders here): the
     # print-only edges, each of its sub-rays on the holder
