@@ -650,6 +650,241 @@ def _rgl_block(
             out[b0 + j, ch] = v * inv_z if flag == 0 else masked
 
 
+# The common case, every shared file: isotropic, one phi_i, sigma independent of phi_i (one
+# arctangent for the relative azimuth), RGB.  Every pass is a loop of fixed trip count
+# _RGL_BLOCK over rows of two scratch arrays (float64 S, integer K) with no branch in it
+# (selects, bitwise & and | on booleans instead of `and`/`or`, which are branches), so
+# that LLVM vectorises all of them, the table look-ups included (AVX-512 gathers): the
+# general block above, whose passes mix three scratch arrays and branch per pair, stayed
+# mostly scalar.  A block past the end of the input repeats the last pair (reads stay in
+# bounds) and stores only its nb results.  The same IEEE operations as the numpy path.
+# Rows of S (float64): the arctangents' arguments (Y, X) and results (A), the signed
+# arguments of the azimuth's (CY, CX), phi_i at normal incidence, 1 / wo_z, the value of
+# a masked pair (0 or NaN), the unit-square coordinates, the slice weights, the cell
+# fractions in the VNDF (FX, FY) and the RGB table (SX, SY), the Jacobian, 12 gathered
+# VNDF record entries (G0...).  Rows of K (intp): the relative path, the unmasked flag,
+# the theta_i slice, the VNDF cell and row, the RGB cell.
+Y0, Y1, Y2, X0, X1, X2, A0, A1, A2, CY, CX, PHI0, INVZ, MVAL = range(14)
+UWI, UMX, UMY, W0, W1, FX, FY, SX, SY, SCALE, G0 = range(14, 25)
+_NS = G0 + 12
+KREL, KOK, KIT, KCELL, KCY, KSPEC = range(6)
+_NK = 6
+
+
+@njit(**_JIT, inline="always")
+def _rgl_block_rel(
+    wi, wo, b0, nb, n, theta_vals, n_t2, rec32, rec64, rows, spec, spec_stride, ndf, sigma,
+    vh, vw, ry, rx, jacobian, atan_table, out, S, K,
+):  # fmt: skip
+    """:func:`_rgl_block` for the common case: pairs ``b0 .. b0 + nb`` of ``n``."""
+    # pass 1: directions
+    last = n - 1
+    for j in range(_RGL_BLOCK):
+        jj = min(b0 + j, last)
+        wix = wi[jj, 0]
+        wiy = wi[jj, 1]
+        wiz = wi[jj, 2]
+        wox = wo[jj, 0]
+        woy = wo[jj, 1]
+        woz = wo[jj, 2]
+        finite = (
+            math.isfinite(wix) & math.isfinite(wiy) & math.isfinite(wiz)
+            & math.isfinite(wox) & math.isfinite(woy) & math.isfinite(woz)
+        )  # fmt: skip
+        ok = finite & (wiz > 0.0) & (woz > 0.0)
+        S[MVAL, j] = 0.0 if finite else np.nan
+        K[KOK, j] = ok
+        wix = wix if ok else 0.0
+        wiy = wiy if ok else 0.0
+        wox = wox if ok else 0.0
+        woy = woy if ok else 0.0
+        wiz = wiz if ok else 1.0
+        woz = woz if ok else 1.0
+        mx = wix + wox
+        my = wiy + woy
+        mz = wiz + woz
+        s = _clip01(0.5 * math.sqrt(wix * wix + wiy * wiy + (wiz - 1.0) * (wiz - 1.0)))
+        S[Y0, j] = s
+        S[X0, j] = math.sqrt((1.0 - s) * (1.0 + s))
+        S[Y1, j] = math.sqrt(mx * mx + my * my)
+        S[X1, j] = mz
+        rel = (wix != 0.0) | (wiy != 0.0)
+        K[KREL, j] = rel
+        cy = my * wix - mx * wiy if rel else my
+        cx = mx * wix + my * wiy if rel else mx
+        S[CY, j] = cy
+        S[CX, j] = cx
+        S[Y2, j] = abs(cy)
+        S[X2, j] = abs(cx)
+        # phi_i = atan2(wiy, wix) of a normal incidence (both +-0): the arctangent's value
+        a = math.pi if math.copysign(1.0, wix) < 0.0 else 0.0
+        S[PHI0, j] = math.copysign(a, wiy)
+        S[INVZ, j] = 1.0 / woz
+    # the three arctangents
+    for j in range(_RGL_BLOCK):
+        for r in range(3):
+            y = S[Y0 + r, j]
+            x = S[X0 + r, j]
+            hi = max(x, y)
+            t = min(x, y) / hi if hi > 0.0 else 0.0
+            kk = int(t * ATAN_NODES + 0.5)
+            t0 = kk * (1.0 / ATAN_NODES)
+            d = (t - t0) / (1.0 + t * t0)
+            z = d * d
+            a = atan_table[kk] + (d + d * z * (ATAN_C3 + z * (ATAN_C5 + z * ATAN_C7)))
+            S[A0 + r, j] = _HALF_PI - a if y > x else a
+    for j in range(_RGL_BLOCK):
+        theta_i = 2.0 * S[A0, j]
+        theta_m = S[A1, j]
+        a = S[A2, j]
+        a = math.pi - a if math.copysign(1.0, S[CX, j]) < 0.0 else a
+        c = math.copysign(a, S[CY, j])
+        rel = c if K[KREL, j] else c - S[PHI0, j]
+        um_y = (rel + math.pi) * _INV_2PI
+        um_y -= math.floor(um_y)
+        S[A0, j] = theta_i
+        S[UWI, j] = math.sqrt(theta_i * _INV_HALF_PI)
+        S[UMX, j] = math.sqrt(theta_m * _INV_HALF_PI)
+        S[UMY, j] = um_y
+    # theta_i slices
+    n_t = theta_vals.size
+    for j in range(_RGL_BLOCK):
+        K[KIT, j] = 0
+    for q in range(n_t):
+        tv = theta_vals[q]
+        for j in range(_RGL_BLOCK):
+            K[KIT, j] += tv < S[A0, j]
+    for j in range(_RGL_BLOCK):
+        if n_t == 1:
+            it = 0
+            wt = 0.0
+        else:
+            it = min(max(K[KIT, j] - 1, 0), n_t - 2)
+            p0 = theta_vals[it]
+            p1 = theta_vals[it + 1]
+            wt = _clip01((S[A0, j] - p0) / (p1 - p0))
+        K[KIT, j] = it
+        S[W0, j] = 1.0 - wt
+        S[W1, j] = wt
+        cx, cy, fx, fy = _cell(S[UMX, j], S[UMY, j], vw, vh)
+        K[KCELL, j] = cy * (vw - 1) + cx
+        K[KCY, j] = cy
+        S[FX, j] = fx
+        S[FY, j] = fy
+    # VNDF records
+    n_s = n_t2
+    for j in range(_RGL_BLOCK):
+        q = np.uint64((K[KCELL, j] * n_s + K[KIT, j]) * 8)
+        h = q >> _U1
+        S[G0 + 0, j] = rec32[q]
+        S[G0 + 1, j] = rec32[q + _U1]
+        S[G0 + 2, j] = rec32[q + _U2]
+        S[G0 + 3, j] = rec32[q + _U3]
+        S[G0 + 4, j] = rec64[h + _U2]
+        S[G0 + 5, j] = rec64[h + _U3]
+        S[G0 + 6, j] = rec32[q + _U8]
+        S[G0 + 7, j] = rec32[q + _U9]
+        S[G0 + 8, j] = rec32[q + _U10]
+        S[G0 + 9, j] = rec32[q + _U11]
+        S[G0 + 10, j] = rec64[h + _U6]
+        S[G0 + 11, j] = rec64[h + _U7]
+    inv_w1 = 1.0 / (vw - 1)
+    inv_h1 = 1.0 / (vh - 1)
+    for j in range(_RGL_BLOCK):
+        s0 = K[KIT, j]
+        cy = K[KCY, j]
+        w0 = S[W0, j]
+        w1 = S[W1, j]
+        fx = S[FX, j]
+        fy = S[FY, j]
+        n0 = rows[cy, s0, 3]
+        n1 = rows[cy, s0 + 1, 3]
+        v00 = w0 * (S[G0 + 0, j] * n0) + w1 * (S[G0 + 6, j] * n1)
+        v10 = w0 * (S[G0 + 1, j] * n0) + w1 * (S[G0 + 7, j] * n1)
+        v01 = w0 * (S[G0 + 2, j] * n0) + w1 * (S[G0 + 8, j] * n1)
+        v11 = w0 * (S[G0 + 3, j] * n0) + w1 * (S[G0 + 9, j] * n1)
+        prev0 = w0 * S[G0 + 4, j] + w1 * S[G0 + 10, j]
+        prev1 = w0 * S[G0 + 5, j] + w1 * S[G0 + 11, j]
+        r0 = w0 * rows[cy, s0, 0] + w1 * rows[cy, s0 + 1, 0]
+        r1 = w0 * rows[cy, s0, 1] + w1 * rows[cy, s0 + 1, 1]
+        marg_prev = w0 * rows[cy, s0, 2] + w1 * rows[cy, s0 + 1, 2]
+        c0 = v00 + (v01 - v00) * fy
+        c1 = v10 + (v11 - v10) * fy
+        s_x = fx * (c0 + (c1 - c0) * 0.5 * fx) * inv_w1 + prev0 + (prev1 - prev0) * fy
+        row = r0 + (r1 - r0) * fy
+        s_x = s_x / row if row > 0 else fx
+        s_y = fy * (r0 + (r1 - r0) * 0.5 * fy) * inv_h1 + marg_prev
+        cx, cy, fx, fy = _cell(s_x, s_y, rx, ry)
+        K[KSPEC, j] = cy * (rx - 1) + cx
+        S[SX, j] = fx
+        S[SY, j] = fy
+    # jacobian
+    if jacobian:
+        u3 = math.pi * _INV_2PI  # (phi_i + pi) / 2 pi at phi_i = 0
+        for j in range(_RGL_BLOCK):
+            dv = _bilinear(ndf, S[UMX, j], S[UMY, j])
+            sv = _bilinear(sigma, S[UWI, j], u3)
+            S[SCALE, j] = dv / (4.0 * sv)
+    else:
+        for j in range(_RGL_BLOCK):
+            S[SCALE, j] = 1.0
+    ps = np.uint64(spec_stride)
+    for j in range(nb):
+        q = np.uint64((K[KSPEC, j] * n_s + K[KIT, j]) * spec_stride)
+        w0 = S[W0, j]
+        w1 = S[W1, j]
+        fx = S[SX, j]
+        fy = S[SY, j]
+        c00 = (1 - fx) * (1 - fy)
+        c10 = fx * (1 - fy)
+        c01 = (1 - fx) * fy
+        c11 = fx * fy
+        scale = S[SCALE, j]
+        inv_z = S[INVZ, j]
+        q1 = q + ps
+        x00 = w0 * spec[q] + w1 * spec[q1]
+        x01 = w0 * spec[q + _U1] + w1 * spec[q1 + _U1]
+        x02 = w0 * spec[q + _U2] + w1 * spec[q1 + _U2]
+        x03 = w0 * spec[q + _U3] + w1 * spec[q1 + _U3]
+        x10 = w0 * spec[q + _U4] + w1 * spec[q1 + _U4]
+        x11 = w0 * spec[q + _U5] + w1 * spec[q1 + _U5]
+        x12 = w0 * spec[q + _U6] + w1 * spec[q1 + _U6]
+        x13 = w0 * spec[q + _U7] + w1 * spec[q1 + _U7]
+        x20 = w0 * spec[q + _U8] + w1 * spec[q1 + _U8]
+        x21 = w0 * spec[q + _U9] + w1 * spec[q1 + _U9]
+        x22 = w0 * spec[q + _U10] + w1 * spec[q1 + _U10]
+        x23 = w0 * spec[q + _U11] + w1 * spec[q1 + _U11]
+        x30 = w0 * spec[q + _U12] + w1 * spec[q1 + _U12]
+        x31 = w0 * spec[q + _U13] + w1 * spec[q1 + _U13]
+        x32 = w0 * spec[q + _U14] + w1 * spec[q1 + _U14]
+        x33 = w0 * spec[q + _U15] + w1 * spec[q1 + _U15]
+        v0 = c00 * x00
+        v0 += c10 * x10
+        v0 += c01 * x20
+        v0 += c11 * x30
+        v1 = c00 * x01
+        v1 += c10 * x11
+        v1 += c01 * x21
+        v1 += c11 * x31
+        v2 = c00 * x02
+        v2 += c10 * x12
+        v2 += c01 * x22
+        v2 += c11 * x32
+        v3 = c00 * x03
+        v3 += c10 * x13
+        v3 += c01 * x23
+        v3 += c11 * x33
+        v0 = v0 * scale * inv_z
+        v1 = v1 * scale * inv_z
+        v2 = v2 * scale * inv_z
+        v3 = v3 * scale * inv_z
+        ok = K[KOK, j]
+        m = S[MVAL, j]
+        out[b0 + j, 0] = v0 if ok else m
+        out[b0 + j, 1] = v1 if ok else m
+        out[b0 + j, 2] = v2 if ok else m
+
+
 @njit(**_JIT, parallel=True)
 def rgl_eval(
     wi, wo, phi_vals, theta_vals, n_t2, rec32, rec64, rows, spec, spec_stride, ndf, sigma,
@@ -673,16 +908,26 @@ def rgl_eval(
     the numpy path.
     """
     n = wi.shape[0]
+    fast = relative_only and reduction < 2 and phi_vals.size == 1 and out.shape[1] == 3
     n_blocks = (n + _RGL_BLOCK - 1) // _RGL_BLOCK
     n_chunks = min(n_blocks, _RGL_CHUNKS)  # static shares for numba's threads
     for chunk in prange(n_chunks):
+        S = np.empty((_NS, _RGL_BLOCK))
+        K = np.empty((_NK, _RGL_BLOCK), np.intp)
         f = np.empty((13, _RGL_BLOCK))
         k = np.empty((6, _RGL_BLOCK), np.intp)
         g = np.empty((12, _RGL_BLOCK))
         for blk in range(chunk * n_blocks // n_chunks, (chunk + 1) * n_blocks // n_chunks):
             b0 = blk * _RGL_BLOCK
-            _rgl_block(
-                wi, wo, b0, min(b0 + _RGL_BLOCK, n), phi_vals, theta_vals, n_t2, rec32, rec64,
-                rows, spec, spec_stride, ndf, sigma, vh, vw, ry, rx, reduction, isotropic,
-                relative_only, jacobian, atan_table, out, f, k, g,
-            )  # fmt: skip
+            b1 = min(b0 + _RGL_BLOCK, n)
+            if fast:
+                _rgl_block_rel(
+                    wi, wo, b0, b1 - b0, n, theta_vals, n_t2, rec32, rec64, rows, spec,
+                    spec_stride, ndf, sigma, vh, vw, ry, rx, jacobian, atan_table, out, S, K,
+                )  # fmt: skip
+            else:
+                _rgl_block(
+                    wi, wo, b0, b1, phi_vals, theta_vals, n_t2, rec32, rec64, rows, spec,
+                    spec_stride, ndf, sigma, vh, vw, ry, rx, reduction, isotropic,
+                    relative_only, jacobian, atan_table, out, f, k, g,
+                )  # fmt: skip

@@ -358,6 +358,8 @@ def test_rgl_kernel_matches_numpy(monkeypatch, rgl_calls, rgl_file, tmp_path, ma
     wo[5003] = [0.0, 0.6, -0.8]  # wo below the horizon: 0
     wi[5004], wo[5004] = [0.0, 0.6, -0.8], [0.3, np.nan, 0.5]  # NaN wins over the horizon
     wi[5005] = [1.0, 0.0, 0.0]  # on the horizon: 0
+    # normal incidence with signed zeros: phi_i = atan2(+-0, +-0) is +-0 or +-pi
+    wi[5006], wi[5007], wi[5008] = [-0.0, 0.0, 1.0], [-0.0, -0.0, 1.0], [0.0, -0.0, 1.0]
     fast = b.eval(wi, wo)
     assert rgl_calls["n"] == 1
     ref = _numpy_path(monkeypatch, lambda: b.eval(wi, wo))
