@@ -47,6 +47,9 @@ class PreparedLight:
     profile_n: float = 0.0
     gradient: float = 0.0
     gradient_angle: float = 0.0
+    #: The face frame of the gradient (the light body's; default ``e1``, ``e2``).
+    f1: np.ndarray | None = None
+    f2: np.ndarray | None = None
 
     def face(self, y: np.ndarray) -> np.ndarray | None:
         """The face non-uniformity factor (...) at emitter points y (..., 3), or None for
@@ -55,7 +58,9 @@ class PreparedLight:
         if self.gradient == 0.0 or self.is_point:
             return None
         rel = y - self.center
-        p1, p2 = rel @ self.e1, rel @ self.e2
+        f1 = self.e1 if self.f1 is None else self.f1
+        f2 = self.e2 if self.f2 is None else self.f2
+        p1, p2 = rel @ f1, rel @ f2
         c, s = np.cos(self.gradient_angle), np.sin(self.gradient_angle)
         if self.kind == "disk":
             u = (p1 * c + p2 * s) / self.size[0]
@@ -210,7 +215,21 @@ def _prepare(light, scene: Scene) -> PreparedLight:
         float(light.profile_n),
         float(light.gradient),
         float(np.radians(light.gradient_angle_deg)),
+        *_face_frame(light.face_up, n),
     )
+
+
+def _face_frame(face_up, n: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(f1, f2) of a light body whose "up" is ``face_up`` (None: the tangent frame),
+    handed like the tangent frames (``f1 x f2 = n``)."""
+    if face_up is None:
+        return None, None
+    up = np.asarray(face_up, float)
+    up = up - n * (up @ n)
+    if np.linalg.norm(up) < 1e-9:
+        raise ValueError("light: 'face_up' is parallel to the normal")
+    f2 = _unit(up, "face_up")
+    return np.cross(f2, n), f2
 
 
 def prepare_lights(scene: Scene) -> list[PreparedLight]:

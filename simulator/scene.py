@@ -434,7 +434,9 @@ class _AreaLight(_Model):
     """An area light.  ``radiance`` is its emitted radiance along its normal; off the
     normal it falls as ``cos^profile_n(psi)`` (0: a Lambertian emitter), and over its face
     it varies linearly, ``1 + gradient (rho / R) cos(phi - gradient_angle_deg)`` on a disk
-    (``1 + gradient ((2x/w) cos + (2y/h) sin)`` on a rectangle), phi in the light's own
+    (``1 + gradient ((2x/w) cos + (2y/h) sin)`` on a rectangle), phi in the light's face
+    frame: the light body's, ``face_up`` its "up" in the face plane (set by the rig's poses:
+    a light on an arm keeps its face pattern as the arm and the stage move), else its
     tangent frame (:class:`gonio.simulator.lights.PreparedLight` ``e1``, ``e2``)."""
 
     position: Vec3
@@ -444,6 +446,7 @@ class _AreaLight(_Model):
     profile_n: Annotated[float, Field(ge=0, le=50, allow_inf_nan=False)] = 0.0
     gradient: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = 0.0
     gradient_angle_deg: Annotated[float, Field(allow_inf_nan=False)] = 0.0
+    face_up: Vec3 | None = None
 
     @model_validator(mode="after")
     def _orientation(self) -> _AreaLight:
@@ -758,11 +761,13 @@ class Scene(_Model):
         camera_rotation: Any,
         light_position: Any | None = None,
         light_normal: Any | None = None,
+        light_up: Any | None = None,
     ) -> Scene:
         """The same scene with the camera (and first light) moved; sample-frame metres.
 
         ``camera_rotation`` is world-to-camera in OpenCV axes.  A point light ignores
-        ``light_normal``.
+        ``light_normal`` and ``light_up`` (the light body's up in its face plane: the
+        frame of its face gradient).
         """
         R = np.asarray(camera_rotation, float)
         cam = self.camera.model_copy(
@@ -776,6 +781,8 @@ class Scene(_Model):
             upd: dict[str, Any] = {"position": tuple(map(float, light_position))}
             if not isinstance(lights[0], PointLight) and light_normal is not None:
                 upd.update(normal=tuple(map(float, light_normal)), look_at=None)
+            if not isinstance(lights[0], PointLight) and light_up is not None:
+                upd.update(face_up=tuple(map(float, light_up)))
             lights[0] = lights[0].model_copy(update=upd)
         return self.model_copy(update={"camera": cam, "lights": lights})
 
@@ -828,12 +835,16 @@ def scene_with_rig_poses(scene: Scene, poses: Any) -> Scene:
     def get(name: str) -> Any:
         return poses[name] if isinstance(poses, dict) else getattr(poses, name)
 
+    # the controller's poses carry no light body frame; the as-built world's do
+    up = poses.get("light_up") if isinstance(poses, dict) else getattr(poses, "light_up", None)
+
     # RigPoses.camera_rotation is camera-to-sample (columns are the camera axes).
     return scene.with_poses(
         get("camera_position"),
         np.asarray(get("camera_rotation"), float).T,
         get("light_position"),
         get("light_normal"),
+        up,
     )
 
 

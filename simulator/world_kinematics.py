@@ -105,6 +105,11 @@ class TruePoses:
     sample_to_world: Array
     sample_origin: Array
     joints: Mapping[str, float]
+    #: The light body's "up" in its face plane (sample frame): the light is fixed to its
+    #: arm, so its face (and the face's non-uniformity) turns with the arm, not with the
+    #: stage.  ``up = e_az x n`` with ``e_az`` the arm's azimuth tangent and ``n`` the
+    #: emitting normal.
+    light_up: Array | None = None
 
 
 def _unit(v: Array) -> Array:
@@ -206,16 +211,19 @@ def poses_from_joints(world: World, rig_doc: Any, q: Mapping[str, float]) -> Tru
     )
     R_cw = _look_at_origin(P_C) @ mount
     lp, cp = M.T @ (P_L - T), M.T @ (P_C - T)
+    n_L = _unit(-P_L)
+    e_az = np.array([-math.sin(q["light_azimuth"]), math.cos(q["light_azimuth"]), 0.0])
     return TruePoses(
         wi=_unit(lp),
         wo=_unit(cp),
         light_position=lp,
-        light_normal=M.T @ _unit(-P_L),
+        light_normal=M.T @ n_L,
         camera_position=cp,
         camera_rotation=M.T @ R_cw,
         sample_to_world=M,
         sample_origin=T,
         joints=dict(q),
+        light_up=M.T @ _cross(e_az, n_L),
     )
 
 
