@@ -361,6 +361,66 @@ def _bilinear(table, u, v):
     return (1 - fy) * ((1 - fx) * v00 + fx * v10) + fy * ((1 - fx) * v01 + fx * v11)
 
 
+@njit(**_JIT, inline="always")
+def _rgb_blend_store(out, i, spec, q, ps, w0, w1, fx, fy, scale, inv_z, ok, masked):
+    """Store the RGB ``f_r`` (1/sr) of one isotropic look-up in ``out[i, :3]``.
+
+    The two theta_i slices of one RGB cell's record start at float32 slots ``q`` and
+    ``q + ps`` of ``spec`` (4 corners x 4 channel slots each, corner-major); they are
+    blended with the slice weights ``w0, w1``, then bilinearly over the cell (fractions
+    ``fx, fy`` in [0, 1]), and multiplied by ``scale`` (the Jacobian, 1 without it) and
+    ``inv_z`` (1 / wo_z).  A pair that is not ``ok`` gets ``masked`` (0 or NaN) instead.
+    Both blocks use it (one copy of the 16-corner blend); it is inlined into their loops.
+    """
+    # Channels padded to 4 (lane 3 is computed and dropped): the same operations on four
+    # adjacent values, which LLVM's SLP pass packs into vector instructions (no loop, no
+    # branch).  The operation order is the numpy path's (bit for bit).
+    c00 = (1 - fx) * (1 - fy)
+    c10 = fx * (1 - fy)
+    c01 = (1 - fx) * fy
+    c11 = fx * fy
+    q1 = q + ps
+    x00 = w0 * spec[q] + w1 * spec[q1]
+    x01 = w0 * spec[q + _U1] + w1 * spec[q1 + _U1]
+    x02 = w0 * spec[q + _U2] + w1 * spec[q1 + _U2]
+    x03 = w0 * spec[q + _U3] + w1 * spec[q1 + _U3]
+    x10 = w0 * spec[q + _U4] + w1 * spec[q1 + _U4]
+    x11 = w0 * spec[q + _U5] + w1 * spec[q1 + _U5]
+    x12 = w0 * spec[q + _U6] + w1 * spec[q1 + _U6]
+    x13 = w0 * spec[q + _U7] + w1 * spec[q1 + _U7]
+    x20 = w0 * spec[q + _U8] + w1 * spec[q1 + _U8]
+    x21 = w0 * spec[q + _U9] + w1 * spec[q1 + _U9]
+    x22 = w0 * spec[q + _U10] + w1 * spec[q1 + _U10]
+    x23 = w0 * spec[q + _U11] + w1 * spec[q1 + _U11]
+    x30 = w0 * spec[q + _U12] + w1 * spec[q1 + _U12]
+    x31 = w0 * spec[q + _U13] + w1 * spec[q1 + _U13]
+    x32 = w0 * spec[q + _U14] + w1 * spec[q1 + _U14]
+    x33 = w0 * spec[q + _U15] + w1 * spec[q1 + _U15]
+    v0 = c00 * x00
+    v0 += c10 * x10
+    v0 += c01 * x20
+    v0 += c11 * x30
+    v1 = c00 * x01
+    v1 += c10 * x11
+    v1 += c01 * x21
+    v1 += c11 * x31
+    v2 = c00 * x02
+    v2 += c10 * x12
+    v2 += c01 * x22
+    v2 += c11 * x32
+    v3 = c00 * x03
+    v3 += c10 * x13
+    v3 += c01 * x23
+    v3 += c11 * x33
+    v0 = v0 * scale * inv_z
+    v1 = v1 * scale * inv_z
+    v2 = v2 * scale * inv_z
+    v3 = v3 * scale * inv_z
+    out[i, 0] = v0 if ok else masked
+    out[i, 1] = v1 if ok else masked
+    out[i, 2] = v2 if ok else masked
+
+
 @njit(**_JIT)
 def _rgl_block(
     wi, wo, b0, b1, phi_vals, theta_vals, n_t2, rec32, rec64, rows, spec, spec_stride, ndf, sigma,
@@ -580,49 +640,9 @@ def _rgl_block(
         masked = 0.0 if flag == 1 else np.nan
         inv_z = 1.0 / f[6, j]  # one division for all channels, as the numpy path
         if n_ch == 3 and n_p == 1:
-            # RGB, isotropic: channels padded to 4 (lane 3 is computed and dropped), the
-            # same operations on four adjacent values, which LLVM's SLP pass packs into
-            # vector instructions (no loop, no branch)
-            q1 = q + ps
-            x00 = w0 * spec[q] + w1 * spec[q1]
-            x01 = w0 * spec[q + _U1] + w1 * spec[q1 + _U1]
-            x02 = w0 * spec[q + _U2] + w1 * spec[q1 + _U2]
-            x03 = w0 * spec[q + _U3] + w1 * spec[q1 + _U3]
-            x10 = w0 * spec[q + _U4] + w1 * spec[q1 + _U4]
-            x11 = w0 * spec[q + _U5] + w1 * spec[q1 + _U5]
-            x12 = w0 * spec[q + _U6] + w1 * spec[q1 + _U6]
-            x13 = w0 * spec[q + _U7] + w1 * spec[q1 + _U7]
-            x20 = w0 * spec[q + _U8] + w1 * spec[q1 + _U8]
-            x21 = w0 * spec[q + _U9] + w1 * spec[q1 + _U9]
-            x22 = w0 * spec[q + _U10] + w1 * spec[q1 + _U10]
-            x23 = w0 * spec[q + _U11] + w1 * spec[q1 + _U11]
-            x30 = w0 * spec[q + _U12] + w1 * spec[q1 + _U12]
-            x31 = w0 * spec[q + _U13] + w1 * spec[q1 + _U13]
-            x32 = w0 * spec[q + _U14] + w1 * spec[q1 + _U14]
-            x33 = w0 * spec[q + _U15] + w1 * spec[q1 + _U15]
-            v0 = c00 * x00
-            v0 += c10 * x10
-            v0 += c01 * x20
-            v0 += c11 * x30
-            v1 = c00 * x01
-            v1 += c10 * x11
-            v1 += c01 * x21
-            v1 += c11 * x31
-            v2 = c00 * x02
-            v2 += c10 * x12
-            v2 += c01 * x22
-            v2 += c11 * x32
-            v3 = c00 * x03
-            v3 += c10 * x13
-            v3 += c01 * x23
-            v3 += c11 * x33
-            v0 = v0 * scale * inv_z
-            v1 = v1 * scale * inv_z
-            v2 = v2 * scale * inv_z
-            v3 = v3 * scale * inv_z
-            out[b0 + j, 0] = v0 if flag == 0 else masked
-            out[b0 + j, 1] = v1 if flag == 0 else masked
-            out[b0 + j, 2] = v2 if flag == 0 else masked
+            _rgb_blend_store(
+                out, b0 + j, spec, q, ps, w0, w1, fx, fy, scale, inv_z, flag == 0, masked
+            )
             continue
         q2 = np.uint64((k[4, j] * n_s + k[1, j]) * spec_stride)
         w2 = f[9, j]
@@ -835,54 +855,10 @@ def _rgl_block_rel(
         w1 = S[W1, j]
         fx = S[SX, j]
         fy = S[SY, j]
-        c00 = (1 - fx) * (1 - fy)
-        c10 = fx * (1 - fy)
-        c01 = (1 - fx) * fy
-        c11 = fx * fy
-        scale = S[SCALE, j]
-        inv_z = S[INVZ, j]
-        q1 = q + ps
-        x00 = w0 * spec[q] + w1 * spec[q1]
-        x01 = w0 * spec[q + _U1] + w1 * spec[q1 + _U1]
-        x02 = w0 * spec[q + _U2] + w1 * spec[q1 + _U2]
-        x03 = w0 * spec[q + _U3] + w1 * spec[q1 + _U3]
-        x10 = w0 * spec[q + _U4] + w1 * spec[q1 + _U4]
-        x11 = w0 * spec[q + _U5] + w1 * spec[q1 + _U5]
-        x12 = w0 * spec[q + _U6] + w1 * spec[q1 + _U6]
-        x13 = w0 * spec[q + _U7] + w1 * spec[q1 + _U7]
-        x20 = w0 * spec[q + _U8] + w1 * spec[q1 + _U8]
-        x21 = w0 * spec[q + _U9] + w1 * spec[q1 + _U9]
-        x22 = w0 * spec[q + _U10] + w1 * spec[q1 + _U10]
-        x23 = w0 * spec[q + _U11] + w1 * spec[q1 + _U11]
-        x30 = w0 * spec[q + _U12] + w1 * spec[q1 + _U12]
-        x31 = w0 * spec[q + _U13] + w1 * spec[q1 + _U13]
-        x32 = w0 * spec[q + _U14] + w1 * spec[q1 + _U14]
-        x33 = w0 * spec[q + _U15] + w1 * spec[q1 + _U15]
-        v0 = c00 * x00
-        v0 += c10 * x10
-        v0 += c01 * x20
-        v0 += c11 * x30
-        v1 = c00 * x01
-        v1 += c10 * x11
-        v1 += c01 * x21
-        v1 += c11 * x31
-        v2 = c00 * x02
-        v2 += c10 * x12
-        v2 += c01 * x22
-        v2 += c11 * x32
-        v3 = c00 * x03
-        v3 += c10 * x13
-        v3 += c01 * x23
-        v3 += c11 * x33
-        v0 = v0 * scale * inv_z
-        v1 = v1 * scale * inv_z
-        v2 = v2 * scale * inv_z
-        v3 = v3 * scale * inv_z
-        ok = K[KOK, j]
-        m = S[MVAL, j]
-        out[b0 + j, 0] = v0 if ok else m
-        out[b0 + j, 1] = v1 if ok else m
-        out[b0 + j, 2] = v2 if ok else m
+        _rgb_blend_store(
+            out, b0 + j, spec, q, ps, w0, w1, fx, fy, S[SCALE, j], S[INVZ, j], K[KOK, j],
+            S[MVAL, j],
+        )  # fmt: skip
 
 
 @njit(**_JIT, parallel=True)
