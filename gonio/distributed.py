@@ -155,6 +155,27 @@ def _sigint_deferred() -> Iterator[None]:
         raise KeyboardInterrupt
 
 
+@contextlib.contextmanager
+def _sigint_noted() -> Iterator[list[int]]:
+    """Ctrl-C raises ``KeyboardInterrupt`` as usual and is also noted in the yielded list:
+    an interrupt raised inside a garbage-collector callback (distributed's GCDiagnosis) is
+    printed as "Exception ignored" and lost, so the waiting loop checks the note too."""
+    caught: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield caught
+        return
+
+    def note(signum: int, frame: Any) -> None:
+        caught.append(signum)
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGINT, note)
+    try:
+        yield caught
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
 def _check_address(scheduler: str) -> str:
     address = scheduler.strip()
     if "://" not in address:
@@ -403,22 +424,31 @@ def map_tasks(
             )
             futures.append(fut)
             by_dask_key[fut.key] = key
-        for fut in as_completed(futures, loop=client.loop):
-            key = by_dask_key[fut.key]
-            if fut.status == "finished":
-                try:
-                    outcome = fut.result()
-                except Exception as exc:  # lost between the report and the fetch
-                    outcome = _failure(key, exc)
-            else:
-                outcome = _failure(key, fut.exception() if fut.status == "error" else None)
-            fut.release()
-            done(key, outcome)
+        with _sigint_noted() as interrupted:
+            for fut in as_completed(futures, loop=client.loop):
+                if interrupted:
+                    raise KeyboardInterrupt
+                _collect(fut, by_dask_key[fut.key], done)
+            if interrupted:
+                raise KeyboardInterrupt
     except BaseException:
         with _sigint_deferred(), contextlib.suppress(Exception):
             client.cancel(futures, force=True)
         raise
     return {k: results[k] for k in keys}
+
+
+def _collect(fut: Any, key: Hashable, done: Callable[[Hashable, Any], None]) -> None:
+    """One finished future's outcome, reported to ``done``."""
+    if fut.status == "finished":
+        try:
+            outcome = fut.result()
+        except Exception as exc:  # lost between the report and the fetch
+            outcome = _failure(key, exc)
+    else:
+        outcome = _failure(key, fut.exception() if fut.status == "error" else None)
+    fut.release()
+    done(key, outcome)
 
 
 @contextlib.contextmanager
