@@ -139,27 +139,14 @@ def _failure(key: Hashable, exc: BaseException | None) -> TaskFailure:
 
 
 @contextlib.contextmanager
-def _sigint_deferred() -> Iterator[None]:
-    """Hold back Ctrl-C while a cluster shuts down (a second Ctrl-C must not leave half of
-    it running); the interrupt is raised once the block is done."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    caught: list[int] = []
-    old = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, old)
-    if caught:
-        raise KeyboardInterrupt
+def _sigint_caught(*, at_once: bool) -> Iterator[list[int]]:
+    """Ctrl-C noted in the yielded list and raised as ``KeyboardInterrupt`` once the block
+    is done; ``at_once`` also raises it at once.
 
-
-@contextlib.contextmanager
-def _sigint_noted() -> Iterator[list[int]]:
-    """Ctrl-C raises ``KeyboardInterrupt`` as usual and is also noted in the yielded list:
-    an interrupt raised inside a garbage-collector callback (distributed's GCDiagnosis) is
-    printed as "Exception ignored" and lost, so the waiting loop checks the note too."""
+    Deferred (``at_once=False``): a cluster shutting down must not be interrupted (a second
+    Ctrl-C must not leave half of it running).  At once, but noted too: an interrupt
+    raised inside a garbage-collector callback (distributed's GCDiagnosis) is printed as
+    "Exception ignored" and lost, so a waiting loop checks the note as well."""
     caught: list[int] = []
     if threading.current_thread() is not threading.main_thread():
         yield caught
@@ -167,13 +154,16 @@ def _sigint_noted() -> Iterator[list[int]]:
 
     def note(signum: int, frame: Any) -> None:
         caught.append(signum)
-        raise KeyboardInterrupt
+        if at_once:
+            raise KeyboardInterrupt
 
     old = signal.signal(signal.SIGINT, note)
     try:
         yield caught
     finally:
         signal.signal(signal.SIGINT, old)
+    if caught:
+        raise KeyboardInterrupt
 
 
 def _check_address(scheduler: str) -> str:
@@ -248,7 +238,7 @@ def _local_client(workers: int, threads_per_worker: int) -> Iterator[Client]:
         pids = set(client.run(os.getpid).values())
         yield client
     finally:
-        with _sigint_deferred():
+        with _sigint_caught(at_once=False):
             pids |= _spawned_children()
             if client is not None:
                 with contextlib.suppress(Exception):
@@ -284,7 +274,7 @@ def _remote_client(scheduler: str, timeout_s: float) -> Iterator[Client]:
             ) from None
         yield client
     finally:
-        with _sigint_deferred():
+        with _sigint_caught(at_once=False):
             client.close()
 
 
@@ -424,15 +414,13 @@ def map_tasks(
             )
             futures.append(fut)
             by_dask_key[fut.key] = key
-        with _sigint_noted() as interrupted:
+        with _sigint_caught(at_once=True) as interrupted:
             for fut in as_completed(futures, loop=client.loop):
                 if interrupted:
                     raise KeyboardInterrupt
                 _collect(fut, by_dask_key[fut.key], done)
-            if interrupted:
-                raise KeyboardInterrupt
     except BaseException:
-        with _sigint_deferred(), contextlib.suppress(Exception):
+        with _sigint_caught(at_once=False), contextlib.suppress(Exception):
             client.cancel(futures, force=True)
         raise
     return {k: results[k] for k in keys}
