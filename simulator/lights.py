@@ -47,9 +47,13 @@ class PreparedLight:
     profile_n: float = 0.0
     gradient: float = 0.0
     gradient_angle: float = 0.0
-    #: The face frame of the gradient (the light body's; default ``e1``, ``e2``).
+    #: The face frame of the gradient: the light body's (None: ``e1``, ``e2``).
     f1: np.ndarray | None = None
     f2: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.f1 is None:
+            self.f1, self.f2 = self.e1, self.e2
 
     def face(self, y: np.ndarray) -> np.ndarray | None:
         """The face non-uniformity factor (...) at emitter points y (..., 3), or None for
@@ -58,9 +62,7 @@ class PreparedLight:
         if self.gradient == 0.0 or self.is_point:
             return None
         rel = y - self.center
-        f1 = self.e1 if self.f1 is None else self.f1
-        f2 = self.e2 if self.f2 is None else self.f2
-        p1, p2 = rel @ f1, rel @ f2
+        p1, p2 = rel @ self.f1, rel @ self.f2
         c, s = np.cos(self.gradient_angle), np.sin(self.gradient_angle)
         if self.kind == "disk":
             u = (p1 * c + p2 * s) / self.size[0]
@@ -225,10 +227,7 @@ def _face_frame(face_up, n: np.ndarray) -> tuple[np.ndarray | None, np.ndarray |
     if face_up is None:
         return None, None
     up = np.asarray(face_up, float)
-    up = up - n * (up @ n)
-    if np.linalg.norm(up) < 1e-9:
-        raise ValueError("light: 'face_up' is parallel to the normal")
-    f2 = _unit(up, "face_up")
+    f2 = _unit(up - n * (up @ n), "face_up")  # not parallel to n: the scene checked it
     return np.cross(f2, n), f2
 
 

@@ -452,7 +452,14 @@ class _AreaLight(_Model):
     def _orientation(self) -> _AreaLight:
         if self.normal is not None and self.look_at is not None:
             raise ValueError("give 'normal' or 'look_at', not both")
-        _unit(self.emit_normal(), "light normal")
+        n = _unit(self.emit_normal(), "light normal")
+        if self.face_up is not None:
+            up = np.asarray(self.face_up, float)
+            if np.linalg.norm(up - n * (up @ n)) < 1e-9 * max(np.linalg.norm(up), 1.0):
+                raise ValueError(
+                    f"face_up {list(self.face_up)} has no component in the light's face "
+                    f"plane (normal {n.round(6).tolist()}): expected a direction across it"
+                )
         return self
 
     def emit_normal(self) -> np.ndarray:
@@ -832,11 +839,10 @@ def scene_with_rig_poses(scene: Scene, poses: Any) -> Scene:
     ``light_position`` and ``light_normal``.
     """
 
-    def get(name: str) -> Any:
-        return poses[name] if isinstance(poses, dict) else getattr(poses, name)
-
-    # the controller's poses carry no light body frame; the as-built world's do
-    up = poses.get("light_up") if isinstance(poses, dict) else getattr(poses, "light_up", None)
+    def get(name: str, *default: Any) -> Any:
+        if isinstance(poses, dict):
+            return poses.get(name, *default) if default else poses[name]
+        return getattr(poses, name, *default)
 
     # RigPoses.camera_rotation is camera-to-sample (columns are the camera axes).
     return scene.with_poses(
@@ -844,7 +850,7 @@ def scene_with_rig_poses(scene: Scene, poses: Any) -> Scene:
         np.asarray(get("camera_rotation"), float).T,
         get("light_position"),
         get("light_normal"),
-        up,
+        get("light_up", None),  # the controller's poses carry no light body frame
     )
 
 

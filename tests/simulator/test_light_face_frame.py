@@ -11,7 +11,9 @@ import math
 import tomllib
 
 import numpy as np
+import pytest
 
+from gonio.errors import ConfigError
 from gonio.rig.config import default_rig_document
 from gonio.simulator.lights import prepare_lights
 from gonio.simulator.scene import parse_scene, scene_with_rig_poses
@@ -35,8 +37,7 @@ def _gradient_direction_in_the_lab(q: dict) -> tuple[np.ndarray, np.ndarray]:
     world = draw_world("realistic", 7)
     poses = poses_from_joints(world, DOC, q)
     light = prepare_lights(scene_with_rig_poses(parse_scene(SCENE), poses))[0]
-    f1 = light.e1 if light.f1 is None else light.f1
-    f2 = light.e2 if light.f2 is None else light.f2
+    f1, f2 = light.f1, light.f2
     c, s = math.cos(light.gradient_angle), math.sin(light.gradient_angle)
     M, T = poses.sample_to_world, poses.sample_origin
     # the face's own evaluation along the direction, as the renderer sees it
@@ -70,4 +71,10 @@ def test_the_face_pattern_turns_with_the_light_arm():
 
 def test_a_scene_without_a_body_frame_keeps_its_tangent_frame():
     light = prepare_lights(parse_scene(SCENE))[0]
-    assert light.f1 is None and light.f2 is None  # bit for bit the old face
+    assert light.f1 is light.e1 and light.f2 is light.e2  # bit for bit the old face
+
+
+def test_a_face_up_along_the_normal_is_refused_when_the_scene_is_read():
+    doc = {**SCENE, "lights": [{**SCENE["lights"][0], "face_up": [0.0, -0.25, -0.433]}]}
+    with pytest.raises(ConfigError, match=r"face_up \[0\.0, -0\.25, -0\.433\].*face plane"):
+        parse_scene(doc)
