@@ -110,8 +110,15 @@ def run(*argv: str) -> int | str | None:
 
 def main(argv: list[str] | None = None) -> None:
     """Console entry point: run the CLI and turn :class:`GonioError` into exit code 1."""
+    from gonio import interrupts
+
     try:
-        cli.main(args=argv, prog_name="gonio", standalone_mode=False)
+        with interrupts.noting():
+            cli.main(args=argv, prog_name="gonio", standalone_mode=False)
+            # A Ctrl-C whose KeyboardInterrupt a garbage-collector callback swallowed:
+            # the command ran on, but the user asked to stop, and the exit code says so.
+            if interrupts.noted():
+                raise KeyboardInterrupt
     except click.exceptions.Abort:
         click.echo("aborted", err=True)
         sys.exit(130)

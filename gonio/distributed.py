@@ -33,6 +33,7 @@ import uuid
 from collections.abc import Callable, Hashable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
+from gonio import interrupts
 from gonio.errors import GonioError
 
 if TYPE_CHECKING:
@@ -408,6 +409,8 @@ def map_tasks(
     futures = []
     by_dask_key: dict[str, Hashable] = {}
     try:
+        if interrupts.noted():  # a Ctrl-C lost before the run began (gonio.interrupts)
+            raise KeyboardInterrupt
         for key, item in zip(keys, items, strict=True):
             fut = client.submit(
                 _run_guarded, fn, item, key=f"gonio-{key}-{run}", retries=retries, pure=False
@@ -416,7 +419,7 @@ def map_tasks(
             by_dask_key[fut.key] = key
         with _sigint_caught(at_once=True) as interrupted:
             for fut in as_completed(futures, loop=client.loop):
-                if interrupted:
+                if interrupted or interrupts.noted():
                     raise KeyboardInterrupt
                 _collect(fut, by_dask_key[fut.key], done)
     except BaseException:
