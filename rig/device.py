@@ -39,7 +39,7 @@ from gonio.radiometry.frames import angle_between
 from gonio.rig import control_table as ct
 from gonio.rig.bus import BusTransport
 from gonio.rig.config import JOINT_NAMES, RigConfig
-from gonio.rig.kinematics import Kinematics, approach_of_move
+from gonio.rig.kinematics import Kinematics, approach_of_move, side_after, take_up_pulses
 from gonio.rig.servo import Servo, ServoState
 from gonio.rig.transport import Transport
 
@@ -51,8 +51,9 @@ log = logging.getLogger("gonio.rig")
 #: one pulse (1.5e-3 rad), far above the rounding of joints written to JSON and read back.
 _HINT_TOLERANCE_RAD = 1e-6
 
-#: How far below its goal (joint angle, rad) the first move of a connection takes a joint
-#: whose approach side is unknown, to take its backlash up from below.
+#: How far past its goal (joint angle, rad) a pre-move takes a joint whose backlash the
+#: move itself would not take up (its side unknown, or a reversal shorter than the play),
+#: so that it approaches the goal from a known side.
 PRE_MOVE_RAD = math.radians(1.0)
 
 
@@ -420,19 +421,28 @@ class Rig:
     def _pre_move_goals(
         self, goals: Mapping[int, int], states: Mapping[str, ServoState]
     ) -> tuple[dict[int, int], dict[str, int]] | None:
-        """Goals of the pre-move that takes up the backlash of the joints whose side is
-        unknown, whose servo has backlash and which this move would not move: each goes
-        :data:`PRE_MOVE_RAD` below its goal (above when below is not allowed), the others
-        stay.  None when no joint needs it."""
-        need = [
-            st
-            for st in states.values()
-            if self._approach[st.joint] == 0
-            and self._by_id[st.dxl_id].config.backlash_deg > 0
-            # a goal within the deadband does not move it either (the side stays unknown)
-            and abs(goals[st.dxl_id] - st.position_pulses)
-            <= self.config.motion.position_tolerance_pulses
-        ]
+        """Goals of the pre-move that takes up the backlash before a move that would not:
+        of each joint with backlash whose side is unknown and whose move is shorter than
+        its take-up (:func:`gonio.rig.kinematics.take_up_pulses`), and of each joint whose
+        move reverses its side by less than that (the gears would stop inside their play:
+        a real servo's 2-pulse reversal against a 3.5-pulse backlash).  Each goes
+        :data:`PRE_MOVE_RAD` past its goal on the side it will approach from (its present
+        side, below when unknown; the other when that is not allowed), the others stay.
+        None when no joint needs it."""
+        tol = self.config.motion.position_tolerance_pulses
+        need: list[tuple[ServoState, int]] = []
+        for st in states.values():
+            cfg = self._by_id[st.dxl_id].config
+            if cfg.backlash_deg <= 0:
+                continue
+            d = goals[st.dxl_id] - st.position_pulses
+            side = self._approach[st.joint]
+            if abs(d) > take_up_pulses(cfg, tol):
+                continue
+            if side == 0:
+                need.append((st, 1))
+            elif abs(d) > tol and cfg.direction * (1 if d > 0 else -1) != side:
+                need.append((st, side))
         if not need:
             return None
         current = {j: st.position for j, st in states.items()}
@@ -442,11 +452,11 @@ class Rig:
         pre_goals = {st.dxl_id: st.position_pulses for st in states.values()}
         sides = {}
         kin = self.kinematics
-        for st in need:
+        for st, first in need:
             servo = self._by_id[st.dxl_id]
-            for side in (1, -1):
+            for side in (first, -first):
                 q = dict(current)
-                q[st.joint] = st.position - side * PRE_MOVE_RAD
+                q[st.joint] = target[st.joint] - side * PRE_MOVE_RAD
                 lo, hi = servo.config.limits_rad
                 if lo <= q[st.joint] <= hi and not (
                     kin.joints_refusal(q)
@@ -576,9 +586,11 @@ class Rig:
             for k, j in enumerate(JOINT_NAMES):
                 d = combos[:, k] - present[j]
                 keep = self._approach[j] or 1  # unknown: the pre-move comes from below
-                # within the deadband the servo does not move: it keeps its side
-                moved = np.abs(d) > self.config.motion.position_tolerance_pulses
-                appr[j] = np.where(moved, self.servos[j].config.direction * np.sign(d), keep)
+                # within the deadband the servo does not move, and a short reversal is
+                # approached from the present side (_pre_move_goals): both keep it
+                appr[j] = side_after(
+                    self.servos[j].config, d, keep, self.config.motion.position_tolerance_pulses
+                )
         ai, ao = self.kinematics.forward(q, appr)
         err = np.maximum(angle_between(ai, np.asarray(wi)), angle_between(ao, np.asarray(wo)))
         best = combos[int(np.argmin(err))]

@@ -58,7 +58,7 @@ from numpy.typing import ArrayLike, NDArray
 from gonio.errors import ConfigError, PoseRefused, RefusalReason, RigError
 from gonio.radiometry.frames import angle_between, look_along_rotation, normalize, rotation_about
 from gonio.rig import asbuilt
-from gonio.rig.config import JOINT_NAMES, RigConfig
+from gonio.rig.config import JOINT_NAMES, RigConfig, ServoConfig
 from gonio.rig.control_table import (
     MODELS,
     acceleration_register,
@@ -92,6 +92,36 @@ def is_nominal(config: RigConfig) -> bool:
     )
 
 
+def take_up_pulses(servo: ServoConfig, tol: int) -> int:
+    """The shortest reversal (pulses) that surely carries ``servo``'s joint across its
+    backlash: the play in pulses, rounded up, plus the deadband ``tol`` it may land
+    short by.  Equal to ``tol`` for a servo without backlash (every move counts)."""
+    play = servo.backlash_deg / 360.0 * 4096.0 * servo.gear_ratio
+    return int(math.ceil(play - 1e-9)) + int(tol)
+
+
+def side_after(servo: ServoConfig, d_pulses: ArrayLike, side: int, tol: int) -> NDArray[np.float64]:
+    """Approach sign(s) a move of ``d_pulses`` (goal minus present) leaves, from ``side``
+    (+1, -1 in joint angle; 0 unknown).
+
+    A move within the deadband (``|d| <= tol``) does not move the servo: the side stays.
+    A reversal shorter than :func:`take_up_pulses` would leave the gears inside their
+    play, on no side the as-built model knows (the encoder moved, the joint did not, or
+    only partly): :class:`gonio.rig.device.Rig` approaches such a goal from its present
+    side instead, through a pre-move past it, so the side stays too.  A joint with
+    backlash whose side is unknown and whose move is that short is approached from below
+    (+1) the same way.  Any other move takes the sign of its change in joint angle.
+    """
+    d = np.asarray(d_pulses, dtype=np.float64)
+    new = servo.direction * np.sign(d)
+    short = np.abs(d) <= take_up_pulses(servo, tol)
+    if side == 0:
+        if servo.backlash_deg > 0:
+            return np.where(short, 1.0, new)
+        return np.where(np.abs(d) > tol, new, 0.0)
+    return np.where(short & (new != side), float(side), np.where(np.abs(d) > tol, new, side))
+
+
 def approach_of_move(
     config: RigConfig,
     joints_from: Joints,
@@ -100,20 +130,19 @@ def approach_of_move(
 ) -> dict[str, int]:
     """Approach signs after moving from ``joints_from`` to ``joints_to`` (rad).
 
-    A joint whose goal changes by more than ``motion.position_tolerance_pulses`` takes
-    the sign of its change in joint angle; one that does not keeps ``approach`` (0
-    unknown when None or absent): a servo does not move to a goal within its deadband
-    (:meth:`gonio.rig.device.Rig` tracks the signs by the same rule).
+    :func:`side_after` of each joint's change in pulses, from ``approach`` (0 unknown
+    when None or absent): a joint whose goal changes by more than
+    ``motion.position_tolerance_pulses`` takes the sign of its change in joint angle,
+    unless it is a reversal shorter than the backlash (approached from the present side);
+    one that does not keeps its sign (:meth:`gonio.rig.device.Rig` moves by the same
+    rule).
     """
     out = {}
     tol = config.motion.position_tolerance_pulses
     for s in config.servos:
         j = s.joint
         d = round(s.pulses(float(joints_to[j]))) - round(s.pulses(float(joints_from[j])))
-        if abs(d) > tol:
-            out[j] = int(s.direction) * (1 if d > 0 else -1)
-        else:
-            out[j] = int((approach or {}).get(j, 0))
+        out[j] = int(side_after(s, d, int((approach or {}).get(j, 0)), tol))
     return out
 
 
@@ -558,8 +587,7 @@ class Kinematics:
             scale = s.direction * s.gear_ratio * 4096.0 / (2 * math.pi)
             d = np.round(zero + scale * Q[:, k]) - round(s.pulses(float(ref[j])))
             keep = int((approach or {}).get(j, 0)) or 1
-            moved = np.abs(d) > self.config.motion.position_tolerance_pulses
-            out[:, k] = np.where(moved, s.direction * np.sign(d), keep)
+            out[:, k] = side_after(s, d, keep, self.config.motion.position_tolerance_pulses)
         return out
 
     def _residual(self, Q: Array, signs: Array, target: Array) -> Array:

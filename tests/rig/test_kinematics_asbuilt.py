@@ -48,12 +48,18 @@ def asbuilt_config(rng: np.random.Generator, *, pitch_deg: float | None = None):
 
 
 def hand_approach(config, current, q):
-    """+1 / -1 by the sign of each joint's change (all test moves are many pulses)."""
+    """+1 / -1 by the sign of each joint's change, from an unknown side: a move shorter
+    than the backlash's play plus the deadband does not take the play up, and the rig
+    approaches such a goal from below (a pre-move), so its side is +1."""
     out = {}
     for s in config.servos:
         dp = round(s.pulses(q[s.joint])) - round(s.pulses(current[s.joint]))
         assert dp != 0, "the test poses move every joint"
-        out[s.joint] = 1 if (q[s.joint] - current[s.joint]) > 0 else -1
+        play = s.backlash_deg * s.gear_ratio * 4096 / 360
+        if abs(dp) <= math.ceil(play) + config.motion.position_tolerance_pulses:
+            out[s.joint] = 1
+        else:
+            out[s.joint] = 1 if (q[s.joint] - current[s.joint]) > 0 else -1
     return out
 
 
