@@ -26,8 +26,12 @@ recomputed; perturbing the light changes ``wi`` only.
 The BRDF's response ``df/dw`` needs a model, and the capture layer has none: it is the
 gradient of a model-free local fit of the measured samples (:func:`local_log_gradient`:
 k-nearest-neighbour, tricube-weighted, ridge-regularised quadratic regression of
-``log f`` on the projected directions ``(wi_x, wi_y, wo_x, wo_y)``).  The marginal ``geometry``
-term is ``f sqrt(sum_j (grad . dX_j)^2)`` over all modes (:func:`geometry_std`).
+``log f`` on the projected directions ``(wi_x, wi_y, wo_x, wo_y)``, or, for a material the
+plan declares isotropic, on three rotation-invariant features of the pair,
+:func:`isotropic_features`, so that neighbours at other azimuths of the same
+``(theta_i, theta_o, phi_o - phi_i)`` inform the slope and none is fitted along the
+rotation the material ignores).  The marginal ``geometry`` term is
+``f sqrt(sum_j (grad . dX_j)^2)`` over all modes (:func:`geometry_std`).
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ from numpy.typing import NDArray
 from gonio.dataset import BUDGET_TERMS, SHARED_BUDGET_TERMS
 
 __all__ = [
+    "GRADIENT_CHARTS",
     "INTRINSICS",
     "MODE_WIDTH",
     "POSE_MODE_NAMES",
@@ -57,6 +62,8 @@ __all__ = [
     "centroid_points",
     "direction_features",
     "geometry_std",
+    "isotropic_features",
+    "isotropic_jacobian",
     "local_log_gradient",
     "pose_modes",
     "rig_shifts",
@@ -539,6 +546,12 @@ def _ray_moved(d_cam: Array, K: Array, dk: Array) -> Array:
 
 
 # ------------------------------------------------------------------ df/dw
+#: The charts :func:`local_log_gradient` regresses ``log f`` on: ``"projected"``
+#: (:func:`direction_features`, any material) and ``"isotropic"``
+#: (:func:`isotropic_features`, a material whose BRDF depends on ``phi_o - phi_i`` only).
+GRADIENT_CHARTS: tuple[str, ...] = ("projected", "isotropic")
+
+
 def direction_features(wi: Array, wo: Array) -> Array:
     """(N, 4) ``(wi_x, wi_y, wo_x, wo_y)``: the projected-disk chart of the direction
     pair that :func:`local_log_gradient` regresses on (a mode's feature change is its
@@ -546,6 +559,77 @@ def direction_features(wi: Array, wo: Array) -> Array:
     wi = np.asarray(wi, float)
     wo = np.asarray(wo, float)
     return np.concatenate([wi[..., :2], wo[..., :2]], axis=-1)
+
+
+def isotropic_features(wi: Array, wo: Array) -> Array:
+    """(N, 3) rotation-invariant features of a direction pair (an isotropic BRDF's chart).
+
+    With ``a = (wi_x, wi_y) = sin(theta_i) (cos phi_i, sin phi_i)``, ``b`` the same of
+    ``wo`` and ``r = sqrt(|a|^2 + |b|^2)``::
+
+        Y = (|a|^2 - |b|^2, 2 a . b, 2 a x b) / r
+          = (sin^2 theta_i - sin^2 theta_o,
+             2 sin theta_i sin theta_o cos(phi_o - phi_i),
+             2 sin theta_i sin theta_o sin(phi_o - phi_i)) / r
+
+    a function of ``(theta_i, theta_o, phi_o - phi_i)`` only, so two pairs that differ by
+    a rotation about the normal have the same features.  Why this chart and not
+    ``(theta_i, theta_o, phi_d)`` or the half-vector angles: those are singular where a
+    session measures (``phi_d`` at normal incidence, the half-vector azimuth at the
+    specular peak), this one only where both directions are the normal (the rig cannot
+    put light and camera there).  It is the Hopf map of ``(a, b)`` as one point of
+    ``C^2``, divided by ``r`` so that ``|Y| = r``: distances are those of the projected
+    chart along ``r`` and twice them across it, and the sign of ``a x b`` keeps the
+    mirror images apart (no bilateral symmetry is assumed).
+
+    Parameters
+    ----------
+    wi, wo
+        (N, 3) unit directions (sample frame).
+
+    Returns
+    -------
+    ndarray
+        (N, 3) features, dimensionless; NaN where both directions are the normal or an
+        input is NaN.
+    """
+    a = np.asarray(wi, float)[..., :2]
+    b = np.asarray(wo, float)[..., :2]
+    aa = np.sum(a * a, axis=-1)
+    bb = np.sum(b * b, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.sqrt(aa + bb)
+        r = np.where(r > 0, r, np.nan)
+    H = np.stack(
+        [aa - bb, 2 * np.sum(a * b, axis=-1), 2 * (a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])],
+        axis=-1,
+    )
+    return H / r[..., None]
+
+
+def isotropic_jacobian(wi: Array, wo: Array) -> Array:
+    """(N, 3, 4) ``dY / dX``: the derivative of :func:`isotropic_features` by
+    :func:`direction_features` (closed form; the chain rule that brings an isotropic
+    chart's gradient back to the projected chart the modes are in).
+
+    ``Y = H / r``: ``dY/dX = (dH/dX) / r - H X^T / r^3``; its null space is the rotation
+    about the normal, ``(-a_y, a_x, -b_y, b_x)``.
+    """
+    X = direction_features(wi, wo)
+    ax, ay, bx, by = np.moveaxis(X, -1, 0)
+    dH = 2.0 * np.stack(
+        [
+            np.stack([ax, ay, -bx, -by], axis=-1),
+            np.stack([bx, by, ax, ay], axis=-1),
+            np.stack([by, -bx, -ay, ax], axis=-1),
+        ],
+        axis=-2,
+    )  # (N, 3, 4)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.sqrt(np.sum(X * X, axis=-1))
+        r = np.where(r > 0, r, np.nan)
+    H = isotropic_features(wi, wo) * r[..., None]
+    return dH / r[..., None, None] - H[..., :, None] * X[..., None, :] / r[..., None, None] ** 3
 
 
 def local_log_gradient(
@@ -557,6 +641,7 @@ def local_log_gradient(
     k: int = 32,
     ridge: float = 1e-4,
     curvature_ridge: float = 1e-4,
+    isotropic: bool = False,
 ) -> Array:
     """The gradient of ``log f`` over :func:`direction_features`, from the samples alone.
 
@@ -568,6 +653,17 @@ def local_log_gradient(
     the pseudo-inverse, so directions the neighbourhood does not span get no slope
     rather than noise.  The curvature terms matter on a narrow lobe: a linear fit there
     gives the secant's slope, wrong at the neighbourhood's edges.
+
+    ``isotropic=True`` fits the same quadratic on :func:`isotropic_features` (three
+    features: the neighbours are the samples of nearby ``(theta_i, theta_o,
+    phi_o - phi_i)`` whatever their azimuth) and returns its gradient in the projected
+    chart through :func:`isotropic_jacobian`, hence exactly 0 along a rotation about the
+    normal.  Why: a session's poses sit at a few azimuths, and in the projected chart
+    the neighbours of a grazing pose's regions are other poses 10-25 deg away, so a
+    slope along a direction the pose's regions do not span is missed (world 1607's
+    theta_i 75 / theta_o 80 pose: 5 per unit against the truth's 55-66).  Only for a
+    material that is isotropic: an anisotropic one would have its azimuthal slope
+    averaged away.
 
     Parameters
     ----------
@@ -582,16 +678,18 @@ def local_log_gradient(
         Neighbours per fit (at least 6).
     ridge, curvature_ridge
         Relative ridge weights (dimensionless).
+    isotropic
+        Regress on the isotropic chart (the plan's ``[reductions] isotropic``).
 
     Returns
     -------
     ndarray
-        (N, C, 4) ``d log f / dX`` (per unit of the features); NaN where fewer than 6
-        neighbours exist.
+        (N, C, 4) ``d log f / dX`` (per unit of the projected features, whichever chart
+        was fitted); NaN where fewer than 6 neighbours exist.
     """
     from scipy.spatial import cKDTree
 
-    X = direction_features(wi, wo)
+    X = isotropic_features(wi, wo) if isotropic else direction_features(wi, wo)
     f = np.asarray(brdf, float)
     if f.ndim == 1:
         f = f[:, None]
@@ -599,11 +697,11 @@ def local_log_gradient(
     ok = np.isfinite(X).all(axis=1) & np.isfinite(f).all(axis=1) & (f > 0).all(axis=1)
     if usable is not None:
         ok &= np.asarray(usable, bool)
-    out = np.full((N, C, 4), np.nan)
+    out = np.full((N, C, X.shape[1]), np.nan)
     pool = np.flatnonzero(ok)
     kk = min(int(k), len(pool))
     if kk < 6:
-        return out
+        return np.full((N, C, 4), np.nan)
     tree = cKDTree(X[pool])
     logf = np.log(np.where(ok[:, None], f, np.nan))
     q_all = np.flatnonzero(np.isfinite(X).all(axis=1))
@@ -613,6 +711,9 @@ def local_log_gradient(
     for b0 in range(0, len(q_all), _GRADIENT_BLOCK):
         q = q_all[b0 : b0 + _GRADIENT_BLOCK]
         out[q] = _local_fits(X, logf, tree, pool, q, kk, ridge, curvature_ridge)
+    if isotropic:
+        # d log f / dX = (d log f / dY) dY/dX: the modes are in the projected chart
+        return np.einsum("ncy,nyx->ncx", out, isotropic_jacobian(wi, wo))
     return out
 
 
@@ -630,28 +731,30 @@ def _local_fits(
     ridge: float,
     curvature_ridge: float,
 ) -> Array:
-    """(Q, C, 4) gradients of the queries ``q`` (see :func:`local_log_gradient`)."""
+    """(Q, C, d) gradients of the queries ``q`` over the d features of ``X`` (see
+    :func:`local_log_gradient`)."""
+    d = X.shape[1]
     dist, idx = tree.query(X[q], k=kk)
     nb = pool[idx]  # (Q, k)
     h = dist[:, -1] * 1.0001 + 1e-12
     w = (1.0 - (dist / h[:, None]) ** 3) ** 3  # tricube
-    D = (X[nb] - X[q][:, None, :]) / h[:, None, None]  # (Q, k, 4), scaled to the radius
-    quad = [D[..., a] * D[..., b] for a in range(4) for b in range(a, 4)]
+    D = (X[nb] - X[q][:, None, :]) / h[:, None, None]  # (Q, k, d), scaled to the radius
+    quad = [D[..., a] * D[..., b] for a in range(d) for b in range(a, d)]
     A = np.stack([np.ones(D.shape[:2]), *np.moveaxis(D, -1, 0), *quad], axis=-1)
     AtW = A.transpose(0, 2, 1) * w[:, None, :]
-    normal = AtW @ A  # (Q, 15, 15)
+    normal = AtW @ A  # (Q, 1 + d + d(d+1)/2, ...)
     reg = np.zeros(A.shape[-1])
-    reg[1:5] = ridge
-    reg[5:] = curvature_ridge
+    reg[1 : 1 + d] = ridge
+    reg[1 + d :] = curvature_ridge
     normal += w.sum(axis=1)[:, None, None] * np.diag(reg)
-    rhs = AtW @ logf[nb]  # (Q, 15, C)
+    rhs = AtW @ logf[nb]  # (Q, 1 + d + d(d+1)/2, C)
     if ridge > 0 and curvature_ridge > 0:  # positive definite: a direct solve (5x faster)
         beta = np.linalg.solve(normal, rhs)
     else:
         # the pseudo-inverse: a neighbourhood that spans fewer directions than the
         # features gets the minimum-norm slope there, not an error
         beta = np.linalg.pinv(normal) @ rhs
-    return beta[:, 1:5, :].transpose(0, 2, 1) / h[:, None, None]
+    return beta[:, 1 : 1 + d, :].transpose(0, 2, 1) / h[:, None, None]
 
 
 def geometry_std(brdf: Array, gradient: Array, modes: Array) -> Array:

@@ -98,6 +98,7 @@ __all__ = [
     "SUMMARY_FILE",
     "TEXELS_FILE",
     "IncrementalReduction",
+    "budget_gradient_chart",
     "ReductionResult",
     "ReductionSetup",
     "default_threads",
@@ -617,7 +618,8 @@ class _PoseRun:
         self._radiometric_terms(samples_m, [u for _, u in light_at])
         brdf = np.concatenate([x[0] for x in parts])
         flags = np.concatenate([m.flags for m in samples_m])
-        budget, geo = self._budget(samples_m, parts, brdf, flags)
+        chart = budget_gradient_chart(setup.gradient_chart, manifest)
+        budget, geo = self._budget(samples_m, parts, brdf, flags, chart)
         with np.errstate(invalid="ignore"):
             rel_var = I_var / I**2
             ref_rel = setup.reflectance_std / setup.reflectance
@@ -649,6 +651,9 @@ class _PoseRun:
             "reference_reflectance": setup.reflectance.tolist(),
             "roi_fraction": setup.roi_fraction,
             "grid": setup.grid if setup.grid_y is None else list(setup.grid_xy),
+            # the chart budget["geometry"]'s BRDF gradient was fitted on: a reader that
+            # propagates the modes itself (the accuracy harness) must use the same
+            "budget_gradient_chart": chart,
         }
         # brdf_std: the root sum of squares of the per-sample terms (noise alone before
         # issue 16); the shared terms stay apart (calibration_rel_std, budget attrs)
@@ -944,12 +949,14 @@ class _PoseRun:
         parts: list[tuple[NDArray, ...]],
         brdf: NDArray[np.float64],
         flags: NDArray[np.uint32],
+        chart: str = "projected",
     ) -> tuple[dict[str, NDArray[np.float64]], dict[str, Any]]:
         """The per-sample budget terms (N, C) in 1/sr, and the geometric modes' fields.
 
         ``noise`` is today's std (photon, read, dark subtraction); ``geometry`` the
         marginal std of the modes (:mod:`gonio.capture.budget`) through the local
-        gradient of the measured samples; the radiometric terms come from each pose's
+        gradient of the measured samples, fitted on ``chart``
+        (:func:`budget_gradient_chart`); the radiometric terms come from each pose's
         ``radiometric_rel_std`` (relative, (n, C): times f)."""
         kin_config = getattr(self.kin, "config", None)
         modes = session_modes(kin_config, nominal_joint_std_deg=self.setup.nominal_joint_std_deg)
@@ -991,6 +998,7 @@ class _PoseRun:
             if self.texels is None
             else texel_levelled(brdf, [len(m.flags) for m in samples_m], usable, self.texels),
             usable,
+            isotropic=chart == "isotropic",
         )
         budget: dict[str, NDArray[np.float64]] = {
             "noise": np.concatenate([x[1] for x in parts]),
@@ -1015,7 +1023,7 @@ class _PoseRun:
             "pose": np.asarray(pose_idx, np.int32),
             "geometry_source": np.asarray(sources, str),
         }
-        return budget, {"fields": fields, "modes": modes, "camera_modes": cmodes}
+        return budget, {"fields": fields, "modes": modes, "camera_modes": cmodes, "chart": chart}
 
     @staticmethod
     def _budget_summary(
@@ -1033,6 +1041,7 @@ class _PoseRun:
             "session_mode_source": modes.source,
             "camera_modes": len(geo["camera_modes"]),
             "geometry_source": dict(sorted(src.items())),
+            "gradient_chart": geo["chart"],
             "warnings": list(modes.warnings),
         }
 
@@ -1226,6 +1235,30 @@ def journal_stamps(records: list[dict[str, Any]]) -> dict[int, tuple[int, float]
 
 def _write_json(path: Path, doc: Mapping[str, Any]) -> None:
     path.write_text(json.dumps(doc, indent=2, default=str) + "\n", encoding="utf-8")
+
+
+def budget_gradient_chart(setting: str, manifest: Mapping[str, Any] | None) -> str:
+    """The chart the budget's BRDF gradient is fitted on (``"isotropic"`` or
+    ``"projected"``, :func:`gonio.capture.budget.local_log_gradient`).
+
+    Parameters
+    ----------
+    setting
+        ``[reduction] gradient_chart``: ``"auto"``, ``"isotropic"`` or ``"projected"``.
+    manifest
+        The session's manifest (its ``plan``): with ``"auto"``, a plan whose
+        ``[reductions] isotropic`` is true declares the material isotropic, and the
+        gradient ignores the rotation about the normal; otherwise (or no plan) the
+        projected chart, which assumes nothing.
+
+    Returns
+    -------
+    str
+    """
+    if setting != "auto":
+        return setting
+    plan = (manifest or {}).get("plan") or {}
+    return "isotropic" if bool((plan.get("reductions") or {}).get("isotropic")) else "projected"
 
 
 def _kinematics(manifest: Mapping[str, Any]) -> Any | None:

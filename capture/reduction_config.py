@@ -263,6 +263,11 @@ class ReductionSection(_Strict):
     #: Correct each region's mean over its pixels to its reported direction
     #: (:mod:`gonio.capture.aperture`; false: the region's mean as measured).
     aperture_correction: bool = True
+    #: The chart of the budget's model-free BRDF gradient
+    #: (:func:`gonio.capture.budget.local_log_gradient`): "auto" follows the plan's
+    #: ``[reductions] isotropic`` (a material declared isotropic: "isotropic"), or
+    #: "isotropic" / "projected" whatever the plan says.
+    gradient_chart: Literal["auto", "isotropic", "projected"] = "auto"
 
 
 class ReductionConfig(_Strict):
@@ -367,6 +372,12 @@ class ReductionSetup:
     nominal_joint_std_deg
         Assumed standard deviation of every joint's zero offset, deg, for the budget's
         geometry when the rig carries no calibration covariance (an assumption).
+    gradient_chart
+        ``[reduction] gradient_chart``: the chart the budget's BRDF gradient is fitted on,
+        ``"auto"`` (the plan's ``[reductions] isotropic`` decides: ``"isotropic"`` when
+        set, else ``"projected"``), ``"isotropic"`` or ``"projected"``
+        (:func:`gonio.capture.budget.local_log_gradient`); what was used is the samples'
+        ``budget_gradient_chart`` attribute.
     aperture_correction
         Subtract each region's aperture bias ``1/2 tr(H S)`` (the curvature of the BRDF
         over the sample, measured from the pose's neighbouring regions, times the
@@ -416,6 +427,7 @@ class ReductionSetup:
     max_region_spread_deg: float | None = None
     nominal_joint_std_deg: float = 0.1
     aperture_correction: bool = True
+    gradient_chart: str = "auto"
     camera_calibration: dict[str, Any] | None = None
     camera_file: str | None = None
     light_profile: str | float = "none"
@@ -695,6 +707,7 @@ def setup_from_config(
         dsnu_e=config.noise.dsnu_e if config.noise is not None else 5.0,
         nominal_joint_std_deg=red.nominal_joint_std_deg,
         aperture_correction=red.aperture_correction,
+        gradient_chart=red.gradient_chart,
     )
     return _camera_setup(setup, cam, cam_file)
 

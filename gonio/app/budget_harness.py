@@ -296,9 +296,10 @@ def error_model(samples: Any, f_ref: np.ndarray) -> ErrorModel:
     The shared columns are the ones :func:`gonio.fitting.fit` treats as correlated, so
     the harness tests the covariance the fit propagates: every geometric mode
     (``geometry_modes`` through the budget's own model-free gradient,
-    :func:`gonio.capture.budget.local_log_gradient`, as the reduction computed
-    ``budget["geometry"]``; a ``"session"`` mode shared by all samples, a ``"pose"``
-    mode by its pose's), the correlated radiometric terms
+    :func:`gonio.capture.budget.local_log_gradient` on the chart the reduction used,
+    ``attrs["budget_gradient_chart"]``, as it computed ``budget["geometry"]``; a
+    ``"session"`` mode shared by all samples, a ``"pose"`` mode by its pose's), the
+    correlated radiometric terms
     (:data:`gonio.fitting.geometric_uncertainty.CORRELATED_TERMS`: one error of one
     sign for the session) and the shared calibration scale per channel
     (``calibration_rel_std`` times ``f_ref``).  The rest of ``brdf_std`` (noise, flat,
@@ -327,7 +328,12 @@ def error_model(samples: Any, f_ref: np.ndarray) -> ErrorModel:
     pose = getattr(samples, "pose", None)
     if modes is not None and pose is not None and "geometry" in budget and modes.shape[1]:
         usable = np.asarray(samples.flags) == 0
-        grad = local_log_gradient(samples.wi, samples.wo, samples.brdf, usable)
+        # the chart the reduction fitted the gradient on (files without the attribute
+        # predate the isotropic chart: projected)
+        chart = str(samples.attrs.get("budget_gradient_chart", "projected"))
+        grad = local_log_gradient(
+            samples.wi, samples.wo, samples.brdf, usable, isotropic=chart == "isotropic"
+        )
         dX = np.asarray(modes, dtype=np.float64)[..., [0, 1, 3, 4]]
         G = np.abs(np.asarray(samples.brdf))[:, :, None] * np.einsum(
             "ncf,nmf->ncm", np.nan_to_num(grad), dX

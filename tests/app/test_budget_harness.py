@@ -179,9 +179,13 @@ def test_what_the_whitened_and_the_raw_z_rms_each_catch():
     assert np.mean(above["shared"]) >= 0.5
 
 
-def test_the_error_models_variance_is_the_full_budget():
+@pytest.mark.parametrize("chart", ["projected", "isotropic", None])
+def test_the_error_models_variance_is_the_full_budget(chart):
     """The modelled covariance's diagonal is the full budget's sigma^2 (brdf_std and the
-    calibration scale): the columns split the budget, they add nothing."""
+    calibration scale): the columns split the budget, they add nothing.  The geometry
+    term is the reduction's, fitted on the chart the samples name
+    (``budget_gradient_chart``; absent: a file from before the isotropic chart,
+    projected): the harness must propagate the modes through the same gradient."""
     from gonio.app.budget_harness import error_model
 
     ggx = default_materials(None)[0]
@@ -194,8 +198,11 @@ def test_the_error_models_variance_is_the_full_budget():
     pose = np.repeat(np.arange(6), n // 6).astype(np.int32)
     from gonio.capture.budget import geometry_std, local_log_gradient
 
-    grad = local_log_gradient(s.wi, s.wo, s.brdf)
+    grad = local_log_gradient(s.wi, s.wo, s.brdf, isotropic=chart == "isotropic")
     geo = geometry_std(s.brdf, grad, modes)
+    other = local_log_gradient(s.wi, s.wo, s.brdf, isotropic=chart != "isotropic")
+    # the charts' terms differ, so a harness reading the wrong one fails below
+    assert np.median(np.abs(geometry_std(s.brdf, other, modes) / geo - 1)) > 0.05
     stray = 0.002 * s.brdf
     std = np.sqrt(s.budget["noise"] ** 2 + geo**2 + stray**2)
     s = dataclasses.replace(
@@ -207,7 +214,8 @@ def test_the_error_models_variance_is_the_full_budget():
         geometry_mode_names=np.array(["rig 1", "board pose 1"]),
         pose=pose,
         flags=np.zeros(n, np.uint32),
-        attrs={"calibration_rel_std": [0.01, 0.02, 0.03]},
+        attrs={"calibration_rel_std": [0.01, 0.02, 0.03]}
+        | ({} if chart is None else {"budget_gradient_chart": chart}),
     )
     f = ggx.truth().eval(s.wi, s.wo)
     model = error_model(s, f)

@@ -77,6 +77,33 @@ def test_defaults_of_a_minimal_file(tmp_path):
         60.0,
         10,
     )
+    assert setup.gradient_chart == "auto"
+
+
+@pytest.mark.parametrize(
+    "setting, plan, chart",
+    [
+        ("auto", {"reductions": {"isotropic": True}}, "isotropic"),
+        ("auto", {"reductions": {"isotropic": False}}, "projected"),
+        ("auto", {}, "projected"),
+        ("auto", None, "projected"),
+        ("projected", {"reductions": {"isotropic": True}}, "projected"),
+        ("isotropic", {"reductions": {"isotropic": False}}, "isotropic"),
+    ],
+)
+def test_the_budget_gradient_chart_follows_the_plans_isotropy_unless_set(
+    tmp_path, setting, plan, chart
+):
+    """``[reduction] gradient_chart``: "auto" takes the plan's ``[reductions] isotropic``
+    (a material declared isotropic); an explicit chart wins over the plan."""
+    from gonio.capture.reduce import budget_gradient_chart
+
+    p = tmp_path / "reduction.toml"
+    p.write_text(MINIMAL + f'[reduction]\ngradient_chart = "{setting}"\n')
+    setup = setup_from_config(load_reduction_config(p), p)
+    assert setup.gradient_chart == setting
+    manifest = {} if plan is None else {"plan": plan}
+    assert budget_gradient_chart(setup.gradient_chart, manifest) == chart
 
 
 @pytest.mark.parametrize(
@@ -113,6 +140,7 @@ def test_a_wrong_camera_field_is_named(tmp_path, change, field, what):
         ("[reduction]\ngrid = 0", "reduction.grid"),
         ("[reduction]\ngrid = 6\nroi_fraction = 1.5", "reduction.roi_fraction"),
         ('[reduction]\ngeometry = "fiducials"', "reduction.geometry"),
+        ('[reduction]\ngradient_chart = "polar"', "reduction.gradient_chart"),
         ("[reduction]\nmax_board_obliquity_deg = 95.0", "reduction.max_board_obliquity_deg"),
         ("[reduction]\nmin_board_corners = 3", "reduction.min_board_corners"),
         ("[reduction]\ngird = 6", "reduction.gird"),
