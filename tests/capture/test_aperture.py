@@ -104,3 +104,39 @@ def test_too_few_neighbours_leave_the_region_as_measured():
     f = _lobe(centroid[:, 0], centroid[:, 1])
     bias, bias_std = aperture_bias(centroid, cov, f, 1e-3 * f, np.ones(4, bool))
     assert not bias.any() and not bias_std.any()
+
+
+def _glint(x, y, x0=-6e-3, y0=-4e-3, w=16e-3):
+    """A heavy-tailed glint (a GGX-like ``1 / (1 + r^2/w^2)^2``) on a diffuse floor,
+    wider than a region (an alpha = 0.2 lobe at grazing): not log-quadratic over a
+    neighbourhood of regions."""
+    g = 1.0 / (1.0 + ((x - x0) ** 2 + (y - y0) ** 2) / (w * w)) ** 2
+    return np.stack([0.3 + 6.0 * g, 0.2 + 6.0 * g, 0.1 + 6.0 * g], axis=-1)
+
+
+def test_a_neighbourhood_across_a_gap_is_not_extrapolated():
+    """The two rows of regions through a glint saturate (flagged).  Seen obliquely (the
+    keystone and bow of a grazing view), a region beside them then has a neighbourhood
+    of two rows and a far region: a near-singular design whose quadratic extrapolates the
+    curvature across the gap (world 1607: -7.2 % estimated where the truth was -0.3 %;
+    here up to 31 % off with the former threshold of 1e10).  Such a region is left as
+    measured: no corrected value is further from the truth at its centroid than the
+    farthest of the measured means."""
+    label, x, y = _pixels()
+    x = x * (1 + 6.0 * y)
+    y = y + 3.0 * x * x
+    n = GRID * GRID
+    centroid, cov = region_moments(label, x, y, n)
+    f = _glint(x, y).reshape(-1, 3)
+    lab = label.reshape(-1)
+    mean = np.stack([np.bincount(lab, f[:, c], minlength=n) for c in range(3)], -1)
+    mean /= np.bincount(lab, minlength=n)[:, None]
+    truth = _glint(centroid[:, 0], centroid[:, 1])
+    rows = np.arange(n) // GRID
+    usable = ~((rows == 2) | (rows == 3))
+    bias, _ = aperture_bias(centroid, cov, mean, 1e-3 * mean, usable)
+    measured = np.abs(mean / truth - 1)[usable]
+    corrected = np.abs((mean - bias) / truth - 1)[usable]
+    assert corrected.max() <= measured.max(), (corrected.max(), measured.max())
+    assert bias[usable].any()  # well-conditioned neighbourhoods are still corrected
+    assert not bias[(rows == 1) & (np.arange(n) % GRID >= 1) & (np.arange(n) % GRID <= 2)].any()
