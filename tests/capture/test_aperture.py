@@ -35,15 +35,19 @@ def _lobe(x, y, x0=-3e-3, y0=2e-3, s=24e-3):
 
 @pytest.fixture(scope="module")
 def regions():
-    label, x, y = _pixels()
+    return _regions_of(_lobe, *_pixels())
+
+
+def _regions_of(fn, label, x, y):
+    """Centroids, covariances, exact region means of ``fn`` over the pixels, and ``fn`` at
+    the centroids."""
     n = GRID * GRID
     centroid, cov = region_moments(label, x, y, n)
-    f = _lobe(x, y).reshape(-1, 3)
+    f = fn(x, y).reshape(-1, 3)
     lab = label.reshape(-1)
     mean = np.stack([np.bincount(lab, f[:, c], minlength=n) for c in range(3)], -1)
     mean /= np.bincount(lab, minlength=n)[:, None]
-    at_centroid = _lobe(centroid[:, 0], centroid[:, 1])
-    return centroid, cov, mean, at_centroid
+    return centroid, cov, mean, fn(centroid[:, 0], centroid[:, 1])
 
 
 def test_region_moments_of_a_pixel_grid_are_the_uniform_grids(regions):
@@ -125,13 +129,8 @@ def test_a_neighbourhood_across_a_gap_is_not_extrapolated():
     label, x, y = _pixels()
     x = x * (1 + 6.0 * y)
     y = y + 3.0 * x * x
+    centroid, cov, mean, truth = _regions_of(_glint, label, x, y)
     n = GRID * GRID
-    centroid, cov = region_moments(label, x, y, n)
-    f = _glint(x, y).reshape(-1, 3)
-    lab = label.reshape(-1)
-    mean = np.stack([np.bincount(lab, f[:, c], minlength=n) for c in range(3)], -1)
-    mean /= np.bincount(lab, minlength=n)[:, None]
-    truth = _glint(centroid[:, 0], centroid[:, 1])
     rows = np.arange(n) // GRID
     usable = ~((rows == 2) | (rows == 3))
     bias, _ = aperture_bias(centroid, cov, mean, 1e-3 * mean, usable)
