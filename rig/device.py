@@ -39,7 +39,7 @@ from gonio.radiometry.frames import angle_between
 from gonio.rig import control_table as ct
 from gonio.rig.bus import BusTransport
 from gonio.rig.config import JOINT_NAMES, RigConfig
-from gonio.rig.kinematics import Kinematics, approach_of_move, side_after, take_up_pulses
+from gonio.rig.kinematics import Kinematics, approach_of_move, pre_move_side, side_after
 from gonio.rig.servo import Servo, ServoState
 from gonio.rig.transport import Transport
 
@@ -432,17 +432,16 @@ class Rig:
         tol = self.config.motion.position_tolerance_pulses
         need: list[tuple[ServoState, int]] = []
         for st in states.values():
-            cfg = self._by_id[st.dxl_id].config
-            if cfg.backlash_deg <= 0:
-                continue
-            d = goals[st.dxl_id] - st.position_pulses
-            side = self._approach[st.joint]
-            if abs(d) > take_up_pulses(cfg, tol):
-                continue
-            if side == 0:
-                need.append((st, 1))
-            elif abs(d) > tol and cfg.direction * (1 if d > 0 else -1) != side:
-                need.append((st, side))
+            first = int(
+                pre_move_side(
+                    self._by_id[st.dxl_id].config,
+                    goals[st.dxl_id] - st.position_pulses,
+                    self._approach[st.joint],
+                    tol,
+                )
+            )
+            if first:
+                need.append((st, first))
         if not need:
             return None
         current = {j: st.position for j, st in states.items()}

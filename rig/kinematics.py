@@ -100,26 +100,41 @@ def take_up_pulses(servo: ServoConfig, tol: int) -> int:
     return int(math.ceil(play - 1e-9)) + int(tol)
 
 
+def pre_move_side(
+    servo: ServoConfig, d_pulses: ArrayLike, side: int, tol: int
+) -> NDArray[np.float64]:
+    """The side (+1, -1 in joint angle) from which :class:`gonio.rig.device.Rig`
+    approaches the goal of a move of ``d_pulses`` (goal minus present) through a
+    pre-move, 0 where the move itself leaves a known side.
+
+    A joint with backlash needs one when its move is no longer than
+    :func:`take_up_pulses`: from an unknown side (``side`` 0) it comes from below (+1),
+    and a reversal of a known side that short would stop the gears inside their play
+    (the encoder moved, the joint did not, or only partly), so it comes from that side.
+    A move within the deadband (``|d| <= tol``) does not move a known side's servo.
+    """
+    d = np.asarray(d_pulses, dtype=np.float64)
+    if servo.backlash_deg <= 0:
+        return np.zeros_like(d)
+    short = np.abs(d) <= take_up_pulses(servo, tol)
+    if side == 0:
+        return np.where(short, 1.0, 0.0)
+    reverses = (np.abs(d) > tol) & (servo.direction * np.sign(d) != side)
+    return np.where(short & reverses, float(side), 0.0)
+
+
 def side_after(servo: ServoConfig, d_pulses: ArrayLike, side: int, tol: int) -> NDArray[np.float64]:
     """Approach sign(s) a move of ``d_pulses`` (goal minus present) leaves, from ``side``
     (+1, -1 in joint angle; 0 unknown).
 
     A move within the deadband (``|d| <= tol``) does not move the servo: the side stays.
-    A reversal shorter than :func:`take_up_pulses` would leave the gears inside their
-    play, on no side the as-built model knows (the encoder moved, the joint did not, or
-    only partly): :class:`gonio.rig.device.Rig` approaches such a goal from its present
-    side instead, through a pre-move past it, so the side stays too.  A joint with
-    backlash whose side is unknown and whose move is that short is approached from below
-    (+1) the same way.  Any other move takes the sign of its change in joint angle.
+    A move that needs a pre-move (:func:`pre_move_side`) ends on the pre-move's side.
+    Any other move takes the sign of its change in joint angle.
     """
     d = np.asarray(d_pulses, dtype=np.float64)
-    new = servo.direction * np.sign(d)
-    short = np.abs(d) <= take_up_pulses(servo, tol)
-    if side == 0:
-        if servo.backlash_deg > 0:
-            return np.where(short, 1.0, new)
-        return np.where(np.abs(d) > tol, new, 0.0)
-    return np.where(short & (new != side), float(side), np.where(np.abs(d) > tol, new, side))
+    plain = np.where(np.abs(d) > tol, servo.direction * np.sign(d), float(side))
+    pre = pre_move_side(servo, d, side, tol)
+    return np.where(pre != 0, pre, plain)
 
 
 def approach_of_move(
