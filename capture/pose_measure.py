@@ -671,7 +671,9 @@ def _pose_sums_fused(
         noise_gain=np.array([m.gain for m in models]),
         noise_read2=np.array([m.read_noise**2 for m in models]),
         noise_quant=1.0 / 12.0 if setup.noise.quantisation else 0.0,
-        dark_var=dv[box] if dv.ndim == 2 else np.zeros((0, 0)),
+        # contiguous: a layout is part of numba's argument type (a slice is "A"), and
+        # each layout would be a compilation of its own (~7 s cold)
+        dark_var=np.ascontiguousarray(dv[box]) if dv.ndim == 2 else np.zeros((0, 0)),
         dark_var0=float(dv) if dv.ndim != 2 else 0.0,
         mask=np.ascontiguousarray(mask[box]) if mask is not None else np.zeros((0, 0), bool),
     )
@@ -684,7 +686,7 @@ def _pose_sums_fused(
     )
     view = pk.View(
         cam=np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]),
-        rot=np.asarray(cam.rotation, float),
+        rot=np.ascontiguousarray(cam.rotation, float),
         cpos=np.asarray(cam.position, float),
         r0=int(r0),
         c0=int(c0),

@@ -60,6 +60,7 @@ from typing import Any
 
 import numpy as np
 
+from gonio.brdf.base import readonly
 from gonio.errors import ConfigError
 from gonio.simulator.geometry import (
     _NEWTON_MAX,
@@ -807,8 +808,10 @@ def _hits(
     region = np.empty(n, np.uint8)
     white = np.empty(n, bool)
     _kernel(rk, "label_points", n)(
-        np.ascontiguousarray(xn, dtype=np.float64).reshape(-1),
-        np.ascontiguousarray(yn, dtype=np.float64).reshape(-1),
+        # read-only views: the writeable flag is part of numba's argument type (see
+        # gonio.brdf.base.readonly), and the rays arrive either way
+        readonly(np.ascontiguousarray(xn, dtype=np.float64).reshape(-1)),
+        readonly(np.ascontiguousarray(yn, dtype=np.float64).reshape(-1)),
         np.ascontiguousarray(R, dtype=np.float64),
         np.ascontiguousarray(C, dtype=np.float64),
         *surface.kernel_args(),

@@ -31,7 +31,21 @@ Params = Mapping[str, ArrayLike]
 
 _CHUNK = 16384  # rows per chunk for large batches: keeps the temporaries in L2 cache
 
-__all__ = ["Array", "BoundModel", "Geometry", "Lobe", "Model", "ParamSpec"]
+__all__ = ["Array", "BoundModel", "Geometry", "Lobe", "Model", "ParamSpec", "readonly"]
+
+
+def readonly(a: ArrayLike) -> NDArray[Any]:
+    """A read-only view of ``a`` (no copy): how every numba kernel input is passed.
+
+    Why: numba compiles one machine code per argument type, and an array's writeable
+    flag is part of its type.  Inputs arrive writeable or not (``np.broadcast_to``, a
+    caller's frozen arrays), and each mix was a compilation of its own: 15 of the
+    microfacet kernels and 2 of ``rgl_eval`` (~30 s each, cold) in one run of the test
+    suite.
+    """
+    v = np.asarray(a).view()
+    v.flags.writeable = False
+    return v
 
 
 @dataclass(frozen=True)

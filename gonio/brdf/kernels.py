@@ -13,8 +13,10 @@ are involved and to a few ulp where libm (``exp``, ``erfc``, ``pow``, complex ``
 Compilation is deliberately IEEE-strict: ``fastmath=False`` (no reassociation, NaN
 propagates, reciprocity holds to rounding as in numpy) and ``error_model="numpy"`` (x / 0
 gives inf or NaN like numpy instead of raising).  ``cache=True`` stores the machine code
-next to this module, so the compile cost (~17 s for all kernels, cold) is paid once per
-installation.  Importing numba and loading the cached code still costs ~0.5 s per process,
+next to this module, so the compile cost is paid once per installation (cold, on the
+2-core machine of 2026-12-03: the first RGL evaluation 25 s, the microfacet kernels
+2-5 s each); every input is passed as a read-only view (:func:`gonio.brdf.base.readonly`)
+so that one compilation serves all callers.  Importing numba and loading the cached code still costs ~0.5 s per process,
 so the callers first import this module for a batch of 10^5 evaluations and from then on
 use it from :data:`MIN_PAIRS`; CLI plots never import numba.  ``GONIO_NUMBA=0`` keeps
 everything on numpy.  Threads: numba's default (all cores), overridden by
@@ -32,7 +34,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from gonio.brdf.base import Array
+from gonio.brdf.base import Array, readonly
 from gonio.brdf.rgl import ATAN_C3, ATAN_C5, ATAN_C7, ATAN_NODES
 
 __all__ = [
@@ -43,6 +45,7 @@ __all__ = [
     "ggx_hot_serial",
     "microfacet_eval",
     "microfacet_eval_serial",
+    "readonly",
     "rgl_eval",
 ]
 

@@ -173,18 +173,20 @@ def _fused(lobe: _Microfacet, wi: Array, wo: Array, p: dict[str, Array]) -> Arra
     if lobe.kind == "ggx" and kind == "none" and not sizes:
         out = np.empty(lead)
         hot = kernels.ggx_hot if n >= kernels.PARALLEL_PAIRS else kernels.ggx_hot_serial
-        hot(wi2, wo2, float(p["ks"]), float(p["alpha"]), out.reshape(n))
+        ro = kernels.readonly
+        hot(ro(wi2), ro(wo2), float(p["ks"]), float(p["alpha"]), out.reshape(n))
         return out
 
     def row(name: str) -> Array:
         v = p.get(name, np.zeros(()))
-        return np.ascontiguousarray(np.broadcast_to(v, (chans,)), dtype=np.float64)
+        row = np.ascontiguousarray(np.broadcast_to(v, (chans,)), dtype=np.float64)
+        return kernels.readonly(row)
 
     out = np.empty((n, chans))
     parallel = n * chans >= kernels.PARALLEL_PAIRS
     (kernels.microfacet_eval if parallel else kernels.microfacet_eval_serial)(
-        wi2,
-        wo2,
+        kernels.readonly(wi2),
+        kernels.readonly(wo2),
         row("ks"),
         row("alpha"),
         row("f0"),

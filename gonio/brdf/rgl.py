@@ -378,8 +378,8 @@ class RGLBRDF:
         out = np.empty((n, self._n_ch))
         (h, w), (ry, rx) = self._vndf_shape, self._spec_grid
         kernels.rgl_eval(
-            np.ascontiguousarray(wi),
-            np.ascontiguousarray(wo),
+            kernels.readonly(np.ascontiguousarray(wi)),
+            kernels.readonly(np.ascontiguousarray(wo)),
             self.phi_i,
             self.theta_i,
             *self._kernel_tables,

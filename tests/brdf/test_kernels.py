@@ -372,3 +372,25 @@ def test_rgl_kernel_matches_numpy(monkeypatch, rgl_calls, rgl_file, tmp_path, ma
     # the same IEEE operations in the same order (the angles included: both paths take
     # them from gonio.brdf.rgl's arctangent), so the two agree bit for bit
     np.testing.assert_array_equal(fast, ref)
+
+
+def test_read_only_inputs_share_one_compilation():
+    """Writeable and read-only inputs (a frozen caller's directions, broadcast per-channel
+    parameters) reach the kernels as one argument type: the writeable flag is part of
+    numba's type, and each mix was a compilation of its own (~30 s for ``rgl_eval``)."""
+    m = get_model("ggx", fresnel="schlick")
+    rng = np.random.default_rng(5)
+    wi, wo = _hemisphere(rng, 6000)[:, None, :], _hemisphere(rng, 6000)[:, None, :]
+    frozen_wi, frozen_wo = wi.copy(), wo.copy()
+    frozen_wi.flags.writeable = frozen_wo.flags.writeable = False
+    channels = {"ks": [0.9, 0.5, 1.0], "alpha": [0.2, 0.3, 0.4], "f0": [0.04, 0.5, 0.9]}
+    runs = [
+        (wi, wo, m.bind(channels)),
+        (frozen_wi, frozen_wo, m.bind(channels)),
+        (wi, frozen_wo, m.bind({"ks": 0.9, "alpha": 0.2, "f0": 0.04})),
+    ]
+    counts = []
+    for a, b, bound in runs:
+        bound.eval(a, b)
+        counts.append(len(kernels.microfacet_eval_serial.signatures))
+    assert counts[1:] == counts[:1] * 2
