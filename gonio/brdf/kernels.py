@@ -16,9 +16,10 @@ gives inf or NaN like numpy instead of raising).  ``cache=True`` stores the mach
 next to this module, so the compile cost is paid once per installation (cold, on the
 2-core machine of 2026-12-03: the first RGL evaluation 25 s, the microfacet kernels
 2-5 s each); every input is passed as a read-only view (:func:`gonio.brdf.base.readonly`)
-so that one compilation serves all callers.  Importing numba and loading the cached code still costs ~0.5 s per process,
-so the callers first import this module for a batch of 10^5 evaluations and from then on
-use it from :data:`MIN_PAIRS`; CLI plots never import numba.  ``GONIO_NUMBA=0`` keeps
+so that one compilation serves all callers.  Importing numba and loading the cached code
+still costs ~0.5 s per process, so the callers first import this module for a batch of
+10^5 evaluations and from then on use it from :data:`MIN_PAIRS`; CLI plots never import
+numba.  ``GONIO_NUMBA=0`` keeps
 everything on numpy.  Threads: numba's default (all cores), overridden by
 ``NUMBA_NUM_THREADS``; batches below :data:`PARALLEL_PAIRS` run on the calling thread.
 
