@@ -19,9 +19,9 @@ next to this module, so the compile cost is paid once per installation (cold, on
 so that one compilation serves all callers.  Importing numba and loading the cached code
 still costs ~0.5 s per process, so the callers first import this module for a batch of
 10^5 evaluations and from then on use it from :data:`MIN_PAIRS`; CLI plots never import
-numba.  ``GONIO_NUMBA=0`` keeps
-everything on numpy.  Threads: numba's default (all cores), overridden by
-``NUMBA_NUM_THREADS``; batches below :data:`PARALLEL_PAIRS` run on the calling thread.
+numba.  ``GONIO_NUMBA=0`` keeps everything on numpy.  Threads: numba's default (all
+cores), overridden by ``NUMBA_NUM_THREADS``; batches below :data:`PARALLEL_PAIRS` run on
+the calling thread.
 
 The numpy path stays the reference and handles everything the kernels do not (gradients,
 parameter arrays of other shapes).

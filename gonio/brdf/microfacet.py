@@ -179,8 +179,8 @@ def _fused(lobe: _Microfacet, wi: Array, wo: Array, p: dict[str, Array]) -> Arra
 
     def row(name: str) -> Array:
         v = p.get(name, np.zeros(()))
-        row = np.ascontiguousarray(np.broadcast_to(v, (chans,)), dtype=np.float64)
-        return kernels.readonly(row)
+        r = np.ascontiguousarray(np.broadcast_to(v, (chans,)), dtype=np.float64)
+        return kernels.readonly(r)
 
     out = np.empty((n, chans))
     parallel = n * chans >= kernels.PARALLEL_PAIRS
