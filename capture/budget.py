@@ -47,7 +47,6 @@ from numpy.typing import NDArray
 from gonio.dataset import BUDGET_TERMS, SHARED_BUDGET_TERMS
 
 __all__ = [
-    "GRADIENT_CHARTS",
     "INTRINSICS",
     "MODE_WIDTH",
     "POSE_MODE_NAMES",
@@ -546,12 +545,6 @@ def _ray_moved(d_cam: Array, K: Array, dk: Array) -> Array:
 
 
 # ------------------------------------------------------------------ df/dw
-#: The charts :func:`local_log_gradient` regresses ``log f`` on: ``"projected"``
-#: (:func:`direction_features`, any material) and ``"isotropic"``
-#: (:func:`isotropic_features`, a material whose BRDF depends on ``phi_o - phi_i`` only).
-GRADIENT_CHARTS: tuple[str, ...] = ("projected", "isotropic")
-
-
 def direction_features(wi: Array, wo: Array) -> Array:
     """(N, 4) ``(wi_x, wi_y, wo_x, wo_y)``: the projected-disk chart of the direction
     pair that :func:`local_log_gradient` regresses on (a mode's feature change is its
