@@ -21,7 +21,7 @@ from typing import Any
 import tomli_w
 
 from gonio.cli import run
-from gonio.rig.config import virtual_rig_document
+from gonio.rig.config import default_rig_config, rig_config_from_dict, virtual_rig_document
 
 #: The uniform grey-brown diffuse sample most tests capture.
 LAMBERT = {"model": "lambert", "params": {"albedo": [0.6, 0.5, 0.4]}}
@@ -154,3 +154,16 @@ def capture(d: Path, out: str = "S", *options: str) -> Path:
     args = ("capture", "run", str(d / "plan.toml"), "--rig", str(d / "rig.toml"))
     assert run(*args, "--camera", "simulated", "--out", str(session), *options, "--quiet") == 0
     return session
+
+
+def fast_rig_config(backlash_deg: float = 0.0):
+    """The default rig with instant servo moves (no velocity or acceleration profile), a
+    1 ms poll and every servo's backlash set to ``backlash_deg``: for tests that drive
+    the real controller over the virtual bus many times."""
+    d = default_rig_config().model_dump()
+    for s in d["servos"]:
+        s["velocity_deg_s"] = 0.0
+        s["acceleration_deg_s2"] = 0.0
+        s["backlash_deg"] = backlash_deg
+    d["motion"]["poll_interval_s"] = 0.001
+    return rig_config_from_dict(d)

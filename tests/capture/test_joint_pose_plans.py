@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from sim_sessions import fast_rig_config
 
 from gonio.capture.engine import SessionDevices
 from gonio.capture.journal import read_journal
@@ -50,16 +51,6 @@ def plan_doc(poses=POSES, **extra):
     }
     doc.update(extra)
     return doc
-
-
-def fast_config(backlash_deg: float = 0.0):
-    d = default_rig_config().model_dump()
-    for s in d["servos"]:
-        s["velocity_deg_s"] = 0.0
-        s["acceleration_deg_s2"] = 0.0
-        s["backlash_deg"] = backlash_deg
-    d["motion"]["poll_interval_s"] = 0.001
-    return rig_config_from_dict(d)
 
 
 def joints_of(a, c, t, s):
@@ -174,7 +165,7 @@ def open_rig(cfg):
 
 
 def test_mirror_steps_without_a_target_changer_are_refused_before_anything(tmp_path):
-    cfg = fast_config()
+    cfg = fast_rig_config()
     plan = plan_from_dict(plan_doc())
     out = tmp_path / "S"
     with open_rig(cfg) as rig:
@@ -189,7 +180,7 @@ def test_mirror_steps_without_a_target_changer_are_refused_before_anything(tmp_p
 
 @pytest.mark.parametrize("backlash", [0.0, 0.25])
 def test_session_journals_approach_signs_of_its_moves(tmp_path, backlash):
-    cfg = fast_config(backlash)
+    cfg = fast_rig_config(backlash)
     plan = plan_from_dict(plan_doc())
     out = tmp_path / "S"
     cam = RecordingCamera()
@@ -236,7 +227,7 @@ def test_session_journals_approach_signs_of_its_moves(tmp_path, backlash):
 def test_asbuilt_session_meets_the_directions_the_schedule_planned(tmp_path):
     # backlash in the rig config: the schedule's requested directions are the as-built
     # forward with the approach of the run, and the run reaches them.
-    cfg = fast_config(0.25)
+    cfg = fast_rig_config(0.25)
     plan = plan_from_dict(plan_doc())
     dry = plan_session(plan, cfg)
     kin = Kinematics(cfg)
@@ -257,7 +248,7 @@ def test_asbuilt_session_meets_the_directions_the_schedule_planned(tmp_path):
 def test_a_calibration_session_is_not_reduced(tmp_path):
     from gonio.capture.reduce import reduce_session
 
-    cfg = fast_config()
+    cfg = fast_rig_config()
     plan = plan_from_dict(plan_doc())
     cam = RecordingCamera()
     out = tmp_path / "S"
@@ -283,7 +274,7 @@ def test_asbuilt_rig_config_puts_the_true_directions_where_a_grid_plan_asks(tmp_
     # centre, holder tilted): the run's encoder angles, read through the as-built model
     # with the journaled approach, give the requested directions to within the pulse
     # quantisation; ignoring the approach would miss by about half the backlash.
-    d = fast_config(1.0).model_dump()
+    d = fast_rig_config(1.0).model_dump()
     d["geometry"]["holder_offset_m"] = (0.0, 0.0, 0.003)
     d["geometry"]["holder_tilt_deg"] = (0.5, -0.3)
     cfg = rig_config_from_dict(d)

@@ -15,8 +15,8 @@ from __future__ import annotations
 import math
 
 import pytest
+from sim_sessions import fast_rig_config
 
-from gonio.rig.config import default_rig_config, rig_config_from_dict
 from gonio.rig.device import Rig
 from gonio.rig.kinematics import approach_of_move, side_after, take_up_pulses
 from gonio.simulator.loopback import LoopbackTransport
@@ -24,16 +24,6 @@ from gonio.simulator.servo_model import VirtualServo
 from gonio.simulator.virtual_bus import ServoBus
 
 JOINT = "light_azimuth"
-
-
-def _config(backlash_deg: float):
-    d = default_rig_config().model_dump()
-    for s in d["servos"]:
-        s["velocity_deg_s"] = 0.0
-        s["acceleration_deg_s2"] = 0.0
-        s["backlash_deg"] = backlash_deg
-    d["motion"]["poll_interval_s"] = 0.001
-    return rig_config_from_dict(d)
 
 
 def _rig(cfg, landing_pulses: int, seed: int):
@@ -51,7 +41,7 @@ def _rig(cfg, landing_pulses: int, seed: int):
 
 
 def test_take_up_and_side_rule():
-    cfg = _config(0.3)
+    cfg = fast_rig_config(0.3)
     s = cfg.servo_for(JOINT)
     tol = cfg.motion.position_tolerance_pulses
     play = 0.3 * s.gear_ratio * 4096 / 360  # 3.41 pulses
@@ -66,7 +56,7 @@ def test_take_up_and_side_rule():
     # unknown side and a short move: approached from below
     assert side_after(s, -3, 0, tol) == 1
     # no backlash: every move past the deadband counts, as before
-    s0 = _config(0.0).servo_for(JOINT)
+    s0 = fast_rig_config(0.0).servo_for(JOINT)
     assert take_up_pulses(s0, tol) == tol
     assert side_after(s0, -2, side, tol) == -side
     assert side_after(s0, -1, side, tol) == side
@@ -79,7 +69,7 @@ def test_the_recorded_side_is_the_gears_side(seed, back):
     """Move up (a long move), then back by ``back`` pulses, with servos that land within
     a pulse: the controller's side equals the virtual gears' after every move, and a
     short reversal is made through a pre-move."""
-    cfg = _config(0.3)
+    cfg = fast_rig_config(0.3)
     s = cfg.servo_for(JOINT)
     tol = cfg.motion.position_tolerance_pulses
     rig, bus = _rig(cfg, landing_pulses=1, seed=seed)
