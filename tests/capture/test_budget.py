@@ -234,21 +234,29 @@ def _sph(t, p):
     return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
 
 
-def _measurement_pattern():
-    """3 x 3 regions (2.4 cm) per pose, light at 0.5 m, camera at 0.45 m, on a grid of
-    theta_i 0..70, theta_o 0..80 (10 deg) and four azimuth differences."""
-    g = np.linspace(-0.012, 0.012, 3)
+def _pattern(regions: int, theta_i_max: int, min_separation_deg: float = 0.0):
+    """``regions x regions`` regions (2.4 cm) per pose, light at 0.5 m, camera at 0.45 m,
+    on a grid of theta_i 0..theta_i_max, theta_o 0..80 (10 deg) and four azimuth
+    differences; poses with light and camera closer than ``min_separation_deg`` left
+    out."""
+    g = np.linspace(-0.012, 0.012, regions)
     X, Y = np.meshgrid(g, g)
     pts = np.stack([X.ravel(), Y.ravel(), 0 * X.ravel()], 1)
     wi, wo = [], []
-    for ti in range(0, 71, 10):
+    for ti in range(0, theta_i_max + 1, 10):
         for to in range(0, 81, 10):
             for dp in (180, 150, 120, 90):
-                L = 0.5 * _sph(np.radians(ti), 0.0)
-                C = 0.45 * _sph(np.radians(to), np.radians(dp))
-                wi.append(_unit(L - pts))
-                wo.append(_unit(C - pts))
+                li, co = _sph(np.radians(ti), 0.0), _sph(np.radians(to), np.radians(dp))
+                if min_separation_deg and np.degrees(np.arccos(li @ co)) < min_separation_deg:
+                    continue
+                wi.append(_unit(0.5 * li - pts))
+                wo.append(_unit(0.45 * co - pts))
     return np.concatenate(wi), np.concatenate(wo)
+
+
+def _measurement_pattern():
+    """3 x 3 regions per pose, theta_i 0..70 (:func:`_pattern`)."""
+    return _pattern(3, 70)
 
 
 @pytest.mark.parametrize(
@@ -423,22 +431,9 @@ def _phong(wi, wo, kappa=200.0, c=0.05):
 
 
 def _session_pattern():
-    """6 x 6 regions (2.4 cm) per pose, light at 0.5 m, camera at 0.45 m, theta_i and
-    theta_o 0..80 (10 deg), four azimuth differences; poses closer than 12 deg between
-    light and camera left out (the plans' min_separation_deg)."""
-    g = np.linspace(-0.012, 0.012, 6)
-    X, Y = np.meshgrid(g, g)
-    pts = np.stack([X.ravel(), Y.ravel(), 0 * X.ravel()], 1)
-    wi, wo = [], []
-    for ti in range(0, 81, 10):
-        for to in range(0, 81, 10):
-            for dp in (180, 150, 120, 90):
-                li, co = _sph(np.radians(ti), 0.0), _sph(np.radians(to), np.radians(dp))
-                if np.degrees(np.arccos(li @ co)) < 12:
-                    continue
-                wi.append(_unit(0.5 * li - pts))
-                wo.append(_unit(0.45 * co - pts))
-    return np.concatenate(wi), np.concatenate(wo)
+    """6 x 6 regions per pose, theta_i 0..80, poses closer than 12 deg between light and
+    camera left out (the plans' min_separation_deg; :func:`_pattern`)."""
+    return _pattern(6, 80, 12.0)
 
 
 def test_the_isotropic_gradient_follows_a_closed_form_lobe_at_grazing_angles():
