@@ -483,6 +483,45 @@ def pose_modes(
     return out
 
 
+def direction_variance(
+    camera: Any,
+    light_position: Array,
+    roi_half: tuple[float, float],
+    **modes: Any,
+) -> float:
+    """The geometric variance (rad^2) of one pose's directions by one camera source: the
+    squared 1-sigma ``(wi, wo)`` changes of every mode, summed over modes and components
+    and averaged over the ROI's centre and corners (:func:`pose_modes`).
+
+    It is what ``geometry = "auto"`` compares to choose between the board's camera pose
+    and the rig's at a pose: the source whose covariance moves the directions less.
+
+    Parameters
+    ----------
+    camera
+        The pose's camera by that source (:class:`gonio.capture.fiducials.CameraPose`).
+    light_position
+        (3,) the light's centre, sample frame, m.
+    roi_half
+        Half the ROI's width and height on the sample, m.
+    **modes
+        :func:`pose_modes`' keywords (``source``, ``session``, ``shifts``, ``K``,
+        ``camera_modes``, ``dist``).
+
+    Returns
+    -------
+    float
+        rad^2; NaN when a mode cannot be evaluated.
+    """
+    hx, hy = roi_half
+    x = np.array([[0.0, 0.0, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0], [hx, -hy, 0.0], [-hx, -hy, 0.0]])
+    L = np.asarray(light_position, float)
+    wo = _unit(np.asarray(camera.position, float) - x)
+    wi = _unit(L - x)
+    d = pose_modes(wi, wo, camera, L, **modes)
+    return float(np.mean(np.sum(d**2, axis=(1, 2))))
+
+
 def _camera_mode_shifts(
     x: Array, L: Array, camera: Any, K: Array, dist: Array | None, modes: CameraModes
 ) -> Array:

@@ -137,8 +137,9 @@ def _detection_frame(frames: list[RawFrame]) -> RawFrame:
     return next((f for f in reversed(by_exp) if f.saturated_fraction() < 0.02), by_exp[0])
 
 
-def _reported_pose(reported_camera: Any, rms: float, n_corners: int) -> CameraPose:
-    """The rig's reported camera ``(position, world-to-camera rotation)`` as a CameraPose."""
+def reported_pose(reported_camera: Any, rms: float = math.nan, n_corners: int = 0) -> CameraPose:
+    """The rig's reported camera ``(position, world-to-camera rotation)`` as a CameraPose
+    (``rms`` and ``n_corners``: the board's, carried for the record)."""
     C, R = (np.asarray(x, float) for x in reported_camera)
     return CameraPose(R, -R @ C, C, rms, n_corners)
 
@@ -272,7 +273,7 @@ def detect_board(
     frames may be given before those are applied.
     """
     det = _detection_frame(frames)
-    expected = None if reported_camera is None else _reported_pose(reported_camera, math.nan, 0)
+    expected = None if reported_camera is None else reported_pose(reported_camera, math.nan, 0)
     try:
         return detect_pose_in_frame(det, setup.board, setup.K, setup.dist, expected=expected)
     except ReductionError as exc:
@@ -313,13 +314,13 @@ def _camera_pose(
     if reported_camera is None:
         assert cam is not None
         return cam, 0, [], "board"
-    rig = _reported_pose(
+    rig = reported_pose(
         reported_camera,
         math.nan if cam is None else cam.reprojection_rms,
         0 if cam is None else cam.n_corners,
     )
     mode = setup.geometry
-    if mode == "auto" and cam is not None and not _board_trusted(cam, setup):
+    if mode == "auto" and cam is not None and not board_trusted(cam, setup):
         cam = None
     if cam is None:
         if mode == "board":
@@ -339,7 +340,7 @@ def board_obliquity_deg(cam: CameraPose) -> float:
     return math.degrees(math.atan2(math.hypot(p[0], p[1]), p[2]))
 
 
-def _board_trusted(cam: CameraPose, setup: ReductionSetup) -> bool:
+def board_trusted(cam: CameraPose, setup: ReductionSetup) -> bool:
     """Whether ``geometry = "auto"`` takes this board pose over the rig's."""
     return (
         cam.n_corners >= setup.min_board_corners

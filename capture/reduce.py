@@ -45,20 +45,24 @@ from gonio.capture.budget import (
     TERMS,
     budget_rows,
     camera_modes,
+    direction_variance,
     geometry_std,
     local_log_gradient,
     pose_modes,
     rig_shifts,
     session_modes,
 )
+from gonio.capture.fiducials import CameraPose
 from gonio.capture.frame_loader import PREFETCH_POSES, FrameLoader, default_threads, load_frame
 from gonio.capture.noise import NoiseModel
 from gonio.capture.output_set import output_set
 from gonio.capture.pose_measure import (
     PoseMeasurement,
+    board_trusted,
     detect_board,
     invalid_pose,
     measure_pose,
+    reported_pose,
 )
 from gonio.capture.radiometric import (
     DriftModel,
@@ -420,6 +424,8 @@ class _PoseRun:
     texels: tuple[int, int] | None = None
     #: pose -> _rig_of's value (the rig's kinematics, once per pose)
     _rig_cache: dict[int, tuple[Any, ...]] = field(default_factory=dict)
+    #: _geometry_modes' value
+    _modes: tuple[Any, Any] | None = None
 
     def measure_all(self, threads: int, progress: Callable[[int, int], None] | None) -> None:
         """Decode and measure every sample and reference pose, in journal order."""
@@ -557,10 +563,17 @@ class _PoseRun:
                     invalid_pose(p, wi_rep, wo_rep, f"no decodable frame: {why}", files)
                 )
             return
+        setup = self.setup
+        if setup.geometry == "auto" and cam_rep is not None:
+            if detected is None:
+                detected = detect_board(frames, setup, cam_rep)
+            if self._rig_beats_board(detected, light_pos, cam_rep, last):
+                # measure_pose's "rig" mode: the rig's pose, still checked by the board
+                setup = setup.replace(geometry="rig")
         try:
             m = measure_pose(
                 frames,
-                self.setup,
+                setup,
                 light_pos,
                 light_n,
                 pose=p,
@@ -586,6 +599,53 @@ class _PoseRun:
                 (f.exposure_factor(), f.iso, float(np.min(f.headroom))) for f in frames
             ]
             self.cal.cell_channel = frames[0].cell_channel
+
+    def _geometry_modes(self) -> tuple[Any, Any]:
+        """The session's rig modes and the camera calibration's modes (computed once)."""
+        if self._modes is None:
+            kin_config = getattr(self.kin, "config", None)
+            self._modes = (
+                session_modes(kin_config, nominal_joint_std_deg=self.setup.nominal_joint_std_deg),
+                camera_modes(self.setup.camera_calibration),
+            )
+        return self._modes
+
+    def _rig_beats_board(
+        self,
+        detected: CameraPose | ReductionError,
+        light_pos: NDArray[np.float64],
+        cam_rep: tuple[NDArray[np.float64], NDArray[np.float64]],
+        last: Mapping[str, Any],
+    ) -> bool:
+        """Whether ``geometry = "auto"`` takes the rig's camera over a trustworthy board
+        view at this pose: when the rig's covariance (its calibration's, through the
+        kinematics at the pose's joints) moves the pose's directions less than the
+        board's own (its corners' reprojection residuals, and the camera calibration's
+        modes), by :func:`gonio.capture.budget.direction_variance`.  A board view without
+        a covariance, a pose without joints or a rig without modes keeps the board."""
+        if not isinstance(detected, CameraPose) or not board_trusted(detected, self.setup):
+            return False
+        cov = detected.covariance
+        if cov is None or not np.all(np.isfinite(cov)) or not last.get("joints"):
+            return False
+        modes, cmodes = self._geometry_modes()
+        if not len(modes):
+            return False
+        shifts = rig_shifts(modes, [last.get("joints")], [last.get("approach")])
+        if not np.all(np.isfinite(shifts.light)):
+            return False
+        kw = dict(
+            session=modes,
+            shifts=shifts.at(0),
+            K=self.setup.K,
+            camera_modes=cmodes,
+            dist=self.setup.dist,
+        )
+        roi = self.setup.roi_fraction
+        half = (0.5 * roi * self.setup.sample_size[0], 0.5 * roi * self.setup.sample_size[1])
+        v_board = direction_variance(detected, light_pos, half, source="board", **kw)
+        v_rig = direction_variance(reported_pose(cam_rep), light_pos, half, source="rig", **kw)
+        return bool(np.isfinite(v_rig) and np.isfinite(v_board) and v_rig < v_board)
 
     def samples(self, manifest: Mapping[str, Any]) -> Any:
         """The calibrated samples of the measured sample poses (a BRDFSamples)."""
@@ -958,9 +1018,7 @@ class _PoseRun:
         gradient of the measured samples, fitted on ``chart``
         (:func:`budget_gradient_chart`); the radiometric terms come from each pose's
         ``radiometric_rel_std`` (relative, (n, C): times f)."""
-        kin_config = getattr(self.kin, "config", None)
-        modes = session_modes(kin_config, nominal_joint_std_deg=self.setup.nominal_joint_std_deg)
-        cmodes = camera_modes(self.setup.camera_calibration)
+        modes, cmodes = self._geometry_modes()
         inputs = [self.pose_inputs.get(m.pose) for m in samples_m]
         shifts = rig_shifts(
             modes,

@@ -67,8 +67,9 @@ from gonio.errors import ReductionError
     default=None,
     help="Camera pose from the ChArUco board in each pose (board), from the rig's "
     "read-back pose through its kinematics (rig: a calibrated rig, or the exact simulated "
-    "one), or from the board where it shows enough corners and is not too oblique and "
-    "the rig elsewhere (auto); the board checks the rig wherever it is used.  "
+    "one), or (auto) from the board where it shows enough corners, is not too oblique "
+    "and its covariance moves the directions less than the rig's calibration does, and "
+    "the rig elsewhere; the board checks the rig wherever it is used.  "
     "[default: reduction.toml's, else auto]",
 )
 @click.option(

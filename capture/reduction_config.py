@@ -330,17 +330,21 @@ class ReductionSetup:
         Largest disagreement between the camera pose from the board and the rig's report.
     geometry
         Where the camera pose comes from: ``"auto"`` (the default: the board where it is
-        trustworthy, else the rig), ``"board"`` (measured from the fiducials in each
-        pose; a pose without a board takes the rig's, flagged GEOMETRY_MISMATCH) or
-        ``"rig"`` (the rig's read-back pose through its (calibrated) kinematics).  The
-        board checks the rig wherever it is used or trusted, flagging disagreements.
+        trustworthy and known better than the rig, else the rig), ``"board"`` (measured
+        from the fiducials in each pose; a pose without a board takes the rig's, flagged
+        GEOMETRY_MISMATCH) or ``"rig"`` (the rig's read-back pose through its
+        (calibrated) kinematics).  The board checks the rig wherever it is used or
+        trusted, flagging disagreements.
         Use ``"rig"`` when the rig's geometry is known better than one board view
         measures it (a calibrated rig, or the simulator, whose rig is exact): on a sharp
         lobe's flank a 0.04 deg pose error is a percent of BRDF, shared by every region
         of the pose.  ``"auto"`` takes the board's pose when it was found with at least
         ``min_board_corners`` corners and is seen at most ``max_board_obliquity_deg``
-        off its normal; otherwise the rig's, not flagged (a board seen edge-on, or not
-        at all, says nothing against the rig), and not checked.
+        off its normal, unless the rig's covariance (its calibration's, through the
+        kinematics at the pose) moves the pose's directions less than the board's own
+        (:func:`gonio.capture.budget.direction_variance`), when the rig's pose is taken
+        and the board checks it; otherwise the rig's, not flagged (a board seen edge-on,
+        or not at all, says nothing against the rig), and not checked.
     max_board_obliquity_deg, min_board_corners
         ``"auto"``'s limits of a trustworthy board view (degrees off the board's normal,
         by the board's own pose; ChArUco corners).  Chosen from the default demo's

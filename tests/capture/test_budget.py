@@ -20,6 +20,7 @@ references.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -31,6 +32,7 @@ from gonio.capture.budget import (
     budget_rows,
     budget_table,
     centroid_points,
+    direction_variance,
     geometry_std,
     isotropic_features,
     isotropic_jacobian,
@@ -60,9 +62,10 @@ def _unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def _calibrated_rig(seed=3):
+def _calibrated_rig(seed=3, scale=1.0):
     """A calibrated rig: as-built values, and a random (correlated) covariance over every
-    rig parameter and fx, fy, cx, cy at a few percent of the parameters' magnitudes."""
+    rig parameter and fx, fy, cx, cy at a few percent of the parameters' magnitudes
+    (times ``scale``)."""
     rng = np.random.default_rng(seed)
     values = {n: rng.normal(0, 0.3 * PARAMETERS[n].magnitude) for n in PARAMETER_NAMES}
     for j in JOINT_NAMES:
@@ -72,7 +75,9 @@ def _calibrated_rig(seed=3):
     values["camera_elevation"] += g.camera_elevation_deg
     values["camera_radius"] += g.camera_radius_m
     names = list(PARAMETER_NAMES) + list(INTR)
-    sd = np.array([0.03 * PARAMETERS[n].magnitude for n in PARAMETER_NAMES] + list(INTR_STD))
+    sd = scale * np.array(
+        [0.03 * PARAMETERS[n].magnitude for n in PARAMETER_NAMES] + list(INTR_STD)
+    )
     A = rng.normal(size=(len(names), len(names)))
     S = A @ A.T + len(names) * np.eye(len(names))
     corr = S / np.sqrt(np.outer(np.diag(S), np.diag(S)))
@@ -221,6 +226,114 @@ def test_board_pose_modes_give_the_pose_covariance_propagated():
     # a rig-sourced pose has no board modes; "none" has no modes at all
     assert np.all(pose_modes(wi, wo, cam, L, source="rig") == 0)
     assert np.all(pose_modes(wi, wo, cam, L, source="none") == 0)
+
+
+def _board_jacobian(L, C, R, x):
+    """(n, 6, 6) d(wi, wo)/d(rvec, tvec) of a board pose at the sample points ``x``, by
+    central differences through the plane homography."""
+    t = -R @ C
+    pix = (x @ R.T + t) @ K.T
+    pix = pix[:, :2] / pix[:, 2:]
+    rvec = cv2.Rodrigues(R)[0].ravel()
+    J = np.zeros((len(x), 6, 6))
+    for k in range(6):
+        h = 1e-7
+        side = []
+        for s in (1.0, -1.0):
+            dp = np.zeros(6)
+            dp[k] = s * h
+            Rp = cv2.Rodrigues(rvec + dp[:3])[0]
+            side.append(_directions_via_homography(L, -Rp.T @ (t + dp[3:]), Rp, K, pix))
+        J[:, :, k] = (side[0] - side[1]) / (2 * h)
+    return J
+
+
+ROI_HALF = (0.012, 0.009)
+ROI_POINTS = np.array(
+    [[0, 0, 0], [0.012, 0.009, 0], [-0.012, 0.009, 0], [0.012, -0.009, 0], [-0.012, -0.009, 0]],
+    float,
+)
+
+
+def test_direction_variance_is_the_trace_of_the_propagated_covariance():
+    rng = np.random.default_rng(8)
+    C = np.array([0.1, -0.25, 0.33])
+    z = _unit(-C)
+    xa = _unit(np.cross(z, [0.0, 0, 1]))
+    R = np.stack([xa, np.cross(z, xa), z])
+    A = rng.normal(size=(6, 6))
+    cov = (A @ A.T + 6 * np.eye(6)) * np.array([2e-4] * 3 + [5e-4] * 3) ** 2 / 6
+    cov = 0.5 * (cov + cov.T)
+    L = np.array([0.2, 0.1, 0.45])
+    cam = CameraPose(R, -R @ C, C, 0.1, 24, cov)
+    got = direction_variance(cam, L, ROI_HALF, source="board")
+    J = _board_jacobian(L, C, R, ROI_POINTS)
+    want = np.mean(np.einsum("nik,kl,nil->n", J, cov, J))
+    assert want > 0
+    assert got == pytest.approx(want, rel=0.02)
+    # the variance of the rig's source, without rig modes, is none
+    assert direction_variance(cam, L, ROI_HALF, source="rig") == 0.0
+
+
+@pytest.mark.parametrize(
+    "rig_scale, board_std_rad, want_rig", [(0.05, 1e-3, True), (3.0, 1e-4, False)]
+)
+def test_auto_geometry_takes_the_source_whose_covariance_moves_the_directions_less(
+    rig_scale, board_std_rad, want_rig
+):
+    """``geometry = "auto"``'s choice at a trustworthy board view, judged by the traces of
+    the two propagated covariances computed here independently (the rig's by one
+    parameter at a time through its kinematics, the board's through the homography)."""
+    from types import SimpleNamespace
+
+    from gonio.app.demo import parse_material, scene_document
+    from gonio.app.sim_reduction import setup_from_scene
+    from gonio.capture.reduce import _PoseRun
+    from gonio.simulator.scene import parse_scene
+
+    rig, values, names, cov = _calibrated_rig(scale=rig_scale)
+    L, C, R = _rig_at(values, JOINTS)
+    scene = parse_scene(scene_document(parse_material("lambert albedo=0.5"), 320, 240))
+    setup = setup_from_scene(scene, 0.99).replace(K=K, dist=None)
+    half = tuple(0.5 * setup.roi_fraction * np.asarray(setup.sample_size))
+    x = np.array([[0, 0, 0], [1, 1, 0], [-1, 1, 0], [1, -1, 0], [-1, -1, 0]]) * [*half, 0]
+    cov_b = np.diag([board_std_rad**2] * 3 + [(0.4 * board_std_rad) ** 2] * 3)
+    board = CameraPose(R, -R @ C, C, 0.1, 24, cov_b)
+    run = _PoseRun(Path("."), setup, SimpleNamespace(config=rig), [])
+    last = {"joints": JOINTS, "approach": APPROACH}
+    got = run._rig_beats_board(board, L, (C, R), last)
+    # the references: trace of J C J^T of each source, averaged over the same points
+    pix = (x @ R.T + (-R @ C)) @ K.T
+    pix = pix[:, :2] / pix[:, 2:]
+    Jr = np.zeros((len(x), 6, len(names)))
+    for k, name in enumerate(names):
+        h = 1e-4 * (PARAMETERS[name].magnitude if name in PARAMETERS else 1.0)
+        side = []
+        for s in (1.0, -1.0):
+            Lp, Cp, Rp = _rig_at(values, JOINTS, name, s * h)
+            Kc = _K_moved(name, s * h) if name in INTR else K
+            side.append(_directions_via_homography(Lp, Cp, Rp, Kc, pix))
+        Jr[:, :, k] = (side[0] - side[1]) / (2 * h)
+    v_rig = np.mean(np.einsum("nik,kl,nil->n", Jr, cov, Jr))
+    # the board's source: its pose covariance, and the rig's modes moving the light only
+    Jb = _board_jacobian(L, C, R, x)
+    Jl = np.zeros((len(x), 6, len(names)))
+    for k, name in enumerate(names):
+        h = 1e-4 * (PARAMETERS[name].magnitude if name in PARAMETERS else 1.0)
+        side = [_unit(_rig_at(values, JOINTS, name, s * h)[0] - x) for s in (1.0, -1.0)]
+        Jl[:, :3, k] = (side[0] - side[1]) / (2 * h)
+    v_board = np.mean(
+        np.einsum("nik,kl,nil->n", Jb, cov_b, Jb) + np.einsum("nik,kl,nil->n", Jl, cov, Jl)
+    )
+    assert (v_rig < v_board) == want_rig, (v_rig, v_board)  # the case is what it says
+    assert max(v_rig, v_board) > 3 * min(v_rig, v_board)  # and not a close call
+    assert got == want_rig
+    # a board view without its covariance, too few corners or no joints: the board stays
+    bare = CameraPose(R, -R @ C, C, 0.1, 24)
+    few = CameraPose(R, -R @ C, C, 0.1, setup.min_board_corners - 1, cov_b)
+    assert not run._rig_beats_board(bare, L, (C, R), last)
+    assert not run._rig_beats_board(few, L, (C, R), last)
+    assert not run._rig_beats_board(board, L, (C, R), {"joints": None})
 
 
 def test_centroid_points_see_the_camera_along_wo():
