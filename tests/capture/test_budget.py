@@ -190,42 +190,16 @@ def test_without_a_record_the_nominal_joint_tolerance_moves_each_joint():
     assert np.isnan(shifts.light).all()
 
 
-def test_board_pose_modes_give_the_pose_covariance_propagated():
-    rng = np.random.default_rng(5)
-    C = np.array([0.15, -0.2, 0.35])
+def _board_camera(seed, C, rot_std, trans_std):
+    """A camera at ``C`` looking at the origin, with a random (correlated) board pose
+    covariance of about ``rot_std`` (rad) and ``trans_std`` (m)."""
+    rng = np.random.default_rng(seed)
     z = _unit(-C)
     xa = _unit(np.cross(z, [0.0, 0, 1]))
     R = np.stack([xa, np.cross(z, xa), z])
     A = rng.normal(size=(6, 6))
-    cov = (A @ A.T + 6 * np.eye(6)) * np.array([1e-4] * 3 + [3e-4] * 3) ** 2 / 6
-    cov = 0.5 * (cov + cov.T)
-    t = -R @ C
-    cam = CameraPose(R, t, C, 0.1, 24, cov)
-    L = np.array([-0.1, 0.2, 0.4])
-    x = _regions(C, R)
-    wi, wo = _unit(L - x), _unit(C - x)
-    m = pose_modes(wi, wo, cam, L, source="board")
-    assert m.shape == (9, 6, 6)
-    got = np.einsum("nmi,nmj->nij", m, m)
-    pix = (x @ R.T + t) @ K.T
-    pix = pix[:, :2] / pix[:, 2:]
-    rvec = cv2.Rodrigues(R)[0].ravel()
-    J = np.zeros((9, 6, 6))
-    for k in range(6):
-        h = 1e-7
-        side = []
-        for s in (1.0, -1.0):
-            dp = np.zeros(6)
-            dp[k] = s * h
-            Rp = cv2.Rodrigues(rvec + dp[:3])[0]
-            Cp = -Rp.T @ (t + dp[3:])
-            side.append(_directions_via_homography(L, Cp, Rp, K, pix))
-        J[:, :, k] = (side[0] - side[1]) / (2 * h)
-    want = np.einsum("nik,kl,njl->nij", J, cov, J)
-    np.testing.assert_allclose(got, want, atol=0.02 * np.max(np.abs(want)))
-    # a rig-sourced pose has no board modes; "none" has no modes at all
-    assert np.all(pose_modes(wi, wo, cam, L, source="rig") == 0)
-    assert np.all(pose_modes(wi, wo, cam, L, source="none") == 0)
+    cov = (A @ A.T + 6 * np.eye(6)) * np.array([rot_std] * 3 + [trans_std] * 3) ** 2 / 6
+    return CameraPose(R, -R @ C, C, 0.1, 24, 0.5 * (cov + cov.T))
 
 
 def _board_jacobian(L, C, R, x):
@@ -248,6 +222,24 @@ def _board_jacobian(L, C, R, x):
     return J
 
 
+def test_board_pose_modes_give_the_pose_covariance_propagated():
+    C = np.array([0.15, -0.2, 0.35])
+    cam = _board_camera(5, C, 1e-4, 3e-4)
+    R, cov = cam.rotation, cam.covariance
+    L = np.array([-0.1, 0.2, 0.4])
+    x = _regions(C, R)
+    wi, wo = _unit(L - x), _unit(C - x)
+    m = pose_modes(wi, wo, cam, L, source="board")
+    assert m.shape == (9, 6, 6)
+    got = np.einsum("nmi,nmj->nij", m, m)
+    J = _board_jacobian(L, C, R, x)
+    want = np.einsum("nik,kl,njl->nij", J, cov, J)
+    np.testing.assert_allclose(got, want, atol=0.02 * np.max(np.abs(want)))
+    # a rig-sourced pose has no board modes; "none" has no modes at all
+    assert np.all(pose_modes(wi, wo, cam, L, source="rig") == 0)
+    assert np.all(pose_modes(wi, wo, cam, L, source="none") == 0)
+
+
 ROI_HALF = (0.012, 0.009)
 ROI_POINTS = np.array(
     [[0, 0, 0], [0.012, 0.009, 0], [-0.012, 0.009, 0], [0.012, -0.009, 0], [-0.012, -0.009, 0]],
@@ -256,16 +248,10 @@ ROI_POINTS = np.array(
 
 
 def test_direction_variance_is_the_trace_of_the_propagated_covariance():
-    rng = np.random.default_rng(8)
     C = np.array([0.1, -0.25, 0.33])
-    z = _unit(-C)
-    xa = _unit(np.cross(z, [0.0, 0, 1]))
-    R = np.stack([xa, np.cross(z, xa), z])
-    A = rng.normal(size=(6, 6))
-    cov = (A @ A.T + 6 * np.eye(6)) * np.array([2e-4] * 3 + [5e-4] * 3) ** 2 / 6
-    cov = 0.5 * (cov + cov.T)
+    cam = _board_camera(8, C, 2e-4, 5e-4)
+    R, cov = cam.rotation, cam.covariance
     L = np.array([0.2, 0.1, 0.45])
-    cam = CameraPose(R, -R @ C, C, 0.1, 24, cov)
     got = direction_variance(cam, L, ROI_HALF, source="board")
     J = _board_jacobian(L, C, R, ROI_POINTS)
     want = np.mean(np.einsum("nik,kl,nil->n", J, cov, J))
