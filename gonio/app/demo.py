@@ -447,8 +447,9 @@ def _run_demo(
     else:
         # = --camera-calibration camera.toml --grid 6 --max-region-spread-deg 0.3: the
         # calibrated camera; each view's pose from the board where it shows enough of it
-        # (geometry "auto"), else from the calibrated rig, which checks the board and
-        # gives the light.
+        # and its covariance moves the directions less than the calibrated rig's
+        # (geometry "auto"), else from the calibrated rig, which the board checks; the
+        # rig gives the light.
         setup = resolve_setup(
             session, load_manifest(session), camera_calibration=calibration.camera_file
         )
