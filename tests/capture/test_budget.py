@@ -287,7 +287,7 @@ def test_auto_geometry_takes_the_source_whose_covariance_moves_the_directions_le
     board = CameraPose(R, -R @ C, C, 0.1, 24, cov_b)
     run = _PoseRun(Path("."), setup, SimpleNamespace(config=rig), [])
     last = {"joints": JOINTS, "approach": APPROACH}
-    got = run._rig_beats_board(board, L, (C, R), last)
+    got = run._rig_beats_board(board, L, (C, R), 0, last)
     # the references: trace of J C J^T of each source, averaged over the same points
     pix = (x @ R.T + (-R @ C)) @ K.T
     pix = pix[:, :2] / pix[:, 2:]
@@ -317,9 +317,9 @@ def test_auto_geometry_takes_the_source_whose_covariance_moves_the_directions_le
     # a board view without its covariance, too few corners or no joints: the board stays
     bare = CameraPose(R, -R @ C, C, 0.1, 24)
     few = CameraPose(R, -R @ C, C, 0.1, setup.min_board_corners - 1, cov_b)
-    assert not run._rig_beats_board(bare, L, (C, R), last)
-    assert not run._rig_beats_board(few, L, (C, R), last)
-    assert not run._rig_beats_board(board, L, (C, R), {"joints": None})
+    assert not run._rig_beats_board(bare, L, (C, R), 0, last)
+    assert not run._rig_beats_board(few, L, (C, R), 0, last)
+    assert not run._rig_beats_board(board, L, (C, R), 1, {"joints": None})
 
 
 def test_centroid_points_see_the_camera_along_wo():
