@@ -273,7 +273,7 @@ def detect_board(
     frames may be given before those are applied.
     """
     det = _detection_frame(frames)
-    expected = None if reported_camera is None else reported_pose(reported_camera, math.nan, 0)
+    expected = None if reported_camera is None else reported_pose(reported_camera)
     try:
         return detect_pose_in_frame(det, setup.board, setup.K, setup.dist, expected=expected)
     except ReductionError as exc:

@@ -241,10 +241,11 @@ def test_board_pose_modes_give_the_pose_covariance_propagated():
 
 
 ROI_HALF = (0.012, 0.009)
-ROI_POINTS = np.array(
-    [[0, 0, 0], [0.012, 0.009, 0], [-0.012, 0.009, 0], [0.012, -0.009, 0], [-0.012, -0.009, 0]],
-    float,
-)
+
+
+def _roi_points(half):
+    """The ROI's centre and four corners on the sample (the points the variance averages)."""
+    return np.array([[0, 0, 0], [1, 1, 0], [-1, 1, 0], [1, -1, 0], [-1, -1, 0]]) * [*half, 0]
 
 
 def test_direction_variance_is_the_trace_of_the_propagated_covariance():
@@ -253,7 +254,7 @@ def test_direction_variance_is_the_trace_of_the_propagated_covariance():
     R, cov = cam.rotation, cam.covariance
     L = np.array([0.2, 0.1, 0.45])
     got = direction_variance(cam, L, ROI_HALF, source="board")
-    J = _board_jacobian(L, C, R, ROI_POINTS)
+    J = _board_jacobian(L, C, R, _roi_points(ROI_HALF))
     want = np.mean(np.einsum("nik,kl,nil->n", J, cov, J))
     assert want > 0
     assert got == pytest.approx(want, rel=0.02)
@@ -282,7 +283,7 @@ def test_auto_geometry_takes_the_source_whose_covariance_moves_the_directions_le
     scene = parse_scene(scene_document(parse_material("lambert albedo=0.5"), 320, 240))
     setup = setup_from_scene(scene, 0.99).replace(K=K, dist=None)
     half = tuple(0.5 * setup.roi_fraction * np.asarray(setup.sample_size))
-    x = np.array([[0, 0, 0], [1, 1, 0], [-1, 1, 0], [1, -1, 0], [-1, -1, 0]]) * [*half, 0]
+    x = _roi_points(half)
     cov_b = np.diag([board_std_rad**2] * 3 + [(0.4 * board_std_rad) ** 2] * 3)
     board = CameraPose(R, -R @ C, C, 0.1, 24, cov_b)
     run = _PoseRun(Path("."), setup, SimpleNamespace(config=rig), [])
