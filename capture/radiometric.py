@@ -31,6 +31,7 @@ __all__ = [
     "ReferenceGroup",
     "brdf_of",
     "dark_offset_rel_std",
+    "dark_offset_std",
     "drift_model",
     "effective_sites",
     "fit_light_profile",
@@ -547,13 +548,32 @@ def dark_offset_rel_std(
     cell_channel: NDArray | None = None,
     n_sites: NDArray | None = None,
 ) -> NDArray[np.float64]:
-    """The ``dark`` term of a pose whose frames were not dark-subtracted, (n, 3).
+    """The ``dark`` term relative to the radiance, (n, 3): :func:`dark_offset_std`
+    over ``|L|`` (inf where a region's radiance is exactly 0: state that one in
+    absolute units)."""
+    u = dark_offset_std(radiance, n_pixels, exposures, noise, dsnu_e, cell_channel, n_sites)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return u / np.abs(np.asarray(radiance, float))
+
+
+def dark_offset_std(
+    radiance: NDArray,
+    n_pixels: NDArray,
+    exposures: list[tuple[float, float, float]],
+    noise: Any,
+    dsnu_e: float,
+    cell_channel: NDArray | None = None,
+    n_sites: NDArray | None = None,
+) -> NDArray[np.float64]:
+    """The ``dark`` term of a pose whose frames were not dark-subtracted, (n, 3), in
+    the radiance's units (DN per exposure factor).
 
     Type B: the sensor's DSNU, ``dsnu_e`` electrons rms per pixel (``[noise] dsnu_e``),
     is an offset ``d_k = dsnu_e g_k`` DN (``g_k`` the gain at frame k's ISO) the merge
     divides by each frame's exposure factor ``e_k`` and weighs as it weighs the frame
     (``w_k = e_k^2 / var_k`` for the frames the region does not saturate, at its
-    radiance ``L``): ``u = (sum_k w_k d_k / e_k / sum_k w_k) / sqrt(N_c) / L``.
+    radiance ``L``): ``u = (sum_k w_k d_k / e_k / sum_k w_k) / sqrt(N_c)``. It stays
+    finite where ``L`` is 0 (a black region is where the offset matters most).
 
     Parameters
     ----------
@@ -583,7 +603,7 @@ def dark_offset_rel_std(
         den += w
     n_c = _sites_per_channel(n_pixels, cell_channel) if n_sites is None else n_sites
     with np.errstate(invalid="ignore", divide="ignore"):
-        return num / den / np.sqrt(n_c) / np.abs(L)
+        return num / den / np.sqrt(n_c)
 
 
 def irradiance_rel_std(cos_psi: NDArray, cos_psi_ref: float, n_std: float) -> NDArray[np.float64]:

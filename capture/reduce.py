@@ -68,7 +68,7 @@ from gonio.capture.radiometric import (
     DriftModel,
     LightProfile,
     brdf_of,
-    dark_offset_rel_std,
+    dark_offset_std,
     drift_model,
     effective_sites,
     fit_light_profile,
@@ -428,6 +428,8 @@ class _PoseRun:
     _modes: tuple[Any, Any] | None = None
     #: pose -> _pose_shifts' value
     _shift_cache: dict[int, tuple[Any, Any, Any]] = field(default_factory=dict)
+    #: pose -> the dark term in radiance units of an undarked pose (_radiometric_terms)
+    _dark_std: dict[int, NDArray[np.float64]] = field(default_factory=dict)
 
     def measure_all(self, threads: int, progress: Callable[[int, int], None] | None) -> None:
         """Decode and measure every sample and reference pose, in journal order."""
@@ -916,6 +918,7 @@ class _PoseRun:
         cc = cal.cell_channel
         n_std = prof.n_std if cal.profile_applied else s.light_profile_n_std
         pix_flat = cal.flat.pixel_rel_std if cal.flat is not None else np.full(3, s.prnu)
+        self._dark_std = {}
         cos_psi = self._cos_psi(samples_m)
         for m, u_d in zip(samples_m, drift_u, strict=True):
             n = len(m.flags)
@@ -949,7 +952,7 @@ class _PoseRun:
                 "stray": stray_rel_std(m.geometry, cal.g0, s.stray_fraction),
             }
             if m.pose in cal.undarked:
-                terms["dark"] = dark_offset_rel_std(
+                u_dark = dark_offset_std(
                     m.radiance,
                     m.n_pixels,
                     cal.exposures.get(m.pose, []),
@@ -958,6 +961,10 @@ class _PoseRun:
                     cc,
                     n_sites,
                 )
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    terms["dark"] = u_dark / np.abs(m.radiance)
+                # relative to a black region's 0 it is inf: _budget states it in 1/sr
+                self._dark_std[m.pose] = u_dark
             m.radiometric_rel_std = terms
         self.warnings.extend(self._missing_calibration_warnings(samples_m))
 
@@ -1092,12 +1099,25 @@ class _PoseRun:
                 np.asarray(getattr(m, "radiometric_rel_std", {}).get(term, 0.0), float)
                 for m in samples_m
             ]
-            budget[term] = np.concatenate(
-                [
-                    np.broadcast_to(r, (len(m.flags), brdf.shape[1]))
-                    for r, m in zip(rel, samples_m, strict=True)
-                ]
-            ) * np.abs(brdf)
+            with np.errstate(invalid="ignore"):  # inf x 0: a black region's dark term
+                budget[term] = np.concatenate(
+                    [
+                        np.broadcast_to(r, (len(m.flags), brdf.shape[1]))
+                        for r, m in zip(rel, samples_m, strict=True)
+                    ]
+                ) * np.abs(brdf)
+        # a black region (f = 0) of an undarked pose: the offset over its irradiance
+        dark_std = self._dark_std
+        if dark_std:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                over_e = np.concatenate(
+                    [
+                        dark_std[m.pose] / x[2] if m.pose in dark_std else np.zeros_like(x[0])
+                        for m, x in zip(samples_m, parts, strict=True)
+                    ]
+                )
+            black = (brdf == 0) & np.isfinite(over_e)
+            budget["dark"] = np.where(black, over_e, budget["dark"])
         fields = {
             "geometry_modes": gm,
             "geometry_mode_scope": ["session"] * (len(modes) + len(cmodes))

@@ -208,3 +208,51 @@ def test_a_simulated_session_with_flats_reduces_with_its_flat_field(tmp_path):
     res = reduce_session(out, plot=False)
     assert res.summary["radiometric"]["flat_frames"] == 3
     assert not any("no flat fields" in w for w in res.warnings)
+
+
+def test_a_black_region_of_an_undarked_pose_states_its_dark_term_in_absolute_units(session):
+    """Relative to a radiance of exactly 0 the dark offset is infinite, and times a BRDF
+    of 0 it was NaN (with a RuntimeWarning): in 1/sr it is the offset over the region's
+    irradiance, at L = 0 ``d sum(w_k / e_k) / sum(w_k) / sqrt(N_c) / E`` with
+    ``w_k = e_k^2 / var_k(0)`` and ``d = dsnu_e g``."""
+    import warnings
+
+    from gonio.capture import reduce as R
+    from gonio.capture.manifest import load_manifest
+
+    no_darks = _copy(
+        session, "no_darks_black", lambda recs, d: [r for r in recs if r.get("kind") != "dark"]
+    )
+    manifest = load_manifest(no_darks)
+    setup = R.resolve_setup(no_darks, manifest, None)
+    run_ = R._PoseRun(
+        no_darks, setup, R._kinematics(manifest), read_journal(no_darks / "journal.jsonl")
+    )
+    run_.measure_all(1, None)
+    sample = [m for m in run_.measurements if m.kind == "sample"]
+    m = next(m for m in sample if np.any(m.flags == 0))
+    assert m.pose in run_.cal.undarked
+    j = int(np.flatnonzero(m.flags == 0)[0])
+    m.radiance[j] = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        s = run_.samples(manifest)
+    row = sum(len(x.flags) for x in sample[: sample.index(m)]) + j
+    assert np.all(s.brdf[row] == 0)
+    dark = s.budget["dark"][row]
+    assert np.all(np.isfinite(dark)) and np.all(dark > 0)
+    assert np.all(np.isfinite(s.brdf_std[row]))
+    w = np.array(
+        [e * e / setup.noise.variance(0.0, iso=iso) for e, iso, _ in run_.cal.exposures[m.pose]]
+    )
+    e = np.array([e for e, _, _ in run_.cal.exposures[m.pose]])
+    g = np.array([setup.noise.at_iso(iso).gain for _, iso, _ in run_.cal.exposures[m.pose]])
+    offset = setup.dsnu_e * np.sum(w * g / e) / np.sum(w)
+    np.testing.assert_allclose(dark, offset / np.sqrt(m.n_sites[j]) / s.irradiance[row], rtol=1e-9)
+    # a region beside it keeps the relative term times its BRDF
+    k = int(np.flatnonzero(m.flags == 0)[1])
+    np.testing.assert_allclose(
+        s.budget["dark"][row - j + k],
+        m.radiometric_rel_std["dark"][k] * np.abs(s.brdf[row - j + k]),
+        rtol=1e-12,
+    )
