@@ -30,7 +30,6 @@ __all__ = [
     "LightProfile",
     "ReferenceGroup",
     "brdf_of",
-    "dark_offset_rel_std",
     "dark_offset_std",
     "drift_model",
     "effective_sites",
@@ -537,23 +536,6 @@ def flat_rel_std(
     n_c = _sites_per_channel(n_pixels, cell_channel) if n_sites is None else n_sites
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.asarray(pixel_rel_std, float)[None, :] / np.sqrt(n_c)
-
-
-def dark_offset_rel_std(
-    radiance: NDArray,
-    n_pixels: NDArray,
-    exposures: list[tuple[float, float, float]],
-    noise: Any,
-    dsnu_e: float,
-    cell_channel: NDArray | None = None,
-    n_sites: NDArray | None = None,
-) -> NDArray[np.float64]:
-    """The ``dark`` term relative to the radiance, (n, 3): :func:`dark_offset_std`
-    over ``|L|`` (inf where a region's radiance is exactly 0: state that one in
-    absolute units)."""
-    u = dark_offset_std(radiance, n_pixels, exposures, noise, dsnu_e, cell_channel, n_sites)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return u / np.abs(np.asarray(radiance, float))
 
 
 def dark_offset_std(

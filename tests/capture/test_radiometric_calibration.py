@@ -20,7 +20,7 @@ from gonio.capture.pose_measure import PoseMeasurement
 from gonio.capture.radiometric import (
     DriftModel,
     ReferenceGroup,
-    dark_offset_rel_std,
+    dark_offset_std,
     drift_model,
     fit_light_profile,
 )
@@ -325,6 +325,7 @@ def test_dark_term_of_one_frame_is_the_dsnu_over_the_signal():
             return 0.8 * np.maximum(S, 0) + 4.0
 
     L = np.array([[100.0, 200.0, 50.0]])
-    u = dark_offset_rel_std(L, np.array([400.0]), [(0.5, 100.0, 1e9)], Noise(), 5.0)
+    u = dark_offset_std(L, np.array([400.0]), [(0.5, 100.0, 1e9)], Noise(), 5.0)
     n_c = np.array([100.0, 200.0, 100.0])  # an RGGB region of 400 pixels
-    np.testing.assert_allclose(u[0], 5.0 * 0.8 / 0.5 / np.sqrt(n_c) / L[0], rtol=1e-12)
+    # the offset in radiance units: relative to the signal it is this over L
+    np.testing.assert_allclose(u[0], 5.0 * 0.8 / 0.5 / np.sqrt(n_c), rtol=1e-12)
