@@ -20,8 +20,8 @@ Issue 17's Must show.  Per material (``lambert+ggx`` at alpha 0.05 and 0.3,
   not follow the pose mix), the grids' fits and the adaptive run's alike, and ranked by
   the aligned fits' Cauchy BIC (:func:`gonio.fitting.model_error.aligned_bic`), all of it
   through :func:`gonio.fitting.candidates.fit_candidates`, the session advisor's own; the
-  design turns space-filling (``design.MISFIT_WEIGHTS``), its model-free term reading
-  the relative residuals;
+  batch turns space-filling (:func:`gonio.fitting.design.space_filling_batch`, farthest
+  from the measured directions), as the session advisor's does;
 - error = median relative difference of the chosen model (largest BIC weight among the
   candidates) from the ground truth over :func:`gonio.fitting.design.hemisphere_directions`
   (theta to 80 deg, whole hemisphere), all channels;
@@ -215,16 +215,21 @@ def adaptive_run(pool: Any, truth: Truth, *, seed_poses: int = 24, batch: int = 
         if len(measured) >= max_poses or not len(left) or (stop_on_target and reached):
             break
         t0 = time.perf_counter()
-        # a misfit (read from the data's chi^2) makes the model's parameter information
-        # beside the point: the design turns space-filling (the model-free term alone)
-        sc = design.score_candidates(
-            ev["fits"], ev["weights"], ev["fit_samples"], pool.wi[left], pool.wo[left],
-            sample_rel_std=sample_rel_std(ev["fit_samples"]),
-            weights=design.MISFIT_WEIGHTS if ev["misfit"] and misfit_design else weights,
-        )  # fmt: skip
         n = min(batch, max_poses - len(measured))
-        pick = design.choose_batch(sc, ev["fits"], pool.wi[left], pool.wo[left], n,
-                                   min_separation_deg=min_separation_deg)  # fmt: skip
+        if ev["misfit"] and misfit_design:
+            # a misfit (read from the data's chi^2) makes the model's parameter
+            # information beside the point: the batch fills the pose space, as the
+            # session advisor's does (design.space_filling_batch)
+            s = ev["samples"]
+            pick = design.space_filling_batch(pool.wi[left], pool.wo[left],
+                                              *design.measured_directions(s), n)  # fmt: skip
+        else:
+            sc = design.score_candidates(
+                ev["fits"], ev["weights"], ev["fit_samples"], pool.wi[left], pool.wo[left],
+                sample_rel_std=sample_rel_std(ev["fit_samples"]), weights=weights,
+            )  # fmt: skip
+            pick = design.choose_batch(sc, ev["fits"], pool.wi[left], pool.wo[left], n,
+                                       min_separation_deg=min_separation_deg)  # fmt: skip
         rounds[-1]["design_s"] = time.perf_counter() - t0
         new = [int(left[k]) for k in pick]
         batches.append(new)

@@ -192,9 +192,18 @@ class FitAdvisor:
             per_pose = max(1.0, len(samples) / max(n_poses, 1))
             sample_rel = (float(np.median(rel)) if rel.size else 0.01) / math.sqrt(per_pose)
             # a misfit makes the model's parameter information beside the point: the
-            # design turns space-filling (the model-free term alone)
+            # batch fills the pose space (what benchmarks/adaptive.py measures)
             misfit = bool(self._misfit and self._misfit["tau"] > 0.0)
-            weights = dict(design.MISFIT_WEIGHTS) if misfit else a.weights.model_dump()
+            if misfit:
+                idx = design.space_filling_batch(
+                    state.pool_wi, state.pool_wo, *design.measured_directions(samples), n
+                )
+                why = (
+                    "misfit: space-filling, farthest in pose distance from the measured "
+                    "directions (no candidate follows the material)"
+                )
+                return [int(state.pool_ids[i]) for i in idx], {"scored": [], "why": why}
+            weights = a.weights.model_dump()
             scores = design.score_candidates(
                 fits,
                 w,
@@ -219,8 +228,7 @@ class FitAdvisor:
                 for i in top
             ]
             why = (
-                f"greedy by expected information (weights {weights}"
-                f"{', misfit: space-filling' if misfit else ''}), "
+                f"greedy by expected information (weights {weights}), "
                 f"sample rel sigma {sample_rel:.3g}, min separation {a.separation_deg:g} deg"
             )
             return [int(state.pool_ids[i]) for i in idx], {"scored": scored, "why": why}

@@ -165,6 +165,31 @@ def test_greedy_batch_never_picks_a_duplicate(ggx_fit):
     assert nosep[0] in twins and len(set(nosep)) == 8
 
 
+def test_space_filling_batch_takes_each_time_the_pose_farthest_from_all_before():
+    """Against a brute force over every pool pose: each pick's smallest distance to the
+    measured directions and the earlier picks is the largest the pool has."""
+    wi, wo = _pool(60, seed=11)
+    twi, two = _pool(25, seed=12)
+    picks = design.space_filling_batch(wi, wo, twi, two, 6)
+    assert len(set(picks)) == 6
+    awi, awo = twi, two
+    for k in picks:
+        d = np.array(
+            [
+                design.pose_distance_deg(wi[j : j + 1], wo[j : j + 1], awi, awo).min()
+                for j in range(60)
+            ]
+        )
+        assert d[k] == pytest.approx(d.max(), abs=1e-9)
+        awi, awo = np.vstack([awi, wi[k : k + 1]]), np.vstack([awo, wo[k : k + 1]])
+    # nothing measured yet: the first pick is position 0, then the farthest from it
+    first = design.space_filling_batch(wi, wo, np.zeros((0, 3)), np.zeros((0, 3)), 2)
+    d0 = design.pose_distance_deg(wi[:1], wo[:1], wi, wo)[0]
+    assert first == [0, int(np.argmax(d0))]
+    # the whole pool, each once; more than the pool: the pool
+    assert sorted(design.space_filling_batch(wi, wo, twi, two, 99)) == list(range(60))
+
+
 def _covaried(r, name: str, rel: float):
     """Fit ``r`` with the std (and the covariance's diagonal) of ``name`` set to ``rel``
     times its value and no other uncertainty."""
