@@ -38,7 +38,9 @@ per material ``pose_ratio_reach_and_stay``: the grid poses from which on every d
 grid's error is <= 1.05 x the densest grid's, over the adaptive poses from which on every
 later round's is (a curve that dips under the level and climbs back has not reached it;
 None when a curve ends above it).  It is reported beside ``pose_ratio``, not in its
-place.
+place; so is ``late_error_ratio``: the adaptive errors of the rounds from half the pose
+budget on over the densest grid's (``mean``, ``median``, ``max``), where a misfit's
+curve has levelled off and one round's dip or climb does not decide it.
 
 Run: ``.venv/bin/python benchmarks/adaptive.py [--root DIR] [--materials NAME ...]``
 (the sessions are cached in ``--root``).
@@ -358,6 +360,15 @@ def ratios(grids: list[dict], adaptive: list[dict]) -> dict[str, Any]:
     }
 
 
+def late_error_ratio(adaptive: list[dict], dense_error: float, from_poses: float) -> dict:
+    """The errors of the rounds with at least ``from_poses`` poses over ``dense_error``."""
+    e = np.array([r["error"] for r in adaptive if r["poses"] >= from_poses]) / dense_error
+    if not e.size:
+        return {"mean": None, "median": None, "max": None, "rounds": 0}
+    return {"mean": float(e.mean()), "median": float(np.median(e)), "max": float(e.max()),
+            "rounds": int(e.size)}  # fmt: skip
+
+
 def run_material(root: Path, m: Any, **kw: Any) -> dict[str, Any]:
     session = sessions.dense_session(root, m)
     pool = sessions.load_pool(session)
@@ -368,6 +379,8 @@ def run_material(root: Path, m: Any, **kw: Any) -> dict[str, Any]:
     adaptive = adaptive_run(pool, truth, **kw)
     t2 = time.perf_counter()
     out = {"grids": grids, "adaptive": adaptive, **ratios(grids, adaptive)}
+    out["late_error_ratio"] = late_error_ratio(adaptive, grids[-1]["error"],
+                                               kw.get("max_poses", 96) / 2)  # fmt: skip
     out["seconds"] = {"grids": t1 - t0, "adaptive": t2 - t1}
     return out
 
@@ -412,6 +425,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "pose_ratio": {k: v["pose_ratio"] for k, v in per.items()},
         "pose_ratio_within_noise": {k: v["pose_ratio_within_noise"] for k, v in per.items()},
         "pose_ratio_reach_and_stay": {k: v["pose_ratio_reach_and_stay"] for k, v in per.items()},
+        "late_error_ratio": {k: v["late_error_ratio"] for k, v in per.items()},
         "error_ratio_at_equal_time": {k: v["error_ratio_at_equal_time"] for k, v in per.items()},
         "ratio": ratio,
         "target": TARGET,
