@@ -130,25 +130,14 @@ def evaluate(pool: Any, positions: Sequence[int], truth: Truth, candidates=CANDI
 # --------------------------------------------------------------------------------------
 # The seed design
 def _farthest(wi, wo, chosen: list[int], among: np.ndarray, n: int) -> list[int]:
-    """``n`` of ``among`` by farthest-point sampling in pose distance from ``chosen``."""
-    out: list[int] = []
+    """``n`` of ``among`` by farthest-point sampling in pose distance from ``chosen``
+    (:func:`gonio.fitting.design.space_filling_batch`)."""
     among = [int(k) for k in among if k not in chosen]
     if not among:
-        return out
+        return []
     cur = list(chosen)
-    if cur:
-        d = design.pose_distance_deg(wi[among], wo[among], wi[cur], wo[cur]).min(axis=1)
-    else:
-        d = np.full(len(among), np.inf)
-        d[0] = np.inf
-    for _ in range(min(n, len(among))):
-        j = int(np.argmax(d)) if np.isfinite(d).all() else int(np.flatnonzero(~np.isfinite(d))[0])
-        k = among[j]
-        out.append(k)
-        dk = design.pose_distance_deg(wi[among], wo[among], wi[k : k + 1], wo[k : k + 1])[:, 0]
-        d = np.minimum(d, dk)
-        d[j] = -1.0
-    return out
+    picks = design.space_filling_batch(wi[among], wo[among], wi[cur], wo[cur], n)
+    return [among[j] for j in picks]
 
 
 def seed_design(wi: np.ndarray, wo: np.ndarray, n: int = 24, retro: int = 4,

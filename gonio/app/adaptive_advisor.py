@@ -181,16 +181,6 @@ class FitAdvisor:
         assert a is not None
         n = min(a.batch_poses, len(state.pool_ids))
         if design is not None and fits:
-            ok = (samples.flags == 0) & np.all(np.isfinite(samples.brdf), axis=1)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                rel = samples.brdf_std[ok] / np.abs(samples.brdf[ok])
-            rel = rel[np.isfinite(rel)]
-            # a pose measures R regions about its direction: the design wants the
-            # per-sample figure over sqrt(R)
-            poses = getattr(samples, "pose", None)
-            n_poses = len(np.unique(poses)) if poses is not None and len(poses) else 1
-            per_pose = max(1.0, len(samples) / max(n_poses, 1))
-            sample_rel = (float(np.median(rel)) if rel.size else 0.01) / math.sqrt(per_pose)
             # a misfit makes the model's parameter information beside the point: the
             # batch fills the pose space (what benchmarks/adaptive.py measures)
             misfit = bool(self._misfit and self._misfit["tau"] > 0.0)
@@ -203,6 +193,16 @@ class FitAdvisor:
                     "directions (no candidate follows the material)"
                 )
                 return [int(state.pool_ids[i]) for i in idx], {"scored": [], "why": why}
+            ok = (samples.flags == 0) & np.all(np.isfinite(samples.brdf), axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rel = samples.brdf_std[ok] / np.abs(samples.brdf[ok])
+            rel = rel[np.isfinite(rel)]
+            # a pose measures R regions about its direction: the design wants the
+            # per-sample figure over sqrt(R)
+            poses = getattr(samples, "pose", None)
+            n_poses = len(np.unique(poses)) if poses is not None and len(poses) else 1
+            per_pose = max(1.0, len(samples) / max(n_poses, 1))
+            sample_rel = (float(np.median(rel)) if rel.size else 0.01) / math.sqrt(per_pose)
             weights = a.weights.model_dump()
             scores = design.score_candidates(
                 fits,
