@@ -348,14 +348,11 @@ def detect_pose_in_frame(
     pad = half_win + 3
     size = 2 * pad + 1
     # Black level and channel level of every pixel of a crop, for the four CFA phases a
-    # crop can start on: equalising a crop is then one subtraction and one division.
+    # crop can start on (a crop starting on phase (a, b) reads the tiled cell from (a, b)):
+    # equalising a crop is then one subtraction and one division.
+    big = [np.tile(np.asarray(x, np.float32), (pad + 2, pad + 2)) for x in (black, level)]
     tiles = {
-        (a, b): tuple(
-            np.tile(np.roll(np.asarray(x, np.float32), (-a, -b), axis=(0, 1)), (pad + 1, pad + 1))[
-                :size, :size
-            ]
-            for x in (black, level)
-        )
+        (a, b): tuple(t[a : a + size, b : b + size] for t in big)
         for a in range(2)
         for b in range(2)
     }

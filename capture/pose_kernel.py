@@ -150,31 +150,79 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     hw, hh, cell_x, cell_y, lim_x, lim_y = roi[0], roi[1], roi[2], roi[3], roi[4], roi[5]
     mx, my = roi[6], roi[7]
+    # The per-pixel arithmetic (rays, plane points, directions, the HDR merge and the
+    # irradiance geometry) runs a row at a time in branch-free loops over local scalars,
+    # which LLVM vectorises (the divisions and square roots are the kernel's cost); the
+    # labels and sums then read those rows in the original order.  Every value is the
+    # same IEEE expression as before (no contraction: fastmath is off), so the results
+    # are the same bit for bit.
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    C0, C1, C2 = cpos[0], cpos[1], cpos[2]
+    L0, L1, L2 = light[0], light[1], light[2]
+    xs = np.empty(w)
+    for j in range(w):
+        xs[j] = (c0 + j - cx) / fx
+    ys = np.empty(h)
+    for i in range(h):
+        ys[i] = (r0 + i - cy) / fy
+    # each row's rays: the pinhole's (xs, and ys[i] in every column) or the undistorted
+    row_y = np.empty(w)
+    row_p0 = np.empty(w)
+    row_p1 = np.empty(w)
+    row_fx = np.empty(w)
+    row_fy = np.empty(w)
+    row_wi = np.empty((3, w))
+    row_wo = np.empty((3, w))
     # pass 1: which region each pixel sees (map_regions), and the mean directions
     for i in range(h):
-        y = (r0 + i - cy) / fy
+        if undistorted:
+            rx = ray_x[i]
+            ry = ray_y[i]
+        else:
+            row_y[:] = ys[i]
+            rx = xs
+            ry = row_y
         for j in range(w):
-            x = (c0 + j - cx) / fx
-            if undistorted:
-                x = ray_x[i, j]
-                y = ray_y[i, j]
-            d0 = rot[0, 0] * x + rot[1, 0] * y + rot[2, 0]
-            d1 = rot[0, 1] * x + rot[1, 1] * y + rot[2, 1]
-            d2 = rot[0, 2] * x + rot[1, 2] * y + rot[2, 2]
-            s = -cpos[2] / d2
-            p0 = cpos[0] + s * d0
-            p1 = cpos[1] + s * d1
-            p2 = cpos[2] + s * d2
-            ux = p0 + hw
-            uy = p1 + hh
-            ix = math.floor(ux / cell_x)
-            iy = math.floor(uy / cell_y)
+            x = rx[j]
+            y = ry[j]
+            d0 = r00 * x + r10 * y + r20
+            d1 = r01 * x + r11 * y + r21
+            d2 = r02 * x + r12 * y + r22
+            s = -C2 / d2
+            p0 = C0 + s * d0
+            p1 = C1 + s * d1
+            p2 = C2 + s * d2
+            row_p0[j] = p0
+            row_p1[j] = p1
+            row_fx[j] = (p0 + hw) / cell_x
+            row_fy[j] = (p1 + hh) / cell_y
+            v0 = L0 - p0
+            v1 = L1 - p1
+            v2 = L2 - p2
+            inv = 1.0 / math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            row_wi[0, j] = v0 * inv
+            row_wi[1, j] = v1 * inv
+            row_wi[2, j] = v2 * inv
+            v0 = C0 - p0
+            v1 = C1 - p1
+            v2 = C2 - p2
+            inv = 1.0 / math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            row_wo[0, j] = v0 * inv
+            row_wo[1, j] = v1 * inv
+            row_wo[2, j] = v2 * inv
+        for j in range(w):
+            p0 = row_p0[j]
+            p1 = row_p1[j]
+            ix = math.floor(row_fx[j])
+            iy = math.floor(row_fy[j])
             if not (ix >= 0 and ix < grid and iy >= 0 and iy < grid_y):
                 continue
             if not (abs(p0) < lim_x and abs(p1) < lim_y):
                 continue
-            ex = ux - ix * cell_x
-            ey = uy - iy * cell_y
+            ex = (p0 + hw) - ix * cell_x
+            ey = (p1 + hh) - iy * cell_y
             if not (ex >= mx and ex <= cell_x - mx and ey >= my and ey <= cell_y - my):
                 continue
             r = int(iy * grid + ix)
@@ -186,20 +234,12 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
             seen_y[n_seen] = p1
             seen_r[n_seen] = r
             n_seen += 1
-            v0 = light[0] - p0
-            v1 = light[1] - p1
-            v2 = light[2] - p2
-            inv = 1.0 / math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-            dirs[r, DIR_WI] += v0 * inv
-            dirs[r, DIR_WI + 1] += v1 * inv
-            dirs[r, DIR_WI + 2] += v2 * inv
-            v0 = cpos[0] - p0
-            v1 = cpos[1] - p1
-            v2 = cpos[2] - p2
-            inv = 1.0 / math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-            dirs[r, DIR_WO] += v0 * inv
-            dirs[r, DIR_WO + 1] += v1 * inv
-            dirs[r, DIR_WO + 2] += v2 * inv
+            dirs[r, DIR_WI] += row_wi[0, j]
+            dirs[r, DIR_WI + 1] += row_wi[1, j]
+            dirs[r, DIR_WI + 2] += row_wi[2, j]
+            dirs[r, DIR_WO] += row_wo[0, j]
+            dirs[r, DIR_WO + 1] += row_wo[1, j]
+            dirs[r, DIR_WO + 2] += row_wo[2, j]
     # the positions' second moments about each region's mean (region_moments' second pass)
     for q in range(n_seen):
         r = seen_r[q]
@@ -211,21 +251,10 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     # pass 2: every CFA site used by a region (bayer_region_entries), merged and summed
     regs = np.empty(9, np.int64)
     wts = np.empty(9)
-    lin = np.empty(F)
-    oks = np.empty(F, np.bool_)
     inv_e = 1.0 / expo
     expo2 = expo * expo  # 1 / var(S / e) = e^2 / var(S)
-    xs = np.empty(w)
-    for j in range(w):
-        xs[j] = (c0 + j - cx) / fx
-    ys = np.empty(h)
-    for i in range(h):
-        ys[i] = (r0 + i - cy) / fy
-    nrm = math.sqrt(
-        light_normal[0] * light_normal[0]
-        + light_normal[1] * light_normal[1]
-        + light_normal[2] * light_normal[2]
-    )
+    N0, N1, N2 = light_normal[0], light_normal[1], light_normal[2]
+    nrm = math.sqrt(N0 * N0 + N1 * N1 + N2 * N2)
     rr = light_radius * light_radius
     disk_area = math.pi * rr
     has_offset = offset.shape[1] > 0
@@ -233,12 +262,124 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     has_dark = dark_var.shape[0] > 0
     has_mask = mask.shape[0] > 0
     has_profile = has_normal and profile_n != 0.0
+    has_disk = light_radius > 0.0
+    lin = np.empty((F, w))
+    oks = np.empty((F, w), np.bool_)
+    sum_s = np.empty(w)
+    sum_e = np.empty(w)
+    n_ok = np.empty(w, np.int64)
+    r0e = np.empty(w)
+    wsum = np.empty(w)
+    vsum = np.empty(w)
+    row_dv = np.empty(w)
+    row_val = np.empty(w)
+    row_var = np.empty(w)
+    row_sat = np.empty(w, np.bool_)
+    row_g = np.empty(w)
+    row_ig = np.empty(w)
     for i in range(h):
+        a = i % 2
+        # the HDR merge of the row's sites (merge_bracket), a frame at a time; sums start
+        # at +0 and so never are -0, which adding 0.0 for a rejected frame would change
+        sum_s[:] = 0.0
+        sum_e[:] = 0.0
+        n_ok[:] = 0
+        for k in range(F):
+            raw_k = raws[k, i]
+            b0 = black[k, a, 0]
+            b1 = black[k, a, 1]
+            s0 = sat_level[k, a, 0]
+            s1 = sat_level[k, a, 1]
+            e_k = expo[k]
+            for j in range(w):
+                odd = (j & 1) == 1
+                q = raw_k[j]
+                sk = q - (b1 if odd else b0)
+                if has_offset:
+                    sk -= offset[k, i, j]
+                if has_gain:
+                    sk /= gain[k, i, j]
+                ok = q < (s1 if odd else s0)
+                lin[k, j] = sk
+                oks[k, j] = ok
+                sum_s[j] += sk if ok else 0.0
+                sum_e[j] += e_k if ok else 0.0
+                n_ok[j] += 1 if ok else 0
+        for j in range(w):
+            r0e[j] = sum_s[j] / sum_e[j]
+        if has_dark:
+            row_dv[:] = dark_var[i]
+        else:
+            row_dv[:] = dark_var0
+        wsum[:] = 0.0
+        vsum[:] = 0.0
+        for k in range(F):
+            e_k = expo[k]
+            e2_k = expo2[k]
+            ie_k = inv_e[k]
+            g_k = noise_gain[k]
+            rn_k = noise_read2[k]
+            for j in range(w):
+                sig = r0e[j] * e_k
+                if sig < 0.0:
+                    sig = 0.0
+                w_k = e2_k / (g_k * sig + rn_k + noise_quant + row_dv[j])
+                ok = oks[k, j]
+                wsum[j] += w_k if ok else 0.0
+                vsum[j] += w_k * lin[k, j] * ie_k if ok else 0.0
+        if undistorted:
+            rx = ray_x[i]
+            ry = ray_y[i]
+        else:
+            rx = xs
+            ry = row_y
+            row_y[:] = ys[i]
+        y = ys[i]
+        for j in range(w):
+            # natural vignetting (1 / cos^4, of the pixel's place on the sensor) and the
+            # point this pixel sees (along its undistorted ray when the lens distorts)
+            x = xs[j]
+            r2 = x * x + y * y + 1.0
+            r4 = r2 * r2
+            inv_w = 1.0 / wsum[j]
+            val = vsum[j] * inv_w * r4
+            var = r4 * r4 * inv_w
+            sat = n_ok[j] == 0 or not math.isfinite(val)
+            row_val[j] = 0.0 if sat else val
+            row_var[j] = 0.0 if sat else var
+            row_sat[j] = sat
+            x = rx[j]
+            yy = ry[j]
+            d0 = r00 * x + r10 * yy + r20
+            d1 = r01 * x + r11 * yy + r21
+            d2 = r02 * x + r12 * yy + r22
+            s = -C2 / d2
+            v0 = L0 - (C0 + s * d0)
+            v1 = L1 - (C1 + s * d1)
+            v2 = L2 - (C2 + s * d2)
+            # irradiance_geometry (surface normal +z: cos = v2 / d, over d^2), the emitter's
+            # cosine when it has a normal, and the disk's finite-size factor
+            # A d^2 / (d^2 + r^2), as one numerator over one denominator
+            dd = v0 * v0 + v1 * v1 + v2 * v2
+            num = _max0(v2)
+            if has_normal:
+                cos_e = _max0(-(v0 * N0 + v1 * N1 + v2 * N2))
+                num *= cos_e
+                den = dd * dd * nrm
+                if has_profile:  # the emitted radiance's cos^n(psi) about the normal
+                    num *= (cos_e / (math.sqrt(dd) * nrm)) ** profile_n
+            else:
+                den = dd * math.sqrt(dd)
+            if has_disk:
+                num *= disk_area * dd
+                den *= dd + rr
+            row_g[j] = num / den
+            row_ig[j] = den / num
         for j in range(w):
             # a hot or dead pixel's site weighs nothing in any region (not "saturated")
             if has_mask and mask[i, j]:
                 continue
-            a, b = i % 2, j % 2
+            b = j % 2
             ps = 2 * a + b
             nr = 0
             for t in range(st_n[ps]):
@@ -260,77 +401,11 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
                     nr += 1
             if nr == 0:
                 continue
-            # the HDR merge of this site (merge_bracket)
-            sum_s = 0.0
-            sum_e = 0.0
-            n_ok = 0
-            for k in range(F):
-                sk = raws[k, i, j] - black[k, a, b]
-                if has_offset:
-                    sk -= offset[k, i, j]
-                if has_gain:
-                    sk /= gain[k, i, j]
-                ok = raws[k, i, j] < sat_level[k, a, b]
-                lin[k] = sk
-                oks[k] = ok
-                if ok:
-                    sum_s += sk
-                    sum_e += expo[k]
-                    n_ok += 1
-            dv = dark_var[i, j] if has_dark else dark_var0
-            r0e = sum_s / sum_e
-            wsum = 0.0
-            vsum = 0.0
-            for k in range(F):
-                if not oks[k]:
-                    continue
-                sig = r0e * expo[k]
-                if sig < 0.0:
-                    sig = 0.0
-                w_k = expo2[k] / (noise_gain[k] * sig + noise_read2[k] + noise_quant + dv)
-                wsum += w_k
-                vsum += w_k * lin[k] * inv_e[k]
-            # natural vignetting (1 / cos^4, of the pixel's place on the sensor) and the
-            # point this pixel sees (along its undistorted ray when the lens distorts)
-            x = xs[j]
-            y = ys[i]
-            r2 = x * x + y * y + 1.0
-            r4 = r2 * r2
-            inv_w = 1.0 / wsum
-            val = vsum * inv_w * r4
-            var = r4 * r4 * inv_w
-            sat = n_ok == 0 or not math.isfinite(val)
-            if sat:
-                val = 0.0
-                var = 0.0
-            if undistorted:
-                x = ray_x[i, j]
-                y = ray_y[i, j]
-            d0 = rot[0, 0] * x + rot[1, 0] * y + rot[2, 0]
-            d1 = rot[0, 1] * x + rot[1, 1] * y + rot[2, 1]
-            d2 = rot[0, 2] * x + rot[1, 2] * y + rot[2, 2]
-            s = -cpos[2] / d2
-            v0 = light[0] - (cpos[0] + s * d0)
-            v1 = light[1] - (cpos[1] + s * d1)
-            v2 = light[2] - (cpos[2] + s * d2)
-            # irradiance_geometry (surface normal +z: cos = v2 / d, over d^2), the emitter's
-            # cosine when it has a normal, and the disk's finite-size factor
-            # A d^2 / (d^2 + r^2), as one numerator over one denominator
-            dd = v0 * v0 + v1 * v1 + v2 * v2
-            num = _max0(v2)
-            if has_normal:
-                cos_e = _max0(-(v0 * light_normal[0] + v1 * light_normal[1] + v2 * light_normal[2]))
-                num *= cos_e
-                den = dd * dd * nrm
-                if has_profile:  # the emitted radiance's cos^n(psi) about the normal
-                    num *= (cos_e / (math.sqrt(dd) * nrm)) ** profile_n
-            else:
-                den = dd * math.sqrt(dd)
-            if light_radius > 0.0:
-                num *= disk_area * dd
-                den *= dd + rr
-            g = num / den
-            inv_g = den / num
+            val = row_val[j]
+            var = row_var[j]
+            sat = row_sat[j]
+            g = row_g[j]
+            inv_g = row_ig[j]
             c = cell_channel[a, b]
             for u in range(nr):
                 wt = wts[u]

@@ -630,8 +630,12 @@ def _pose_sums_fused(
     r0, c0 = box[0].start, box[1].start
     frames = sorted(frames, key=lambda f: f.exposure_factor())  # merge_bracket's order
 
-    def crop_cell(cell: NDArray) -> NDArray:  # a (2, 2) cell as seen from the crop origin
-        return np.roll(np.asarray(cell, float), (-(r0 % 2), -(c0 % 2)), axis=(0, 1))
+    # a (2, 2) cell as seen from the crop origin: np.roll by (-(r0 % 2), -(c0 % 2)), by
+    # indexing (np.roll costs 15 us a call, a dozen calls a pose)
+    phase = np.ix_([r0 % 2, 1 - r0 % 2], [c0 % 2, 1 - c0 % 2])
+
+    def crop_cell(cell: NDArray) -> NDArray:
+        return np.asarray(cell, float)[phase]
 
     def stack(key: str) -> NDArray:
         if all(f.extra.get(key) is None for f in frames):

@@ -426,8 +426,8 @@ class _PoseRun:
     _rig_cache: dict[int, tuple[Any, ...]] = field(default_factory=dict)
     #: _geometry_modes' value
     _modes: tuple[Any, Any] | None = None
-    #: pose -> _pose_shifts' value
-    _shift_cache: dict[int, tuple[Any, Any, Any]] = field(default_factory=dict)
+    #: pose -> ((joints, approach), _pose_shifts' value at them)
+    _shift_cache: dict[int, tuple[Any, tuple[Any, Any, Any]]] = field(default_factory=dict)
     #: pose -> the dark term in radiance units of an undarked pose (_radiometric_terms)
     _dark_std: dict[int, NDArray[np.float64]] = field(default_factory=dict)
 
@@ -615,11 +615,20 @@ class _PoseRun:
         return self._modes
 
     def _pose_shifts(self, p: int, last: Mapping[str, Any]) -> tuple[Any, Any, Any]:
-        """Pose ``p``'s light and camera under every session mode (:meth:`RigShifts.at`).
+        """Pose ``p``'s light and camera under every session mode (:meth:`RigShifts.at`)
+        at ``last``'s joints and approach.
 
         One vectorised kinematics evaluation per mode for every pose of the records not
-        yet cached (a pose at a time costs 30x more: 90 ms a pose on a calibrated rig)."""
-        if p not in self._shift_cache:
+        yet cached (a pose at a time costs 30x more: 90 ms a pose on a calibrated rig).
+        An entry is kept with the joints it was computed at and used only for the same
+        ones: a pose still being shot when it was cached (an incremental reduction's
+        records grow) is computed again."""
+
+        def inputs(rec: Mapping[str, Any]) -> tuple[Any, Any]:
+            return rec.get("joints"), rec.get("approach")
+
+        hit = self._shift_cache.get(p)
+        if hit is None or hit[0] != inputs(last):
             shots, _ = _shots_by_pose(self.records)
             todo = {
                 q: recs[-1]
@@ -633,8 +642,8 @@ class _PoseRun:
                 modes, [todo[q].get("joints") for q in qs], [todo[q].get("approach") for q in qs]
             )
             for k, q in enumerate(qs):
-                self._shift_cache[q] = sh.at(k)
-        return self._shift_cache[p]
+                self._shift_cache[q] = (inputs(todo[q]), sh.at(k))
+        return self._shift_cache[p][1]
 
     def _rig_beats_board(
         self,
@@ -1052,17 +1061,16 @@ class _PoseRun:
         ``radiometric_rel_std`` (relative, (n, C): times f)."""
         modes, cmodes = self._geometry_modes()
         inputs = [self.pose_inputs.get(m.pose) for m in samples_m]
-        shifts = rig_shifts(
-            modes,
-            [None if x is None else x[1] for x in inputs],
-            [None if x is None else x[2] for x in inputs],
-        )
         per_pose, sources, pose_idx = [], [], []
         for k, m in enumerate(samples_m):
             src = m.geometry_source
             n = len(m.flags)
             if m.camera is None or inputs[k] is None or m.kernel == "none":
                 src = "none"
+            # the shifts _rig_beats_board computed already (rig_shifts is pose by pose
+            # the same whatever the other poses of the batch: tested)
+            x = inputs[k]
+            last = {} if x is None else {"joints": x[1], "approach": x[2]}
             per_pose.append(
                 pose_modes(
                     m.wi,
@@ -1071,7 +1079,7 @@ class _PoseRun:
                     None if inputs[k] is None else inputs[k][0],
                     source=src,
                     session=modes,
-                    shifts=shifts.at(k),
+                    shifts=self._pose_shifts(m.pose, last),
                     K=self.setup.K,
                     camera_modes=cmodes,
                     dist=self.setup.dist,

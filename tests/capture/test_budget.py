@@ -190,6 +190,25 @@ def test_without_a_record_the_nominal_joint_tolerance_moves_each_joint():
     assert np.isnan(shifts.light).all()
 
 
+@pytest.mark.parametrize("calibrated", [True, False])
+def test_rig_shifts_of_a_pose_do_not_depend_on_the_batch(calibrated):
+    """The reduction computes every pose's shifts in one batch and reuses them for the
+    budget, which used to compute them again over the sample poses alone: a pose's
+    numbers must be the same bits in any batch."""
+    rig = _calibrated_rig()[0] if calibrated else NOMINAL
+    modes = session_modes(rig, nominal_joint_std_deg=0.1)
+    rng = np.random.default_rng(5)
+    joints = [{j: JOINTS[j] + rng.normal(0, 0.2) for j in JOINT_NAMES} for _ in range(7)]
+    joints[3] = None  # a pose without joints in the batch changes nothing either
+    approach = [APPROACH] * 7
+    whole = rig_shifts(modes, joints, approach)
+    for k in (0, 2, 6):
+        alone = rig_shifts(modes, [joints[k]], [approach[k]])
+        some = rig_shifts(modes, [joints[5], joints[k]], [approach[5], approach[k]])
+        for a, b, c in zip(whole.at(k), alone.at(0), some.at(1), strict=True):
+            assert np.array_equal(a, b) and np.array_equal(a, c)
+
+
 def _board_camera(seed, C, rot_std, trans_std):
     """A camera at ``C`` looking at the origin, with a random (correlated) board pose
     covariance of about ``rot_std`` (rad) and ``trans_std`` (m)."""
