@@ -118,9 +118,26 @@ class PhotonTransfer:
     variances: NDArray[np.float64]
 
 
+#: Relative difference at which two frames' exposure times or f-numbers are different
+#: settings: EXIF rationals (1/50 against 0.02) agree far better, a stop differs by 2x.
+_SETTING_RTOL = 1e-3
+
+
 def _pair_points(a: RawFrame, b: RawFrame) -> tuple[NDArray, NDArray]:
     if a.shape != b.shape:
         raise ReductionError(f"{a.name} and {b.name} differ in size; a pair must match")
+    # The difference of a pair cancels the fixed pattern only at one signal level: frames
+    # of two exposures give a variance of their difference dominated by the level step,
+    # and a photon-transfer "gain" orders of magnitude off, written without complaint.
+    for what, x, y in (
+        ("exposure time", a.exposure_time, b.exposure_time),
+        ("f-number", a.f_number, b.f_number),
+    ):
+        if np.isfinite(x) and np.isfinite(y) and not np.isclose(x, y, rtol=_SETTING_RTOL, atol=0):
+            raise ReductionError(
+                f"{a.name} and {b.name} differ in {what} ({x:g} and {y:g}); a pair is two "
+                "frames shot with identical settings (give the frames pair by pair)"
+            )
     ok = ~(a.saturated | b.saturated)
     diff = a.linear - b.linear
     avg = 0.5 * (a.linear + b.linear)

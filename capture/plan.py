@@ -94,6 +94,11 @@ MAX_EXPOSURE_S = 3600.0
 MAX_SETTLE_S = 60.0
 
 Seconds = Annotated[float, Field(gt=0, le=MAX_EXPOSURE_S)]
+#: A reflectance in (0, 1]: the reduction divides by it (0 is no reference at all) and a
+#: passive target cannot reflect more than it receives.  The same bounds as
+#: ``reduction.toml``'s ``[reference] reflectance``, which the session copies it into: a
+#: plan refused only at the reduction would have cost a whole session first.
+Reflectance = Annotated[float, Field(gt=0, le=1)]
 
 
 class _Strict(BaseModel):
@@ -303,7 +308,7 @@ class ReferenceShots(_Strict):
     exposed with the same bracket policy; ``reflectance`` is the target's known value."""
 
     poses: tuple[ReferencePose, ...] = ()
-    reflectance: float | tuple[float, float, float] = 0.99
+    reflectance: Reflectance | tuple[Reflectance, Reflectance, Reflectance] = 0.99
     when: Literal["start", "end"] = "start"
     #: Shoot the reference group again after every this many sample poses (and at
     #: ``when``), so the reduction can follow the light's drift; 0: only at ``when``.

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from gonio.cli import FiniteFloatRange
 from gonio.errors import ReductionError
 
 
@@ -50,13 +51,13 @@ from gonio.errors import ReductionError
 )
 @click.option(
     "--roi-fraction",
-    type=click.FloatRange(0.05, 1.0),
+    type=FiniteFloatRange(0.05, 1.0),
     default=None,
     help="Fraction of the sample's width and height used (keeps off its edges).",
 )
 @click.option(
     "--tolerance-deg",
-    type=click.FloatRange(0.0, min_open=True),
+    type=FiniteFloatRange(0.0, min_open=True),
     default=None,
     help="Largest camera-direction disagreement between board and rig before the "
     "samples are flagged GEOMETRY_MISMATCH.",
@@ -75,7 +76,7 @@ from gonio.errors import ReductionError
 @click.option(
     "--max-region-spread-deg",
     "max_spread",
-    type=click.FloatRange(0.0, 90.0, min_open=True),
+    type=FiniteFloatRange(0.0, 90.0, min_open=True),
     default=None,
     help="Trim each region to a spread of directions of at most this many degrees, seen "
     "from the camera and from the light (never along a grazing view's tilt).  "

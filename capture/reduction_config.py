@@ -32,6 +32,7 @@ from gonio.capture.calibration import reference_reflectance
 from gonio.capture.fiducials import BoardSpec
 from gonio.capture.noise import NoiseModel
 from gonio.capture.raw import CameraSignature
+from gonio.charuco import board_markers_problem
 from gonio.config import read_toml, validate
 from gonio.errors import ConfigError, FileFormatError, ReductionError, SessionError
 
@@ -202,6 +203,13 @@ class BoardSection(_Strict):
     def _marker_fits(self) -> BoardSection:
         if self.marker_length >= self.square_length:
             raise ValueError("marker_length must be smaller than square_length")
+        return self
+
+    @model_validator(mode="after")
+    def _dictionary_has_the_markers(self) -> BoardSection:
+        problem = board_markers_problem(self.squares_x, self.squares_y, self.dictionary)
+        if problem:
+            raise ValueError(problem)
         return self
 
 

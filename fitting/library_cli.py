@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import glob
+import math
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -44,6 +45,17 @@ class _FitSourceType(click.ParamType):
 
 #: The click type of ``gonio fit``'s SOURCE argument.
 FIT_SOURCE = _FitSourceType()
+
+
+def _positive_seconds(ctx: Any, param: Any, value: float | None) -> float | None:
+    """``--connect-timeout``: a positive, finite number of seconds (None: the default).
+
+    NaN and negative values reached dask's time parser, whose KeyError/ValueError came out
+    as a traceback.
+    """
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise click.BadParameter(f"expected a positive finite number of seconds, got {value}")
+    return value
 
 
 _LIBRARY_PARAMS = ("scheduler", "workers", "sampling", "connect_timeout")
@@ -105,6 +117,7 @@ def library_dispatch(fn: Callable[..., Any]) -> Callable[..., Any]:
                 "--connect-timeout",
                 type=float,
                 default=None,
+                callback=_positive_seconds,
                 metavar="SECONDS",
                 help="Library and --svbrdf: how long to wait for --scheduler (default 10).",
             ),

@@ -32,6 +32,12 @@ __all__ = ["Problem", "prepare_problem"]
 # A shape parameter is searched in log space when it is positive and spans this ratio.
 _LOG_SPAN = 100.0
 
+# Largest |brdf| (and, for weighted_l2, |brdf| / sigma) a fit accepts.  Residuals are
+# squared and summed, so beyond ~1e154 the cost overflows to inf and every model "fails"
+# with numpy overflow warnings and no word about the data; no f_r in 1/sr comes near
+# (a polished metal's specular peak is ~1e4-1e6).  A damaged file, not a material.
+_MAX_RESIDUAL_SCALE = 1e100
+
 
 @dataclass
 class Problem:
@@ -350,6 +356,7 @@ def prepare_problem(
             f"samples.brdf: all {int(keep.sum())} usable values are zero or negative; "
             "there is no reflectance to fit"
         )
+    _check_residual_scale(yk, None if sigma is None else kept(sigma), loss, keep)
 
     names = tuple(model.param_names)
     linear = tuple(n for n in names if n in set(getattr(model, "linear_params", ()) or ()))
@@ -401,3 +408,37 @@ def prepare_problem(
         ub_lin=ub_l,
         sample_weight=None if sample_weight is None else kept(sample_weight),
     )
+
+
+def _check_residual_scale(
+    y: np.ndarray, sigma: np.ndarray | None, loss: Loss, keep: np.ndarray
+) -> None:
+    """Refuse samples whose squared residuals would overflow (:data:`_MAX_RESIDUAL_SCALE`).
+
+    Parameters
+    ----------
+    y, sigma
+        The kept samples' BRDF values and standard deviations, (M, C), 1/sr.
+    loss
+        The loss: ``weighted_l2`` divides by sigma, so the ratio is checked as well.
+    keep
+        Which of the input samples are kept, (N,): to name the sample by its input index.
+
+    Raises
+    ------
+    FitError
+        Naming ``samples.brdf`` (or ``samples.brdf_std``), the sample and the value.
+    """
+    checks = [("samples.brdf", np.abs(y), "|brdf|")]
+    if sigma is not None and loss.name == "weighted_l2":
+        with np.errstate(over="ignore", divide="ignore"):
+            checks.append(("samples.brdf_std", np.abs(y) / sigma, "|brdf| / brdf_std"))
+    for name, scale, what in checks:
+        if np.max(scale, initial=0.0) > _MAX_RESIDUAL_SCALE:
+            j = int(np.argmax(np.max(scale, axis=1)))
+            i = int(np.flatnonzero(keep)[j])
+            raise FitError(
+                f"{name}: sample {i} has {what} = {float(np.max(scale[j])):.3g}, beyond "
+                f"{_MAX_RESIDUAL_SCALE:.0e}: its squared residual would overflow (expected "
+                "f_r in 1/sr and its std; the file is damaged?)"
+            )

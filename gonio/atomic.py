@@ -169,6 +169,14 @@ def _create_temp(parent: Path, name: str) -> tuple[Path, int]:
             fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
         except FileExistsError:
             continue
+        except OSError as exc:
+            # Name the file the user asked for, not our hidden temporary beside it (an
+            # error "dir/.plot.png.k3j9x0qa.tmp: Permission denied" names neither).
+            raise type(exc)(
+                exc.errno,
+                f"{exc.strerror} (creating a temporary file in {parent} to write it)",
+                str(parent / name),
+            ) from exc
         try:
             _lock_file(fd)
         except BaseException:

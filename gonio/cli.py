@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import math
 import sys
+from typing import Any
 
 import click
 
@@ -59,6 +61,26 @@ class LazyGroup(click.Group):
             return super().get_command(ctx, cmd_name)
         module_name, attr = target.split(":")
         return getattr(importlib.import_module(module_name), attr)
+
+
+class FiniteFloatRange(click.FloatRange):
+    """``click.FloatRange`` that also refuses NaN and infinities.
+
+    click checks a range with comparisons, which are all false for NaN, so ``--x nan``
+    passes any ``FloatRange`` (and ``inf`` one without a maximum) and surfaces later as
+    a traceback, a misleading error or a NaN result.  Use this for every float option
+    whose value must be a real number; it shows in ``--help`` as ``FloatRange`` does.
+    """
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        rv = super().convert(value, param, ctx)
+        if not math.isfinite(rv):
+            # the user's own text (e.g. "-nan"), not its float
+            got = value if isinstance(value, str) else rv
+            self.fail(
+                f"expected a finite number in {self._describe_range()}, got {got}", param, ctx
+            )
+        return rv
 
 
 @click.group(

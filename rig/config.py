@@ -60,7 +60,10 @@ MAX_TILT_AXIS_PITCH_DEG = 10.0
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # No inf/nan anywhere in a rig: a NaN axis or offset passed every range check (all
+    # comparisons with NaN are false) and surfaced as a traceback deep in the kinematics,
+    # and an infinite radius or timeout is always a typo.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class BusConfig(_Strict):

@@ -165,11 +165,18 @@ Positive = Annotated[float, Field(gt=0)]
 #: bound as a plan's (``gonio.capture.plan.MAX_EXPOSURE_S``).
 MAX_EXPOSURE_S = 3600.0
 ExposureTime = Annotated[float, Field(gt=0, le=MAX_EXPOSURE_S, allow_inf_nan=False)]
-RGBOrScalar = float | tuple[float, float, float]
+#: A reflectance or efficiency, per channel or one for all: a fraction of the light.
+Fraction = Annotated[float, Field(ge=0, le=1)]
+RGBOrScalar = Fraction | tuple[Fraction, Fraction, Fraction]
+#: An emitted radiance or intensity, per channel or one for all: no light emits less
+#: than nothing.
+NonNegative = Annotated[float, Field(ge=0)]
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # No inf/nan anywhere in a scene: a NaN radiance or albedo passed every bound (all
+    # comparisons with NaN are false) and rendered a DNG of NaN-derived pixels, exit 0.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 def _rgb(value: RGBOrScalar) -> np.ndarray:
@@ -252,7 +259,7 @@ class Spectrum(_Model):
         return np.einsum("l,lc,l->c", s, np.asarray(cam.values, float), dl)
 
 
-Colour = float | tuple[float, float, float] | Spectrum
+Colour = NonNegative | tuple[NonNegative, NonNegative, NonNegative] | Spectrum
 
 
 class BRDFSpec(_Model):
@@ -358,6 +365,15 @@ class Board(_Model):
     def _marker_fits(self) -> Board:
         if self.marker_length >= self.square_length:
             raise ValueError("marker_length must be smaller than square_length")
+        return self
+
+    @model_validator(mode="after")
+    def _dictionary_has_the_markers(self) -> Board:
+        from gonio.charuco import board_markers_problem
+
+        problem = board_markers_problem(self.squares_x, self.squares_y, self.dictionary)
+        if problem:
+            raise ValueError(problem)
         return self
 
     @field_validator("dictionary")

@@ -47,6 +47,7 @@ def _board_from(path: Path | None, session: Path | None) -> tuple[Any, str]:
     scene's ``[holder.board]``), else a simulated session's scene, else the session's
     reduction.toml, else the default board."""
     from gonio.capture.fiducials import BoardSpec
+    from gonio.charuco import board_markers_problem
     from gonio.config import read_toml
     from gonio.errors import ConfigError
 
@@ -55,9 +56,15 @@ def _board_from(path: Path | None, session: Path | None) -> tuple[Any, str]:
         if not isinstance(table, dict):
             return None
         try:
-            return BoardSpec.from_mapping(table)
+            board = BoardSpec.from_mapping(table)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"{where}: [board]: {exc}") from None
+        # from_mapping checks each field alone; a board of more markers than its
+        # dictionary holds stalled the calibration for minutes per image.
+        problem = board_markers_problem(board.squares_x, board.squares_y, board.dictionary)
+        if problem:
+            raise ConfigError(f"{where}: [board]: {problem}")
+        return board
 
     if path is not None:
         board = from_doc(read_toml(path, "board"), str(path))

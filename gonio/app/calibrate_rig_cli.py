@@ -22,6 +22,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from gonio.cli import FiniteFloatRange
+
 __all__ = ["camera_prior", "plan_cmd", "rig_cmd"]
 
 
@@ -75,7 +77,7 @@ def camera_prior(path: Path):
 @click.option("--seed", type=int, default=0, show_default=True, help="Order of the board views.")
 @click.option(
     "--spot-exposure",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloatRange(min=0, min_open=True),
     default=2e-5,
     show_default=True,
     help="Short exposure of each pose, s: the light's image in the mirror must not clip "
@@ -83,7 +85,7 @@ def camera_prior(path: Path):
 )
 @click.option(
     "--board-exposure",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloatRange(min=0, min_open=True),
     default=0.02,
     show_default=True,
     help="Long exposure of each pose, s: the board's corners.",
@@ -121,6 +123,7 @@ def plan_cmd(
     """
     from rich.console import Console
 
+    from gonio.capture.plan import MAX_EXPOSURE_S
     from gonio.rig.calibration_plan import (
         camera_calibration_poses,
         check_observable,
@@ -130,6 +133,15 @@ def plan_cmd(
     )
     from gonio.rig.calibration_record import CalibrationError
 
+    # The plan's own bound, checked here: a plan written with a longer exposure is
+    # refused only by the next step (`gonio capture run`), after this one said "wrote".
+    for hint, value in (("--spot-exposure", spot_exposure), ("--board-exposure", board_exposure)):
+        if value > MAX_EXPOSURE_S:
+            raise click.BadParameter(
+                f"expected at most {MAX_EXPOSURE_S:g} s (the longest exposure a plan "
+                f"accepts), got {value:g} s",
+                param_hint=hint,
+            )
     console = Console()
     if out.exists() and not force:
         raise CalibrationError(f"{out} exists; not overwritten (use --force to replace it)")

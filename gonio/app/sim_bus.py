@@ -13,6 +13,7 @@ import threading
 
 import click
 
+from gonio.cli import FiniteFloatRange
 from gonio.rig.control_table import BAUD_CODES, MODELS
 from gonio.simulator.virtual_bus import VirtualBus
 
@@ -76,7 +77,7 @@ def _int_list(ctx, param, value: str | None) -> list[int] | None:
     "--fault-rate",
     default=0.0,
     show_default=True,
-    type=click.FloatRange(0, 1),
+    type=FiniteFloatRange(0, 1),
     help="Probability that a reply is corrupted or dropped (half each).",
 )
 @click.option(
@@ -86,7 +87,7 @@ def _int_list(ctx, param, value: str | None) -> list[int] | None:
     "--time-scale",
     default=1.0,
     show_default=True,
-    type=click.FloatRange(min=1e-3),
+    type=FiniteFloatRange(min=1e-3),
     help="Servo time runs this many times faster than the wall clock.",
 )
 def bus_cmd(

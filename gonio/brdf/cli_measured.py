@@ -13,12 +13,26 @@ __all__ = ["info_cmd", "convert_cmd"]
 
 
 def _parse_angles(text: str) -> np.ndarray:
+    """``--theta-i-deg``: comma-separated incident elevations in [0, 90) degrees.
+
+    Raises
+    ------
+    click.BadParameter
+        Naming the option and the text: not numbers, none given, or outside [0, 90)
+        (NaN included: it would otherwise print a table of NaN and exit 0).
+    """
+    hint = "--theta-i-deg"
     try:
         vals = np.array([float(t) for t in text.split(",") if t.strip()], dtype=np.float64)
     except ValueError as exc:
-        raise click.BadParameter(f"expected comma-separated degrees, got {text!r}") from exc
-    if vals.size == 0 or np.any((vals < 0) | (vals >= 90)):
-        raise click.BadParameter(f"angles must lie in [0, 90) degrees, got {text!r}")
+        raise click.BadParameter(
+            f"expected comma-separated degrees, got {text!r}", param_hint=hint
+        ) from exc
+    # Written as "not inside" so that NaN, for which every comparison is false, is refused.
+    if vals.size == 0 or not np.all((vals >= 0) & (vals < 90)):
+        raise click.BadParameter(
+            f"angles must lie in [0, 90) degrees, got {text!r}", param_hint=hint
+        )
     return vals
 
 

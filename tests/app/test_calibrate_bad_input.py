@@ -203,6 +203,8 @@ def test_calibrate_rig_refuses_observations_approaching_a_joint_from_one_side(
         ('squares_y = "7"', "squares_y"),
         ("marker_length = 0.03", "marker_length must be smaller"),
         ("dictionary = 5", "dictionary"),
+        # more markers than DICT_4X4_50 holds: it stalled for minutes per image
+        ("squares_x = 100000\nmarker_length = 0.015", "350000 markers, more than the 50"),
     ],
 )
 def test_a_bad_board_table_is_named_not_a_traceback(tmp_path, capsys, table, named):
@@ -224,3 +226,28 @@ def test_a_world_table_that_is_not_a_table_is_named(tmp_path):
 
     with pytest.raises(ConfigError, match="tables"):
         load_world({"preset": "realistic", "rig": "x"})
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "expect"),
+    [
+        ("--spot-exposure", "nan", "finite"),
+        ("--board-exposure", "nan", "finite"),
+        ("--board-exposure", "inf", "finite"),
+        ("--board-exposure", "1e9", "at most 3600 s"),
+    ],
+)
+def test_calibrate_plan_refuses_an_exposure_its_plan_could_not_hold(
+    tmp_path, capsys, option, value, expect
+):
+    # It wrote the plan and said so (exit 0); `gonio capture run` then refused the plan's
+    # bracket.exposures_s.  A plan that exists already is left as it was.
+    out = tmp_path / "camera_plan.toml"
+    out.write_bytes(b"precious")
+    code, err = cli(
+        capsys, "calibrate", "plan", "--kind", "camera", "--out", str(out), "--force",
+        option, value,
+    )  # fmt: skip
+    assert code == 2, err
+    assert option in err and value in err.replace("1e+09", "1e9") and expect in err, err
+    assert out.read_bytes() == b"precious"

@@ -89,6 +89,18 @@ def test_info_bad_file_exits_nonzero_with_message(tmp_path, capsys):
     assert "error:" in err and str(p) in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("angles", ["nan", "0,nan", "inf", "-inf", "95", ""])
+def test_info_refuses_angles_outside_0_90_naming_the_option(tmp_path, capsys, angles):
+    # NaN passed the range check (every comparison with it is false): info printed a row
+    # of NaN albedos and exited 0.  The angles are checked before the file is read.
+    p = tmp_path / "any.bsdf"
+    p.write_bytes(b"never read")
+    code, out, err = _run(["brdf", "info", str(p), "--theta-i-deg", angles], capsys)
+    assert code == 2, (out, err)
+    assert "--theta-i-deg" in err and f"got {angles!r}" in err and "[0, 90)" in err
+    assert "Traceback" not in err
+
+
 @pytest.fixture(scope="module")
 def converted(refdata, tmp_path_factory):
     """Run ``gonio brdf convert`` once: refused onto an existing file, then with --force."""

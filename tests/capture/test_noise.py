@@ -16,7 +16,7 @@ WHITE = 16383
 CH = np.tile(np.array([[0, 1], [1, 2]], np.int8), (100, 100))  # RGGB, 200 x 200
 
 
-def shoot(rng, electrons_mean, name, iso=100.0):
+def shoot(rng, electrons_mean, name, iso=100.0, exposure_time=0.01, f_number=8.0):
     """A sensor written independently of the code under test: Poisson + Gauss + ADC."""
     e = rng.poisson(np.broadcast_to(electrons_mean, CH.shape)).astype(float)
     dn = np.round(BLACK + GAIN * (e + rng.normal(0, READ_E, CH.shape)))
@@ -29,9 +29,9 @@ def shoot(rng, electrons_mean, name, iso=100.0):
         np.full(CH.shape, float(BLACK)),
         float(WHITE),
         "RGGB",
-        0.01,
+        exposure_time,
         iso,
-        8.0,
+        f_number,
     )
 
 
@@ -91,3 +91,30 @@ def test_one_level_is_not_enough():
         estimate_noise([(shoot(rng, 1000.0, "a"), shoot(rng, 1000.0, "b"))])
     with pytest.raises(ReductionError, match="ISO"):
         estimate_noise([(shoot(rng, 1000.0, "a"), shoot(rng, 1000.0, "b", iso=200))])
+
+
+@pytest.mark.parametrize(
+    ("b_settings", "named"),
+    [({"exposure_time": 0.04}, "exposure time (0.01 and 0.04)"), ({"f_number": 5.6}, "f-number")],
+)
+def test_a_pair_of_two_settings_is_refused_naming_both_frames(b_settings, named):
+    # A pair shot at two exposures gave a "gain" thousands of times too large (the level
+    # step, not the noise, in the difference), written as the noise model with exit 0.
+    rng = np.random.default_rng(4)
+    flats = [
+        (shoot(rng, 1000.0, "lo_a.dng"), shoot(rng, 4000.0, "lo_b.dng", **b_settings)),
+        (shoot(rng, 8000.0, "hi_a.dng"), shoot(rng, 8000.0, "hi_b.dng")),
+    ]
+    with pytest.raises(ReductionError) as info:
+        estimate_noise(flats)
+    msg = str(info.value)
+    assert "lo_a.dng" in msg and "lo_b.dng" in msg and named in msg and "identical" in msg
+
+
+def test_exif_rounding_of_one_setting_is_still_a_pair():
+    rng = np.random.default_rng(5)
+    flats = [
+        (shoot(rng, lv, "a", exposure_time=1 / 50), shoot(rng, lv, "b", exposure_time=0.02))
+        for lv in (2000.0, 20000.0)
+    ]
+    assert estimate_noise(flats).model.gain == pytest.approx(GAIN, rel=0.05)

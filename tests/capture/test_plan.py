@@ -347,3 +347,23 @@ def test_excluded_poses_carry_a_code_the_rig_chose():
     assert rig, ex.excluded
     for e in rig:  # the rig's code is the one its own check gives for that pose
         assert e.code == kin.refusal(np.array(e.pose.wi), np.array(e.pose.wo)).reason.value
+
+
+# --- the reference target's reflectance: refused in the plan, not after the session ----
+
+
+@pytest.mark.parametrize("value", [0.0, -0.5, 1.5, [0.9, 0.0, 0.9], [0.9, 2.0, 0.9]])
+def test_a_reference_reflectance_outside_0_1_is_refused_naming_the_field(value):
+    # It was accepted, copied into the session's reduction.toml and refused only by the
+    # reduction, after the whole session had been shot.
+    doc = {"grid": _G1, "reference": {"reflectance": value}}
+    with pytest.raises(ConfigError) as info:
+        plan_from_dict(doc, "plan.toml")
+    assert "plan.toml" in str(info.value)
+    assert "field 'reference.reflectance" in str(info.value)
+
+
+@pytest.mark.parametrize("value", [1.0, 0.02, [0.5, 0.6, 0.99]])
+def test_a_reference_reflectance_in_0_1_is_kept(value):
+    plan = plan_from_dict({"grid": _G1, "reference": {"reflectance": value}})
+    assert plan.reference.reflectance == (tuple(value) if isinstance(value, list) else value)

@@ -146,6 +146,9 @@ def test_a_wrong_camera_field_is_named(tmp_path, change, field, what):
         ("[reduction]\ngird = 6", "reduction.gird"),
         ("[board]\nsquares_x = 7\nmarker_length = 0.03", "board"),
         ('[board]\ndictionary = "DICT_9X9_1"', "board.dictionary"),
+        # more markers than the dictionary: the reduction took minutes per frame over it
+        ("[board]\nsquares_x = 100000", "board"),
+        ("[board]\nsquares_x = 11\nsquares_y = 11", "board"),
         ("[light]\nradius = 0", "light.radius"),
         ("[reference]\nreflectance = 1.5", "reference.reflectance"),
     ],
@@ -311,3 +314,15 @@ def test_a_simulated_sessions_camera_is_the_nominal_one():
     text = reduction_toml_text(doc)
     assert 'file = "camera.toml"' in text and "gonio calibrate camera" in text
     assert tomllib.loads(text) == doc
+
+
+def test_a_board_of_more_markers_than_its_dictionary_says_how_many(tmp_path):
+    p = tmp_path / "reduction.toml"
+    p.write_text(MINIMAL + "[board]\nsquares_x = 11\nsquares_y = 11\n")
+    with pytest.raises(
+        ConfigError, match=r"11 x 11 ChArUco board has 60 markers.*50 of DICT_4X4_50"
+    ):
+        load_reduction_config(p)
+    # 10 x 10 needs exactly the 50 the dictionary holds
+    p.write_text(MINIMAL + "[board]\nsquares_x = 10\nsquares_y = 10\n")
+    assert load_reduction_config(p).board.squares_x == 10

@@ -40,6 +40,19 @@ def test_writes_replace_whole_files_and_create_parents_only_when_asked(tmp_path)
     assert sorted(x.name for x in tmp_path.iterdir()) == ["a.json", "made"]
 
 
+@pytest.mark.parametrize("parent", ["missing", "a_file"])
+def test_an_unwritable_place_is_named_by_the_output_not_the_temporary(tmp_path, parent):
+    # The error named the hidden temporary (".plot.png.k3j9x0qa.tmp: Permission denied"),
+    # a file the user never asked for; the CLI prints the OSError's filename.
+    (tmp_path / "a_file").write_bytes(b"x")
+    target = tmp_path / parent / "plot.png"
+    with pytest.raises(OSError) as info:
+        write_bytes_atomic(target, b"png")
+    assert info.value.filename == str(target)
+    assert str(tmp_path / parent) in info.value.strerror and ".tmp" not in str(info.value)
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["a_file"]
+
+
 # --- file modes follow the umask (issue 13.6 / 14.12) -------------------------------
 
 _MODE_SCRIPT = """

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -188,3 +190,19 @@ def test_nan_model_values_never_reported_as_success(alg, make_samples):
     assert r.params["alpha"][0] >= 0.05
     if r.success:
         _sound(r)
+
+
+@pytest.mark.parametrize(
+    ("field", "brdf_scale", "std_scale"),
+    [("samples.brdf", 1e300, 1.0), ("samples.brdf_std", 1.0, 1e-300)],
+)
+def test_values_whose_squares_overflow_are_named(make_samples, field, brdf_scale, std_scale):
+    # A damaged file (f_r ~ 1e300): every model "failed" with numpy overflow warnings on
+    # stderr and "produced non-finite parameters or cost", naming neither field nor sample.
+    s = make_samples("lambert", {"albedo": [0.5, 0.5, 0.5]}, n=50, noise=0.01)
+    s.brdf[7] *= brdf_scale
+    s.brdf_std[7] *= std_scale
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning on the way to the error
+        with pytest.raises(FitError, match=rf"{field}: sample 7 has .* beyond 1e\+100"):
+            fit(s, "lambert", loss="weighted_l2")

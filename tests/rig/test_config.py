@@ -102,3 +102,38 @@ def test_virtual_rig_document_is_the_preset_on_the_virtual_port():
             update={"bus": preset.bus.model_copy(update={"port": "virtual"})}
         ).model_dump()
     )
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "field"),
+    [
+        ("tilt_axis = [0.0, -1.0, 0.0]", "tilt_axis = [0.0, nan, 0.0]", "geometry.tilt_axis.1"),
+        (
+            "rest_normal = [1.0, 0.0, 0.0]",
+            "rest_normal = [nan, 0.0, 0.0]",
+            "geometry.rest_normal.0",
+        ),
+        ("light_radius_m = 0.55", "light_radius_m = inf", "geometry.light_radius_m"),
+        ("move_timeout_s = 20.0", "move_timeout_s = inf", "motion.move_timeout_s"),
+        (
+            'kind = "arms_tilt_spin"',
+            'kind = "arms_tilt_spin"\nstage_offset_m = [inf, 0.0, 0.0]',
+            "geometry.stage_offset_m.0",
+        ),
+        (
+            'kind = "arms_tilt_spin"',
+            'kind = "arms_tilt_spin"\ncamera_mount_deg = [nan, 0.0, 0.0]',
+            "geometry.camera_mount_deg.0",
+        ),
+    ],
+)
+def test_non_finite_numbers_are_refused_naming_the_field(tmp_path, old, new, field):
+    # A NaN axis passed the config and raised a bare ValueError in the kinematics (a
+    # traceback from `gonio capture plan`); an infinite radius, offset or timeout and a NaN
+    # mount were accepted.
+    base = EXAMPLE.read_text()
+    assert old in base
+    with pytest.raises(ConfigError) as info:
+        load_rig_config(write(tmp_path, base.replace(old, new, 1)))
+    assert "rig.toml" in str(info.value) and f"field '{field}'" in str(info.value)
+    assert "finite" in str(info.value)

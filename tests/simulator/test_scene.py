@@ -74,6 +74,37 @@ def test_bad_fields_are_named(tmp_path, old, new, field):
     assert f"field '{field}" in str(exc.value) and str(p) in str(exc.value)
 
 
+@pytest.mark.parametrize(
+    ("old", "new", "field"),
+    [
+        ("radiance = 100.0", "radiance = nan", "lights.0.disk.radiance"),
+        ("radiance = 100.0", "radiance = inf", "lights.0.disk.radiance"),
+        ("radiance = 100.0", "radiance = [100.0, -1.0, 100.0]", "lights.0.disk.radiance"),
+        ("radiance = 100.0", "radiance = -100.0", "lights.0.disk.radiance"),
+        ("radius = 0.01", "radius = inf", "lights.0.disk.radius"),
+        ("position = [0.0, 0.25, 0.43]", "position = [nan, 0.25, 0.43]", "lights.0.disk.position"),
+        (
+            "[camera]",
+            "[holder]\nwidth = 0.15\nheight = 0.15\nalbedo_black = nan\n[camera]",
+            "holder.albedo_black",
+        ),
+        (
+            "[camera]",
+            "[holder]\nwidth = 0.15\nheight = 0.15\nalbedo_white = 1.5\n[camera]",
+            "holder.albedo_white",
+        ),
+    ],
+)
+def test_non_finite_negative_or_impossible_light_and_albedo_are_named(tmp_path, old, new, field):
+    # They were accepted: `gonio sim render` wrote a DNG from NaN, infinite or negative
+    # radiance (or a NaN holder albedo) and exited 0.
+    assert old in GOOD
+    p = write(tmp_path, GOOD.replace(old, new, 1))
+    with pytest.raises(ConfigError) as exc:
+        load_scene(p)
+    assert f"field '{field}" in str(exc.value) and str(p) in str(exc.value)
+
+
 def test_unknown_brdf_model_names_the_field(tmp_path):
     scene = load_scene(write(tmp_path, GOOD.replace("lambert+ggx", "velvet")))
     with pytest.raises(ConfigError, match="sample.brdf"):
@@ -239,3 +270,14 @@ def test_albedo_map_that_cannot_be_loaded_names_file_and_field(tmp_path, make, m
         render(scene)
     msg = str(exc.value)
     assert msg.startswith("sample.albedo_map: ") and str(npy) in msg and match in msg
+
+
+def test_a_board_of_more_markers_than_its_dictionary_is_named(tmp_path):
+    # OpenCV builds such a board (repeating marker IDs), and a huge one for minutes.
+    text = GOOD + "[holder]\nwidth = 0.15\nheight = 0.15\n[holder.board]\nsquares_x = 100000\n"
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as exc:
+        load_scene(p)
+    assert "field 'holder.board'" in str(exc.value) and "more than the 50 of DICT_4X4_50" in str(
+        exc.value
+    )
