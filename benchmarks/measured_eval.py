@@ -6,10 +6,12 @@ kernel of ``gonio.brdf.kernels``) and Mitsuba's ``measured`` plugin (``llvm_ad_r
 vectorised JIT variant; results brought back to numpy, as gonio returns them), timed by
 ``benchmarks/equal_threads.compare``: interleaved repetitions, every thread pool pinned,
 once at one thread each (the top-level ``ratio``) and once at all cores each (numba's
-threads against Dr.Jit's pool).  Prints ONE JSON object (issue 19's shape): per file the
-two settings with their statistics and the agreement with Mitsuba; at the top level the
-file with the smallest one-thread ratio, and ``ratio`` / ``ratio_worst`` its median and
-worst-case ratios (Mitsuba's time over gonio's: >= 1 means gonio is at least as fast).
+threads against Dr.Jit's pool; there every timed run follows a pause and an untimed run
+of the same side: see :func:`_primed_clock`).  Prints ONE JSON object (issue 19's shape):
+per file the two settings with their statistics and the agreement with Mitsuba; at the
+top level the file with the smallest one-thread ratio, and ``ratio`` / ``ratio_worst`` its
+median and worst-case ratios (Mitsuba's time over gonio's: >= 1 means gonio is at least
+as fast).
 
     python benchmarks/measured_eval.py [--n 200000] [--repeats 7] [--file F.bsdf ...]
 """
@@ -17,10 +19,13 @@ worst-case ratios (Mitsuba's time over gonio's: >= 1 means gonio is at least as 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import sys
 import tempfile
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +35,7 @@ from equal_threads import all_cores, compare, machine, speedup  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 TARGET = 1.0  # issue 19: RGL evaluation >= 1x Mitsuba's measured at equal threads
+SPIN_PAUSE = 0.03  # s, longer than the idle pools spin (_primed_clock)
 
 
 def _pairs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -43,6 +49,32 @@ def _pairs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
         return np.stack([r * np.cos(p), r * np.sin(p), z], axis=-1)
 
     return hemi(n).astype(np.float32), hemi(n).astype(np.float32)
+
+
+def _primed_clock(sides: list[Callable[[], object]], pause: float) -> Callable[[], float]:
+    """``time.perf_counter`` for ``compare(clock=...)`` that first waits ``pause`` seconds
+    and runs, untimed, the side whose run is about to start.
+
+    Idle thread pools keep spinning after a call: Dr.Jit's for 10-20 ms, numba's OpenMP
+    threads ~2 ms (libgomp's default wait policy).  Timed straight after the other side, a
+    side's threads shared the two cores with those spinners (gonio at 2 threads 11-12 ms
+    against 4.5 ms on its own, slower than at 1 thread; Mitsuba 3.1 -> 3.7-11 ms); an
+    untimed run alone did not outlast Dr.Jit's spinning, a pause alone measured a cold
+    start (caches refilled after the machine's other processes ran: +15 % at 50 ms).
+    ``compare`` reads the clock at the start and the end of every run, the sides in the
+    order of its mapping, so the ``2 k``-th reading starts a run of
+    ``sides[k % len(sides)]``.
+    """
+    calls = itertools.count()
+
+    def clock() -> float:
+        i = next(calls)
+        if i % 2 == 0:
+            time.sleep(pause)
+            sides[i // 2 % len(sides)]()
+        return time.perf_counter()
+
+    return clock
 
 
 def _round(s: dict) -> dict:
@@ -89,7 +121,8 @@ def _one_file(path: Path, mi, wi: np.ndarray, wo: np.ndarray, repeats: int) -> d
     fns = {"gonio": run_gonio, "baseline": run_mitsuba}
     one = compare(fns, repeats=repeats, threads=1)
     cores = all_cores()
-    every = compare(fns, repeats=repeats, threads=cores)
+    primed = _primed_clock(list(fns.values()), SPIN_PAUSE)
+    every = compare(fns, repeats=repeats, threads=cores, clock=primed)
     s1 = speedup(one["gonio"], one["baseline"])
     sa = speedup(every["gonio"], every["baseline"])
     return {
@@ -107,6 +140,7 @@ def _one_file(path: Path, mi, wi: np.ndarray, wo: np.ndarray, repeats: int) -> d
             "baseline": _round(every["baseline"]),
             "speedup": _round(sa),
             "threads": cores,
+            "pause_and_untimed_run_before_each_s": SPIN_PAUSE,
             "gonio_evals_per_s": round(n / every["gonio"]["median"]),
             "baseline_evals_per_s": round(n / every["baseline"]["median"]),
         },

@@ -112,9 +112,8 @@ def _param_lerp(values: Array, x: Array) -> tuple[NDArray[np.intp], Array]:
     if n == 1:
         return np.zeros(x.shape, np.intp), np.zeros(x.shape)
     i = np.clip(np.searchsorted(values, x, side="left") - 1, 0, n - 2)
-    p0, p1 = values[i], values[i + 1]
-    with np.errstate(invalid="ignore"):
-        w = np.clip((x - p0) / (p1 - p0), 0.0, 1.0)
+    inv = 1.0 / np.diff(values)  # a multiplication per query instead of a division
+    w = np.clip((x - values[i]) * inv[i], 0.0, 1.0)
     return i, w
 
 
@@ -148,6 +147,24 @@ class _Slices:
             for j in range(k):
                 out[j] += w * np.take(flat_rows[j], flat)
         return out
+
+
+def _rows_equal(table: Array) -> bool:
+    """Whether all rows of a 2-D ``table[y, x]`` (leading axes flattened into y) are equal."""
+    rows = table.reshape(-1, table.shape[-1])
+    return bool(np.all(rows == rows[:1]))
+
+
+def _lerp_x(table: Array, x: Array) -> Array:
+    """Linear interpolation along x of a table whose rows are all equal (its first row):
+    :func:`_bilinear` without the blend of two equal rows (nodes at ``k / (n - 1)``,
+    positions clamped to [0, 1])."""
+    nx = table.shape[-1]
+    px = np.clip(x, 0.0, 1.0) * (nx - 1)
+    ix = np.minimum(px.astype(np.intp), nx - 2)
+    fx = px - ix
+    row = table.reshape(-1)[:nx]
+    return (1 - fx) * np.take(row, ix) + fx * np.take(row, ix + 1)
 
 
 def _bilinear(table: Array, x: Array, y: Array) -> Array:
@@ -210,8 +227,11 @@ class RGLBRDF:
         # Isotropic files with one phi_i and a projected area that does not vary with
         # phi_i (all rows equal: every file seen) need no incident azimuth at all: only
         # the half vector's azimuth relative to it, one arctangent instead of two.
-        sig = self._sigma.reshape(-1, self._sigma.shape[-1])
-        self._relative_only = self.phi_i.size == 1 and bool(np.all(sig == sig[:1]))
+        self._relative_only = self.phi_i.size == 1 and _rows_equal(self._sigma)
+        # An NDF or projected area with all rows equal (isotropic: no dependence on the
+        # azimuth) is interpolated along theta alone, half the look-ups of the bilinear
+        self._ndf_flat = _rows_equal(self._ndf)
+        self._sigma_flat = _rows_equal(self._sigma)
         vndf = f64["vndf"]
         n_phi, n_theta, h, w = vndf.shape
         self._vndf_shape = (h, w)
@@ -350,14 +370,19 @@ class RGLBRDF:
         corner_w = ((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)
         v = sl.take(self._spec, iy * (rx - 1) + ix).reshape(4, self._n_ch, -1)
         spec = sum(w * v[k] for k, w in enumerate(corner_w)).T  # (n, channels)
+        wo_z = wo[:, 2]
         if self.jacobian:
             # The table stores a quantity smooth in sample space; the NDF over the
             # projected area restores f cos(theta_o) (paper, eq. for the Jacobian of the
             # VNDF warp: D(m) / (4 sigma(wi)), with sigma the projected-area normaliser).
-            ndf = _bilinear(self._ndf, *u_m)
-            sigma = _bilinear(self._sigma, *u_wi)
-            spec = spec * (ndf / (4.0 * sigma))[:, None]
-        return spec * (1.0 / wo[:, 2:3])  # one division for all channels
+            ndf = _lerp_x(self._ndf, u_m[0]) if self._ndf_flat else _bilinear(self._ndf, *u_m)
+            sigma = (
+                _lerp_x(self._sigma, u_wi[0]) if self._sigma_flat else _bilinear(self._sigma, *u_wi)
+            )
+            scale = ndf / (4.0 * sigma * wo_z)  # and f cos / cos: one division a pair
+        else:
+            scale = 1.0 / wo_z
+        return spec * scale[:, None]
 
     def _eval_fused(self, wi: Array, wo: Array) -> Array | None:
         """``eval_channels`` of flat pairs by the numba kernel of :mod:`gonio.brdf.kernels`
