@@ -230,3 +230,70 @@ def test_a_degenerate_corner_set_is_an_error_not_a_nan_pose():
     corners = np.stack([np.linspace(100, 500, 5), np.full(5, 300.0)], axis=1)  # one line
     with pytest.raises(ReductionError, match="degenerate"):
         _solve(BoardSpec(), corners, np.arange(5), K, None)
+
+
+@pytest.mark.parametrize("factor", [1, 2, 4, 6, 8])
+def test_halvings_are_the_block_mean_to_one_dn(factor):
+    """Marker finding bins the mosaic by successive halvings (OpenCV's fast path): a 2x
+    binning is OpenCV's one-step block mean exactly, a coarser one within the 1 DN each
+    halving may round differently (a factor not a power of 2: one step, exactly); the
+    odd rows and columns past the last block go."""
+    import cv2
+
+    from gonio.capture.fiducials import _halvings
+
+    raw = np.random.default_rng(factor).integers(0, 65536, (203, 317), dtype=np.uint16)
+    h, w = 203 // factor * factor, 317 // factor * factor
+    want = cv2.resize(raw[:h, :w], (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+    got = _halvings(raw, factor)
+    assert got.dtype == np.uint16
+    assert got.shape == (203 // factor, 317 // factor)
+    diff = np.abs(got.astype(int) - want)
+    assert diff.max() <= (0 if factor in (1, 2, 6) else 1)
+    if factor in (4, 8):
+        assert 0 < np.count_nonzero(diff)  # really a different rounding, still a mean
+        assert abs(float(np.mean(got.astype(int) - want))) < 0.5
+
+
+@pytest.mark.slow
+def test_halved_binning_moves_the_refined_corners_far_less_than_their_noise(rig_views, monkeypatch):
+    """The corners are refined on the mosaic, so binning by halvings (not one 4x block
+    mean) only moves where refinement starts: the same corners, within cornerSubPix's
+    1e-3 px stopping step, against a reprojection RMS of ~0.1 px."""
+    import cv2
+
+    import gonio.capture.fiducials as fid
+
+    setup, views = rig_views
+
+    def one_step(raw, factor):
+        h, w = raw.shape[0] // factor * factor, raw.shape[1] // factor * factor
+        return cv2.resize(raw[:h, :w], (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+
+    def corners(frame, halvings):
+        seen = {}
+        solve = fid._solve
+
+        def spy(board, c, ids, K, dist):
+            seen["c"], seen["ids"] = np.array(c), np.array(ids)
+            return solve(board, c, ids, K, dist)
+
+        with monkeypatch.context() as m:
+            m.setattr(fid, "_solve", spy)
+            m.setattr(fid, "_halvings", halvings)
+            pose = detect_pose_in_frame(frame, setup.board, setup.K, max_width=200)  # 4x
+        return seen["c"], seen["ids"], pose
+
+    compared = 0
+    for frame, _rp, _ in views:
+        try:
+            c0, ids0, pose0 = corners(frame, one_step)
+        except ReductionError:
+            continue  # too few corners at 4x (a grazing view): nothing to compare
+        c1, ids1, _pose1 = corners(frame, fid._halvings)
+        np.testing.assert_array_equal(ids1, ids0)
+        moved = np.linalg.norm(c1 - c0, axis=1)
+        print(f"{frame.name}: max {moved.max():.2e} px, rms {pose0.reprojection_rms:.3f} px")
+        assert moved.max() < 2e-3 < 0.05 * pose0.reprojection_rms
+        compared += 1
+    assert compared >= 1  # the 20 deg view; the others' markers are too small at 4x

@@ -103,3 +103,28 @@ def test_the_intrinsics_sensitivity_matches_a_resolved_pose(theta_deg):
         want = S[:, k] * h
         # first order: the re-solved pose agrees to a few percent of the change
         assert np.linalg.norm(got - base - want) <= 0.03 * np.linalg.norm(want), k
+
+
+def test_the_public_functions_give_what_the_solved_pose_carries():
+    """``_solve`` computes the covariance and the intrinsics sensitivity from one
+    Jacobian; each public function alone gives the same numbers, and NaN for too few
+    points."""
+    from gonio.capture.fiducials import pose_covariance, pose_intrinsics_sensitivity
+
+    board = BoardSpec()
+    obj_b = np.asarray(board.cv_board().getChessboardCorners(), float)
+    R_bs, t_bs = board.transform()
+    obj_s = obj_b @ R_bs.T + t_bs
+    R, t = _truth(30.0)
+    img, _ = cv2.projectPoints(obj_s, cv2.Rodrigues(R)[0], t, K, DIST)
+    img = img.reshape(-1, 2) + np.random.default_rng(3).normal(0, SIGMA_PX, (len(obj_s), 2))
+    img = img.astype(np.float32).astype(float)  # as _solve hands them to OpenCV
+    pose = _solve(board, img, np.arange(len(obj_s)), K, DIST)
+    cov = pose_covariance(obj_s, img, pose.rotation, pose.translation, K, DIST)
+    sens = pose_intrinsics_sensitivity(obj_s, pose.rotation, pose.translation, K, DIST)
+    assert cov.shape == (6, 6) and sens.shape == (6, 9)
+    np.testing.assert_array_equal(cov, pose.covariance)
+    np.testing.assert_array_equal(sens, pose.intrinsics_sensitivity)
+    assert np.all(np.isfinite(cov)) and np.all(np.isfinite(sens))
+    assert np.isnan(pose_covariance(obj_s[:3], img[:3], R, t, K, DIST)).all()
+    assert np.isnan(pose_intrinsics_sensitivity(obj_s[:3], R, t, K, DIST)).all()
