@@ -25,6 +25,7 @@ of a pose are cached and scaled per shot, so a drifting light does not re-render
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -36,6 +37,7 @@ from gonio.simulator.lights import nominal_irradiance
 from gonio.simulator.render import RenderResult, albedo_table, render
 from gonio.simulator.scene import PointLight, Scene, scene_with_rig_poses
 from gonio.simulator.sensor import (
+    _MIN_KERNEL_SITES,
     RawFrame,
     cfa_indices,
     cfa_radiance,
@@ -115,6 +117,7 @@ class SimulatedCamera:
         self._patterns: dict[tuple[int, int], FixedPattern | None] = {}
         self.renders = 0
         self._site_cache: dict[Any, Any] = {}
+        self._site_index_cache: dict[Any, Any] = {}
 
     @property
     def model(self) -> str:
@@ -240,9 +243,11 @@ class SimulatedCamera:
             if not (light_on or diffuse):
                 return np.zeros((h, w))
             result, e0 = self._render(target, light_on, diffuse)
+            k = r.light_output(rig_time)
+            if h * w >= _MIN_KERNEL_SITES and os.environ.get("GONIO_NUMBA") != "0":
+                return self._shot_kernel(result, e0, k, light_on, diffuse, stray)
             idx = cfa_indices(cam.sensor.cfa_pattern, (h, w))
             out = np.zeros((h, w))
-            k = r.light_output(rig_time)
             if light_on:
                 direct = self._sites(result, "radiance")
                 out = direct * k[idx] if r.drifts else direct.copy()
@@ -252,6 +257,42 @@ class SimulatedCamera:
         # a render, can dip below 0
         return np.nan_to_num(np.maximum(out, 0.0, out=out), copy=False)
 
+    def _shot_kernel(
+        self, result: RenderResult, e0: Any, k: np.ndarray, light_on: bool, diffuse: bool,
+        stray: float,
+    ) -> np.ndarray:  # fmt: skip
+        """:meth:`site_radiance`'s per-shot arithmetic (the radiometry's branch) by the
+        kernel :func:`~gonio.simulator.sensor_kernels.shot_sites`: the same bits."""
+        from gonio.simulator.sensor_kernels import shot_sites
+
+        r = self.radiometry
+        h, w = result.radiance.shape[:2]
+        none = np.zeros(0)
+        direct = self._sites(result, "radiance").reshape(-1) if light_on else none
+        # numpy's `direct.copy()` without drift is `direct * 1.0`: the same bits
+        k_direct = np.asarray(k, dtype=np.float64) if r.drifts else np.ones(3)
+        dif, k_diffuse = none, none
+        if diffuse:
+            dif = self._sites(result, "diffuse").reshape(-1)
+            k_diffuse = np.asarray(e0 * (r.ambient_fraction + stray * k), dtype=np.float64)
+        out = np.empty((h, w))
+        shot_sites(direct, dif, self._site_index((h, w))[1], k_direct, k_diffuse,
+                   out.reshape(-1))  # fmt: skip
+        return out
+
+    def _site_index(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """(flat index of each site's channel in the (H W 3) image, channel index (H W,)),
+        per CFA pattern and frame size (read-only)."""
+        key = (self.scene.camera.sensor.cfa_pattern, shape)
+        if key not in self._site_index_cache:
+            idx = cfa_indices(key[0], shape).ravel()
+            idx = np.ascontiguousarray(idx, dtype=np.intp)
+            flat = np.arange(shape[0] * shape[1]) * 3 + idx
+            flat.flags.writeable = False
+            idx.flags.writeable = False
+            self._site_index_cache[key] = (flat, idx)
+        return self._site_index_cache[key]
+
     def _sites(self, result: RenderResult, name: str) -> np.ndarray:
         """``result.<name>`` at the colour filters' sites, cached with the render (not
         clamped: a sum is clamped, not its terms)."""
@@ -259,9 +300,8 @@ class SimulatedCamera:
             self._site_cache = {"result": result}
         if name not in self._site_cache:
             img = getattr(result, name)
-            flat = np.arange(img.shape[0] * img.shape[1]) * 3
-            idx = cfa_indices(self.scene.camera.sensor.cfa_pattern, img.shape[:2])
-            self._site_cache[name] = img.reshape(-1)[flat + idx.ravel()].reshape(img.shape[:2])
+            flat = self._site_index(img.shape[:2])[0]
+            self._site_cache[name] = np.take(img.reshape(-1), flat).reshape(img.shape[:2])
         return self._site_cache[name]
 
     def capture_frame(

@@ -18,6 +18,7 @@ both are 1 for a Lambertian, uniform light (and then cost nothing).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -149,11 +150,11 @@ class PreparedLight:
         if self.is_point or level == 0:
             return self.center[None], np.array([self.area])
         if self.kind == "disk":
-            xa, wa = np.polynomial.legendre.leggauss(level)
+            xa, wa = _leggauss(level)
             nb = 4 * level
             xb, wb = (np.arange(nb) + 0.5) / nb, np.full(nb, 1.0 / nb)
         else:
-            xa, wa = np.polynomial.legendre.leggauss(level + 1)
+            xa, wa = _leggauss(level + 1)
             xb, wb = xa, wa
             xb, wb = (xb + 1) / 2, wb / 2
         xa, wa = (xa + 1) / 2, wa / 2
@@ -179,6 +180,20 @@ class PreparedLight:
         a = (ia.ravel() + rng.random((m, na * nb))) / na
         b = (ib.ravel() + rng.random((m, na * nb))) / nb
         return self.map(a, b), self.area / (na * nb)
+
+
+@lru_cache(maxsize=64)
+def _leggauss(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``numpy.polynomial.legendre.leggauss(n)``, read-only, computed once per ``n``.
+
+    The rule (an eigenvalue problem and a Newton polish) cost ~0.15 ms a call, and a
+    camera's every render asked for it again (``nominal_irradiance`` at level 16: 0.33
+    -> 0.16 ms, of a ~10 ms realistic 320 x 240 frame).  The same bits.
+    """
+    x, w = np.polynomial.legendre.leggauss(n)
+    x.flags.writeable = False
+    w.flags.writeable = False
+    return x, w
 
 
 def _prepare(light, scene: Scene) -> PreparedLight:

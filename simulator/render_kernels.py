@@ -52,6 +52,13 @@ _JIT = {"cache": True, "fastmath": False, "error_model": "numpy", "nogil": True}
 NONE, SAMPLE, HOLDER, PATCH = 0, 1, 2, 3
 
 
+#: Points per block of :func:`label_points`: each block's rays and hits are computed in a
+#: loop of their own, without branches, which LLVM vectorises (packed IEEE division and
+#: square root: the scalar bits), and labelled in a second loop: 0.69 -> 0.48 ms for a
+#: 320 x 240 frame's pixel centres (the fused loop's branches kept it scalar).
+_BLOCK = 512
+
+
 # The loop's invariants are read into locals before the loop: indexing these small arrays
 # inside it (a per-point helper taking them) made the kernel ~10x slower -- measured 54 ns
 # a point on a 320 x 240 frame against 13 ns hoisted, whatever LLVM could not prove about
@@ -98,40 +105,50 @@ def label_points(
     pa1 = patch[1] if has_patch else 0.0
     pa2 = patch[2] if has_patch else 0.0
     pa3 = patch[3] if has_patch else 0.0
-    for i in prange(xn.shape[0]):
-        x, y = xn[i], yn[i]
-        d0 = x * r00 + y * r10 + r20
-        d1 = x * r01 + y * r11 + r21
-        d2 = x * r02 + y * r12 + r22
-        norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
-        t = -c2 / d2
-        front = math.isfinite(t) and t > 0
-        if not front:
-            t = 0.0
-        p0 = c0 + t * d0
-        p1 = c1 + t * d1
-        out_x[i, 0] = p0
-        out_x[i, 1] = p1
-        out_x[i, 2] = c2 + t * d2
-        out_front[i] = front
-        ax, ay = abs(p0), abs(p1)
-        region = NONE
-        white = False
-        if has_holder and front and ax <= hh0 and ay <= hh1:
-            region = HOLDER
-            white = True
-            if has_board:
-                c = math.floor((p0 + bh0) / (2 * bh0) * cols)
-                r = math.floor((bh1 - p1) / (2 * bh1) * rows)
-                if c >= 0 and c < cols and r >= 0 and r < rows:
-                    white = board[int(r), int(c)] != 0
-            if has_patch and abs(p0 - pa0) <= pa2 and abs(p1 - pa1) <= pa3:
-                region = PATCH
-        if front and ax <= h0 and ay <= h1:
-            region = SAMPLE
-        out_region[i] = region
-        out_white[i] = white and region == HOLDER
+    n = xn.shape[0]
+    for b in prange((n + _BLOCK - 1) // _BLOCK):
+        s = b * _BLOCK
+        m = min(_BLOCK, n - s)
+        q0, q1, q2 = np.empty(_BLOCK), np.empty(_BLOCK), np.empty(_BLOCK)
+        qf = np.empty(_BLOCK, np.bool_)
+        for j in range(m):  # the ray and its hit: branch-free, so LLVM vectorises it
+            x, y = xn[s + j], yn[s + j]
+            d0 = x * r00 + y * r10 + r20
+            d1 = x * r01 + y * r11 + r21
+            d2 = x * r02 + y * r12 + r22
+            norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
+            t = -c2 / d2
+            front = (t > 0.0) & (t < math.inf)  # finite and positive
+            t = t if front else 0.0
+            q0[j] = c0 + t * d0
+            q1[j] = c1 + t * d1
+            q2[j] = c2 + t * d2
+            qf[j] = front
+        for j in range(m):  # the labels
+            i = s + j
+            p0, p1, front = q0[j], q1[j], qf[j]
+            out_x[i, 0] = p0
+            out_x[i, 1] = p1
+            out_x[i, 2] = q2[j]
+            out_front[i] = front
+            ax, ay = abs(p0), abs(p1)
+            region = NONE
+            white = False
+            if has_holder and front and ax <= hh0 and ay <= hh1:
+                region = HOLDER
+                white = True
+                if has_board:
+                    c = math.floor((p0 + bh0) / (2 * bh0) * cols)
+                    r = math.floor((bh1 - p1) / (2 * bh1) * rows)
+                    if c >= 0 and c < cols and r >= 0 and r < rows:
+                        white = board[int(r), int(c)] != 0
+                if has_patch and abs(p0 - pa0) <= pa2 and abs(p1 - pa1) <= pa3:
+                    region = PATCH
+            if front and ax <= h0 and ay <= h1:
+                region = SAMPLE
+            out_region[i] = region
+            out_white[i] = white and region == HOLDER
 
 
 @njit(**_JIT)
@@ -155,40 +172,50 @@ def label_points_serial(
     pa1 = patch[1] if has_patch else 0.0
     pa2 = patch[2] if has_patch else 0.0
     pa3 = patch[3] if has_patch else 0.0
-    for i in range(xn.shape[0]):
-        x, y = xn[i], yn[i]
-        d0 = x * r00 + y * r10 + r20
-        d1 = x * r01 + y * r11 + r21
-        d2 = x * r02 + y * r12 + r22
-        norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
-        t = -c2 / d2
-        front = math.isfinite(t) and t > 0
-        if not front:
-            t = 0.0
-        p0 = c0 + t * d0
-        p1 = c1 + t * d1
-        out_x[i, 0] = p0
-        out_x[i, 1] = p1
-        out_x[i, 2] = c2 + t * d2
-        out_front[i] = front
-        ax, ay = abs(p0), abs(p1)
-        region = NONE
-        white = False
-        if has_holder and front and ax <= hh0 and ay <= hh1:
-            region = HOLDER
-            white = True
-            if has_board:
-                c = math.floor((p0 + bh0) / (2 * bh0) * cols)
-                r = math.floor((bh1 - p1) / (2 * bh1) * rows)
-                if c >= 0 and c < cols and r >= 0 and r < rows:
-                    white = board[int(r), int(c)] != 0
-            if has_patch and abs(p0 - pa0) <= pa2 and abs(p1 - pa1) <= pa3:
-                region = PATCH
-        if front and ax <= h0 and ay <= h1:
-            region = SAMPLE
-        out_region[i] = region
-        out_white[i] = white and region == HOLDER
+    n = xn.shape[0]
+    q0, q1, q2 = np.empty(_BLOCK), np.empty(_BLOCK), np.empty(_BLOCK)
+    qf = np.empty(_BLOCK, np.bool_)
+    for b in range((n + _BLOCK - 1) // _BLOCK):
+        s = b * _BLOCK
+        m = min(_BLOCK, n - s)
+        for j in range(m):  # the ray and its hit: branch-free, so LLVM vectorises it
+            x, y = xn[s + j], yn[s + j]
+            d0 = x * r00 + y * r10 + r20
+            d1 = x * r01 + y * r11 + r21
+            d2 = x * r02 + y * r12 + r22
+            norm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
+            t = -c2 / d2
+            front = (t > 0.0) & (t < math.inf)  # finite and positive
+            t = t if front else 0.0
+            q0[j] = c0 + t * d0
+            q1[j] = c1 + t * d1
+            q2[j] = c2 + t * d2
+            qf[j] = front
+        for j in range(m):  # the labels
+            i = s + j
+            p0, p1, front = q0[j], q1[j], qf[j]
+            out_x[i, 0] = p0
+            out_x[i, 1] = p1
+            out_x[i, 2] = q2[j]
+            out_front[i] = front
+            ax, ay = abs(p0), abs(p1)
+            region = NONE
+            white = False
+            if has_holder and front and ax <= hh0 and ay <= hh1:
+                region = HOLDER
+                white = True
+                if has_board:
+                    c = math.floor((p0 + bh0) / (2 * bh0) * cols)
+                    r = math.floor((bh1 - p1) / (2 * bh1) * rows)
+                    if c >= 0 and c < cols and r >= 0 and r < rows:
+                        white = board[int(r), int(c)] != 0
+                if has_patch and abs(p0 - pa0) <= pa2 and abs(p1 - pa1) <= pa3:
+                    region = PATCH
+            if front and ax <= h0 and ay <= h1:
+                region = SAMPLE
+            out_region[i] = region
+            out_white[i] = white and region == HOLDER
 
 
 @njit(**_JIT, inline="always")

@@ -19,6 +19,8 @@ consumes the same bits and returns the same numbers as ``rng.normal(0, read_nois
 (held equal in ``tests/simulator/test_sensor_kernels.py``), 3x faster (320 x 240 sites:
 0.43-0.49 ms against 1.24-1.33 ms), and no (N,) temporary.
 ``tests/simulator/test_sensor_kernels.py`` holds the kernel path equal to the numpy path.
+:func:`shot_sites` is the simulated camera's per-shot radiance at the sites (drift, room
+light, clamp), held equal to its numpy path in ``tests/simulator/test_render_kernels.py``.
 
 IEEE-strict as :mod:`gonio.simulator.render_kernels` (``fastmath=False``,
 ``error_model="numpy"``, ``cache=True``).  ``GONIO_NUMBA=0`` keeps the sensor on numpy
@@ -30,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["mean_electrons", "quantise", "quantise_read"]
+__all__ = ["mean_electrons", "quantise", "quantise_read", "shot_sites"]
 
 _JIT = {"cache": True, "fastmath": False, "error_model": "numpy", "nogil": True}
 
@@ -137,3 +139,27 @@ def quantise_read(counts, rng, read_noise, over, full_well, gain, black, white, 
         v = np.rint(v)
         v = min(max(v, 0.0), white)
         out[i] = np.uint16(v)
+
+
+@njit(**_JIT)
+def shot_sites(direct, diffuse, channel, k_direct, k_diffuse, out):
+    """A shot's radiance at the colour filters' sites into ``out`` (N,), W/(sr m^2):
+    :meth:`gonio.simulator.camera.SimulatedCamera.site_radiance`'s numpy arithmetic per
+    site in its order (one pass instead of six over the frame, ~0.3 ms of a 320 x 240
+    shot): ``direct * k_direct[c]`` (``direct`` (0,): light off, 0), plus ``diffuse *
+    k_diffuse[c]`` (``diffuse`` (0,): none), ``c = channel[i]``; then
+    ``np.maximum(v, 0)`` (NaN kept, -0 made +0) and ``np.nan_to_num`` (NaN 0, inf the
+    largest float)."""
+    has_direct = direct.shape[0] > 0
+    has_diffuse = diffuse.shape[0] > 0
+    big = np.finfo(np.float64).max
+    for i in range(out.shape[0]):
+        c = channel[i]
+        v = direct[i] * k_direct[c] if has_direct else 0.0
+        if has_diffuse:
+            v = v + diffuse[i] * k_diffuse[c]
+        if not v > 0.0:  # below 0, -0 (numpy's maximum gives +0) and NaN (then 0)
+            v = 0.0
+        elif v == np.inf:
+            v = big
+        out[i] = v

@@ -133,3 +133,90 @@ def test_ideal_world_site_shot_clamps_like_simulate_raw():
         seed=np.random.default_rng(3),
     )  # fmt: skip
     np.testing.assert_array_equal(fast.mosaic, ref.mosaic)
+
+
+@pytest.mark.parametrize("light_on", [True, False])
+def test_kernel_site_shot_equals_the_numpy_site_shot(scene_world, monkeypatch, light_on):
+    """``shot_sites`` (the per-shot drift, room light, clamp) against the numpy path of
+    ``site_radiance`` bit for bit, with the values the clamp exists for: below 0, -0, NaN
+    and inf in the cached direct and diffuse renders."""
+    scene, world = scene_world
+    cam = SimulatedCamera(scene, world=world)
+    assert cam.radiometry.drifts and cam.radiometry.ambient_fraction > 0
+    result, _ = cam._render("sample", True, True)
+    for img in (result.radiance, result.diffuse):  # cached: every shot sees these
+        img[:3] = -1e-4
+        img[3, :4] = -0.0
+        img[4, :4] = np.nan
+        img[5, :4] = np.inf
+    for rig_time in (30.0, 900.0):
+        fast = cam.site_radiance("sample", rig_time=rig_time, light_on=light_on)
+        monkeypatch.setenv("GONIO_NUMBA", "0")
+        ref = cam.site_radiance("sample", rig_time=rig_time, light_on=light_on)
+        monkeypatch.delenv("GONIO_NUMBA")
+        assert fast.tobytes() == ref.tobytes()  # -0 and +0 told apart
+        assert np.isfinite(fast).all() and fast.min() >= 0.0 and fast.max() > 1e300
+    assert cam.renders == 1
+
+
+def test_label_kernel_blocks_equal_the_numpy_labels(scene_world, monkeypatch):
+    """The label kernel's vectorised blocks (``render_kernels._BLOCK`` rays): batches of
+    one, a block, a block and one, and rays that miss the plane (behind the camera, and
+    parallel to it) against the numpy path."""
+    from gonio.simulator import render_kernels
+    from gonio.simulator.render import Surface, _hits
+
+    scene, _ = scene_world
+    surface = Surface(scene, None)
+    C, R = scene.camera_pose()
+    rng = np.random.default_rng(5)
+    b = render_kernels._BLOCK
+    for n in (1, b - 1, b, b + 1, 3 * b + 7):
+        xn, yn = rng.uniform(-0.6, 0.6, n), rng.uniform(-0.6, 0.6, n)
+        yn[: n // 2] *= 50.0  # far off axis: some rays point away from the plane
+        out = (np.empty((n, 3)), np.empty(n, bool), np.empty(n, np.uint8), np.empty(n, bool))
+        render_kernels.label_points_serial(xn, yn, R, C, *surface.kernel_args(), *out)
+        monkeypatch.setenv("GONIO_NUMBA", "0")
+        ref = _hits(surface, C, R, xn, yn)
+        monkeypatch.delenv("GONIO_NUMBA")
+        for a, e in zip(out[1:], ref[1:], strict=True):
+            np.testing.assert_array_equal(a, e)
+        np.testing.assert_allclose(out[0], ref[0], rtol=0, atol=1e-15)
+        if n > b:
+            assert not out[1].all() and out[1].any()  # some rays miss, some hit
+
+
+def test_rgl_batches_padded_to_the_kernel_give_the_numpy_values(rgl_file, monkeypatch):
+    """A measured file's small batches (``_eval_kernel_size``: padded up to the kernel's
+    size) give the numpy path's values and memory layout (the node sum's einsum follows
+    it), and the albedo table is the same whether or not the kernel module is loaded."""
+    import sys
+
+    from gonio.brdf import load
+    from gonio.simulator.render import _eval_kernel_size, albedo_table
+
+    brdf = load(rgl_file("paper_white"))
+    monkeypatch.setenv("GONIO_NUMBA", "0")
+    table_numpy = albedo_table(brdf)(np.linspace(0.0, 1.5, 40))
+    rng = np.random.default_rng(2)
+    for below in (False, True):  # the numpy path's layout: F, or C with a pair at 0
+        wi = rng.normal(size=(700, 4, 3))
+        wo = rng.normal(size=(700, 1, 3))
+        wi[..., 2], wo[..., 2] = np.abs(wi[..., 2]), np.abs(wo[..., 2])
+        if below:
+            wi[0, 0, 2] = -0.3
+        wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+        wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+        wob = np.broadcast_to(wo, wi.shape)
+        monkeypatch.setenv("GONIO_NUMBA", "0")
+        ref = np.asarray(brdf.eval(wi, wob))
+        monkeypatch.delenv("GONIO_NUMBA")
+        fast = _eval_kernel_size(brdf, wi, wob)
+        assert "gonio.brdf.kernels" in sys.modules
+        np.testing.assert_array_equal(fast, ref)
+        assert fast.strides == ref.strides
+        assert (fast[0, 0].sum() == 0.0) == below
+        g = rng.uniform(size=wi.shape[:2])
+        sums = [np.einsum("mkc,mk->mc", f, g) for f in (fast, ref)]
+        assert sums[0].tobytes() == sums[1].tobytes()
+    np.testing.assert_array_equal(albedo_table(brdf)(np.linspace(0.0, 1.5, 40)), table_numpy)
