@@ -206,6 +206,13 @@ def main() -> None:
                         run.materials[m.name]["samples"]["full_interval"]
                     ),
                     "warnings": run.materials[m.name]["warnings"],
+                    # signed median relative error per theta_i band: a bias growing
+                    # towards grazing in every material of a world is radiometric
+                    # (stray light: compare world_radiometry's stray_fraction)
+                    "bias_by_theta_i": {
+                        b: {k: (round(v, 5) if k != "n" else v) for k, v in row.items()}
+                        for b, row in run.materials[m.name]["samples"]["bias_by_theta_i"].items()
+                    },
                     # samples of poses around normal incidence, set apart when the truth
                     # is multi-valued there (budget_harness.pole_samples)
                     "pole": _pole_row(run.materials[m.name].get("pole")),

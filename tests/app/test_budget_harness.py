@@ -255,3 +255,26 @@ def test_a_truth_multi_valued_at_normal_incidence_and_the_poses_around_it():
     )
     got = pole_samples(s)
     assert got[:36].all() and not got[36:].any()
+
+
+def test_bias_by_theta_i_shows_a_stray_like_error_rising_towards_grazing():
+    # samples of the truth plus a diffuse-light error s (1 / cos theta_i - 1) f, as room
+    # light the direct irradiance does not carry gives (s = 5e-4), noise-free: each
+    # theta_i band's median is the error at its samples' median theta_i, by hand
+    ggx = default_materials(None)[0]
+    rng = np.random.default_rng(3)
+    wi, wo = _directions(rng, 3000), _directions(rng, 3000)
+    f = ggx.truth().eval(wi, wo)
+    err = 5e-4 * (1.0 / wi[:, 2] - 1.0)
+    s = WithBudget(wi=wi, wo=wo, brdf=f * (1.0 + err[:, None]), brdf_std=0.01 * f + 1e-4,
+                   budget={"noise": 0.01 * f + 1e-4})  # fmt: skip
+    bias = sample_statistics(s, ggx.truth())["bias_by_theta_i"]
+    ti = np.degrees(np.arccos(wi[:, 2]))
+    assert set(bias) == {f"{lo}-{hi}" for lo, hi in BANDS_DEG[:8]}  # nothing beyond 80
+    for band, row in bias.items():
+        lo, hi = (float(x) for x in band.split("-"))
+        m = (ti >= lo) & (ti < hi)
+        assert row["n"] == int(m.sum())
+        for c in "RGB":
+            assert row[c] == pytest.approx(float(np.median(err[m])), rel=1e-9, abs=1e-15)
+    assert bias["70-80"]["R"] > 10 * bias["20-30"]["R"] > 0  # the grazing signature
