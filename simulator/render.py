@@ -478,23 +478,7 @@ def albedo_table(brdf: Any) -> Callable[[np.ndarray], np.ndarray]:
     """
     if getattr(brdf, "spatial", False):
         return brdf.albedo_at
-    rgl = sys.modules.get("gonio.brdf.rgl")
-    if rgl is not None and isinstance(brdf, rgl.RGLBRDF):
-        # RGLBRDF.albedo's integral with the file's values in the numpy path's layout:
-        # gonio.brdf's numba kernel returns the same values C-ordered, the numpy path
-        # F-ordered, and directional_albedo's einsum sums them in an order that
-        # follows the layout (1e-15 apart).  Whether the kernel runs depends on
-        # whether gonio.brdf.kernels is loaded (a 10^5-pair batch, or
-        # _eval_kernel_size): fixing the layout keeps the table's bits -- and a
-        # session's frames -- independent of what the process rendered before.
-        from gonio.brdf.measured import directional_albedo
-
-        def f_order(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
-            return np.asfortranarray(brdf.eval(wi, wo))
-
-        a = np.asarray(directional_albedo(f_order, _ALBEDO_THETA), dtype=np.float64)
-    else:
-        a = np.asarray(brdf.albedo(_ALBEDO_THETA), dtype=np.float64)
+    a = np.asarray(brdf.albedo(_ALBEDO_THETA), dtype=np.float64)
     a = np.broadcast_to(a.reshape(len(_ALBEDO_THETA), -1), (len(_ALBEDO_THETA), 3)).copy()
 
     def albedo(theta: np.ndarray) -> np.ndarray:
@@ -687,9 +671,8 @@ def _eval_kernel_size(brdf: Any, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
     already loaded that costs a process ~0.03 s once (a realistic RGL camera's first
     frame 0.55 -> 0.58 s), back in ~25 frames.  Analytic models stay as they are (numpy is
     faster there at these sizes); padding pairs are (0, 0, 0), below the horizon: 0 at
-    no cost.  Below 10^5 pairs the values come in the numpy path's memory layout (the
-    kernel's is C order, numpy's F order when every pair is above the horizon and
-    finite), in which the node sum's einsum took them.
+    no cost.  Both of gonio.brdf's paths give their values in C order, so the node
+    sum's einsum rounds the same whichever ran.
     """
     rgl = sys.modules.get("gonio.brdf.rgl")  # not loaded: not an RGL file
     if rgl is None or not isinstance(brdf, rgl.RGLBRDF):
@@ -706,13 +689,6 @@ def _eval_kernel_size(brdf: Any, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
     a[:n] = np.broadcast_to(wi, shape).reshape(-1, 3)
     b[:n] = np.broadcast_to(wo, shape).reshape(-1, 3)
     f = np.asarray(brdf.eval(a, b))[:n]
-    # below gonio.brdf.rgl's own first-kernel batch size its numpy path would have run
-    # (read from the module, so that a change there cannot silently change bits here)
-    if n < rgl._FIRST_FUSED:
-        a, b = a[:n], b[:n]
-        active = (a[:, 2] > 0) & (b[:, 2] > 0) & np.isfinite(a).all(-1) & np.isfinite(b).all(-1)
-        if active.all():  # the numpy path's result then is its F-ordered evaluation
-            f = np.asfortranarray(f)
     return f.reshape(shape[:-1] + f.shape[-1:])
 
 

@@ -313,8 +313,11 @@ class RGLBRDF:
         out = np.zeros((wi.shape[0], n_ch))
         nan = ~(np.isfinite(wi).all(-1) & np.isfinite(wo).all(-1))
         active = (wi[:, 2] > 0) & (wo[:, 2] > 0) & ~nan
-        if active.size and active.all():  # common: no copies of the inputs or the result
-            out = self._eval_active(wi, wo)
+        if active.size and active.all():  # common: no copies of the inputs
+            # C order, as the kernel and the masked path return it: a caller's sum over
+            # the values (an einsum, directional_albedo) rounds by their layout, so the
+            # same values must come in one layout whichever path made them
+            out = np.ascontiguousarray(self._eval_active(wi, wo))
         elif active.any():
             out[active] = self._eval_active(wi[active], wo[active])
         out[nan] = np.nan

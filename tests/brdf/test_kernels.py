@@ -374,6 +374,30 @@ def test_rgl_kernel_matches_numpy(monkeypatch, rgl_calls, rgl_file, tmp_path, ma
     np.testing.assert_array_equal(fast, ref)
 
 
+def test_rgl_values_come_in_one_layout_whichever_path_made_them(monkeypatch, rgl_calls, rgl_file):
+    """C order from the kernel, the numpy path with every pair above the horizon (whose
+    transposed table read gave F order before) and the masked numpy path: a caller's
+    sum over the values (an einsum, directional_albedo) rounds by their layout, so equal
+    values in two layouts summed to different bits."""
+    from gonio.brdf import rgl
+
+    b = rgl.read_rgl(rgl_file("paper_white"))
+    wi, wo = _rgl_pairs(np.random.default_rng(4), 6000)
+    fast = b.eval(wi, wo)
+    assert rgl_calls["n"] == 1
+    ref = _numpy_path(monkeypatch, lambda: b.eval(wi, wo))
+    wi_m = wi.copy()
+    wi_m[0, 2] = -0.5  # one pair below the horizon: the masked numpy path
+    masked = _numpy_path(monkeypatch, lambda: b.eval(wi_m, wo))
+    assert rgl_calls["n"] == 1
+    for f in (fast, ref, masked):
+        assert f.flags.c_contiguous
+    np.testing.assert_array_equal(fast, ref)
+    g = np.random.default_rng(5).uniform(size=(2000, 3))
+    sums = [np.einsum("mkc,mk->mc", f.reshape(2000, 3, -1), g) for f in (fast, ref)]
+    assert sums[0].tobytes() == sums[1].tobytes()
+
+
 def test_read_only_inputs_share_one_compilation():
     """Writeable and read-only inputs (a frozen caller's directions, broadcast per-channel
     parameters) reach the kernels as one argument type: the writeable flag is part of
