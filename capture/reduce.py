@@ -30,6 +30,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import warnings
 from collections import Counter, defaultdict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -750,6 +751,12 @@ class _PoseRun:
             # the chart budget["geometry"]'s BRDF gradient was fitted on: a reader that
             # propagates the modes itself (the accuracy harness) must use the same
             "budget_gradient_chart": chart,
+            # with stray_gain: the fitter shapes the stray term by the fitted model's
+            # directional albedo (gonio.fitting.geometric_uncertainty)
+            "stray_fraction": float(setup.stray_fraction),
+            "stray_reference_gain": (
+                np.full(3, np.nan) if self.cal.g_ref is None else self.cal.g_ref
+            ).tolist(),
         }
         # brdf_std: the root sum of squares of the per-sample terms (noise alone before
         # issue 16); the shared terms stay apart (calibration_rel_std, budget attrs)
@@ -771,8 +778,19 @@ class _PoseRun:
             units={"radiance": RADIANCE_UNITS, "irradiance": IRRADIANCE_UNITS},
             budget=budget,
             shared_budget=shared,
+            stray_gain=np.concatenate([self._stray_gain(m) for m in samples_m]),
             **geo["fields"],
         )
+
+    def _stray_gain(self, m: PoseMeasurement) -> NDArray[np.float64]:
+        """``G0 / G`` of a pose's regions, (n, C) (NaN where G is not known)."""
+        n = len(m.flags)
+        g0 = self.cal.g0
+        if g0 is None or m.geometry is None or np.shape(m.geometry) != (n, 3):
+            return np.full((n, 3), np.nan)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            g = np.asarray(g0, float) / np.asarray(m.geometry, float)
+        return np.where(np.isfinite(g) & (g >= 0), g, np.nan)
 
     # -- the radiometric calibration (issue 16) ---------------------------------------
     def _radiometric_calibration(
@@ -900,6 +918,14 @@ class _PoseRun:
             ok = (m.flags == 0)[:, None] & np.isfinite(m.geometry) & (m.wi[:, 2:3] > 0)
             g0.append(np.where(ok, m.geometry / m.wi[:, 2:3], np.nan))
         self.cal.g0 = np.nanmedian(np.concatenate(g0), axis=0) if g0 else np.full(3, np.nan)
+        gains = [
+            self.cal.g0 / np.where((m.flags == 0)[:, None], m.geometry, np.nan)
+            for m in refs
+            if m.geometry is not None
+        ]
+        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # no kept reference region: NaN
+            self.cal.g_ref = np.nanmean(np.concatenate(gains), axis=0) if gains else None
         return model
 
     def _light_at(
@@ -1288,6 +1314,9 @@ class _Radiometry:
     profile: LightProfile | None = None
     profile_applied: bool = False
     g0: NDArray[np.float64] | None = None
+    #: (C,) the kept reference regions' mean ``G0 / G``: the room's diffuse light raises
+    #: the light scale by ``stray_fraction`` times this (a Lambertian reference)
+    g_ref: NDArray[np.float64] | None = None
     cos_psi_ref: float = 1.0
 
     def summary(self) -> dict[str, Any]:

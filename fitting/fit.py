@@ -578,9 +578,12 @@ def _full_local(prob: Problem, x: np.ndarray, alg: str, maxeval: int, path, say)
     return r.x, r.status, r.message
 
 
-def _albedo_basis(prob: Problem, thetas: np.ndarray) -> np.ndarray:
-    """Directional albedo per unit linear parameter at ENERGY_THETA: (M, T, K) for shape
-    parameter sets ``thetas`` (M, S), in one broadcast call of the model's quadrature."""
+def _albedo_basis(
+    prob: Problem, thetas: np.ndarray, nodes: np.ndarray = ENERGY_THETA
+) -> np.ndarray:
+    """Directional albedo per unit linear parameter at ``nodes`` (T,) polar angles (rad,
+    default ENERGY_THETA): (M, T, K) for shape parameter sets ``thetas`` (M, S), in one
+    broadcast call of the model's quadrature."""
     unit = unit_values(prob)
     thetas = np.atleast_2d(thetas)
     K = prob.n_linear
@@ -591,7 +594,7 @@ def _albedo_basis(prob: Problem, thetas: np.ndarray) -> np.ndarray:
         from gonio.brdf.albedo import lobe_albedo
 
         shape = {n: thetas[:, s, None] for s, n in enumerate(prob.shape_names)}
-        out = np.empty((thetas.shape[0], ENERGY_THETA.size, K))
+        out = np.empty((thetas.shape[0], nodes.size, K))
         for lobe, names in lobes:
             lin = [n for n in names.values() if n in prob.linear_names]
             j = prob.linear_names.index(lin[0])
@@ -604,14 +607,14 @@ def _albedo_basis(prob: Problem, thetas: np.ndarray) -> np.ndarray:
                 # it to 2e-11 in 19 ms, 3 of the 4 `--model auto` candidates have one)
                 out[:, :, j] = 1.0
                 continue
-            out[:, :, j] = lobe_albedo(lobe, ENERGY_THETA[None, :], lp) / unit[j]
+            out[:, :, j] = lobe_albedo(lobe, nodes[None, :], lp) / unit[j]
         return out
     p: dict[str, Any] = {n: thetas[:, s, None, None] for s, n in enumerate(prob.shape_names)}
     eye = np.eye(K)
     for j, n in enumerate(prob.linear_names):
         p[n] = (unit[j] * eye[j])[None, None, :]  # lobe j alone in column j
-    out = prob.model.albedo(ENERGY_THETA[None, :, None], p)
-    out = np.broadcast_to(out, (thetas.shape[0], ENERGY_THETA.size, K))
+    out = prob.model.albedo(nodes[None, :, None], p)
+    out = np.broadcast_to(out, (thetas.shape[0], nodes.size, K))
     return out / unit
 
 
@@ -713,8 +716,16 @@ def _energy_stage(prob: Problem, x: np.ndarray, maxeval: int, path: list[str]):
 def _add_geometry(prob: Problem, x: np.ndarray, unc: Any, modes: GeometricModes, absolute_sigma):
     """The covariance with the correlated geometric errors (sandwich), and the variance
     split per parameter for the diagnostics."""
+
+    def albedo_at(nodes: np.ndarray) -> np.ndarray:
+        # the fitted model's directional albedo (T, C): the stray light's shape
+        if prob.n_linear == 0 or not hasattr(prob.model, "albedo"):
+            raise NotImplementedError
+        theta, a = prob.unpack(x)
+        return _albedo_basis(prob, theta, np.asarray(nodes, dtype=np.float64))[0] @ a
+
     noise, geometry, systematic, info = sandwich_covariance(
-        prob, x, unc.h_inverse, unc.covariance, modes, absolute_sigma
+        prob, x, unc.h_inverse, unc.covariance, modes, absolute_sigma, albedo_at
     )
     cov = noise + geometry + systematic
     # an undetermined parameter (std inf) stays undetermined; one at a bound stays at 0

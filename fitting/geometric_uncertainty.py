@@ -35,12 +35,26 @@ same-signed column is the conservative reading) enter the same way, one column e
 ``var_u`` too.  Averaged as if independent, a 0.05 % stray-light bias on the diffuse part
 of every sample would be reported as 0.003 % on the albedo.
 
+The stray light's column takes its shape from the physics when the samples say how
+strongly the room's light enters each one (``stray_gain = G0 / G`` and the attributes
+``stray_fraction`` ``s`` and ``stray_reference_gain`` ``g_ref``): a diffuse irradiance
+``s E0`` reflects as ``s E0 rho(theta_o) / pi`` (reciprocity: the directional albedo at
+the camera's angle), which the reduction divides by ``E = E0 / stray_gain``; the same
+light in the reference shots raises the light scale by ``s g_ref``.  So
+``df = s / sqrt(3) (stray_gain rho(theta_o) / pi - g_ref f)`` with ``rho`` the fitted
+model's.  ``budget["stray"]`` states ``s / sqrt(3) stray_gain f``, exact only for a
+Lambertian sample: on a glossy one the flat ``rho / pi`` widens the lobe's wings at
+grazing incidence, which moves the roughness, not the lobe's height (world 2102,
+``lambert+ggx``: alpha 4.2 sigma off with the budget's shape, 2.1 sigma in a world
+without stray light).
+
 The fit itself (its weights, hence its parameters) does not change: only its covariance.
 Samples without modes (older files, no budget) skip all of this.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,7 +63,13 @@ import numpy as np
 from gonio.errors import FitError
 from gonio.fitting.objective import Problem
 
-__all__ = ["CORRELATED_TERMS", "GeometricModes", "geometric_modes_of", "sandwich_covariance"]
+__all__ = [
+    "CORRELATED_TERMS",
+    "GeometricModes",
+    "geometric_modes_of",
+    "sandwich_covariance",
+    "stray_column",
+]
 
 SCOPES = ("session", "pose")
 #: Budget terms that are one error of one sign shared by all samples of a session
@@ -75,6 +95,9 @@ class GeometricModes:
         ``budget["geometry"]``: the marginal std of the modes that ``brdf_std`` holds, 1/sr.
     correlated : dict of str to ndarray (N, C)
         The budget's :data:`CORRELATED_TERMS` present in the samples, 1/sr.
+    stray_gain : ndarray, shape (N, C) or None
+        ``G0 / G`` per sample (NaN: unknown), with ``stray_fraction`` (the stated bound)
+        and ``stray_reference_gain`` (C,): the stray light's shape (module docstring).
     """
 
     modes: np.ndarray
@@ -83,6 +106,9 @@ class GeometricModes:
     pose: np.ndarray | None
     geometry_std: np.ndarray | None
     correlated: dict[str, np.ndarray] | None = None
+    stray_gain: np.ndarray | None = None
+    stray_fraction: float = 0.0
+    stray_reference_gain: np.ndarray | None = None
 
     def subset(self, keep: np.ndarray) -> GeometricModes:
         """The modes of the samples selected by the boolean mask ``keep``."""
@@ -93,6 +119,9 @@ class GeometricModes:
             pose=None if self.pose is None else self.pose[keep],
             geometry_std=None if self.geometry_std is None else self.geometry_std[keep],
             correlated={k: v[keep] for k, v in (self.correlated or {}).items()},
+            stray_gain=None if self.stray_gain is None else self.stray_gain[keep],
+            stray_fraction=self.stray_fraction,
+            stray_reference_gain=self.stray_reference_gain,
         )
 
 
@@ -165,9 +194,73 @@ def geometric_modes_of(samples: Any) -> GeometricModes | None:
         if v.shape != (n, c):
             raise FitError(f"samples.budget[{term!r}] has shape {v.shape}, expected {(n, c)}")
         correlated[term] = np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0)
+    gain, s_frac, g_ref = _stray_of(samples, n, c)
     return GeometricModes(
-        modes=modes, scope=scope, names=names, pose=pose, geometry_std=geo, correlated=correlated
-    )
+        modes=modes, scope=scope, names=names, pose=pose, geometry_std=geo,
+        correlated=correlated, stray_gain=gain, stray_fraction=s_frac,
+        stray_reference_gain=g_ref,
+    )  # fmt: skip
+
+
+def _stray_of(samples: Any, n: int, c: int) -> tuple[np.ndarray | None, float, np.ndarray | None]:
+    """``(stray_gain, stray_fraction, stray_reference_gain)`` of samples that carry them
+    (a finite bound > 0 and a finite reference gain), else ``(None, 0, None)``."""
+    gain = getattr(samples, "stray_gain", None)
+    attrs = getattr(samples, "attrs", None) or {}
+    if gain is None or "stray_fraction" not in attrs:
+        return None, 0.0, None
+    gain = np.asarray(gain, dtype=np.float64)
+    if gain.shape != (n, c):
+        raise FitError(f"samples.stray_gain has shape {gain.shape}, expected {(n, c)}")
+    try:
+        s_frac = float(attrs["stray_fraction"])
+        g_ref = np.broadcast_to(
+            np.asarray(attrs.get("stray_reference_gain", 1.0), dtype=np.float64), (c,)
+        ).copy()
+    except (TypeError, ValueError) as e:
+        raise FitError(
+            f"samples attributes stray_fraction / stray_reference_gain: {e}; expected a "
+            f"number and {c} numbers"
+        ) from None
+    if not (np.isfinite(s_frac) and s_frac > 0 and np.all(np.isfinite(g_ref))):
+        return None, 0.0, None
+    return gain, s_frac, g_ref
+
+
+def stray_column(
+    prob: Problem,
+    x: np.ndarray,
+    modes: GeometricModes,
+    albedo_at: Callable[[np.ndarray], np.ndarray],
+) -> np.ndarray | None:
+    """The stray light's 1-sigma effect on the used samples, (N, C) in 1/sr, shaped by
+    the fitted model's directional albedo (module docstring), or None when the samples
+    or the model cannot say.
+
+    ``albedo_at(theta)`` gives the fitted model's directional albedo (T, C) at polar
+    angles ``theta`` (T,), radians.  Samples without a known gain take the budget's
+    stated value (``budget["stray"]``).
+    """
+    if modes.stray_gain is None or modes.stray_reference_gain is None:
+        return None
+    # the albedo is smooth in theta_o: 24 nodes, linear interpolation between them
+    nodes = np.radians(np.linspace(0.0, 89.9, 24))
+    try:
+        rho = np.asarray(albedo_at(nodes), dtype=np.float64)  # (T, C)
+    except (ImportError, NotImplementedError, AttributeError):
+        return None
+    if rho.shape != (nodes.size, prob.n_channels) or not np.all(np.isfinite(rho)):
+        return None
+    theta, a = prob.unpack(x)
+    f = np.asarray(prob.model.eval(prob._wi_c, prob._wo_c, prob.params_dict(theta, a)))
+    theta_o = np.arccos(np.clip(prob.wo[:, 2], -1.0, 1.0))
+    rho_o = np.stack([np.interp(theta_o, nodes, rho[:, k]) for k in range(rho.shape[1])], 1)
+    u = modes.stray_fraction / np.sqrt(3.0)
+    gain = modes.stray_gain
+    col = u * (gain * rho_o / np.pi - modes.stray_reference_gain[None, :] * f)
+    stated = (modes.correlated or {}).get("stray")
+    fallback = stated if stated is not None else np.zeros_like(col)
+    return np.where(np.isfinite(col), col, fallback)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -229,7 +322,8 @@ def sandwich_covariance(
     noise_covariance: np.ndarray,
     modes: GeometricModes,
     absolute_sigma: bool,
-) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    albedo_at: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
     """Noise and geometric parts of the parameter covariance, in natural units (P, P).
 
     Parameters
@@ -246,6 +340,9 @@ def sandwich_covariance(
         The used samples' modes (:meth:`GeometricModes.subset` with ``prob.used``).
     absolute_sigma
         The fit trusts the sigmas as absolute.
+    albedo_at
+        The fitted model's directional albedo (T, C) at polar angles (T,), radians: shapes
+        the stray light's column (:func:`stray_column`); None keeps the budget's shape.
 
     Returns
     -------
@@ -279,9 +376,15 @@ def sandwich_covariance(
     geometry = AG @ AG.T
     corr = modes.correlated or {}
     systematic = np.zeros_like(geometry)
+    stray_shaped = False
     if corr:
+        cols = dict(corr)
+        if "stray" in cols and albedo_at is not None:
+            shaped = stray_column(prob, x, modes, albedo_at)
+            if shaped is not None:
+                cols["stray"], stray_shaped = shaped, True
         # one column per term: every sample's error of the same sign, 1 sigma
-        e_sys = np.stack([drdf * corr[t] for t in corr], axis=-1)  # (N, C, T)
+        e_sys = np.stack([drdf * cols[t] for t in cols], axis=-1)  # (N, C, T)
         AS = h_inverse @ per_sample(e_sys).sum(axis=0)
         systematic = AS @ AS.T
     noise = noise_covariance
@@ -310,5 +413,6 @@ def sandwich_covariance(
         "columns": int(G.shape[1]),
         "noise_from_uncorrelated_variance": bool(use_uncorrelated),
         "correlated_terms": sorted(corr),
+        "stray_shaped_by_albedo": stray_shaped,
     }
     return noise, geometry, systematic, info

@@ -39,6 +39,15 @@ name                       shape       units  meaning
 ``pose``                   (N,)        int32  journal pose index of each sample
 ``geometry_source``        (N,)        str    ``"board"``, ``"rig"`` or ``"none"``: where
                                               the sample's camera pose came from
+``stray_gain``             (N, C)      1      ``G0 / G``: a diffuse room irradiance of
+                                              fraction ``s`` of the light's direct one at
+                                              normal incidence (``G0``) adds
+                                              ``s stray_gain rho(theta_o) / pi`` to the
+                                              BRDF (``rho``: directional albedo); root
+                                              attributes ``stray_fraction`` (the stated
+                                              bound ``s``) and ``stray_reference_gain``
+                                              (C,: the reference regions' mean gain, by
+                                              which the same light biases the light scale)
 =========================  ==========  =====  ==============================================
 
 Root attributes: ``schema`` (``"gonio.samples"``), ``schema_version``, ``channels``, and
@@ -169,6 +178,9 @@ class BRDFSamples:
         Optional (N,) int32 journal pose index of each sample.
     geometry_source
         Optional (N,) where each sample's camera pose came from (:data:`GEOMETRY_SOURCES`).
+    stray_gain
+        Optional (N, C) ``G0 / G``, dimensionless: how strongly the room's diffuse light
+        enters each sample, relative to its direct irradiance (the table above).
     """
 
     wi: NDArray[np.float64]
@@ -189,6 +201,7 @@ class BRDFSamples:
     geometry_mode_names: NDArray[np.str_] | None = None
     pose: NDArray[np.int32] | None = None
     geometry_source: NDArray[np.str_] | None = None
+    stray_gain: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         unknown = set(self.units) - set(DEFAULT_UNITS)
@@ -283,6 +296,11 @@ class BRDFSamples:
                 bad = sorted(set(a.tolist()) - set(GEOMETRY_SOURCES))[:5]
                 raise ValueError(f"geometry_source: {bad} not among {list(GEOMETRY_SOURCES)}")
             self.geometry_source = a
+        if self.stray_gain is not None:
+            g = _per_channel(self.stray_gain, n, "stray_gain", c)
+            if np.any(g < 0) or np.any(np.isinf(g)):
+                raise ValueError("stray_gain must be >= 0 and finite (NaN: unknown)")
+            self.stray_gain = g
 
     def __len__(self) -> int:
         return self.wi.shape[0]
@@ -331,6 +349,7 @@ class BRDFSamples:
             geometry_mode_names=self.geometry_mode_names,
             pose=pick(self.pose),
             geometry_source=pick(self.geometry_source),
+            stray_gain=pick(self.stray_gain),
         )
 
 
@@ -430,6 +449,8 @@ def _save_budget(f: h5py.File, s: BRDFSamples) -> None:
         numbers("pose", s.pose.astype(np.int32), "journal pose index")
     if s.geometry_source is not None:
         strings("geometry_source", s.geometry_source)
+    if s.stray_gain is not None:
+        numbers("stray_gain", s.stray_gain, "1")
 
 
 def _attr_value(v: Any) -> Any:
@@ -615,6 +636,8 @@ def _read_budget(path: Path, f: h5py.File) -> dict[str, Any]:
         out["pose"] = numeric("pose", f["pose"], "iu")
     if "geometry_source" in f:
         out["geometry_source"] = strings("geometry_source")
+    if "stray_gain" in f:
+        out["stray_gain"] = numeric("stray_gain", f["stray_gain"], "f")
     return out
 
 

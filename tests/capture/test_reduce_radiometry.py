@@ -74,6 +74,28 @@ def test_reference_groups_carry_rig_times_and_the_warnings_name_what_is_missing(
     assert "prnu = 0.01" in w and "median" in w and "%" in w
 
 
+def test_samples_say_how_strongly_the_rooms_light_enters_each_one(session):
+    """``stray_gain = G0 / G``: the light's direct irradiance at normal incidence over the
+    sample's.  At the rig's fixed light radius G goes as cos(theta_i) (the distance and
+    the light's profile differ by percents over the sample), so gain cos(theta_i) ~ 1;
+    the attributes carry the stated bound and the reference regions' mean gain, which
+    the stray term of the budget uses (s / sqrt(3) gain f)."""
+    from gonio.dataset import load_samples
+
+    reduce_session(session, out=session / "g.h5", plot=False)
+    s = load_samples(session / "g.h5")
+    ok = np.asarray(s.valid)
+    assert s.stray_gain is not None and s.stray_gain.shape == s.brdf.shape
+    g = s.stray_gain[ok]
+    np.testing.assert_allclose(g * s.wi[ok, 2:3], 1.0, atol=0.05)
+    assert s.attrs["stray_fraction"] == pytest.approx(5e-4)
+    g_ref = np.asarray(s.attrs["stray_reference_gain"])
+    assert g_ref.shape == (3,) and np.all((g_ref >= 0.95) & (g_ref < 1.0 / np.cos(np.radians(80))))
+    np.testing.assert_allclose(
+        s.budget["stray"][ok], 5e-4 / np.sqrt(3) * g * np.abs(s.brdf[ok]), rtol=1e-12
+    )
+
+
 def test_a_session_without_darks_warns_and_states_the_dark_term(session, capsys):
     no_darks = _copy(
         session, "no_darks", lambda recs, d: [r for r in recs if r.get("kind") != "dark"]

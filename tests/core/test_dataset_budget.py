@@ -31,6 +31,7 @@ def make(n=30, c=3, m=5):
         geometry_mode_names=[f"mode {k}" for k in range(m)],
         pose=np.arange(n) // 9,
         geometry_source=np.where(np.arange(n) % 4 == 0, "rig", "board"),
+        stray_gain=np.where(np.arange(n)[:, None] == 5, np.nan, rng.uniform(1, 5, (n, c))),
     )
 
 
@@ -48,15 +49,18 @@ def test_round_trip_and_layout(tmp_path):
     assert list(r.geometry_mode_names) == [f"mode {k}" for k in range(5)]
     assert r.pose.dtype == np.int32 and list(r.pose) == list(np.arange(30) // 9)
     assert list(r.geometry_source) == list(s.geometry_source)
+    np.testing.assert_array_equal(r.stray_gain, s.stray_gain)  # NaN (unknown) kept
     with h5py.File(p) as f:  # the layout the contract names
         assert isinstance(f["budget"], h5py.Group)
         assert f["budget/noise"].shape == (30, 3) and f["budget/noise"].attrs["units"] == "1/sr"
         assert f["budget"].attrs["reference"].shape == (3,)
         assert f["geometry_modes"].shape == (30, 5, 6)
         assert f["pose"].dtype == np.int32
+        assert f["stray_gain"].shape == (30, 3) and f["stray_gain"].attrs["units"] == "1"
     sub = r.subset(np.arange(30) % 2 == 0)
     assert sub.geometry_modes.shape == (15, 5, 6) and sub.budget["noise"].shape == (15, 3)
     np.testing.assert_array_equal(sub.pose, r.pose[::2])
+    np.testing.assert_array_equal(sub.stray_gain, r.stray_gain[::2])
     assert list(sub.geometry_mode_names) == list(r.geometry_mode_names)
 
 
@@ -66,7 +70,8 @@ def test_no_modes_and_an_old_file(tmp_path):
     assert r.geometry_modes.shape == (30, 0, 6) and r.geometry_mode_names.size == 0
     old = BRDFSamples(wi=s.wi, wo=s.wo, brdf=s.brdf, brdf_std=s.brdf_std)
     r = load_samples(save_samples(tmp_path / "old.h5", old))
-    for name in ("budget", "shared_budget", "geometry_modes", "pose", "geometry_source"):
+    for name in ("budget", "shared_budget", "geometry_modes", "pose", "geometry_source",
+                 "stray_gain"):  # fmt: skip
         assert getattr(r, name) is None, name
     with h5py.File(tmp_path / "old.h5") as f:
         assert "budget" not in f and "geometry_modes" not in f
@@ -108,6 +113,10 @@ def _replace(name, value):
         (_replace("pose", np.full(30, 2**40)), "pose"),
         (_replace("geometry_source", np.array([b"astrology"] * 30)), "geometry_source"),
         (_replace("budget", np.zeros(3)), "budget"),
+        (_replace("stray_gain", -np.ones((30, 3))), "stray_gain"),
+        (_replace("stray_gain", np.full((30, 3), np.inf)), "stray_gain"),
+        (_replace("stray_gain", np.ones((30, 2))), "stray_gain"),
+        (_replace("stray_gain", np.array([b"x"] * 30)), "stray_gain"),
     ],
 )
 def test_bad_budget_is_refused_naming_the_dataset(tmp_path, fn, match):

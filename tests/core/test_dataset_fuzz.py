@@ -46,6 +46,7 @@ DATASETS = (
     "geometry_mode_names",
     "pose",
     "geometry_source",
+    "stray_gain",
 )
 
 
@@ -70,6 +71,7 @@ def valid_file(tmp_path_factory) -> Path:
         geometry_mode_names=["rig 1", "rig 2", "board pose 1", "board pose 2"],
         pose=np.arange(n) // 9,
         geometry_source=np.where(np.arange(n) % 3 == 0, "rig", "board"),
+        stray_gain=rng.uniform(1, 5, (n, 3)),
     )
     return save_samples(tmp_path_factory.mktemp("fuzz") / "valid.h5", s)
 
@@ -96,6 +98,9 @@ def _load_is_clean(path) -> None:
         assert set(s.geometry_mode_scope) <= {"session", "pose"}
     assert s.pose is None or (s.pose.shape == (n,) and s.pose.dtype == np.int32)
     assert s.geometry_source is None or set(s.geometry_source) <= {"board", "rig", "none"}
+    if s.stray_gain is not None:
+        assert s.stray_gain.shape == (n, c) and not (s.stray_gain < 0).any()
+        assert not np.isinf(s.stray_gain).any()
 
 
 @SETTINGS

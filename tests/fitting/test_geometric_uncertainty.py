@@ -378,3 +378,107 @@ def test_model_selection_gives_the_chosen_model_the_same_sandwich(make_samples):
         np.testing.assert_allclose(auto.std[k], direct.std[k], rtol=1e-6)
     assert auto.diagnostics["variance_split"]["labels"] == list(direct.param_labels)
     assert np.all(np.asarray(auto.diagnostics["variance_split"]["geometry"]) > 0)
+
+
+def _directional_albedo_by_quadrature(model, params, theta: np.ndarray) -> np.ndarray:
+    """rho(theta) = int f(w, w_theta) cos(theta') dw' (C,) per angle, by a midpoint rule
+    on a (cos theta', phi') grid fine enough for alpha = 0.2 -- independent of
+    gonio.brdf.albedo's quadrature."""
+    nu, nphi = 600, 360
+    mu = (np.arange(nu) + 0.5) / nu
+    phi = (np.arange(nphi) + 0.5) / nphi * 2 * np.pi
+    MU, PHI = np.meshgrid(mu, phi, indexing="ij")
+    r = np.sqrt(1 - MU**2)
+    w = np.stack([r * np.cos(PHI), r * np.sin(PHI), MU], -1).reshape(-1, 3)
+    out = []
+    for t in theta:
+        wo = np.broadcast_to([np.sin(t), 0.0, np.cos(t)], w.shape)
+        f = np.asarray(model.eval(w[:, None, :], wo[:, None, :], params))  # (M, C)
+        out.append((f * w[:, 2:3]).sum(0) * (1.0 / nu) * (2 * np.pi / nphi))
+    return np.array(out)
+
+
+def test_stray_light_column_follows_the_physics_of_a_glossy_sample():
+    """With ``stray_gain`` the stray column is the physics' shape: a diffuse irradiance
+    s E0 adds s G0/G rho(theta_o)/pi to every sample and s g_ref of the light scale
+    divides it.  Samples of lambert+ggx rendered with that effect (rho by a quadrature
+    of the model's own values, not gonio.brdf.albedo) and without it: the fit moves by
+    sqrt(3) times the systematic std the sandwich states, parameter by parameter, sign
+    apart.  The budget's shape (s / sqrt(3) G0/G f) misses the roughness's move: its
+    stated alpha std is far below the move."""
+    import gonio.brdf
+
+    rng = np.random.default_rng(1616)
+    n = 3000
+    wi = random_directions(rng, n, 80.0)
+    wo = random_directions(rng, n, 80.0)
+    model = gonio.brdf.get_model("lambert+ggx")
+    truth = {"albedo": np.array([0.5, 0.4, 0.3]), "ks": np.full(3, 0.2), "alpha": np.full(3, 0.2)}
+    f = np.asarray(model.eval(wi[:, None, :], wo[:, None, :], truth))  # (n, 3)
+    nodes = np.radians(np.linspace(0.0, 80.0, 33))
+    rho = _directional_albedo_by_quadrature(model, truth, nodes)
+    theta_o = np.arccos(wo[:, 2])
+    rho_o = np.stack([np.interp(theta_o, nodes, rho[:, c]) for c in range(3)], 1)
+    gain = np.repeat((1.0 / wi[:, 2])[:, None], 3, axis=1)  # G at fixed distance: cos(theta_i)
+    g_ref = 1.0 / np.cos(np.radians(30.0))
+    s = 0.01  # large enough that the move stands far above the optimiser's tolerance
+    y_stray = f + s * (gain * rho_o / np.pi - g_ref * f)
+    std = 1e-3 * f + 1e-5
+
+    def samples(y, with_gain):
+        extra = {"stray_gain": gain} if with_gain else {}
+        return WithModes(
+            wi=wi, wo=wo, brdf=y, brdf_std=np.hypot(std, s / np.sqrt(3) * gain * f),
+            geometry_modes=np.zeros((n, 1, 6)), geometry_mode_scope=np.array(["session"]),
+            budget={"noise": std, "geometry": np.zeros((n, 3)),
+                    "stray": s / np.sqrt(3) * gain * f},
+            attrs={"stray_fraction": s, "stray_reference_gain": [g_ref] * 3}, **extra,
+        )  # fmt: skip
+
+    clean = fit(samples(f, True), "lambert+ggx")
+    lit = fit(samples(y_stray, True), "lambert+ggx")
+    assert lit.diagnostics["geometry_modes"]["stray_shaped_by_albedo"]
+    split = lit.diagnostics["variance_split"]
+    labels = split["labels"]
+    stated = np.sqrt(3.0 * np.asarray(split["systematic"]))
+    for k, label in enumerate(labels):
+        name, _, ch = label.partition("[")
+        c = "RGB".index(ch[0]) if ch else 0
+        moved = abs(float(np.asarray(lit.params[name])[c] - np.asarray(clean.params[name])[c]))
+        assert moved == pytest.approx(stated[k], rel=0.1), label
+    # the budget's own shape: the roughness's stated systematic std misses its move
+    old = fit(samples(y_stray, False), "lambert+ggx")
+    assert not old.diagnostics["geometry_modes"]["stray_shaped_by_albedo"]
+    k = labels.index("alpha")
+    old_alpha = np.sqrt(3.0 * old.diagnostics["variance_split"]["systematic"][k])
+    moved = abs(float(lit.params["alpha"][0] - clean.params["alpha"][0]))
+    assert old_alpha < 0.5 * moved
+
+
+def test_stray_light_column_of_a_lambertian_sample_is_the_closed_form():
+    """f = albedo / pi: the column is s / sqrt(3) albedo / pi (gain - g_ref) per sample,
+    so the weighted mean's systematic std is s / sqrt(3) albedo sum w (gain - g_ref) /
+    sum w (closed form)."""
+    wi, wo, pose, modes = tilted_layout()
+    rng = np.random.default_rng(17)
+    n = len(wi)
+    s_u = 1e-3 * (1 + rng.random((n, 3)))
+    s, g_ref = 5e-4, 1.2
+    gain = np.repeat((1.0 / wi[:, 2])[:, None], 3, axis=1)
+    f_true = np.broadcast_to(ALBEDO / np.pi, (n, 3))
+    stray = s / np.sqrt(3) * gain * f_true
+    std = np.hypot(s_u, stray)
+    y = f_true + s_u * rng.standard_normal((n, 3))
+    smp = WithModes(
+        wi=wi, wo=wo, brdf=y, brdf_std=std, geometry_modes=modes,
+        geometry_mode_scope=np.array(["session", "pose"]), pose=pose,
+        budget={"noise": s_u, "geometry": np.zeros((n, 3)), "stray": stray},
+        stray_gain=gain, attrs={"stray_fraction": s, "stray_reference_gain": [g_ref] * 3},
+    )  # fmt: skip
+    r = fit(smp, "lambert")
+    w = 1.0 / std**2
+    a = r.params["albedo"]
+    expected = s / np.sqrt(3) * a * np.sum(w * (gain - g_ref), axis=0) / np.sum(w, axis=0)
+    np.testing.assert_allclose(
+        r.diagnostics["variance_split"]["systematic"], expected**2, rtol=1e-6
+    )
