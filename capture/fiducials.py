@@ -95,6 +95,15 @@ class BoardSpec:
         d = fields.get("dictionary", "DICT_4X4_50")
         if not isinstance(d, str) or not d.startswith("DICT_") or not hasattr(cv2.aruco, d):
             raise ValueError(f"dictionary = {d!r}: expected a cv2.aruco dictionary name")
+        from gonio.charuco import board_markers_problem
+
+        # OpenCV builds a board with more markers than the dictionary has IDs and then
+        # finds none of it: refused here, as the scene and `calibrate` refuse it
+        problem = board_markers_problem(
+            fields.get("squares_x", 7), fields.get("squares_y", 7), d
+        )
+        if problem is not None:
+            raise ValueError(problem)
         return cls(**fields)
 
     def cv_board(self) -> Any:

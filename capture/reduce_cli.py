@@ -201,6 +201,12 @@ def reduce_cmd(
     }
     if upd:
         setup = setup.replace(**upd)
+    if out is not None and out.exists() and not out.is_file():
+        # a folder, a device (/dev/null), a socket: --force must not replace it
+        raise ReductionError(
+            f"--out {out}: exists and is not a regular file; expected the path of a "
+            "samples file (.h5)"
+        )
     if out is not None and out.exists() and not force and not _is_samples_file(out):
         raise ReductionError(
             f"{out} exists and is not a gonio samples file; pass --force to replace it"

@@ -157,6 +157,12 @@ def fit(
     Shape parameters (roughness) are shared by all colour channels; albedo and ks are fitted
     per channel.  The summary shows each parameter with its one-sigma uncertainty.
     """
+    if out.exists() and not out.is_dir():
+        # click's file_okay=False lets a device or a socket through (/dev/null)
+        raise FitError(
+            f"--out {out}: exists and is not a folder; expected a folder for "
+            f"{', '.join(_OUTPUTS)}"
+        )
     existing = _existing_outputs(out)
     if existing and not force:
         raise FitError(

@@ -49,6 +49,7 @@ from typing import Any
 
 import numpy as np
 
+from gonio.brdf.registry import format_model_spec, parse_model_spec  # noqa: F401 (re-exported)
 from gonio.errors import FitError, UnknownNameError
 from gonio.fitting.result import FitResult
 
@@ -71,46 +72,6 @@ FRESNEL_CANDIDATES = ("lambert+ggx[fresnel=schlick]", "lambert+beckmann[fresnel=
 MIN_GLOSS = 10.0
 #: The matte rule applies only while the best diffuse fit's cost is within this factor.
 MAX_DIFFUSE_COST_RATIO = 10.0
-
-
-def parse_model_spec(spec: str) -> tuple[str, dict[str, str]]:
-    """Split a model spec ``"name[key=value,key=value]"`` into the name and its options.
-
-    ``"lambert+ggx[fresnel=schlick]"`` -> ``("lambert+ggx", {"fresnel": "schlick"})``;
-    a plain name has no options.  The name and values are checked later by
-    :func:`gonio.brdf.get_model`.
-
-    Raises
-    ------
-    UnknownNameError
-        Unbalanced brackets or an option not written ``key=value``.
-    """
-    s = spec.strip()
-    if "[" not in s and "]" not in s:
-        return s, {}
-    if not (s.endswith("]") and s.count("[") == 1 and s.count("]") == 1 and s.index("[") > 0):
-        raise UnknownNameError(
-            f"model spec {spec!r}: expected 'name' or 'name[key=value,...]', "
-            "e.g. 'lambert+ggx[fresnel=schlick]'"
-        )
-    name, body = s[:-1].split("[", 1)
-    opts: dict[str, str] = {}
-    for item in filter(None, (x.strip() for x in body.split(","))):
-        key, eq, value = item.partition("=")
-        if not eq or not key.strip() or not value.strip():
-            raise UnknownNameError(
-                f"model spec {spec!r}: option {item!r} is not written key=value "
-                "(e.g. fresnel=schlick)"
-            )
-        opts[key.strip()] = value.strip()
-    return name.strip(), opts
-
-
-def format_model_spec(name: str, options: dict[str, Any] | None) -> str:
-    """Inverse of :func:`parse_model_spec`: ``name`` or ``name[key=value,...]``."""
-    if not options:
-        return name
-    return f"{name}[{','.join(f'{k}={v}' for k, v in sorted(options.items()))}]"
 
 
 def _fresnel_dielectric(cos_t: float, n: float) -> float:

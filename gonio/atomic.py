@@ -187,6 +187,22 @@ def _create_temp(parent: Path, name: str) -> tuple[Path, int]:
     raise FileExistsError(errno.EEXIST, "no free temporary name", str(parent))  # pragma: no cover
 
 
+def _refuse_non_regular(path: Path) -> None:
+    """Refuse to replace what exists at ``path`` and is not a regular file (through a
+    symlink: its target): the rename would put a file in place of a folder, a FIFO or a
+    device (``--out /dev/null`` as root replaced the device node)."""
+    try:
+        st = os.stat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return
+    if not stat.S_ISREG(st.st_mode):
+        raise FileExistsError(
+            errno.EEXIST,
+            "exists and is not a regular file (a folder, a device, a FIFO): not replaced",
+            str(path),
+        )
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike, *, parents: bool = False) -> Iterator[Path]:
     """A temporary path to write ``path``'s new content to; renamed over ``path`` when
@@ -199,6 +215,7 @@ def atomic_path(path: str | os.PathLike, *, parents: bool = False) -> Iterator[P
     """
     path = Path(path)
     parent = path.parent
+    _refuse_non_regular(path)
     if parents:
         parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)

@@ -14,7 +14,7 @@ import math
 import tomllib
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import tomli_w
 from pydantic import (
@@ -58,6 +58,13 @@ SDK_BAUD_RATES: tuple[int, ...] = (
 #: How far from horizontal an as-built tilt axis may be, deg.
 MAX_TILT_AXIS_PITCH_DEG = 10.0
 
+#: As-built angles and offsets: bounded far beyond any real error, so that a typo (1e300)
+#: is refused by name instead of overflowing in the kinematics.
+_Deg90 = Annotated[float, Field(ge=-90, le=90)]
+_Metre = Annotated[float, Field(ge=-1, le=1)]
+#: A direction's component (normalised where used; bounded so its norm cannot overflow)
+_Comp = Annotated[float, Field(ge=-1e3, le=1e3)]
+
 
 class _Strict(BaseModel):
     # No inf/nan anywhere in a rig: a NaN axis or offset passed every range check (all
@@ -99,13 +106,14 @@ class ServoConfig(_Strict):
     id: int = Field(ge=0, le=252)
     model: str = "XM430-W350"
     joint: str
-    gear_ratio: float = Field(default=1.0, gt=0)
+    # upper bounds: far beyond any rig, near enough that the kinematics cannot overflow
+    gear_ratio: float = Field(default=1.0, gt=0, le=1000)
     direction: Literal[1, -1] = 1
-    zero_deg: float = 180.0
-    min_deg: float = -180.0
-    max_deg: float = 180.0
-    velocity_deg_s: float = Field(default=60.0, ge=0)
-    acceleration_deg_s2: float = Field(default=240.0, ge=0)
+    zero_deg: float = Field(default=180.0, ge=-1e5, le=1e5)
+    min_deg: float = Field(default=-180.0, ge=-1e5, le=1e5)
+    max_deg: float = Field(default=180.0, ge=-1e5, le=1e5)
+    velocity_deg_s: float = Field(default=60.0, ge=0, le=1e5)
+    acceleration_deg_s2: float = Field(default=240.0, ge=0, le=1e7)
     operating_mode: Literal["position", "extended_position"] = "position"
     #: As built: the joint lags the encoder by half this on the side it was approached
     #: from (``gonio.rig.asbuilt``), deg.  0 on a nominal rig; ``gonio calibrate rig``
@@ -114,7 +122,9 @@ class ServoConfig(_Strict):
     #: As built: the joint bends under gravity by ``a cos(q) + b sin(q)`` (q the joint
     #: angle the encoder gives), ``(a, b)`` in deg.  Only a joint whose axis is not
     #: vertical (the stage tilt) carries a gravity torque that changes with its angle.
-    compliance_deg: tuple[float, float] = (0.0, 0.0)
+    compliance_deg: tuple[
+        Annotated[float, Field(ge=-10, le=10)], Annotated[float, Field(ge=-10, le=10)]
+    ] = (0.0, 0.0)
 
     @field_validator("model")
     @classmethod
@@ -175,30 +185,30 @@ class GeometryConfig(_Strict):
     """
 
     kind: Literal["arms_tilt_spin"] = "arms_tilt_spin"
-    light_radius_m: float = Field(default=0.50, gt=0)
-    camera_radius_m: float = Field(default=0.40, gt=0)
+    light_radius_m: float = Field(default=0.50, gt=0, le=10)
+    camera_radius_m: float = Field(default=0.40, gt=0, le=10)
     light_elevation_deg: float = Field(default=0.0, gt=-90, lt=90)
     camera_elevation_deg: float = Field(default=0.0, gt=-90, lt=90)
-    tilt_axis: tuple[float, float, float] = (0.0, -1.0, 0.0)
-    rest_normal: tuple[float, float, float] = (1.0, 0.0, 0.0)
-    rest_reference: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    tilt_axis: tuple[_Comp, _Comp, _Comp] = (0.0, -1.0, 0.0)
+    rest_normal: tuple[_Comp, _Comp, _Comp] = (1.0, 0.0, 0.0)
+    rest_reference: tuple[_Comp, _Comp, _Comp] = (0.0, 0.0, 1.0)
     min_separation_deg: float = Field(default=10.0, ge=0, lt=180)
     arm_clearance_deg: float = Field(default=8.0, ge=0, lt=180)
     arms_can_cross: bool = False
     max_theta_deg: float = Field(default=85.0, gt=0, le=90)
-    camera_body_radius_m: float = Field(default=0.04, ge=0)
-    light_body_radius_m: float = Field(default=0.03, ge=0)
+    camera_body_radius_m: float = Field(default=0.04, ge=0, le=1)
+    light_body_radius_m: float = Field(default=0.03, ge=0, le=1)
     # As built (``gonio.rig.asbuilt``; all 0 on a nominal rig, measured by ``gonio
     # calibrate rig``).  The camera's turn on its arm, about its own x, y, z axes:
-    camera_mount_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    camera_mount_deg: tuple[_Deg90, _Deg90, _Deg90] = (0.0, 0.0, 0.0)
     #: The holder plate (sample and board) tilted on the spin plate, about the sample's
     #: x then y axis, deg.
-    holder_tilt_deg: tuple[float, float] = (0.0, 0.0)
+    holder_tilt_deg: tuple[_Deg90, _Deg90] = (0.0, 0.0)
     #: The sample centre in the spin plate's frame (off the spin axis in x, y; above the
     #: rotation centre along the normal in z: holder and sample thickness), m.
-    holder_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    holder_offset_m: tuple[_Metre, _Metre, _Metre] = (0.0, 0.0, 0.0)
     #: The stage's rotation centre from the arms' axis, world frame, m.
-    stage_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    stage_offset_m: tuple[_Metre, _Metre, _Metre] = (0.0, 0.0, 0.0)
 
     @model_validator(mode="after")
     def _axes(self) -> GeometryConfig:
@@ -223,7 +233,7 @@ class MotionConfig(_Strict):
     """How moves are verified.  Poses are in degrees, by joint name."""
 
     position_tolerance_pulses: int = Field(default=1, ge=0, le=100)
-    move_timeout_s: float = Field(default=20.0, gt=0)
+    move_timeout_s: float = Field(default=20.0, gt=0, le=86400)
     poll_interval_s: float = Field(default=0.01, gt=0, le=1.0)
     home_deg: dict[str, float] = {
         "light_azimuth": -45.0,

@@ -47,7 +47,6 @@ def _board_from(path: Path | None, session: Path | None) -> tuple[Any, str]:
     scene's ``[holder.board]``), else a simulated session's scene, else the session's
     reduction.toml, else the default board."""
     from gonio.capture.fiducials import BoardSpec
-    from gonio.charuco import board_markers_problem
     from gonio.config import read_toml
     from gonio.errors import ConfigError
 
@@ -58,12 +57,9 @@ def _board_from(path: Path | None, session: Path | None) -> tuple[Any, str]:
         try:
             board = BoardSpec.from_mapping(table)
         except (TypeError, ValueError) as exc:
+            # (a board of more markers than its dictionary holds among them: it stalled
+            # the calibration for minutes per image)
             raise ConfigError(f"{where}: [board]: {exc}") from None
-        # from_mapping checks each field alone; a board of more markers than its
-        # dictionary holds stalled the calibration for minutes per image.
-        problem = board_markers_problem(board.squares_x, board.squares_y, board.dictionary)
-        if problem:
-            raise ConfigError(f"{where}: [board]: {problem}")
         return board
 
     if path is not None:

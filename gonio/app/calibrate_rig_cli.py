@@ -142,6 +142,20 @@ def plan_cmd(
                 f"accepts), got {value:g} s",
                 param_hint=hint,
             )
+    if kind == "camera":
+        # options of the rig plan only: said, not silently dropped
+        ctx = click.get_current_context()
+        given = [
+            f"--{n.replace('_', '-')}"
+            for n in ("camera_calibration", "seed")
+            if ctx.get_parameter_source(n) == click.core.ParameterSource.COMMANDLINE
+        ]
+        if given:
+            raise click.UsageError(
+                f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} to "
+                "--kind rig (the views' order, the observability check of the rig's "
+                "parameters); a camera plan has neither"
+            )
     console = Console()
     if out.exists() and not force:
         raise CalibrationError(f"{out} exists; not overwritten (use --force to replace it)")

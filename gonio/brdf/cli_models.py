@@ -71,10 +71,19 @@ def _resolve(target: str, params: dict[str, Any], fresnel: str | None, g1: str |
         return brdf, f"{path.name}: {getattr(brdf, 'description', '')}".rstrip(": ")
     if path.suffix.lower() in _MEASURED_SUFFIXES or "/" in target:
         raise click.BadParameter(f"no such file: {target}", param_hint="MODEL_OR_FILE")
-    from gonio.brdf.registry import get_model
+    from gonio.brdf.registry import get_model, parse_model_spec
 
-    options = {k: v for k, v in (("fresnel", fresnel), ("g1", g1)) if v is not None}
-    model = get_model(target, **options)
+    # 'lambert+ggx[fresnel=schlick]', as `gonio fit --candidates` writes a model
+    name, options = parse_model_spec(target)
+    for k, v in (("fresnel", fresnel), ("g1", g1)):
+        if v is None:
+            continue
+        if k in options and options[k] != v:
+            raise click.UsageError(
+                f"{target} sets {k}={options[k]} and --{k} {v} another: give it once"
+            )
+        options[k] = v
+    model = get_model(name, **options)
     bound = model.bind(params)
     return bound, bound.description + "".join(f" [{k}={v}]" for k, v in options.items())
 

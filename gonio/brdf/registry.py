@@ -14,13 +14,21 @@ them: ``fresnel`` (``none``, ``schlick``, ``conductor``, ``dielectric``) for ``g
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 from gonio.brdf.base import Lobe, Model
 from gonio.brdf.lobes import BlinnPhongLobe, LambertLobe, OrenNayarLobe, PhongLobe, WardLobe
 from gonio.brdf.microfacet import BeckmannLobe, GGXLobe
 from gonio.errors import ParameterError, UnknownNameError
 
-__all__ = ["LOBES", "get_model", "list_models", "lobe_class"]
+__all__ = [
+    "LOBES",
+    "format_model_spec",
+    "get_model",
+    "list_models",
+    "lobe_class",
+    "parse_model_spec",
+]
 
 LOBES: dict[str, Callable[..., Lobe]] = {
     "lambert": LambertLobe,
@@ -106,3 +114,43 @@ def get_model(name: str, **options: str) -> Model:
         mine = {k: v for k, v in options.items() if k in _OPTIONS[kind]}
         lobes.append(LOBES[kind](**mine))
     return Model(lobes, options=dict(options))
+
+
+def parse_model_spec(spec: str) -> tuple[str, dict[str, str]]:
+    """Split a model spec ``"name[key=value,key=value]"`` into the name and its options.
+
+    ``"lambert+ggx[fresnel=schlick]"`` -> ``("lambert+ggx", {"fresnel": "schlick"})``;
+    a plain name has no options.  The name and values are checked later by
+    :func:`get_model`.
+
+    Raises
+    ------
+    UnknownNameError
+        Unbalanced brackets or an option not written ``key=value``.
+    """
+    s = spec.strip()
+    if "[" not in s and "]" not in s:
+        return s, {}
+    if not (s.endswith("]") and s.count("[") == 1 and s.count("]") == 1 and s.index("[") > 0):
+        raise UnknownNameError(
+            f"model spec {spec!r}: expected 'name' or 'name[key=value,...]', "
+            "e.g. 'lambert+ggx[fresnel=schlick]'"
+        )
+    name, body = s[:-1].split("[", 1)
+    opts: dict[str, str] = {}
+    for item in filter(None, (x.strip() for x in body.split(","))):
+        key, eq, value = item.partition("=")
+        if not eq or not key.strip() or not value.strip():
+            raise UnknownNameError(
+                f"model spec {spec!r}: option {item!r} is not written key=value "
+                "(e.g. fresnel=schlick)"
+            )
+        opts[key.strip()] = value.strip()
+    return name.strip(), opts
+
+
+def format_model_spec(name: str, options: dict[str, Any] | None) -> str:
+    """Inverse of :func:`parse_model_spec`: ``name`` or ``name[key=value,...]``."""
+    if not options:
+        return name
+    return f"{name}[{','.join(f'{k}={v}' for k, v in sorted(options.items()))}]"

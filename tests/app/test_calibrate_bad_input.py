@@ -251,3 +251,24 @@ def test_calibrate_plan_refuses_an_exposure_its_plan_could_not_hold(
     assert code == 2, err
     assert option in err and value in err.replace("1e+09", "1e9") and expect in err, err
     assert out.read_bytes() == b"precious"
+
+
+@pytest.mark.parametrize(
+    ("extra", "named"),
+    [
+        (["--seed", "3"], "--seed applies to --kind rig"),
+        (["--camera-calibration", "CAM"], "--camera-calibration applies to --kind rig"),
+        (["--seed", "3", "--camera-calibration", "CAM"], "--camera-calibration and --seed apply"),
+    ],
+)
+def test_calibrate_plan_says_a_camera_plan_ignores_rig_options(tmp_path, capsys, extra, named):
+    # --kind camera dropped --camera-calibration and --seed without a word
+    cam = tmp_path / "camera.toml"
+    cam.write_text("")
+    out = tmp_path / "camera_plan.toml"
+    args = [str(cam) if a == "CAM" else a for a in extra]
+    code, err = cli(capsys, "calibrate", "plan", "--kind", "camera", "--out", str(out), *args)
+    assert code == 2 and named in err, err
+    assert not out.exists()
+    code, err = cli(capsys, "calibrate", "plan", "--kind", "camera", "--out", str(out))
+    assert code == 0 and out.exists(), err

@@ -186,3 +186,22 @@ def test_cli_bad_theta(capsys):
 def test_errors_are_gonio_errors():
     assert issubclass(ParameterError, GonioError) and issubclass(UnknownNameError, GonioError)
     assert math.isfinite(get_model("ggx").albedo(0.0, {}))
+
+
+def test_cli_takes_model_options_written_as_fit_writes_them(capsys):
+    """``lambert+ggx[fresnel=schlick]`` (how ``gonio fit --candidates`` and fit.json name
+    a model) is the model ``--fresnel schlick`` makes; the two disagreeing is an error,
+    and a broken spec is named."""
+    base = ["--theta-i", "0,70", "-p", "f0=0.2"]
+    code, bracket, _ = run(capsys, "brdf", "albedo", "lambert+ggx[fresnel=schlick]", *base)
+    assert code == 0
+    code, option, _ = run(capsys, "brdf", "albedo", "lambert+ggx", "--fresnel", "schlick", *base)
+    assert code == 0 and bracket == option
+    code, plain, _ = run(capsys, "brdf", "albedo", "lambert+ggx", "--theta-i", "0,70")
+    assert code == 0 and plain != bracket
+    code, _, err = run(
+        capsys, "brdf", "albedo", "lambert+ggx[fresnel=schlick]", "--fresnel", "conductor"
+    )
+    assert code == 2 and "fresnel=schlick" in err and "--fresnel conductor" in err
+    code, _, err = run(capsys, "brdf", "albedo", "lambert+ggx[fresnel=schlick")
+    assert code != 0 and "model spec" in err and "Traceback" not in err

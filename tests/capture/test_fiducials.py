@@ -297,3 +297,22 @@ def test_halved_binning_moves_the_refined_corners_far_less_than_their_noise(rig_
         assert moved.max() < 2e-3 < 0.05 * pose0.reprojection_rms
         compared += 1
     assert compared >= 1  # the 20 deg view; the others' markers are too small at 4x
+
+
+@pytest.mark.parametrize(
+    ("table", "words"),
+    [
+        ({"squares_x": 11, "squares_y": 11, "dictionary": "DICT_4X4_50"}, "60 markers"),
+        ({"squares_x": 1}, "squares_x"),
+        ({"marker_length": 0.03}, "marker_length"),
+        ({"dictionary": "DICT_9X9_7"}, "dictionary"),
+    ],
+)
+def test_board_tables_opencv_cannot_use_are_refused_by_name(table, words):
+    """A board of more markers than its dictionary has IDs (11 x 11 squares: 60 markers,
+    DICT_4X4_50 holds 50) is refused like a field out of range, before OpenCV builds it."""
+    with pytest.raises(ValueError, match=words):
+        BoardSpec.from_mapping(table)
+    # the same board with a dictionary large enough is accepted
+    if "squares_x" in table and table["squares_x"] == 11:
+        assert BoardSpec.from_mapping({**table, "dictionary": "DICT_4X4_100"}).squares_x == 11

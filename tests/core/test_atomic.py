@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -168,3 +169,23 @@ def test_atomic_directory_replaces_the_set_and_keeps_named_files(tmp_path):
         raise RuntimeError("cut")
     assert (out / "fit.json").read_text() == "new"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fit"]
+
+
+@pytest.mark.parametrize("kind", ["folder", "fifo"])
+def test_what_is_not_a_regular_file_is_never_replaced(tmp_path, kind):
+    """``--out /dev/null`` as root renamed a file over the device node: a folder, a FIFO
+    (standing in for a device here) or a device at the destination is refused, and
+    stays what it was."""
+    import stat as st
+
+    target = tmp_path / "out"
+    if kind == "folder":
+        target.mkdir()
+    else:
+        os.mkfifo(target)
+    with pytest.raises(FileExistsError, match="not a regular file") as exc:
+        write_bytes_atomic(target, b"data")
+    assert exc.value.filename == str(target)
+    mode = os.lstat(target).st_mode
+    assert st.S_ISDIR(mode) if kind == "folder" else st.S_ISFIFO(mode)
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no temporary left

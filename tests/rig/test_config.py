@@ -137,3 +137,29 @@ def test_non_finite_numbers_are_refused_naming_the_field(tmp_path, old, new, fie
         load_rig_config(write(tmp_path, base.replace(old, new, 1)))
     assert "rig.toml" in str(info.value) and f"field '{field}'" in str(info.value)
     assert "finite" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "field", "bound"),
+    [
+        ("light_radius_m = 0.55", "light_radius_m = 1e300", "geometry.light_radius_m", "10"),
+        ("tilt_axis = [0.0, -1.0, 0.0]", "tilt_axis = [0.0, -1e200, 0.0]",
+         "geometry.tilt_axis.1", "-1000"),
+        ('kind = "arms_tilt_spin"', 'kind = "arms_tilt_spin"\nholder_offset_m = [0, 0, 5e9]',
+         "geometry.holder_offset_m.2", "1"),
+        ('kind = "arms_tilt_spin"', 'kind = "arms_tilt_spin"\ncamera_mount_deg = [0, 1e9, 0]',
+         "geometry.camera_mount_deg.1", "90"),
+        ("move_timeout_s = 20.0", "move_timeout_s = 1e300", "motion.move_timeout_s", "86400"),
+    ],
+)  # fmt: skip
+def test_huge_finite_numbers_are_refused_naming_the_field_and_bound(
+    tmp_path, old, new, field, bound
+):
+    # 1e300 m arms and 1e200 axes were accepted, and overflowed in the kinematics
+    base = EXAMPLE.read_text()
+    assert old in base
+    with pytest.raises(ConfigError) as info:
+        load_rig_config(write(tmp_path, base.replace(old, new, 1)))
+    assert f"field '{field}'" in str(info.value) and bound in str(info.value)
+    # the nominal values stay accepted
+    load_rig_config(write(tmp_path, base))
