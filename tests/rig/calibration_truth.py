@@ -129,9 +129,14 @@ def sides(poses, home_deg):
     return out
 
 
-def simulate(nominal, v, poses, intr, rng, sigma_board=0.2, sigma_spot=0.15, force_side=None):
+def simulate(
+    nominal, v, poses, intr, rng, sigma_board=0.2, sigma_spot=0.15, force_side=None,
+    view_shift_px=0.0,
+):  # fmt: skip
     """(boards, spots) observed at the plan's poses by the rig of values ``v``;
-    ``force_side`` (joint -> +1/-1) pretends every pose approached that joint from one side."""
+    ``force_side`` (joint -> +1/-1) pretends every pose approached that joint from one side;
+    ``view_shift_px``: each board view's corners also share one random image shift of that
+    std per axis (an error of the view, as its detection or its board pose makes)."""
     truth = truth_config(nominal, v)
     K = np.array([[intr[0], 0, intr[2]], [0, intr[1], intr[3]], [0, 0, 1.0]])
     dist = np.asarray(intr[4:], float)
@@ -151,6 +156,8 @@ def simulate(nominal, v, poses, intr, rng, sigma_board=0.2, sigma_spot=0.15, for
             uv = cv2.projectPoints(pts, rvec, tvec, K, dist)[0].reshape(-1, 2)
             ok = (uv[:, 0] > 3) & (uv[:, 0] < WIDTH - 4) & (uv[:, 1] > 3) & (uv[:, 1] < HEIGHT - 4)
             uv = uv + sigma_board * rng.standard_normal(uv.shape)
+            if view_shift_px:
+                uv = uv + view_shift_px * rng.standard_normal(2)
             boards.append(BoardObservation(p.label, reading, side, pts[ok], uv[ok]))
         else:
             L = pose.light_position * np.array([1, 1, -1.0])
