@@ -39,7 +39,13 @@ from gonio.radiometry.frames import angle_between
 from gonio.rig import control_table as ct
 from gonio.rig.bus import BusTransport
 from gonio.rig.config import JOINT_NAMES, RigConfig
-from gonio.rig.kinematics import Kinematics, approach_of_move, pre_move_side, side_after
+from gonio.rig.kinematics import (
+    Kinematics,
+    approach_of_move,
+    pre_move_side,
+    side_after,
+    take_up_servo,
+)
 from gonio.rig.servo import Servo, ServoState
 from gonio.rig.transport import Transport
 
@@ -434,7 +440,7 @@ class Rig:
         for st in states.values():
             first = int(
                 pre_move_side(
-                    self._by_id[st.dxl_id].config,
+                    take_up_servo(self._by_id[st.dxl_id].config, self.config),
                     goals[st.dxl_id] - st.position_pulses,
                     self._approach[st.joint],
                     tol,
@@ -588,7 +594,10 @@ class Rig:
                 # within the deadband the servo does not move, and a short reversal is
                 # approached from the present side (_pre_move_goals): both keep it
                 appr[j] = side_after(
-                    self.servos[j].config, d, keep, self.config.motion.position_tolerance_pulses
+                    take_up_servo(self.servos[j].config, self.config),
+                    d,
+                    keep,
+                    self.config.motion.position_tolerance_pulses,
                 )
         ai, ao = self.kinematics.forward(q, appr)
         err = np.maximum(angle_between(ai, np.asarray(wi)), angle_between(ao, np.asarray(wo)))

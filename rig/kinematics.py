@@ -92,6 +92,23 @@ def is_nominal(config: RigConfig) -> bool:
     )
 
 
+#: The backlash an uncalibrated rig's controller assumes when its configuration states
+#: none (deg): twice the XM430's datasheet 15 arcmin.  A nominal rig.toml says 0 because
+#: nobody has measured it yet, not because the gears have no play: taking that at its
+#: word let a 2-pulse reversal during the rig calibration's own session be journaled as
+#: a side change the gears never made (world 3104: the spin's backlash read 6 sigma low).
+UNCALIBRATED_BACKLASH_DEG = 0.5
+
+
+def take_up_servo(servo: ServoConfig, config: RigConfig) -> ServoConfig:
+    """``servo`` as the controller's take-up rules see it: a rig without a calibration
+    record whose servo states no backlash is given :data:`UNCALIBRATED_BACKLASH_DEG`
+    (for the pre-move decisions only, never in the kinematics)."""
+    if config.calibration is None and servo.backlash_deg <= 0.0:
+        return servo.model_copy(update={"backlash_deg": UNCALIBRATED_BACKLASH_DEG})
+    return servo
+
+
 def take_up_pulses(servo: ServoConfig, tol: int) -> int:
     """The shortest reversal (pulses) that surely carries ``servo``'s joint across its
     backlash: the play in pulses, rounded up, plus the deadband ``tol`` it may land
@@ -157,7 +174,7 @@ def approach_of_move(
     for s in config.servos:
         j = s.joint
         d = round(s.pulses(float(joints_to[j]))) - round(s.pulses(float(joints_from[j])))
-        out[j] = int(side_after(s, d, int((approach or {}).get(j, 0)), tol))
+        out[j] = int(side_after(take_up_servo(s, config), d, int((approach or {}).get(j, 0)), tol))
     return out
 
 
@@ -602,7 +619,9 @@ class Kinematics:
             scale = s.direction * s.gear_ratio * 4096.0 / (2 * math.pi)
             d = np.round(zero + scale * Q[:, k]) - round(s.pulses(float(ref[j])))
             keep = int((approach or {}).get(j, 0)) or 1
-            out[:, k] = side_after(s, d, keep, self.config.motion.position_tolerance_pulses)
+            out[:, k] = side_after(
+                take_up_servo(s, self.config), d, keep, self.config.motion.position_tolerance_pulses
+            )
         return out
 
     def _residual(self, Q: Array, signs: Array, target: Array) -> Array:

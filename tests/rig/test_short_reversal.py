@@ -18,7 +18,13 @@ import pytest
 from sim_sessions import fast_rig_config
 
 from gonio.rig.device import Rig
-from gonio.rig.kinematics import approach_of_move, side_after, take_up_pulses
+from gonio.rig.kinematics import (
+    UNCALIBRATED_BACKLASH_DEG,
+    approach_of_move,
+    side_after,
+    take_up_pulses,
+    take_up_servo,
+)
 from gonio.simulator.loopback import LoopbackTransport
 from gonio.simulator.servo_model import VirtualServo
 from gonio.simulator.virtual_bus import ServoBus
@@ -63,14 +69,32 @@ def test_take_up_and_side_rule():
     assert side_after(s0, 0, 0, tol) == 0
 
 
+def test_an_uncalibrated_rig_assumes_backlash_for_its_take_up_only():
+    """A nominal rig.toml states no backlash because nobody has measured it: its take-up
+    decisions assume UNCALIBRATED_BACKLASH_DEG; a stated backlash, or any rig with a
+    calibration record, is taken at its word; the kinematics never see the assumption."""
+    cfg = fast_rig_config(0.0)
+    s = cfg.servo_for(JOINT)
+    assert cfg.calibration is None
+    assert take_up_servo(s, cfg).backlash_deg == UNCALIBRATED_BACKLASH_DEG
+    assert s.backlash_deg == 0.0  # the config itself unchanged
+    stated = fast_rig_config(0.3)
+    assert take_up_servo(stated.servo_for(JOINT), stated).backlash_deg == 0.3
+    calibrated = cfg.model_copy(update={"calibration": object()})  # only "is None" matters
+    assert take_up_servo(s, calibrated).backlash_deg == 0.0
+
+
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("back", [2, 3, 4, 5, 6, 12])
-def test_the_recorded_side_is_the_gears_side(seed, back):
+@pytest.mark.parametrize("stated", [0.3, 0.0])
+def test_the_recorded_side_is_the_gears_side(seed, back, stated):
     """Move up (a long move), then back by ``back`` pulses, with servos that land within
     a pulse: the controller's side equals the virtual gears' after every move, and a
-    short reversal is made through a pre-move."""
-    cfg = fast_rig_config(0.3)
-    s = cfg.servo_for(JOINT)
+    short reversal is made through a pre-move -- also on a rig that has not measured its
+    backlash (``stated`` 0, the rig calibration's own session: it journaled 2-pulse
+    reversals as side changes the gears never made)."""
+    cfg = fast_rig_config(stated)
+    s = take_up_servo(cfg.servo_for(JOINT), cfg)
     tol = cfg.motion.position_tolerance_pulses
     rig, bus = _rig(cfg, landing_pulses=1, seed=seed)
     with rig:
