@@ -220,12 +220,19 @@ def reduce_session(
         Another process is writing the same output (nothing is written).
     """
     from gonio.capture.journal import read_journal, session_file
-    from gonio.capture.manifest import load_manifest, refuse_calibration_session
+    from gonio.capture.manifest import (
+        load_manifest,
+        refuse_calibration_session,
+    )
+    from gonio.capture.session_dir import session_state
 
     session = Path(session_dir)
     manifest = load_manifest(session)
     refuse_calibration_session(session, manifest)
     records = read_journal(session / "journal.jsonl")
+    # the records checked as `capture inspect` and resume check them: a malformed field
+    # is named, not a traceback or NaN samples
+    session_state(records, session / "journal.jsonl")
     manifest = with_round_steps(manifest, records, session / "journal.jsonl")  # adaptive
     for rec in records:  # a journal naming a file outside the session is refused outright
         if rec.get("type") == "shot":

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import click
 
-from gonio.cli import FiniteFloatRange
+from gonio.cli import FiniteFloatRange, distinct_outputs, refuse_session_file
 from gonio.errors import ReductionError
 
 
@@ -201,16 +202,7 @@ def reduce_cmd(
     }
     if upd:
         setup = setup.replace(**upd)
-    if out is not None and out.exists() and not out.is_file():
-        # a folder, a device (/dev/null), a socket: --force must not replace it
-        raise ReductionError(
-            f"--out {out}: exists and is not a regular file; expected the path of a "
-            "samples file (.h5)"
-        )
-    if out is not None and out.exists() and not force and not _is_samples_file(out):
-        raise ReductionError(
-            f"{out} exists and is not a gonio samples file; pass --force to replace it"
-        )
+    _check_outputs(session_dir, out, force, plot=not no_plot)
     with Progress(
         "[progress.description]{task.description}",
         BarColumn(),
@@ -323,6 +315,7 @@ def calibrate_noise_cmd(
         raise ReductionError(
             f"flats and darks come in pairs; got {len(flats)} flats and {len(darks)} darks"
         )
+    distinct_outputs(("--out", out), ("--plot", plot_file))
     if out.exists():
         raise ReductionError(f"{out} exists; refusing to overwrite a noise model")
     if plot_file is not None:  # checked before any work, so nothing is half written
@@ -362,6 +355,48 @@ def calibrate_noise_cmd(
         fig.tight_layout()
         fig.savefig(plot_file, dpi=90)
         plt.close(fig)
+
+
+def _check_outputs(session: Path, out: Path | None, force: bool, plot: bool) -> None:
+    """Refuse, before anything is measured, an output that would destroy what is not a
+    reduction's: a folder or a device at the path (``--force`` or not), a name the set
+    writes beside it, one of the session's own files, and -- without ``--force`` -- a
+    file that is not a gonio samples file at the path (the default ``SESSION/samples.h5``
+    too) or a ``reduction.json`` / ``samples.png`` beside it that no reduction wrote."""
+    from gonio.capture.reduce import PLOT_FILE, SAMPLES_FILE, SUMMARY_FILE, TEXELS_FILE
+
+    path = out if out is not None else session / SAMPLES_FILE
+    hint = "--out " if out is not None else ""
+    if path.exists() and not path.is_file():
+        # a folder, a device (/dev/null), a socket: --force must not replace it
+        raise ReductionError(
+            f"{hint}{path}: exists and is not a regular file; expected the path of a "
+            "samples file (.h5)"
+        )
+    if path.name in (SUMMARY_FILE, PLOT_FILE, TEXELS_FILE):
+        raise ReductionError(
+            f"{hint}{path}: {SUMMARY_FILE}, {PLOT_FILE} and {TEXELS_FILE} are written "
+            "beside the samples file; give the samples file another name"
+        )
+    refuse_session_file("--out", path, session)
+    if force:
+        return
+    if path.exists() and not _is_samples_file(path):
+        raise ReductionError(
+            f"{path} exists and is not a gonio samples file; pass --force to replace it"
+        )
+    old_set = path.exists()  # a gonio samples file: its summary and plot go with it
+    for name in (SUMMARY_FILE, PLOT_FILE) if plot else (SUMMARY_FILE,):
+        p = path.with_name(name)
+        # a link into an output set (this output's or another's in the folder, whose
+        # files stay in its set folder) is a reduction's
+        target = os.readlink(p) if p.is_symlink() else ""
+        ours = target.startswith(".") and target.split("/", 1)[0].endswith(".set")
+        if p.exists() and not ours and not old_set:
+            raise ReductionError(
+                f"{p} exists and no reduction of {path.name} wrote it; pass --force to "
+                "replace it or choose another --out"
+            )
 
 
 def _is_samples_file(path: Path) -> bool:

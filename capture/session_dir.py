@@ -195,6 +195,10 @@ class _Verdict(_Record):
     signal_fraction: Annotated[float, Field(allow_inf_nan=False)]
 
 
+_Finite = Annotated[float, Field(allow_inf_nan=False)]
+_Vec3 = tuple[_Finite, _Finite, _Finite]
+
+
 class _Shot(_Record):
     type: Literal["shot"]
     pose: _Count
@@ -206,6 +210,17 @@ class _Shot(_Record):
     sha256: str | None = None
     xxh3_128: str | None = None
     bracket: _Verdict | None = None
+    # what the reduction computes with (a string or NaN here was a traceback or NaN
+    # samples in `capture reduce` while `inspect` passed the journal); optional: older
+    # journals and other cameras leave some out
+    exposure_time: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    rig_time: _Finite | None = None
+    joints: dict[str, _Finite] | None = None
+    approach: dict[str, Literal[-1, 0, 1]] | None = None
+    wi_requested: _Vec3 | None = None
+    wo_requested: _Vec3 | None = None
+    wi_achieved: _Vec3 | None = None
+    wo_achieved: _Vec3 | None = None
 
 
 class _Closed(_Record):

@@ -10,7 +10,9 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import math
+import os
 import sys
+from pathlib import Path
 from typing import Any
 
 import click
@@ -63,6 +65,40 @@ class LazyGroup(click.Group):
         return getattr(importlib.import_module(module_name), attr)
 
 
+def distinct_outputs(*outputs: tuple[str, Path | None]) -> None:
+    """Refuse two output options that name one file (``--out x.png --plot x.png``: the
+    second write silently replaced the first, exit 0).
+
+    Raises
+    ------
+    click.UsageError
+        Naming both options and the path.
+    """
+    seen: dict[Path, str] = {}
+    for hint, path in outputs:
+        if path is None:
+            continue
+        key = Path(os.path.abspath(path))
+        if key in seen:
+            raise click.UsageError(f"{seen[key]} and {hint} name the same file {path}")
+        seen[key] = hint
+
+
+def refuse_session_file(hint: str, path: Path | None, session: Path) -> None:
+    """Refuse an output that is one of a capture session's own files (its journal,
+    manifest, reduction.toml, lock, RAW frames or simulator records), ``--force`` or
+    not: replacing it destroys the session."""
+    if path is None:
+        return
+    try:
+        inside = Path(os.path.realpath(path)).relative_to(os.path.realpath(session))
+    except ValueError:
+        return
+    own = {"journal.jsonl", "manifest.json", "reduction.toml", ".gonio.lock"}
+    if str(inside) in own or (len(inside.parts) > 1 and inside.parts[0] in ("raw", "sim")):
+        raise click.UsageError(f"{hint} {path}: one of the session's own files; write elsewhere")
+
+
 class FiniteFloatRange(click.FloatRange):
     """``click.FloatRange`` that also refuses NaN and infinities.
 
@@ -73,7 +109,10 @@ class FiniteFloatRange(click.FloatRange):
     """
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
-        rv = super().convert(value, param, ctx)
+        # finiteness first: with a maximum, click's range message would hide it
+        rv = click.FLOAT.convert(value, param, ctx)
+        if math.isfinite(rv):
+            rv = super().convert(value, param, ctx)
         if not math.isfinite(rv):
             # the user's own text (e.g. "-nan"), not its float
             got = value if isinstance(value, str) else rv

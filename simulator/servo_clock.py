@@ -131,6 +131,12 @@ class VirtualClock:
                 self._t = float(t)
 
 
+#: The largest wall-clock speed-up of a virtual bus: beyond it a move's servo time
+#: overflows the integer conversions of the servo model (1e308 crashed its thread), and
+#: nothing is left to watch -- "virtual" is the mode that does not wait at all.
+MAX_TIME_SCALE = 1e6
+
+
 def parse_time_scale(value: object) -> TimeScale:
     """A bus speed from a record or an option: ``"virtual"`` or a positive finite float.
 
@@ -145,8 +151,10 @@ def parse_time_scale(value: object) -> TimeScale:
         scale = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
         scale = math.nan
-    if not (math.isfinite(scale) and scale > 0):
-        raise ValueError(f"expected 'virtual' or a positive finite speed-up factor, got {value!r}")
+    if not (math.isfinite(scale) and 0 < scale <= MAX_TIME_SCALE):
+        raise ValueError(
+            f"expected 'virtual' or a speed-up factor in (0, {MAX_TIME_SCALE:g}], got {value!r}"
+        )
     return scale
 
 

@@ -74,7 +74,13 @@ def camera_prior(path: Path):
     type=click.Path(dir_okay=False, exists=True, path_type=Path),
     help="Camera calibration for the observability check (default: a 640 x 480 guess).",
 )
-@click.option("--seed", type=int, default=0, show_default=True, help="Order of the board views.")
+@click.option(
+    "--seed",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
+    help="Order of the board views.",
+)
 @click.option(
     "--spot-exposure",
     type=FiniteFloatRange(min=0, min_open=True),
@@ -320,6 +326,8 @@ def rig_cmd(
     from gonio.capture.camera_calibration import camera_digest, camera_identity
     from gonio.capture.manifest import load_manifest
     from gonio.capture.rig_views import calibration_observations
+    from gonio.capture.sessions import _diff_keys
+    from gonio.cli import distinct_outputs, refuse_session_file
     from gonio.rig.calibration import NOT_OBSERVABLE, calibrate_rig, write_calibrated_rig
     from gonio.rig.calibration_record import (
         CalibrationError,
@@ -330,6 +338,9 @@ def rig_cmd(
     from gonio.rig.config import load_rig_config, rig_config_from_dict
 
     console = Console()
+    distinct_outputs(("--out", out), ("--plot", plot))
+    refuse_session_file("--out", out, session_dir)
+    refuse_session_file("--plot", plot, session_dir)
     for p in (out, plot):
         if p is not None and p.exists() and not force:
             raise CalibrationError(f"{p} exists; not overwritten (use --force to replace it)")
@@ -337,6 +348,15 @@ def rig_cmd(
     manifest = load_manifest(session_dir)
     session_rig = rig_config_from_dict(manifest["rig"], f"{session_dir}/manifest.json: rig")
     check_rig_digest(rig_digest(nominal), rig_digest(session_rig), what=f"session {session_dir}")
+    # the digest covers the servos only: a --rig of another geometry calibrated the
+    # session against the wrong drawing and recorded its digest as the nominal's
+    a = nominal.model_dump(mode="json", exclude={"bus", "name"})
+    b = session_rig.model_dump(mode="json", exclude={"bus", "name"})
+    if a != b:
+        raise CalibrationError(
+            f"--rig {rig_path} differs from the rig session {session_dir} ran with "
+            f"({_diff_keys(a, b)}): calibrate against the nominal rig.toml the session used"
+        )
     camera = camera_prior(camera_calibration)
     # The session's image size: a simulated session records it; a real camera's identity
     # carries its resolution setting, else the calibration's size stands in for it.

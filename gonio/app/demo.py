@@ -570,7 +570,7 @@ REALISTIC_RESOLUTION = (480, 360)
 )
 @click.option(
     "--seed",
-    type=int,
+    type=click.IntRange(min=0),
     default=0,
     show_default=True,
     help="Seed of the session: the same seed gives the same RAW files.",

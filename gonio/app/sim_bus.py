@@ -81,13 +81,16 @@ def _int_list(ctx, param, value: str | None) -> list[int] | None:
     help="Probability that a reply is corrupted or dropped (half each).",
 )
 @click.option(
-    "--seed", default=None, type=int, help="Seed of the fault generator (reproducible faults)."
+    "--seed",
+    default=None,
+    type=click.IntRange(min=0),
+    help="Seed of the fault generator (reproducible faults).",
 )
 @click.option(
     "--time-scale",
     default=1.0,
     show_default=True,
-    type=FiniteFloatRange(min=1e-3),
+    type=FiniteFloatRange(min=1e-3, max=1e6),
     help="Servo time runs this many times faster than the wall clock.",
 )
 def bus_cmd(

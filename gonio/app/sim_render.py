@@ -7,6 +7,8 @@ from pathlib import Path
 
 import click
 
+from gonio.cli import distinct_outputs
+
 
 def _positive(ctx, param, value: float | None) -> float | None:
     """Reject zero, negative, nan and infinite settings before anything is rendered."""
@@ -42,7 +44,7 @@ def _exposure(ctx, param, value: float | None) -> float | None:
 )
 @click.option(
     "--seed",
-    type=int,
+    type=click.IntRange(min=0),
     default=0,
     show_default=True,
     help="Sensor-noise seed: the same seed gives the same file bit for bit.",
@@ -140,6 +142,7 @@ def render_cmd(
         raise click.BadParameter(
             f"expected a .png, .pdf or .svg file name, got '{preview.name}'", param_hint="--preview"
         )
+    distinct_outputs(("--out", out), ("--truth", truth), ("--preview", preview))
     for hint, p in (("--out", out), ("--truth", truth), ("--preview", preview)):
         if p is None:
             continue

@@ -308,7 +308,11 @@ def test_no_reference_and_not_a_session_are_clear_errors(session, tmp_path, caps
     ]
     (s / "journal.jsonl").write_text("\n".join(lines) + "\n")
     (s / "samples.h5").write_bytes(b"keep me")
+    # a file at the default output that no reduction wrote is refused up front
     assert run("capture", "reduce", str(s), "--quiet") == 1
+    assert "samples.h5 exists and is not a gonio samples file" in capsys.readouterr().err
+    # allowed to replace it, the reduction fails before writing anything
+    assert run("capture", "reduce", str(s), "--quiet", "--force") == 1
     assert "no reference-target frames" in capsys.readouterr().err
     assert (s / "samples.h5").read_bytes() == b"keep me"  # nothing overwritten
     (tmp_path / "empty").mkdir()

@@ -260,7 +260,7 @@ CASES = [
     ),
     case("bus-baud", "sim bus --baud 12345", 2, "--baud", "'12345'", "1000000"),
     case("bus-fault-rate", "sim bus --fault-rate 2", 2, "--fault-rate", "0<=x<=1"),
-    case("bus-time-scale", "sim bus --time-scale 0", 2, "--time-scale", "x>=0.001"),
+    case("bus-time-scale", "sim bus --time-scale 0", 2, "--time-scale", "0.001<=x<=1000000"),
     case("bus-model", "sim bus --model XZ999", 2, "'XZ999'", "XM430-W350"),
     case("bus-rig-not-toml", "sim bus --rig {bad}/bad.toml", 1, "bad.toml", "not a valid toml"),
     case("bus-rig-fields", "sim bus --rig {bad}/empty.toml", 1, "empty.toml", "'servos'"),
