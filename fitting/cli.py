@@ -30,10 +30,43 @@ def _load_input(path: Path):
     return sample_brdf(load(path), source=str(path)), "measured file sampled on a grid"
 
 
+#: Largest --f-scale: residuals are in sigmas or BRDF units, and a scale past this makes
+#: the robust loss plain least squares while its square overflows (1e308 read as "the
+#: model is NaN or inf on these samples").
+MAX_F_SCALE = 1e6
+
+
 def _positive_scale(ctx, param, value: float) -> float:
-    if not (math.isfinite(value) and value > 0):
-        raise click.BadParameter(f"expected a positive finite residual scale, got {value}")
+    if not (math.isfinite(value) and 0 < value <= MAX_F_SCALE):
+        raise click.BadParameter(
+            f"expected a positive finite residual scale at most {MAX_F_SCALE:g}, got {value}"
+        )
     return value
+
+
+def _refuse_conflicts(
+    model: str, options: dict[str, str], candidates: str | None, robust: str | None
+) -> None:
+    """Options that contradict each other or would be ignored: said, not resolved in
+    silence (the last value won, or the option did nothing, exit 0)."""
+    from gonio.brdf.registry import parse_model_spec
+
+    _, in_spec = parse_model_spec(model)
+    clash = sorted(k for k in options if k in in_spec and in_spec[k] != options[k])
+    if clash:
+        k = clash[0]
+        raise click.UsageError(
+            f"--model {model} sets {k}={in_spec[k]} and --option {k}={options[k]} another: "
+            "give it once"
+        )
+    if candidates is not None and model != "auto":
+        raise click.UsageError(f"--candidates chooses among models for --model auto, not {model}")
+    if candidates is not None and not _split_candidates(candidates):
+        raise click.BadParameter("expected at least one model name", param_hint="--candidates")
+    ctx = click.get_current_context(silent=True)
+    src = ctx.get_parameter_source("f_scale") if ctx is not None else None
+    if robust is None and src == click.core.ParameterSource.COMMANDLINE:
+        raise click.UsageError("--f-scale is the scale of --robust; give --robust too")
 
 
 def _parse_options(items: tuple[str, ...]) -> dict[str, str]:
@@ -157,6 +190,14 @@ def fit(
     Shape parameters (roughness) are shared by all colour channels; albedo and ks are fitted
     per channel.  The summary shows each parameter with its one-sigma uncertainty.
     """
+    if out.exists() and Path.cwd().resolve().is_relative_to(out.resolve()):
+        # the outputs replace the folder as a whole (one rename): the current folder
+        # cannot be renamed ('.': "Device or resource busy"), and an absolute path to it
+        # was swapped from under the shell
+        raise FitError(
+            f"--out {out}: the current folder (or one holding it); fit replaces its --out "
+            "folder as a whole: give a subfolder, e.g. --out fit/"
+        )
     if out.exists() and not out.is_dir():
         # click's file_okay=False lets a device or a socket through (/dev/null)
         raise FitError(
@@ -175,6 +216,7 @@ def fit(
             "--option sets options of one --model; with --model auto put them in the "
             "candidates: --candidates 'lambert,lambert+ggx[fresnel=schlick]'"
         )
+    _refuse_conflicts(model, model_options, candidates, robust)
     # forked before the output lock is taken and before anything else is imported or
     # loaded: it imports matplotlib while this process loads and fits
     # (gonio.figure_worker), so the less the fork inherits the sooner it starts

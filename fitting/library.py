@@ -452,6 +452,33 @@ class LibraryReport:
     rows: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
 
+def _refuse_foreign_outputs(lib: Path, names: list[str]) -> None:
+    """Refuse (before any fit) to write over files no library fit wrote: a material's
+    folder that holds files but no library record, or ``summary.csv`` / ``summary.parquet``
+    in a folder where no material has a record (a user's own files were replaced, exit 0).
+
+    Raises
+    ------
+    FitError
+        Naming the files; ``--force`` replaces them.
+    """
+    if not lib.is_dir():
+        return
+    foreign = []
+    for name in names:
+        folder = lib / name
+        if folder.is_dir() and any(folder.iterdir()) and read_record(folder) is None:
+            foreign.append(str(folder))
+    ours = any(d.is_dir() and read_record(d) is not None for d in lib.iterdir())
+    if not ours:
+        foreign += [str(lib / n) for n in ("summary.csv", "summary.parquet") if (lib / n).exists()]
+    if foreign:
+        raise FitError(
+            f"library {lib}: {', '.join(foreign)} exist(s) and no library fit wrote them; "
+            "use --force to replace them or choose another --out"
+        )
+
+
 def _up_to_date(folder: Path, digest: str, options_digest: str) -> bool:
     rec = read_record(folder)
     return (
@@ -568,6 +595,8 @@ def fit_library(
     check_engine(scheduler, workers)
     options.check()
     materials, rejected = find_materials(source, exclude=lib.resolve() if lib.exists() else None)
+    if not force:
+        _refuse_foreign_outputs(lib, [m.name for m in materials])
     report = LibraryReport()
     status: dict[str, str] = {}
 

@@ -38,9 +38,15 @@ _SVBRDF_HELP = """
     """
 
 
+#: Largest --smooth: at 1 a neighbour difference weighs like a texel's own data; far
+#: beyond, the maps are the regulariser's alone (1e20 gave all-zero maps, 1e308 a
+#: singular solve and NaN maps, both "converged").
+MAX_SMOOTH = 1e6
+
+
 def _smooth_value(ctx: Any, param: Any, value: float | None) -> float | None:
-    if value is not None and not (math.isfinite(value) and value >= 0):
-        raise click.BadParameter(f"expected a finite number >= 0, got {value}")
+    if value is not None and not (math.isfinite(value) and 0 <= value <= MAX_SMOOTH):
+        raise click.BadParameter(f"expected a finite number in [0, {MAX_SMOOTH:g}], got {value}")
     return value
 
 
@@ -162,6 +168,14 @@ def _svbrdf_command(
             raise FitError(
                 f"{source}: every block of texels failed; nothing written "
                 f"(first: {next(iter(res.failed_blocks.values()))})"
+            )
+        if not np.any(res.success) and not any(
+            np.isfinite(res.params[k]).any() for k in res.param_names
+        ):
+            # (all zero BRDF, every sample flagged: 11 files of NaN maps and exit 0)
+            raise FitError(
+                f"{source}: no texel could be fitted (none converged, every map NaN); "
+                "nothing written -- are the texels' samples all flagged or zero?"
             )
         written = write_svbrdf(res, out, plots=plots, keep=keep)
     ok = int(res.success.sum())

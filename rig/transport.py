@@ -21,6 +21,7 @@ It implements :class:`gonio.rig.bus.BusTransport`, the interface the rig is give
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import select
 import threading
@@ -192,6 +193,22 @@ class Transport:
             raise BusError(
                 f"cannot open serial port {self.port_name!r}: {exc}", cause="port"
             ) from None
+        # One controller per bus: two processes' packets interleaved and one moved the
+        # arms while the other failed mid-command.  pyserial's own `exclusive=True` is
+        # this flock; dynamixel-sdk opens the port without it.
+        fd = getattr(getattr(self._port, "ser", None), "fileno", lambda: None)()
+        if fd is not None:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                self._port.closePort()
+                raise BusError(
+                    f"serial port {self.port_name!r} is in use by another process (another "
+                    "gonio rig command or session?); wait for it to finish or stop it first",
+                    cause="port",
+                ) from None
+            except OSError:  # a port type without locks: nothing to hold
+                pass
         return self
 
     def close(self) -> None:

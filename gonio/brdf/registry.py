@@ -145,7 +145,12 @@ def parse_model_spec(spec: str) -> tuple[str, dict[str, str]]:
                 f"model spec {spec!r}: option {item!r} is not written key=value "
                 "(e.g. fresnel=schlick)"
             )
-        opts[key.strip()] = value.strip()
+        key, value = key.strip(), value.strip()
+        if key in opts and opts[key] != value:
+            raise UnknownNameError(
+                f"model spec {spec!r}: option {key!r} given twice ({opts[key]}, {value})"
+            )
+        opts[key] = value
     return name.strip(), opts
 
 

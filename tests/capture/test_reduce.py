@@ -601,3 +601,43 @@ def test_the_budget_is_stored_summed_and_printed(session, tmp_path, capsys):
     assert run("capture", "inspect", str(s), "--no-verify") == 0
     out = capsys.readouterr().out
     assert "Uncertainty budget" in out and "noise" in out
+
+
+def test_outputs_that_are_not_a_reductions_are_never_replaced(session, tmp_path, capsys):
+    """Files no reduction wrote keep their content: the user's own file at the default
+    SESSION/samples.h5, a reduction.json beside --out, an --out named like the files
+    written beside it, the session's own journal (even with --force), a folder at the
+    output; a malformed shot record is named, not a traceback."""
+    s = copy_session(session, tmp_path / "S")
+    (s / "samples.h5").write_text("my notes")
+    assert run("capture", "reduce", str(s), "--quiet", "--no-plot") == 1
+    assert "samples.h5 exists and is not a gonio samples file" in capsys.readouterr().err
+    assert (s / "samples.h5").read_text() == "my notes"
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "reduction.json").write_text("notes")
+    assert run("capture", "reduce", str(s), "--out", str(out / "a.h5"), "--quiet") == 1
+    assert "reduction.json exists and no reduction of a.h5 wrote it" in capsys.readouterr().err
+    assert (out / "reduction.json").read_text() == "notes"
+    assert run("capture", "reduce", str(s), "--out", str(out / "samples.png"), "--quiet") == 1
+    assert "written beside the samples file" in capsys.readouterr().err
+    journal = (s / "journal.jsonl").read_bytes()
+    args = ["--out", str(s / "journal.jsonl"), "--force", "--quiet"]
+    assert run("capture", "reduce", str(s), *args) == 2  # a usage error
+    assert "one of the session's own files" in capsys.readouterr().err
+    assert (s / "journal.jsonl").read_bytes() == journal
+    (s / "samples.h5").unlink()
+    (s / "samples.h5").mkdir()
+    assert run("capture", "reduce", str(s), "--quiet", "--force") == 1
+    assert "exists and is not a regular file" in capsys.readouterr().err
+    (s / "samples.h5").rmdir()
+    lines = (s / "journal.jsonl").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if json.loads(ln)["type"] == "shot")
+    rec = json.loads(lines[k])
+    rec["rig_time"] = "x"
+    lines[k] = json.dumps(rec)
+    (s / "journal.jsonl").write_text("\n".join(lines) + "\n")
+    assert run("capture", "reduce", str(s), "--quiet", "--no-plot") == 1
+    err = capsys.readouterr().err
+    assert f"record {k + 1} (shot): field 'rig_time'" in err and "Traceback" not in err
+    assert not (s / "samples.h5").exists()
