@@ -702,7 +702,18 @@ class _PoseRun:
                 + (f" ({self.failed_poses[0]['reason']})" if self.failed_poses else "")
             )
         setup = self.setup
-        I, I_var = light_scale([m for m in self.measurements if m.kind == "reference"], setup)
+        refs = [m for m in self.measurements if m.kind == "reference"]
+        lost = [f for f in self.failed_poses if f.get("kind") == "reference"]
+        if not refs and lost:
+            # name what became of them (a changed or truncated RAW file), not only that
+            # none is left
+            shown = "; ".join(f"pose {f['pose']}: {f['reason']}" for f in lost[:3])
+            more = f" (and {len(lost) - 3} more)" if len(lost) > 3 else ""
+            raise ReductionError(
+                f"{self.session}: no reference-target frame could be used, the irradiance is "
+                f"unknown: {shown}{more}"
+            )
+        I, I_var = light_scale(refs, setup)
         self.light = (I, I_var)
         # The calibration scale I is one number per channel shared by every sample: its
         # uncertainty is fully correlated, so it is stored once (calibration_rel_std) for

@@ -204,7 +204,9 @@ def _refuse_non_regular(path: Path) -> None:
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike, *, parents: bool = False) -> Iterator[Path]:
+def atomic_path(
+    path: str | os.PathLike, *, parents: bool = False, replace: bool = True
+) -> Iterator[Path]:
     """A temporary path to write ``path``'s new content to; renamed over ``path`` when
     the block ends without an error, removed when it raises.
 
@@ -212,6 +214,11 @@ def atomic_path(path: str | os.PathLike, *, parents: bool = False) -> Iterator[P
     error).  Writers that infer a format from the file name (matplotlib) must be told the
     format: the temporary name ends in ``.tmp``.  Stale temporaries of ``path`` (from a
     killed writer) are removed first; the new file's mode follows the umask.
+
+    ``replace=False`` (an output that must not be overwritten): the new file is linked
+    into place only if nothing is there by then, in one ``link`` call, so of two writers
+    racing for one new path exactly one wins; the other gets ``FileExistsError`` (a
+    check for the path's existence before the work let both write).
     """
     path = Path(path)
     parent = path.parent
@@ -224,7 +231,18 @@ def atomic_path(path: str | os.PathLike, *, parents: bool = False) -> Iterator[P
         try:
             yield tmp
             os.fsync(fd)  # flushes the file's data whichever descriptor wrote it
-            os.replace(tmp, path)
+            if replace:
+                os.replace(tmp, path)
+            else:
+                try:
+                    os.link(tmp, path)
+                except FileExistsError:
+                    raise FileExistsError(
+                        errno.EEXIST,
+                        "exists (written meanwhile by another process?); not replaced",
+                        str(path),
+                    ) from None
+                tmp.unlink()
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
@@ -337,9 +355,11 @@ def atomic_directory(path: str | os.PathLike, *, keep: tuple[str, ...] = ()) -> 
         os.close(dfd)
 
 
-def write_bytes_atomic(path: str | os.PathLike, data: bytes, *, parents: bool = False) -> None:
+def write_bytes_atomic(
+    path: str | os.PathLike, data: bytes, *, parents: bool = False, replace: bool = True
+) -> None:
     """Write ``data`` to ``path`` atomically (see :func:`atomic_path`)."""
-    with atomic_path(path, parents=parents) as tmp:
+    with atomic_path(path, parents=parents, replace=replace) as tmp:
         tmp.write_bytes(data)
 
 

@@ -149,6 +149,6 @@ def convert_cmd(src: Path, dst: Path, force: bool) -> None:
         m = resample(
             b, description=b.description, progress=lambda d, n: prog.update(task, completed=d / n)
         )
-    write_merl(dst, m)
+    write_merl(dst, m, replace=force)
     pct = 100 * m.metadata["missing_fraction"]
     click.echo(f"wrote {dst} (MERL; {pct:.1f} % of nodes below the horizon, marked missing)")

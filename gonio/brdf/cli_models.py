@@ -222,6 +222,7 @@ def plot_cmd(
         title=label,
         albedo_curve=is_model,
         log=not linear,
+        replace=force,
     )
     click.echo(f"wrote {out}")
 

@@ -269,14 +269,15 @@ def read_merl(path: str | Path) -> MERLBRDF:
     return MERLBRDF(raw.copy(), path=path)
 
 
-def write_merl(path: str | Path, brdf: MERLBRDF) -> None:
+def write_merl(path: str | Path, brdf: MERLBRDF, *, replace: bool = True) -> None:
     """Write ``brdf.raw`` as a MERL binary (header + float64, little-endian), atomically.
 
     The file is written to a temporary name beside ``path`` and renamed, so an existing
-    file is never left half-written.
+    file is never left half-written; ``replace=False``: a file at ``path`` by then (another
+    writer's) is kept and ``FileExistsError`` raised (:func:`gonio.atomic.atomic_path`).
     """
     data = np.ascontiguousarray(brdf.raw, dtype="<f8").tobytes()
-    write_bytes_atomic(path, _HEADER + data)
+    write_bytes_atomic(path, _HEADER + data, replace=replace)
 
 
 def resample(

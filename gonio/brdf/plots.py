@@ -35,8 +35,11 @@ def plot_brdf(
     title: str | None = None,
     albedo_curve: bool = True,
     log: bool = True,
+    replace: bool = True,
 ) -> Path:
-    """Write a figure of ``brdf`` to ``out`` (format from the suffix: png, pdf, svg).
+    """Write a figure of ``brdf`` to ``out`` (format from the suffix: png, pdf, svg);
+    ``replace=False`` keeps a file another writer put at ``out`` meanwhile
+    (``FileExistsError``, :func:`gonio.atomic.atomic_path`).
 
     Parameters
     ----------
@@ -153,7 +156,7 @@ def plot_brdf(
         fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.93) if title else None)
     try:
-        with atomic_path(out, parents=True) as tmp:
+        with atomic_path(out, parents=True, replace=replace) as tmp:
             fig.savefig(tmp, dpi=110, format=out.suffix.lstrip("."))
     finally:
         plt.close(fig)

@@ -641,3 +641,18 @@ def test_outputs_that_are_not_a_reductions_are_never_replaced(session, tmp_path,
     err = capsys.readouterr().err
     assert f"record {k + 1} (shot): field 'rig_time'" in err and "Traceback" not in err
     assert not (s / "samples.h5").exists()
+
+
+def test_unusable_reference_frames_are_named(session, tmp_path, capsys):
+    """Every reference frame truncated: the error names the files and what is wrong with
+    them, not only that no reference frame is left."""
+    s = copy_session(session, tmp_path / "S")
+    refs = sorted((s / "raw").glob("*_reference.dng"))
+    assert refs
+    for p in refs:
+        with open(p, "r+b") as fh:
+            fh.truncate(1000)
+    assert run("capture", "reduce", str(s), "--quiet", "--no-plot") == 1
+    err = capsys.readouterr().err
+    assert "no reference-target frame could be used" in err
+    assert refs[0].name in err and "truncated" in err

@@ -189,3 +189,19 @@ def test_what_is_not_a_regular_file_is_never_replaced(tmp_path, kind):
     mode = os.lstat(target).st_mode
     assert st.S_ISDIR(mode) if kind == "folder" else st.S_ISFIFO(mode)
     assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no temporary left
+
+
+def test_a_write_that_must_not_replace_keeps_what_appeared_meanwhile(tmp_path):
+    """``replace=False``: two writers racing for one new output (two `brdf convert` to one
+    DST both passed their existence check and both wrote): the file that is there when
+    the second commits stays, the second gets FileExistsError, no temporary is left."""
+    target = tmp_path / "out.binary"
+    with pytest.raises(FileExistsError, match="not replaced"):
+        with atomic_path(target, replace=False) as tmp:
+            tmp.write_bytes(b"second")
+            target.write_bytes(b"first")  # the other writer commits meanwhile
+    assert target.read_bytes() == b"first"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.binary"]
+    fresh = tmp_path / "new.binary"
+    write_bytes_atomic(fresh, b"data", replace=False)
+    assert fresh.read_bytes() == b"data"

@@ -163,3 +163,15 @@ def test_huge_finite_numbers_are_refused_naming_the_field_and_bound(
     assert f"field '{field}'" in str(info.value) and bound in str(info.value)
     # the nominal values stay accepted
     load_rig_config(write(tmp_path, base))
+
+
+def test_a_speed_beyond_the_servos_register_is_refused_when_loaded(tmp_path):
+    # 50000 deg/s passed the config and the servo refused the write at run time ("data
+    # limit error"): the Profile Velocity register holds at most 32767 x 0.229 rpm
+    base = EXAMPLE.read_text()
+    old = "velocity_deg_s = 45.0"
+    assert old in base
+    with pytest.raises(ConfigError) as info:
+        load_rig_config(write(tmp_path, base.replace(old, "velocity_deg_s = 50000.0", 1)))
+    assert "velocity_deg_s = 50000" in str(info.value) and "45022 deg/s" in str(info.value)
+    load_rig_config(write(tmp_path, base.replace(old, "velocity_deg_s = 45000.0", 1)))
