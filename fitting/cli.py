@@ -228,10 +228,17 @@ def fit(
         samples, kind = _load_input(source)
         cands = _split_candidates(candidates) if candidates else None
         with _output_folder(out, force):
-            r, written = _fit_and_write(
-                console, samples, source, out, model, model_options, cands, loss, robust,
-                f_scale, algorithm, no_energy, plots, worker,
-            )  # fmt: skip
+            try:
+                r, written = _fit_and_write(
+                    console, samples, source, out, model, model_options, cands, loss, robust,
+                    f_scale, algorithm, no_energy, plots, worker,
+                )  # fmt: skip
+            except FitError as exc:
+                # the input named: a measured file's samples are made here, and their
+                # errors spoke of "samples.brdf" only
+                if str(source) in str(exc):
+                    raise
+                raise FitError(f"{source}: {exc}") from None
     finally:
         if worker is not None:
             worker.close()

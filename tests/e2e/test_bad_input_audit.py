@@ -103,3 +103,17 @@ def test_two_outputs_naming_one_file_are_refused(tmp_path, capsys):
         distinct_outputs(("--out", tmp_path / "r.dng"), ("--truth", tmp_path / "t.png"),
                          ("--preview", tmp_path / "./t.png"))  # fmt: skip
     distinct_outputs(("--out", tmp_path / "a"), ("--plot", None), ("--truth", tmp_path / "b"))
+
+
+def test_a_fit_error_names_the_input_file(tmp_path, capsys):
+    """Nothing to fit (every BRDF value 0): the error names the file given, not only
+    the dataset (a MERL file of zeros said "samples.brdf: all ... zero")."""
+    rng = np.random.default_rng(1)
+    w = rng.normal(size=(50, 3)) + [0, 0, 3]
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    path = tmp_path / "zeros.h5"
+    save_samples(path, BRDFSamples(wi=w, wo=w[::-1], brdf=np.zeros((50, 3)),
+                                   brdf_std=np.full((50, 3), 0.01)))  # fmt: skip
+    assert run("fit", str(path), "-m", "lambert", "--no-plots", "--out", str(tmp_path / "f")) == 1
+    err = capsys.readouterr().err
+    assert str(path) in err and "zero" in err and "Traceback" not in err
