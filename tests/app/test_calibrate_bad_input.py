@@ -272,3 +272,34 @@ def test_calibrate_plan_says_a_camera_plan_ignores_rig_options(tmp_path, capsys,
     assert not out.exists()
     code, err = cli(capsys, "calibrate", "plan", "--kind", "camera", "--out", str(out))
     assert code == 0 and out.exists(), err
+
+
+def test_calibrate_rig_refuses_another_rig_and_outputs_that_collide(reduced, tmp_path, capsys):
+    """A --rig of another geometry than the session's nominal rig (the servos' digest
+    alone let it through: the calibration recorded the wrong rig as its nominal), --out
+    and --plot naming one file, and an output among the session's own files."""
+    d, s = reduced
+    rig = (d / "rig.toml").read_text()
+    assert "camera_radius_m = " in rig
+    other = tmp_path / "other_rig.toml"
+    other.write_text(_with_camera_radius(rig, 0.46))
+    out = tmp_path / "rig_calibrated.toml"
+    base = ["calibrate", "rig", str(s), "--camera-calibration", str(d / "rig.toml")]
+    code, err = cli(capsys, *base, "--rig", str(other), "--out", str(out))
+    assert code == 1 and "differs from the rig session" in err, err
+    assert "geometry.camera_radius_m" in err and not out.exists()
+    code, err = cli(capsys, *base, "--rig", str(d / "rig.toml"), "--out", str(out),
+                    "--plot", str(out))  # fmt: skip
+    assert code == 2 and "--out and --plot name the same file" in err, err
+    manifest = (s / "manifest.json").read_bytes()
+    code, err = cli(capsys, *base, "--rig", str(d / "rig.toml"), "--out",
+                    str(s / "manifest.json"), "--force")  # fmt: skip
+    assert code == 2 and "one of the session's own files" in err, err
+    assert (s / "manifest.json").read_bytes() == manifest
+
+
+def _with_camera_radius(doc: str, value: float) -> str:
+    lines = doc.splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.startswith("camera_radius_m"))
+    lines[k] = f"camera_radius_m = {value}"
+    return "\n".join(lines) + "\n"

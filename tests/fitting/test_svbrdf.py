@@ -524,3 +524,26 @@ def test_model_auto_chooses_by_the_texels(texel_file):
     ref = fit_svbrdf(texel_file, SVBRDFOptions(model="lambert+ggx"), workers=0, block_texels=4)
     for k in ref.param_names:
         assert r.params[k].tobytes() == ref.params[k].tobytes()
+
+
+def test_nothing_to_fit_or_a_smoothing_past_its_bound_is_an_error(tmp_path, capsys):
+    """Every texel's BRDF 0: no texel can be fitted, so nothing is written and the exit
+    is 1 (it wrote 11 files of NaN maps, "0 of 16 converged", exit 0); --smooth beyond
+    1e6 is a usage error (1e20 gave all-zero maps, "converged")."""
+    rng = np.random.default_rng(5)
+    t_count, n = 4, 12
+    wi = np.stack([_directions(rng, n) for _ in range(t_count)])
+    wo = np.stack([_directions(rng, n) for _ in range(t_count)])
+    (tmp_path / "zero").mkdir()
+    path = save_texels(
+        tmp_path / "zero" / "texels.h5", wi=wi, wo=wo, brdf=np.zeros((t_count, n, 3)),
+        brdf_std=np.full((t_count, n, 3), FLOOR), flags=np.zeros((t_count, n), np.uint32),
+        pose=np.arange(n, dtype=np.int32), texels=(2, 2), sample_size=(0.04, 0.03),
+    )  # fmt: skip
+    out = tmp_path / "o"
+    code = run("fit", str(path), "--svbrdf", "-m", "lambert", "--workers", "0", "--out", str(out))
+    err = capsys.readouterr().err
+    assert code == 1 and "no texel could be fitted" in err and not out.exists()
+    args = ["fit", str(path), "--svbrdf", "-m", "lambert", "--workers", "0", "--smooth", "1e20"]
+    assert run(*args, "--out", str(out)) == 2
+    assert "--smooth" in capsys.readouterr().err and not out.exists()
