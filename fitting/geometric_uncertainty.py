@@ -45,8 +45,8 @@ light in the reference shots raises the light scale by ``s g_ref``.  So
 model's.  ``budget["stray"]`` states ``s / sqrt(3) stray_gain f``, exact only for a
 Lambertian sample: on a glossy one the flat ``rho / pi`` widens the lobe's wings at
 grazing incidence, which moves the roughness, not the lobe's height (world 2102,
-``lambert+ggx``: alpha 4.2 sigma off with the budget's shape, 2.1 sigma in a world
-without stray light).
+``lambert+ggx``: alpha 3.6 sigma off with the budget's shape, 2.1 sigma with this one,
+as in the same world without stray light).
 
 The fit itself (its weights, hence its parameters) does not change: only its covariance.
 Samples without modes (older files, no budget) skip all of this.
