@@ -261,6 +261,7 @@ def reduce_session(
         _refuse_foreign_texels(path.with_name(TEXELS_FILE), path)
     with hold_lock(output_lock(path), f"output {path}"):
         run = _PoseRun(session, setup, kin, records, texels=texels)
+        run.warnings.extend(_beyond_schedule(records, manifest))
         run.measure_all(default_threads() if threads is None else max(1, int(threads)), progress)
         samples = run.samples(manifest)
         n_kept = int(samples.valid.sum())
@@ -285,6 +286,29 @@ def reduce_session(
     return ReductionResult(
         path, len(samples), n_kept, dict(run.rejected), summary, plot_path, list(run.warnings)
     )
+
+
+def _beyond_schedule(records: list[dict[str, Any]], manifest: Mapping[str, Any]) -> list[str]:
+    """A warning for sample and reference shots of poses the schedule does not have: they
+    are not reduced, and a journal edited by hand lost them without a word."""
+    n = len(manifest.get("schedule") or [])
+    poses = sorted(
+        {
+            r["pose"]
+            for r in records
+            if r.get("type") == "shot"
+            and r.get("kind") in ("sample", "reference")
+            and isinstance(r.get("pose"), int)
+            and r["pose"] >= n
+        }
+    )
+    if not poses:
+        return []
+    shown = ", ".join(map(str, poses[:5])) + (" ..." if len(poses) > 5 else "")
+    return [
+        f"the journal has sample or reference shots of pose(s) {shown}, beyond the "
+        f"schedule's {n} steps (the manifest or the journal was edited?): not reduced"
+    ]
 
 
 def _texels_of_this_set(path: Path) -> bool:

@@ -656,3 +656,20 @@ def test_unusable_reference_frames_are_named(session, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "no reference-target frame could be used" in err
     assert refs[0].name in err and "truncated" in err
+
+
+def test_shots_of_poses_beyond_the_schedule_are_said_not_dropped_in_silence(
+    session, tmp_path, capsys
+):
+    s = copy_session(session, tmp_path / "S")
+    lines = (s / "journal.jsonl").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if json.loads(ln).get("kind") == "sample")
+    rec = json.loads(lines[k])
+    rec["pose"] = 999
+    lines[k] = json.dumps(rec)
+    (s / "journal.jsonl").write_text("\n".join(lines) + "\n")
+    assert run("capture", "reduce", str(s), "--quiet", "--no-plot") == 0
+    err = capsys.readouterr().err
+    assert "pose(s) 999, beyond the schedule's" in err and "not reduced" in err
+    doc = json.loads((s / "reduction.json").read_text())
+    assert any("pose(s) 999" in w for w in doc["warnings"])
