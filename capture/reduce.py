@@ -220,10 +220,7 @@ def reduce_session(
         Another process is writing the same output (nothing is written).
     """
     from gonio.capture.journal import read_journal, session_file
-    from gonio.capture.manifest import (
-        load_manifest,
-        refuse_calibration_session,
-    )
+    from gonio.capture.manifest import load_manifest, refuse_calibration_session
     from gonio.capture.session_dir import session_state
 
     session = Path(session_dir)

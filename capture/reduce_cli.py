@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from gonio.cli import FiniteFloatRange, distinct_outputs, refuse_session_file
+from gonio.cli import FiniteFloatRange, distinct_outputs
 from gonio.errors import ReductionError
 
 
@@ -364,6 +364,7 @@ def _check_outputs(session: Path, out: Path | None, force: bool, plot: bool) -> 
     file that is not a gonio samples file at the path (the default ``SESSION/samples.h5``
     too) or a ``reduction.json`` / ``samples.png`` beside it that no reduction wrote."""
     from gonio.capture.reduce import PLOT_FILE, SAMPLES_FILE, SUMMARY_FILE, TEXELS_FILE
+    from gonio.capture.session_dir import refuse_session_file
 
     path = out if out is not None else session / SAMPLES_FILE
     hint = "--out " if out is not None else ""

@@ -56,6 +56,32 @@ def _now() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
+def refuse_session_file(hint: str, path: Path | None, session: Path) -> None:
+    """Refuse an output that is one of a capture session's own files (its journal,
+    manifest, reduction.toml, lock, RAW frames or simulator records), ``--force`` or
+    not: replacing it destroys the session.
+
+    Raises
+    ------
+    click.UsageError
+        Naming the option (``hint``) and the path.
+    """
+    import click
+
+    from gonio.capture.reduction_config import CONFIG_FILE
+
+    if path is None:
+        return
+    try:
+        inside = Path(os.path.realpath(path)).relative_to(os.path.realpath(session))
+    except ValueError:
+        return
+    own = {JOURNAL, MANIFEST, CONFIG_FILE, LOCK_NAME}
+    # "sim": gonio.app.simulation.SIM_DIR, the simulated camera's records (an outer layer)
+    if str(inside) in own or (len(inside.parts) > 1 and inside.parts[0] in (RAW_DIR, "sim")):
+        raise click.UsageError(f"{hint} {path}: one of the session's own files; write elsewhere")
+
+
 def check_new_session_dir(session_dir: Path) -> None:
     """Refuse to start a session where it would overwrite anything."""
     if (session_dir / MANIFEST).exists() or (session_dir / JOURNAL).exists():

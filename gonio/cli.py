@@ -84,21 +84,6 @@ def distinct_outputs(*outputs: tuple[str, Path | None]) -> None:
         seen[key] = hint
 
 
-def refuse_session_file(hint: str, path: Path | None, session: Path) -> None:
-    """Refuse an output that is one of a capture session's own files (its journal,
-    manifest, reduction.toml, lock, RAW frames or simulator records), ``--force`` or
-    not: replacing it destroys the session."""
-    if path is None:
-        return
-    try:
-        inside = Path(os.path.realpath(path)).relative_to(os.path.realpath(session))
-    except ValueError:
-        return
-    own = {"journal.jsonl", "manifest.json", "reduction.toml", ".gonio.lock"}
-    if str(inside) in own or (len(inside.parts) > 1 and inside.parts[0] in ("raw", "sim")):
-        raise click.UsageError(f"{hint} {path}: one of the session's own files; write elsewhere")
-
-
 class FiniteFloatRange(click.FloatRange):
     """``click.FloatRange`` that also refuses NaN and infinities.
 

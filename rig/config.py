@@ -144,25 +144,26 @@ class ServoConfig(_Strict):
 
     @model_validator(mode="after")
     def _limits_ordered(self) -> ServoConfig:
-        from gonio.rig.control_table import acceleration_register, velocity_register
+        from gonio.rig import control_table as ct
 
-        # the registers' range (32767 units), so the servo does not refuse the write at
-        # run time ("data limit error") after the config was accepted
+        # the registers' range, so the servo does not refuse the write at run time
+        # ("data limit error") after the config was accepted
+        regs = ct.MODELS[self.model].registers
         turn = math.radians(self.gear_ratio)
-        if velocity_register(self.velocity_deg_s * turn) > 32767:
-            top = 32767 * 0.229 * 6.0 / self.gear_ratio
-            raise ValueError(
-                f"velocity_deg_s = {self.velocity_deg_s:g} is beyond the servo's Profile "
-                f"Velocity register (at most {top:.0f} deg/s of joint at gear ratio "
-                f"{self.gear_ratio:g})"
-            )
-        if acceleration_register(self.acceleration_deg_s2 * turn) > 32767:
-            top = 32767 * 214.577 * 360.0 / 3600.0 / self.gear_ratio
-            raise ValueError(
-                f"acceleration_deg_s2 = {self.acceleration_deg_s2:g} is beyond the servo's "
-                f"Profile Acceleration register (at most {top:.0f} deg/s^2 of joint at gear "
-                f"ratio {self.gear_ratio:g})"
-            )
+        for field_name, value, reg, to_reg, unit_deg, unit in (
+            ("velocity_deg_s", self.velocity_deg_s, "profile_velocity",
+             ct.velocity_register, ct.RPM_PER_VELOCITY_UNIT * 360.0 / 60.0, "deg/s"),
+            ("acceleration_deg_s2", self.acceleration_deg_s2, "profile_acceleration",
+             ct.acceleration_register, ct.RPM2_PER_ACCELERATION_UNIT * 360.0 / 3600.0,
+             "deg/s^2"),
+        ):  # fmt: skip
+            high = regs[reg].high
+            if high is not None and to_reg(value * turn) > high:
+                raise ValueError(
+                    f"{field_name} = {value:g} is beyond the servo's {reg} register (at "
+                    f"most {high * unit_deg / self.gear_ratio:.0f} {unit} of joint at gear ratio "
+                    f"{self.gear_ratio:g})"
+                )
         if not self.min_deg < self.max_deg:
             raise ValueError(f"min_deg ({self.min_deg}) must be below max_deg ({self.max_deg})")
         if self.operating_mode == "position":

@@ -326,8 +326,9 @@ def rig_cmd(
     from gonio.capture.camera_calibration import camera_digest, camera_identity
     from gonio.capture.manifest import load_manifest
     from gonio.capture.rig_views import calibration_observations
+    from gonio.capture.session_dir import refuse_session_file
     from gonio.capture.sessions import _diff_keys
-    from gonio.cli import distinct_outputs, refuse_session_file
+    from gonio.cli import distinct_outputs
     from gonio.rig.calibration import NOT_OBSERVABLE, calibrate_rig, write_calibrated_rig
     from gonio.rig.calibration_record import (
         CalibrationError,
