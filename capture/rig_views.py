@@ -126,9 +126,12 @@ def calibration_observations(
             )
         if first.get("kind") == "mirror":
             try:
-                u, v, _info = find_spot(frames, name=label)
+                u, v, info = find_spot(frames, name=label)
             except ReductionError as exc:
                 problems.append(ViewProblem(label, pose, "spot", str(exc)))
             else:
-                spots.append(SpotObservation(label, joints, approach, np.array([u, v])))
+                r0, r1, c0, c1 = info["box"]
+                # pixel centres of the box's outer pixels, widened by half a pixel
+                box = (c0 - 0.5, r0 - 0.5, c1 - 0.5, r1 - 0.5)
+                spots.append(SpotObservation(label, joints, approach, np.array([u, v]), box))
     return boards, spots, problems

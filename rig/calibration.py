@@ -807,9 +807,11 @@ def _solve(problem: _Problem, x0: Array, sb: float, ss: float) -> tuple[Array, i
     return res.x, int(res.nfev)
 
 
-def _sigmas(problem: _Problem, x: Array, sb: float, ss: float) -> tuple[float, float, Array]:
+def _sigmas(
+    problem: _Problem, x: Array, sb: float, ss: float
+) -> tuple[float, float, Array, Array]:
     """Per-kind sigma from the residuals and the degrees of freedom each kind used (the
-    hat matrix' trace over its rows), and the raw Jacobian at ``x``."""
+    hat matrix' trace over its rows), the raw Jacobian at ``x`` and the rows' leverage."""
     raw = problem.raw_jacobian(x)
     jw = problem.weight_jacobian(raw, sb, ss)
     r = problem.weighted(x, sb, ss)
@@ -820,11 +822,22 @@ def _sigmas(problem: _Problem, x: Array, sb: float, ss: float) -> tuple[float, f
         n = r[rows].size
         dof = n - leverage[rows].sum()
         out.append(sigma * math.sqrt(float(r[rows] @ r[rows]) / dof) if n and dof > 0.5 else sigma)
-    return out[0], out[1], raw
+    return out[0], out[1], raw, leverage
 
 
-def _view_residuals(problem: _Problem, x: Array) -> list[ViewResidual]:
+def _view_residuals(
+    problem: _Problem, x: Array, leverage: Array | None = None
+) -> list[ViewResidual]:
+    """Each view's residuals, px; with ``leverage`` (the rows' hat-matrix diagonal)
+    studentized, r / sqrt(1 - h): a view that alone pins some parameters (few spots for
+    the light's three) is fitted closely, and its raw residual would understate how far
+    it is from the rest, and shrink the median the others are judged by."""
     rb, rs = problem.raw_residuals(x)
+    if leverage is not None:
+        b, s, _ = problem.kind_rows()
+        stud = 1.0 / np.sqrt(np.clip(1.0 - leverage, 1e-3, None))
+        rb = rb * stud[b].reshape(-1, 2)
+        rs = rs * stud[s].reshape(-1, 2)
     out = []
     d = np.hypot(rb[:, 0], rb[:, 1])
     for i, b in enumerate(problem.boards):
@@ -841,8 +854,8 @@ def _view_residuals(problem: _Problem, x: Array) -> list[ViewResidual]:
 
 
 def _outliers(views: list[ViewResidual]) -> dict[tuple[str, str], str]:
-    """(kind, label) -> why, for the views whose RMS exceeds REJECT_FACTOR x their kind's
-    median (a board and a spot of the same pose are judged apart)."""
+    """(kind, label) -> why, for the views whose (studentized) RMS exceeds REJECT_FACTOR x
+    their kind's median (a board and a spot of the same pose are judged apart)."""
     out = {}
     for kind in ("board", "spot"):
         vs = [v for v in views if v.kind == kind]
@@ -852,8 +865,8 @@ def _outliers(views: list[ViewResidual]) -> dict[tuple[str, str], str]:
         for v in vs:
             if v.rms_px > REJECT_FACTOR * med:
                 out[(kind, v.label)] = (
-                    f"{kind} residual RMS {v.rms_px:.3g} px > {REJECT_FACTOR:g} x the median "
-                    f"{med:.3g} px"
+                    f"{kind} studentized residual RMS {v.rms_px:.3g} px > "
+                    f"{REJECT_FACTOR:g} x the median {med:.3g} px"
                 )
     return out
 
@@ -914,8 +927,8 @@ def calibrate_rig(
         for _ in range(2):  # the weights, iterated once on the first solve's residuals
             x, n = _solve(problem, x, sb, ss)
             nfev += n
-            sb, ss, raw = _sigmas(problem, x, sb, ss)
-        bad = _outliers(_view_residuals(problem, x))
+            sb, ss, raw, leverage = _sigmas(problem, x, sb, ss)
+        bad = _outliers(_view_residuals(problem, x, leverage))
         if not bad:
             break
         rejected.update({f"{kind} {label}": why for (kind, label), why in bad.items()})

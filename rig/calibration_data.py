@@ -50,9 +50,13 @@ class SpotObservation:
         As :class:`BoardObservation`.
     image_point
         (2,) centroid of the light's mirror image, px (OpenCV convention).
+    box
+        ``(u0, v0, u1, v1)``, px: the pixels the centroid summed (the blob and its rim);
+        None when unknown.  Where the mirror's edge crosses it, the centroid is biased.
     """
 
     label: str
     joints: Mapping[str, float]
     approach: Mapping[str, int]
     image_point: NDArray[np.float64]
+    box: tuple[float, float, float, float] | None = None

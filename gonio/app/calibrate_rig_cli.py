@@ -220,17 +220,42 @@ def _as_nominal_readings(boards, spots, session_rig, nominal):
 
 #: Default half-size of the calibration mirror (a 50 mm square, the sample's size), m.
 MIRROR_HALF_SIZE_M = 0.025
-#: A spot whose reflection point is closer than this to the mirror's edge is not used, m:
-#: the light's image on the mirror is ~5 mm wide (twice that at 60 deg incidence), and
-#: where the edge cuts it the centroid moves by pixels.
+#: A spot whose centroid box (the blob and the rim the centroid sums) is unknown is not
+#: used when its reflection point is closer than this to the mirror's edge, m: a lab
+#: light's image on the mirror is up to ~5 mm wide (twice that at 60 deg incidence).
 MIRROR_MARGIN_M = 0.007
+#: A spot whose centroid box, met with the mirror, comes closer than this to the edge is
+#: not used, m: where the edge cuts the summed pixels the centroid moves by pixels; the
+#: guard covers the board pose's error (~0.1 mm) and a bevelled mirror edge.
+MIRROR_EDGE_GUARD_M = 0.0005
 
 
-def reflection_points(boards, spots, camera) -> dict[str, np.ndarray]:
-    """Where each spot's light is reflected: the spot's pixel ray met with the mirror
-    plane (z = 0 of the sample frame), the camera's pose from the board seen around the
-    mirror in the same view (``cv2.solvePnP`` with the camera calibration), m.  Spots
-    without a board view of the same label are left out."""
+def _on_mirror(pixels: np.ndarray, K, dist, R, centre) -> np.ndarray | None:
+    """Where the pixels' rays (n, 2) meet the mirror plane z = 0, (n, 2) m; None when a
+    ray runs parallel to it."""
+    import cv2
+
+    xy = cv2.undistortPoints(np.asarray(pixels, float).reshape(-1, 1, 2), K, dist)[:, 0]
+    rays = np.column_stack([xy, np.ones(len(xy))]) @ R  # R.T @ ray, row-wise
+    if np.any(np.abs(rays[:, 2]) <= 1e-12):
+        return None
+    return (centre[None, :] - (centre[2] / rays[:, 2])[:, None] * rays)[:, :2]
+
+
+def mirror_footprints(boards, spots, camera) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
+    """Where each spot's light is reflected, and where its centroid box lies on the mirror.
+
+    The spot's pixel ray is met with the mirror plane (z = 0 of the sample frame), the
+    camera posed by ``cv2.solvePnP`` (with the camera calibration) on the board seen around
+    the mirror in the same view.  Spots without a board view of the same label are left
+    out.
+
+    Returns
+    -------
+    dict
+        label -> (reflection point (2,) m, the centroid box's corners on the mirror (4, 2)
+        m or None when the spot has no box).
+    """
     import cv2
 
     K, dist = np.asarray(camera.K, float), np.asarray(camera.dist, float)
@@ -247,10 +272,47 @@ def reflection_points(boards, spots, camera) -> dict[str, np.ndarray]:
             continue
         R = cv2.Rodrigues(rvec)[0]
         centre = -R.T @ tvec.ravel()
-        x, y = cv2.undistortPoints(np.asarray(s.image_point, float).reshape(1, 1, 2), K, dist)[0, 0]
-        ray = R.T @ np.array([x, y, 1.0])
-        if abs(ray[2]) > 1e-12:
-            out[s.label] = (centre - centre[2] / ray[2] * ray)[:2]
+        hit = _on_mirror(np.asarray(s.image_point, float)[None, :], K, dist, R, centre)
+        if hit is None:
+            continue
+        corners = None
+        if s.box is not None:
+            u0, v0, u1, v1 = s.box
+            corners = _on_mirror(
+                np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1]]), K, dist, R, centre
+            )
+        out[s.label] = (hit[0], corners)
+    return out
+
+
+def reflection_points(boards, spots, camera) -> dict[str, np.ndarray]:
+    """Where each spot's light is reflected on the mirror, m (label -> (2,)); see
+    :func:`mirror_footprints`."""
+    return {k: hit for k, (hit, _c) in mirror_footprints(boards, spots, camera).items()}
+
+
+def edge_problems(boards, spots, camera, half_size: tuple[float, float]) -> dict[str, str]:
+    """label -> why, for the spots the mirror's edge may cut (see
+    :data:`MIRROR_EDGE_GUARD_M`, :data:`MIRROR_MARGIN_M`)."""
+    hx, hy = half_size
+    out = {}
+    for label, (h, corners) in mirror_footprints(boards, spots, camera).items():
+        where = f"reflected at ({h[0] * 1e3:.1f}, {h[1] * 1e3:.1f}) mm"
+        size = f"(half-size {hx * 1e3:.0f} x {hy * 1e3:.0f} mm)"
+        if corners is None:
+            if abs(h[0]) > hx - MIRROR_MARGIN_M or abs(h[1]) > hy - MIRROR_MARGIN_M:
+                out[label] = (
+                    f"{where}, within {MIRROR_MARGIN_M * 1e3:.0f} mm of the mirror's edge "
+                    f"{size}, which may cut the light's image"
+                )
+            continue
+        reach = np.abs(corners).max(axis=0)
+        if reach[0] > hx - MIRROR_EDGE_GUARD_M or reach[1] > hy - MIRROR_EDGE_GUARD_M:
+            out[label] = (
+                f"{where}; the pixels its centroid sums reach ({reach[0] * 1e3:.1f}, "
+                f"{reach[1] * 1e3:.1f}) mm, within {MIRROR_EDGE_GUARD_M * 1e3:.1f} mm of the "
+                f"mirror's edge {size}, which cuts or may cut the light's image"
+            )
     return out
 
 
@@ -377,18 +439,9 @@ def rig_cmd(
     for p in problems:
         console.print(f"[yellow]note[/]: {p.label}: no {p.what}: {p.reason}")
     hx, hy = _mirror_half_size(manifest)
-    hits = reflection_points(boards, spots, camera)
-    near_edge = {
-        label: h
-        for label, h in hits.items()
-        if abs(h[0]) > hx - MIRROR_MARGIN_M or abs(h[1]) > hy - MIRROR_MARGIN_M
-    }
-    for label, h in near_edge.items():
-        console.print(
-            f"[yellow]note[/]: {label}: spot not used: reflected at ({h[0] * 1e3:.1f}, "
-            f"{h[1] * 1e3:.1f}) mm, within {MIRROR_MARGIN_M * 1e3:.0f} mm of the mirror's edge "
-            f"(half-size {hx * 1e3:.0f} x {hy * 1e3:.0f} mm), which may cut the light's image"
-        )
+    near_edge = edge_problems(boards, spots, camera, (hx, hy))
+    for label, why in near_edge.items():
+        console.print(f"[yellow]note[/]: {label}: spot not used: {why}")
     spots = [s for s in spots if s.label not in near_edge]
     if not boards:
         raise CalibrationError(f"{session_dir}: the board was not found in any frame")
