@@ -25,9 +25,10 @@ the residuals, :mod:`gonio.fitting.uncertainty`), the covariance of the paramete
 
 Radiometric terms of the budget that are one error of one sign shared by every sample
 (:data:`CORRELATED_TERMS`: the stray light, whose stated bound the reduction turns into
-``budget["stray"]`` -- it only ever adds light; and the drift's interpolation error: a
-warm-up decays monotonically and convexly, so a straight line between two reference
-groups lies on the same side of it in every interval and every channel; and the light
+``budget["stray"]`` -- it only ever adds light; and the drift's interpolation error: the
+residual of the curvature-corrected interpolation between reference groups is a smooth
+function of time, alike in the channels, largest where a warm-up's curvature changes
+most; and the light
 profile's: one exponent n for the whole session, its stated or fitted uncertainty moving
 every sample's irradiance together -- the budget keeps its size, not its sign, so one
 same-signed column is the conservative reading) enter the same way, one column each,
@@ -69,7 +70,9 @@ __all__ = [
     "GeometricModes",
     "geometric_modes_of",
     "sandwich_covariance",
+    "STRAY_ALBEDO_NODES",
     "stray_column",
+    "stray_effect",
 ]
 
 SCOPES = ("session", "pose")
@@ -228,6 +231,49 @@ def _stray_of(samples: Any, n: int, c: int) -> tuple[np.ndarray | None, float, n
     return gain, s_frac, g_ref
 
 
+#: Polar angles (rad) the directional albedo is taken at for the stray light's shape: it is
+#: smooth in theta_o and changes most at grazing angles, so 12 nodes even in cos(theta_o),
+#: linear between them (<= 0.09 % off 200 nodes on lambert+ggx with Schlick's Fresnel;
+#: half the time of 24 nodes even in theta, 0.07 %).
+STRAY_ALBEDO_NODES = np.arccos(np.linspace(1.0, math.cos(math.radians(89.9)), 12))
+
+
+def stray_effect(
+    stray_fraction: float,
+    gain: np.ndarray,
+    reference_gain: np.ndarray,
+    wo: np.ndarray,
+    rho: np.ndarray,
+    nodes: np.ndarray,
+    f: np.ndarray,
+) -> np.ndarray:
+    """The stray light's 1-sigma effect on samples, (N, C) in 1/sr (module docstring).
+
+    ``s / sqrt(3) (gain rho(theta_o) / pi - g_ref f)``: the room's diffuse irradiance
+    ``s E0`` reflects as ``s E0 rho(theta_o) / pi`` (``gain = G0 / G`` puts it over the
+    region's direct irradiance) and lifts the light scale by ``s g_ref``.
+
+    Parameters
+    ----------
+    stray_fraction
+        ``s``, the stated bound (rectangular), dimensionless.
+    gain, reference_gain
+        (N, C) ``G0 / G`` per sample and (C,) the reference regions' mean gain.
+    wo
+        (N, 3) outgoing unit vectors.
+    rho, nodes
+        (T, C) the material's directional albedo at the polar angles ``nodes`` (T,), rad
+        (linear between them).
+    f
+        (N, C) the BRDF, 1/sr.
+    """
+    theta_o = np.arccos(np.clip(np.asarray(wo, dtype=np.float64)[:, 2], -1.0, 1.0))
+    rho = np.asarray(rho, dtype=np.float64)
+    rho_o = np.stack([np.interp(theta_o, nodes, rho[:, k]) for k in range(rho.shape[1])], 1)
+    g_ref = np.asarray(reference_gain, dtype=np.float64)
+    return stray_fraction / np.sqrt(3.0) * (gain * rho_o / np.pi - g_ref[None, :] * f)
+
+
 def stray_column(
     prob: Problem,
     x: np.ndarray,
@@ -244,10 +290,7 @@ def stray_column(
     """
     if modes.stray_gain is None or modes.stray_reference_gain is None:
         return None
-    # the albedo is smooth in theta_o and changes most at grazing angles: 12 nodes even
-    # in cos(theta_o), linear between them (<= 0.09 % off 200 nodes on lambert+ggx with
-    # Schlick's Fresnel; half the time of 24 nodes even in theta, 0.07 %)
-    nodes = np.arccos(np.linspace(1.0, math.cos(math.radians(89.9)), 12))
+    nodes = STRAY_ALBEDO_NODES
     try:
         rho = np.asarray(albedo_at(nodes), dtype=np.float64)  # (T, C)
     except (ImportError, NotImplementedError, AttributeError):
@@ -256,11 +299,10 @@ def stray_column(
         return None
     theta, a = prob.unpack(x)
     f = np.asarray(prob.model.eval(prob._wi_c, prob._wo_c, prob.params_dict(theta, a)))
-    theta_o = np.arccos(np.clip(prob.wo[:, 2], -1.0, 1.0))
-    rho_o = np.stack([np.interp(theta_o, nodes, rho[:, k]) for k in range(rho.shape[1])], 1)
-    u = modes.stray_fraction / np.sqrt(3.0)
-    gain = modes.stray_gain
-    col = u * (gain * rho_o / np.pi - modes.stray_reference_gain[None, :] * f)
+    col = stray_effect(
+        modes.stray_fraction, modes.stray_gain, modes.stray_reference_gain, prob.wo, rho,
+        nodes, f,
+    )  # fmt: skip
     stated = (modes.correlated or {}).get("stray")
     fallback = stated if stated is not None else np.zeros_like(col)
     return np.where(np.isfinite(col), col, fallback)

@@ -326,7 +326,9 @@ class ErrorModel:
         return np.einsum("mcj,kj->kmc", U[..., used], xi) + self.independent[rows] * eps
 
 
-def error_model(samples: Any, f_ref: np.ndarray) -> ErrorModel:
+def error_model(
+    samples: Any, f_ref: np.ndarray, albedo: Callable[[np.ndarray], np.ndarray] | None = None
+) -> ErrorModel:
     """The covariance the samples' own budget states, for the usable samples.
 
     The shared columns are the ones :func:`gonio.fitting.fit` treats as correlated, so
@@ -341,15 +343,31 @@ def error_model(samples: Any, f_ref: np.ndarray) -> ErrorModel:
     (``calibration_rel_std`` times ``f_ref``).  The rest of ``brdf_std`` (noise, flat,
     dark) is independent.  Samples without modes: the geometry term is independent too.
 
+    The stray light's column is the fit's (:func:`gonio.fitting.geometric_uncertainty.
+    stray_effect`) when ``albedo`` is given and the samples carry ``stray_gain``: the
+    room's diffuse light reflects as ``rho(theta_o) / pi``, which no single sample
+    knows (the reduction states ``budget["stray"]`` with ``f`` in its place), and lifts
+    the light scale; the fit completes the shape with its model's directional albedo,
+    and so does the harness, with the fitted model's (never the truth's).  The
+    independent part still leaves out the stated term, so the diagonal is then the
+    stated ``sigma^2`` with the stray term's size replaced by its shaped one.
+
     Parameters
     ----------
     samples
         The reduced samples (all of them; the usable ones are modelled).
     f_ref
         (n_usable, C) the BRDF the calibration scale multiplies (the truth), 1/sr.
+    albedo
+        The fitted model's directional albedo, ``albedo(theta) -> (T, C)`` at polar
+        angles (rad); None: the stated ``budget["stray"]`` column.
     """
     from gonio.capture.budget import local_log_gradient
-    from gonio.fitting.geometric_uncertainty import CORRELATED_TERMS
+    from gonio.fitting.geometric_uncertainty import (
+        CORRELATED_TERMS,
+        STRAY_ALBEDO_NODES,
+        stray_effect,
+    )
 
     ok = np.asarray(samples.valid)
     std = np.asarray(samples.brdf_std, dtype=np.float64)
@@ -387,12 +405,15 @@ def error_model(samples: Any, f_ref: np.ndarray) -> ErrorModel:
                 cols.append(np.where(here, G[:, :, j], 0.0))
                 names.append(f"pose {int(p)}: {mnames[j]}")
         var_shared += np.asarray(budget["geometry"], dtype=np.float64)[ok] ** 2
+    shaped = _shaped_stray(samples, ok, f_ref, albedo, STRAY_ALBEDO_NODES, stray_effect)
     for term in CORRELATED_TERMS:
         if term in budget:
             v = np.nan_to_num(np.asarray(budget[term], dtype=np.float64)[ok])
+            var_shared += v**2
+            if term == "stray" and shaped is not None:
+                v = np.where(np.isfinite(shaped), shaped, v)
             cols.append(v)
             names.append(term)
-            var_shared += v**2
     for c in range(C):
         col = np.zeros((int(ok.sum()), C))
         col[:, c] = np.abs(f_ref[:, c]) * rel[c]
@@ -402,6 +423,25 @@ def error_model(samples: Any, f_ref: np.ndarray) -> ErrorModel:
     indep = np.sqrt(np.clip(np.nan_to_num(std[ok]) ** 2 - var_shared, 0.0, None))
     U = np.stack(cols, axis=-1) if cols else np.zeros((int(ok.sum()), C, 0))
     return ErrorModel(indep, U, names)
+
+
+def _shaped_stray(samples, ok, f_ref, albedo, nodes, effect) -> np.ndarray | None:
+    """The usable samples' stray column shaped by ``albedo`` (see :func:`error_model`),
+    or None when the samples or the albedo cannot say."""
+    gain = getattr(samples, "stray_gain", None)
+    attrs = getattr(samples, "attrs", None) or {}
+    if albedo is None or gain is None or "stray_fraction" not in attrs:
+        return None
+    rho = np.asarray(albedo(nodes), dtype=np.float64)
+    if rho.shape != (nodes.size, f_ref.shape[1]) or not np.all(np.isfinite(rho)):
+        return None
+    g_ref = np.broadcast_to(
+        np.asarray(attrs.get("stray_reference_gain", 1.0), dtype=np.float64), (f_ref.shape[1],)
+    )
+    return effect(
+        float(attrs["stray_fraction"]), np.asarray(gain, dtype=np.float64)[ok], g_ref,
+        np.asarray(samples.wo)[ok], rho, nodes, f_ref,
+    )  # fmt: skip
 
 
 #: draws of the modelled errors for the raw z RMS's interval
@@ -510,8 +550,12 @@ def pole_samples(samples: Any) -> np.ndarray:
     return out
 
 
-def sample_statistics(samples: Any, truth: Any) -> dict[str, Any]:
-    """z-scores of the usable samples against ``truth`` at their reported directions.
+def sample_statistics(
+    samples: Any, truth: Any, albedo: Callable[[np.ndarray], np.ndarray] | None = None
+) -> dict[str, Any]:
+    """z-scores of the usable samples against ``truth`` at their reported directions
+    (``albedo``: the fitted model's directional albedo, for the stray light's shape in
+    :func:`error_model`).
 
     Returns
     -------
@@ -540,7 +584,7 @@ def sample_statistics(samples: Any, truth: Any) -> dict[str, Any]:
     ch = tuple(samples.channels)
     with np.errstate(divide="ignore", invalid="ignore"):
         rel_err = np.abs(y - f) / np.abs(f)
-    model = error_model(samples, f)
+    model = error_model(samples, f, albedo)
     whitened, interval = _whitened_table(y - f, full, model, theta, ch)
     return {
         "n_samples": int(len(samples)),
@@ -557,13 +601,14 @@ def sample_statistics(samples: Any, truth: Any) -> dict[str, Any]:
     }
 
 
-def fit_statistics(samples: Any, material: HarnessMaterial) -> dict[str, Any]:
-    """Fit the material's model and compare the parameters and the BRDF with the truth."""
+def fit_statistics(samples: Any, material: HarnessMaterial, result: Any = None) -> dict[str, Any]:
+    """Fit the material's model (or take the fit ``result`` of it) and compare the
+    parameters and the BRDF with the truth."""
     import gonio.brdf
     from gonio.fitting import fit
 
     truth = material.truth()
-    r = fit(samples, model=material.model)
+    r = result if result is not None else fit(samples, model=material.model)
     ok = np.asarray(samples.valid)
     wi, wo = samples.wi[ok], samples.wo[ok]
     f_true = truth.eval(wi, wo)
@@ -711,6 +756,8 @@ def run_world(
     say: Callable[[str], None] = lambda s: None,
 ) -> WorldRun:
     """Calibrate the world ``seed`` once, then measure, reduce and fit every material."""
+    from gonio.fitting import fit
+
     t = time.perf_counter()
     say(f"world {seed}: calibrating the camera and the rig")
     cal = calibrate_world(root / "calibration", seed, size)
@@ -721,6 +768,8 @@ def run_world(
         say(f"world {seed}: measuring {m.name}")
         samples, warnings = measure(root / m.name.replace(":", "_"), m, cal, seed, plan)
         truth = m.truth()
+        fitted = fit(samples, model=m.model)
+        albedo = fitted.bind().albedo
         # A truth that is multi-valued at normal incidence has no value "at the reported
         # direction" for a region whose pixels surround the pole: its region mean is
         # the measurement, the truth at the centroid is whichever azimuth it is read
@@ -728,16 +777,16 @@ def run_world(
         asym = pole_asymmetry(truth)
         at_pole = pole_samples(samples) if asym > POLE_ASYMMETRY_TOL else None
         judged = samples if at_pole is None or not at_pole.any() else samples.subset(~at_pole)
-        rep = {"samples": sample_statistics(judged, truth), "warnings": warnings}
+        rep = {"samples": sample_statistics(judged, truth, albedo), "warnings": warnings}
         rep["pole"] = {"truth_asymmetry": asym, "n_set_apart": 0, "poses": []}
         if at_pole is not None and at_pole.any():
             pole = samples.subset(at_pole)
             rep["pole"].update(
                 n_set_apart=int(np.sum(np.asarray(pole.valid))),
                 poses=sorted({int(x) for x in np.asarray(pole.pose)}),
-                samples=sample_statistics(pole, truth),
+                samples=sample_statistics(pole, truth, albedo),
             )
-        rep["fit"] = fit_statistics(samples, m)
+        rep["fit"] = fit_statistics(samples, m, fitted)
         run.materials[m.name] = rep
         run.seconds[m.name] = time.perf_counter() - t
     return run

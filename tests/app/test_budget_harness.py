@@ -278,3 +278,37 @@ def test_bias_by_theta_i_shows_a_stray_like_error_rising_towards_grazing():
         for c in "RGB":
             assert row[c] == pytest.approx(float(np.median(err[m])), rel=1e-9, abs=1e-15)
     assert bias["70-80"]["R"] > 10 * bias["20-30"]["R"] > 0  # the grazing signature
+
+
+def test_the_stray_column_takes_its_shape_from_the_fitted_albedo():
+    """With the fitted model's directional albedo, the stray column is the room's light
+    as physics has it: ``s / sqrt(3) (G0 / G rho(theta_o) / pi - g_ref f)``.  Checked
+    against a Lambertian's closed form (``rho = a``, ``f = a / pi``: the column is
+    ``s / sqrt(3) a / pi (G0 / G - g_ref)``, of either sign), and the stated column
+    (``budget["stray"]``, f-shaped, one sign) without it.  The independent part is
+    the same either way: the stated term stays out of it."""
+    from gonio.app.budget_harness import error_model
+
+    rng = np.random.default_rng(21)
+    n, a = 300, np.array([0.5, 0.4, 0.3])
+    wi, wo = _directions(rng, n), _directions(rng, n)
+    f = np.broadcast_to(a / np.pi, (n, 3)).copy()
+    gain = (1.0 / np.clip(wi[:, 2], 0.2, 1.0))[:, None] * np.ones(3)  # G0 / G ~ 1 / cos
+    s_bound, g_ref = 1e-3, 1.15
+    stated = s_bound / np.sqrt(3) * gain * f
+    noise = 0.01 * f
+    samples = WithBudget(
+        wi=wi, wo=wo, brdf=f.copy(), brdf_std=np.hypot(noise, stated),
+        flags=np.zeros(n, np.uint32), stray_gain=gain,
+        attrs={"stray_fraction": s_bound, "stray_reference_gain": [g_ref] * 3},
+        budget={"noise": noise, "stray": stated},
+    )  # fmt: skip
+    plain = error_model(samples, f)
+    shaped = error_model(samples, f, lambda th: np.broadcast_to(a, (np.size(th), 3)))
+    k = plain.names.index("stray")
+    np.testing.assert_allclose(plain.shared[..., k], stated, rtol=1e-12)
+    want = s_bound / np.sqrt(3) * a / np.pi * (gain - g_ref)
+    np.testing.assert_allclose(shaped.shared[..., shaped.names.index("stray")], want, rtol=1e-9)
+    assert (want < 0).any() and (want > 0).any()  # the lift of the light scale shows
+    np.testing.assert_allclose(shaped.independent, plain.independent, rtol=1e-12)
+    np.testing.assert_allclose(shaped.independent, noise, rtol=1e-9)
