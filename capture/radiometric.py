@@ -228,6 +228,11 @@ class DriftModel:
         if len(gs) < 2:
             return self.pooled.copy(), np.full(3, self.drift_rel_std)
         gs.sort(key=lambda g: g.time)
+        # groups at one time (journal order without rig times cannot give two, but a
+        # hand-edited journal can): the first of them, so that no spacing is zero
+        gs = [g for k, g in enumerate(gs) if k == 0 or g.time > gs[k - 1].time]
+        if len(gs) < 2:
+            return self.pooled.copy(), np.full(3, self.drift_rel_std)
         tk = np.array([g.time for g in gs])
         Ik = np.stack([g.I for g in gs])  # (G, 3)
         sk = np.sqrt(np.stack([g.I_rel_var for g in gs])) * np.abs(Ik)  # (G, 3) abs std
