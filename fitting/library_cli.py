@@ -189,10 +189,6 @@ def _library_command(
         soft_wrap=True,
         markup=False,
     )
-    for name, why in report.failed.items():
-        # one line a material: a lab fitting a folder of files wants each failure's
-        # reason where it ran the command, not only in the summary table
-        console.print(f"failed: {name}: {why}", highlight=False, soft_wrap=True, markup=False)
     bad = [*report.failed, *report.not_converged]
     if bad:
         what = []
