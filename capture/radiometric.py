@@ -200,17 +200,19 @@ class DriftModel:
           of the triples of groups that contain the interval, ``k = D^2 / (D^2 + var
           D)`` (the least-squares shrinkage: close groups make ``D`` noisy, and a long
           interval turns its noise into a large error); ``u_B = h / I``, ``h = (S + (1
-          - k)|D|) dt^2 x (1 - x)``, ``S`` the spread of those second differences (the
-          curvature's change over the interval), at an end interval (one triple) at
-          least ``|D|`` and the distance to the nearest triple's curvature extrapolated
-          one step by the trend of the two nearest (:func:`_end_curvature`: a warm-up's
-          curvature changes most at the start).  Two groups: the chord and ``h = |I_b -
-          I_a| x (1 - x)``;
-        - outside the groups: midway between the nearest interval's line extended and the
-          parabola through the nearest triple, ``I = line + k q / 2``, ``h = |q| / 2``,
-          ``q = D_e (t - t_e) (t - t_n)`` (``D_e`` that triple's second difference): a
-          warm-up whose curvature fades lies between the two (the line alone erred by
-          -0.03 % on average over drawn warm-ups, midway -0.005 %); two groups: the
+          - k) sqrt(D^2 + var D)) dt^2 x (1 - x)``, ``S`` the spread of those second
+          differences (the curvature's change over the interval), at an end interval
+          (one triple) at least ``|D|`` and the distance to the nearest triple's
+          curvature extrapolated one step by the trend of the two nearest
+          (:func:`_end_curvature`: a warm-up's curvature changes most at the start).
+          Two groups: the chord and ``h = |I_b - I_a| x (1 - x)``;
+        - after the last group: midway between the nearest interval's line extended and
+          the parabola through the nearest triple, ``I = line + k q / 2``, ``h = |q| (1
+          - k / 2)``, ``q = D_e (t - t_e) (t - t_n)`` (``D_e`` that triple's second
+          difference, its size ``sqrt(D_e^2 + var D_e)`` in ``h``): a warm-up whose
+          curvature fades lies between the two (the line alone erred by -0.03 % on
+          average over drawn warm-ups, midway -0.005 %); before the first group, where
+          the curvature grows going back, the parabola, ``h = |q|``; two groups: the
           line, ``h = |I_n - I_e| |x|``;
         - type A: the estimate is linear in the groups' values, ``I = sum_g w_g I_g``;
           ``u_A = sqrt(sum_g w_g^2 s_g^2) / I``, ``s`` the groups' statistical std.
@@ -231,6 +233,13 @@ class DriftModel:
         # groups at one time (journal order without rig times cannot give two, but a
         # hand-edited journal can): the first of them, so that no spacing is zero
         gs = [g for k, g in enumerate(gs) if k == 0 or g.time > gs[k - 1].time]
+        # a group without a finite value or variance tells nothing (and every group's
+        # weight, even 0, would carry its NaN into the sums below)
+        gs = [
+            g
+            for g in gs
+            if np.all(np.isfinite(g.I)) and np.all(np.isfinite(g.I_rel_var) & (g.I_rel_var >= 0))
+        ]
         if len(gs) < 2:
             return self.pooled.copy(), np.full(3, self.drift_rel_std)
         tk = np.array([g.time for g in gs])
@@ -245,13 +254,19 @@ class DriftModel:
             x = (t - tk[e]) / (tk[nb] - tk[e])
             w[e], w[nb] = 1 - x, x
             if n >= 3:
-                # a warm-up whose curvature fades lies between the line and the parabola
-                # through the nearest triple: midway, with half their distance as u_B
                 dw = _second_difference_weights(tk, 0 if e == 0 else n - 3)
-                D, keep = _curvature(dw, Ik, sk)
+                D, keep, size = _curvature(dw, Ik, sk)
                 span = (t - tk[e]) * (t - tk[nb])
-                w += keep * dw[:, None] * span / 2
-                h = np.abs(D) * abs(span) / 2
+                if e == n - 1:
+                    # after the last group a warm-up's curvature fades: it lies between
+                    # the line and the parabola through the nearest triple; midway
+                    w += keep * dw[:, None] * span / 2
+                    h = size * abs(span) * (1 - keep / 2)
+                else:
+                    # before the first group it grows going back: the parabola, and
+                    # the truth beyond it by up to its size again
+                    w += keep * dw[:, None] * span
+                    h = size * abs(span)
             else:
                 h = np.abs(Ik[nb] - Ik[e]) * abs(x)
         else:
@@ -266,7 +281,7 @@ class DriftModel:
                 ks = [k for k in (a - 1, a) if 0 <= k <= n - 3]
                 d = np.stack([_second_difference(tk, Ik, k) for k in ks])
                 dw = np.mean([_second_difference_weights(tk, k) for k in ks], axis=0)
-                D, keep = _curvature(dw, Ik, sk)
+                D, keep, size = _curvature(dw, Ik, sk)
                 spread = d.max(axis=0) - d.min(axis=0)
                 if a == 0 or b == n - 1:
                     # one triple: its curvature's change unknown, so at least its size,
@@ -275,8 +290,9 @@ class DriftModel:
                     if n >= 4:
                         spread = np.maximum(spread, np.abs(_end_curvature(tk, Ik, a == 0) - D))
                 w -= keep * dw[:, None] * dt**2 * x * (1 - x)
-                # the part of the curvature not applied (not significant) stays a bias
-                h = (spread + (1 - keep) * np.abs(D)) * dt**2 * x * (1 - x)
+                # the part of the curvature not applied (not significant) stays a bias,
+                # of the size the noisy D allows (D near 0 by noise is no small bias)
+                h = (spread + (1 - keep) * size) * dt**2 * x * (1 - x)
         I = np.einsum("gc,gc->c", w, Ik)
         u_a = np.sqrt(np.einsum("gc,gc->c", w**2, sk**2))
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -295,15 +311,16 @@ def _second_difference_weights(t: NDArray, k: int) -> NDArray[np.float64]:
 
 def _curvature(
     dw: NDArray, I: NDArray, s: NDArray
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The second difference ``dw @ I`` (3,) and the share of it worth applying,
-    ``D^2 / (D^2 + var D)`` (the least-squares shrinkage: groups close in time make
-    ``D`` noisy, and a long interval turns its noise into a large error)."""
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The second difference ``D = dw @ I`` (3,), the share of it worth applying, ``k =
+    D^2 / (D^2 + var D)`` (the least-squares shrinkage: groups close in time make ``D``
+    noisy, and a long interval turns its noise into a large error), and the size the
+    curvature may have, ``sqrt(D^2 + var D)``."""
     D = dw @ I
     var = (dw**2) @ (s**2)
     with np.errstate(invalid="ignore", divide="ignore"):
         keep = np.where(D * D + var > 0, D * D / (D * D + var), 0.0)
-    return D, keep
+    return D, keep, np.sqrt(D * D + var)
 
 
 #: The largest factor by which an end interval's curvature is extrapolated from the

@@ -432,7 +432,10 @@ def _shaped_stray(samples, ok, f_ref, albedo, nodes, effect) -> np.ndarray | Non
     attrs = getattr(samples, "attrs", None) or {}
     if albedo is None or gain is None or "stray_fraction" not in attrs:
         return None
-    rho = np.asarray(albedo(nodes), dtype=np.float64)
+    try:
+        rho = np.asarray(albedo(nodes), dtype=np.float64)
+    except (ImportError, NotImplementedError, AttributeError):  # as the fit: no albedo
+        return None
     if rho.shape != (nodes.size, f_ref.shape[1]) or not np.all(np.isfinite(rho)):
         return None
     g_ref = np.broadcast_to(

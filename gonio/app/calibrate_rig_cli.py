@@ -232,14 +232,17 @@ MIRROR_EDGE_GUARD_M = 0.0005
 
 def _on_mirror(pixels: np.ndarray, K, dist, R, centre) -> np.ndarray | None:
     """Where the pixels' rays (n, 2) meet the mirror plane z = 0, (n, 2) m; None when a
-    ray runs parallel to it."""
+    ray runs parallel to it or meets it behind the camera."""
     import cv2
 
     xy = cv2.undistortPoints(np.asarray(pixels, float).reshape(-1, 1, 2), K, dist)[:, 0]
     rays = np.column_stack([xy, np.ones(len(xy))]) @ R  # R.T @ ray, row-wise
     if np.any(np.abs(rays[:, 2]) <= 1e-12):
         return None
-    return (centre[None, :] - (centre[2] / rays[:, 2])[:, None] * rays)[:, :2]
+    s = -centre[2] / rays[:, 2]
+    if np.any(s <= 0):
+        return None
+    return (centre[None, :] + s[:, None] * rays)[:, :2]
 
 
 def mirror_footprints(boards, spots, camera) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:

@@ -208,7 +208,8 @@ def test_drift_z_scores_over_drawn_warm_ups_with_noisy_groups():
     """Warm-ups drawn over the realistic world's ranges (amplitude 0.5-3 %, time
     constant 300-1500 s, aging +-0.5 %/h), five reference groups at uneven times, each
     with 0.015 % noise, sample times up to 200 s past the last group: the error over
-    the stated term has an RMS near 1 and a tail of normal size."""
+    the stated term has an RMS near 1 (0.75 here: the type B terms are bounds, stated
+    whole) and a tail of normal size."""
     rng = np.random.default_rng(5)
     z = []
     for _ in range(150):
@@ -225,6 +226,39 @@ def test_drift_z_scores_over_drawn_warm_ups_with_noisy_groups():
     z = np.array(z)
     assert 0.7 < np.sqrt(np.mean(z**2)) < 1.15
     assert np.mean(np.abs(z) > 3) < 0.01
+
+
+def test_drift_close_groups_a_bad_group_and_poses_before_the_first():
+    """Two groups 10 s apart make the curvature noisy: its unapplied part stays in the
+    stated term (z RMS <= 1 over noisy draws, no tail).  Poses before the first group
+    (a plan with the reference at the end, a resumed segment) are covered too, where
+    a warm-up's curvature grows going back.  A group without a finite value is left
+    out instead of turning the whole segment NaN."""
+    rng = np.random.default_rng(3)
+    truth = _warm_up(np.full(3, -0.02), 380.0, 0.0)
+    z = []
+    for _ in range(500):
+        times = [0.0, 300.0, 310.0, 600.0, 900.0]
+        vals = [truth(t) * (1 + 1e-4 * rng.standard_normal(3)) for t in times]
+        I, u = DriftModel(_groups(times, vals, rel_var=1e-8), np.ones(3), 0.01).at(0, 150.0)
+        z.append((I / truth(150.0) - 1) / u)
+    z = np.array(z)
+    assert np.sqrt(np.mean(z**2)) <= 1.0 and np.mean(np.abs(z) > 3) < 0.01
+    early = _warm_up(np.full(3, 0.03), 300.0, 0.0)
+    z = []
+    for _ in range(200):
+        times = [0.0, 300.0, 600.0, 900.0, 1200.0]
+        vals = [early(t) * (1 + 1.5e-4 * rng.standard_normal(3)) for t in times]
+        model = DriftModel(_groups(times, vals, rel_var=1.5e-4**2), np.ones(3), 0.01)
+        for t in (-150.0, -100.0, -50.0):
+            I, u = model.at(0, t)
+            z.append((I / early(t) - 1) / u)
+    assert np.mean(np.abs(np.array(z)) > 3) < 0.01
+    groups = _groups([0.0, 300.0, 600.0, 900.0], [[1.0] * 3, [1.01] * 3, [1.02] * 3, [1.03] * 3])
+    groups[3].I = np.array([np.nan, 1.03, 1.03])
+    I, u = DriftModel(groups, np.ones(3), 0.01).at(0, 150.0)
+    assert np.all(np.isfinite(I)) and np.all(np.isfinite(u))
+    np.testing.assert_allclose(I, 1.005, rtol=1e-9)
 
 
 def test_two_groups_bound_the_chord_by_the_change():
