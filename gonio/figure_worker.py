@@ -242,8 +242,14 @@ def _serve(rfd: int, wfd: int, warm: Callable[[], None] | None) -> None:
                         sel.unregister(rfd)
                         reading = False
                         continue
-                    fd, pid = _fork_drawer(job, (rfd, wfd))
-                    drawers[fd] = (pid, job[0])
+                    # SIGTERM held from the fork until the drawer is registered: a
+                    # cancel in between would end the worker and orphan the drawer
+                    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+                    try:
+                        fd, pid = _fork_drawer(job, (rfd, wfd))
+                        drawers[fd] = (pid, job[0])
+                    finally:
+                        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
                     sel.register(fd, selectors.EVENT_READ)
                 else:
                     pid, key = drawers.pop(sk.fd)
@@ -268,6 +274,7 @@ def _fork_drawer(job: tuple, inherited: tuple[int, int]) -> tuple[int, int]:
         code = 0
         try:
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})  # held by the worker
             os.close(rfd)
             for fd in inherited:  # the command sees its pipes end when the worker does
                 os.close(fd)

@@ -115,6 +115,35 @@ def test_cancel_ends_the_worker_and_its_drawers():
     assert not drawers[0].is_running() or drawers[0].status() == psutil.STATUS_ZOMBIE
 
 
+def test_a_cancel_right_after_a_drawer_is_forked_still_ends_it(monkeypatch):
+    """The window between the drawer's fork and its registration in the worker, widened
+    to 0.5 s: a cancel that falls in it must still end the drawer (it once orphaned it,
+    seen as a flaky failure of the test above under load)."""
+    import psutil
+
+    import gonio.figure_worker as fw
+
+    fork = fw._fork_drawer
+
+    def slow_fork(job, inherited):
+        out = fork(job, inherited)
+        time.sleep(0.5)  # in the worker, after the fork, before the registration
+        return out
+
+    monkeypatch.setattr(fw, "_fork_drawer", slow_fork)  # the worker forks with it
+    w = FigureWorker()
+    pid = w.pid
+    w.submit(sleep_then, 1, 30.0)
+    deadline = time.monotonic() + 10
+    while not (drawers := psutil.Process(pid).children()) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(drawers) == 1
+    w.close(cancel=True)  # within the 0.5 s
+    assert _gone(pid)
+    gone, alive = psutil.wait_procs(drawers, timeout=5)
+    assert not alive or alive[0].status() == psutil.STATUS_ZOMBIE
+
+
 def test_the_worker_ignores_ctrl_c():
     with FigureWorker() as w:
         job = w.submit(sleep_then, "kept", 0.3)
