@@ -348,7 +348,8 @@ def error_model(
     room's diffuse light reflects as ``rho(theta_o) / pi``, which no single sample
     knows (the reduction states ``budget["stray"]`` with ``f`` in its place), and lifts
     the light scale; the fit completes the shape with its model's directional albedo,
-    and so does the harness, with the fitted model's (never the truth's).  The
+    and so does the harness, with the fitted model's (never the truth's; the light
+    scale's part, ``g_ref f``, takes ``f_ref`` as the calibration column does).  The
     independent part still leaves out the stated term, so the diagonal is then the
     stated ``sigma^2`` with the stray term's size replaced by its shaped one.
 
