@@ -114,6 +114,60 @@ class View(NamedTuple):
     grid_y: int = -1  # regions along y; -1: grid (square)
 
 
+@njit(**_JIT, inline="always")
+def _neighbour(diag: bool, k: int) -> tuple[int, int]:
+    """The k-th (0..3) nearest site of a site's own channel, as ``(dy, dx)``; pairs
+    (0, 1) and (2, 3) lie symmetrically about it (:func:`gonio.capture.bayer.
+    masked_site_shares`)."""
+    if diag:
+        return ((1, 1), (-1, -1), (1, -1), (-1, 1))[k]
+    return ((0, 2), (0, -2), (2, 0), (-2, 0))[k]
+
+
+@njit(**_JIT)
+def _members(qi: int, qj: int, diag: bool, mask) -> int:
+    """How many of a masked site's neighbours share its weights: both of a symmetric
+    pair, when both are in the crop and not masked."""
+    h, w = mask.shape
+    n = 0
+    for k in (0, 2):
+        dy, dx = _neighbour(diag, k)
+        ok = True
+        for s in (1, -1):
+            yy, xx = qi + s * dy, qj + s * dx
+            if yy < 0 or yy > h - 1 or xx < 0 or xx > w - 1 or mask[yy, xx]:
+                ok = False
+        if ok:
+            n += 2
+    return n
+
+
+@njit(**_JIT)
+def _stencil_add(i, j, share, label, st_n, st_dy, st_dx, st_w, regs, wts, nr) -> int:
+    """Add site (i, j)'s stencil weights, times ``share``, to the site's regions
+    (``regs[:nr]``, ``wts[:nr]``); the new ``nr``."""
+    h, w = label.shape
+    ps = 2 * (i % 2) + (j % 2)
+    for t in range(st_n[ps]):
+        yy = i + st_dy[ps, t]
+        xx = j + st_dx[ps, t]
+        # pixels on the crop's border do not count (their neighbours are unknown)
+        if yy < 1 or yy > h - 2 or xx < 1 or xx > w - 2:
+            continue
+        lab = label[yy, xx]
+        if lab < 0:
+            continue
+        for u in range(nr):
+            if regs[u] == lab:
+                wts[u] += share * st_w[ps, t]
+                break
+        else:
+            regs[nr] = lab
+            wts[nr] = share * st_w[ps, t]
+            nr += 1
+    return nr
+
+
 @njit(**_JIT)
 def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     """Region labels of the crop, per-(region, channel) sums and per-region directions.
@@ -249,8 +303,9 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
         moments[r, MOM_XY] += dx * dy
         moments[r, MOM_YY] += dy * dy
     # pass 2: every CFA site used by a region (bayer_region_entries), merged and summed
-    regs = np.empty(9, np.int64)
-    wts = np.empty(9)
+    # a site's own stencil touches <= 9 pixels, and up to 4 masked neighbours give theirs
+    regs = np.empty(45, np.int64)
+    wts = np.empty(45)
     inv_e = 1.0 / expo
     expo2 = expo * expo  # 1 / var(S / e) = e^2 / var(S)
     N0, N1, N2 = light_normal[0], light_normal[1], light_normal[2]
@@ -376,29 +431,27 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
             row_g[j] = num / den
             row_ig[j] = den / num
         for j in range(w):
-            # a hot or dead pixel's site weighs nothing in any region (not "saturated")
+            # a hot or dead pixel's site weighs nothing in any region (not "saturated");
+            # its weights go to its channel's neighbours (bayer.masked_site_shares)
             if has_mask and mask[i, j]:
                 continue
             b = j % 2
-            ps = 2 * a + b
-            nr = 0
-            for t in range(st_n[ps]):
-                yy = i + st_dy[ps, t]
-                xx = j + st_dx[ps, t]
-                # pixels on the crop's border do not count (their neighbours are unknown)
-                if yy < 1 or yy > h - 2 or xx < 1 or xx > w - 2:
-                    continue
-                lab = label[yy, xx]
-                if lab < 0:
-                    continue
-                for u in range(nr):
-                    if regs[u] == lab:
-                        wts[u] += st_w[ps, t]
-                        break
-                else:
-                    regs[nr] = lab
-                    wts[nr] = st_w[ps, t]
-                    nr += 1
+            nr = _stencil_add(i, j, 1.0, label, st_n, st_dy, st_dx, st_w, regs, wts, 0)
+            if has_mask:
+                diag = cell_channel[a, b] == cell_channel[1 - a, 1 - b]
+                for k in range(4):
+                    dy, dx = _neighbour(diag, k)
+                    qi, qj = i + dy, j + dx
+                    if qi < 0 or qi > h - 1 or qj < 0 or qj > w - 1 or not mask[qi, qj]:
+                        continue
+                    # this site's pair, seen from q: q - (dy, dx) (this one), q + (dy, dx)
+                    pi, pj = qi + dy, qj + dx
+                    if pi < 0 or pi > h - 1 or pj < 0 or pj > w - 1 or mask[pi, pj]:
+                        continue
+                    n_q = _members(qi, qj, diag, mask)
+                    nr = _stencil_add(
+                        qi, qj, 1.0 / n_q, label, st_n, st_dy, st_dx, st_w, regs, wts, nr
+                    )
             if nr == 0:
                 continue
             val = row_val[j]

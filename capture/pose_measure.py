@@ -19,7 +19,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from gonio.capture.bayer import bayer_region_entries, site_stencils
+from gonio.capture.bayer import bayer_region_entries, masked_site_shares, site_stencils
 from gonio.capture.calibration import irradiance_geometry
 from gonio.capture.fiducials import (
     CameraPose,
@@ -523,9 +523,8 @@ def _pose_sums_numpy(
     # the directions below are that centroid's, so R and B (whose sites sit half a pixel
     # off it) would otherwise be measured at other directions than reported.
     site, row, wt = bayer_region_entries(regions.label, merged.channel, n)
-    if mask is not None:  # hot/dead pixels: their sites leave every sum (weight 0)
-        keep = ~mask[regions.box].reshape(-1)[site]
-        site, row, wt = site[keep], row[keep], wt[keep]
+    if mask is not None:  # hot/dead pixels: their weights go to their channel's neighbours
+        site, row, wt = masked_site_shares(site, row, wt, mask[regions.box], merged.channel)
 
     def on(a: NDArray) -> NDArray:
         return a.reshape(-1)[site]

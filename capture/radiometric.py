@@ -510,9 +510,10 @@ def _region_site_weights(
 ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
     """``(site, row, weight)`` of :func:`gonio.capture.bayer.bayer_region_entries` for the
     crop ``box`` of the frame (its CFA phase from the frame's 2x2 ``cell_channel``), the
-    sites under ``mask`` left out as the measurement leaves them; ``site`` indexes the
-    flattened crop."""
-    from gonio.capture.bayer import bayer_region_entries
+    sites under ``mask`` handed to their channel's neighbours as the measurement hands
+    them (:func:`gonio.capture.bayer.masked_site_shares`); ``site`` indexes the flattened
+    crop."""
+    from gonio.capture.bayer import bayer_region_entries, masked_site_shares
 
     lab = np.asarray(label)
     h, w = lab.shape
@@ -522,8 +523,7 @@ def _region_site_weights(
     channel = cc[((np.arange(h) + r0) % 2)[:, None], ((np.arange(w) + c0) % 2)[None, :]]
     site, row, wt = bayer_region_entries(lab, channel, n_regions)
     if mask is not None:
-        keep = ~np.asarray(mask, bool)[box].reshape(-1)[site]
-        site, row, wt = site[keep], row[keep], wt[keep]
+        site, row, wt = masked_site_shares(site, row, wt, np.asarray(mask, bool)[box], channel)
     return site, row, wt
 
 
@@ -538,7 +538,8 @@ def effective_sites(
 
     A region's value is the weighted mean of its sites with the Bayer weights ``W_q``
     (:func:`gonio.capture.bayer.bayer_region_entries`, the adjoint of bilinear
-    interpolation, sites under ``mask`` left out, as the measurement does), so an error
+    interpolation, sites under ``mask`` handed to their neighbours, as the measurement
+    does), so an error
     of std ``u`` independent from site to site (the master flat's noise, the DSNU)
     averages to ``u sqrt(sum W_q^2) / sum W_q``: the region counts as
     ``N_eff = (sum W_q)^2 / sum W_q^2`` sites.  That is not the ``N_c`` of
