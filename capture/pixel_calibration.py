@@ -12,7 +12,7 @@ hot/dead pixel mask.
   spread by more than
   :data:`OUTLIER_SIGMA` (a hot pixel's dark current varies from frame to frame more than
   a master dark can remove; a dead or stuck one has no useful gain).  The reduction
-  gives them weight 0.
+  reads them nowhere (their weights go to their neighbours: bayer.masked_site_shares).
 """
 
 from __future__ import annotations

@@ -74,7 +74,7 @@ class Bracket(NamedTuple):
     noise_quant: float  # quantisation variance added (0 or 1/12), DN^2
     dark_var: NDArray[np.float64]  # (h, w) variance of the subtracted master dark, or (0, 0)
     dark_var0: float  # its value when constant, DN^2
-    mask: NDArray[np.bool_]  # (h, w) hot/dead pixels (weight 0 in every sum), or (0, 0)
+    mask: NDArray[np.bool_]  # (h, w) hot/dead pixels (unread; weights to neighbours), or (0, 0)
 
 
 class Stencils(NamedTuple):
