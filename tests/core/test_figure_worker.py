@@ -97,16 +97,24 @@ def test_disabled_or_unpicklable_jobs_run_here(monkeypatch):
     assert not FigureWorker().active
 
 
-def test_cancel_ends_the_worker_and_its_drawers():
+def _worker_drawing_a_long_job():
+    """A worker with one 30 s job, once its drawer process is there: (worker, drawers)."""
     import psutil
 
     w = FigureWorker()
-    pid = w.pid
     w.submit(sleep_then, 1, 30.0)
     deadline = time.monotonic() + 10
-    while not (drawers := psutil.Process(pid).children()) and time.monotonic() < deadline:
+    while not (drawers := psutil.Process(w.pid).children()) and time.monotonic() < deadline:
         time.sleep(0.01)
     assert len(drawers) == 1
+    return w, drawers
+
+
+def test_cancel_ends_the_worker_and_its_drawers():
+    import psutil
+
+    w, drawers = _worker_drawing_a_long_job()
+    pid = w.pid
     t0 = time.monotonic()
     w.close(cancel=True)
     assert time.monotonic() - t0 < 10  # not the 30 s job
@@ -131,13 +139,8 @@ def test_a_cancel_right_after_a_drawer_is_forked_still_ends_it(monkeypatch):
         return out
 
     monkeypatch.setattr(fw, "_fork_drawer", slow_fork)  # the worker forks with it
-    w = FigureWorker()
+    w, drawers = _worker_drawing_a_long_job()
     pid = w.pid
-    w.submit(sleep_then, 1, 30.0)
-    deadline = time.monotonic() + 10
-    while not (drawers := psutil.Process(pid).children()) and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert len(drawers) == 1
     w.close(cancel=True)  # within the 0.5 s
     assert _gone(pid)
     gone, alive = psutil.wait_procs(drawers, timeout=5)
