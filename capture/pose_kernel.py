@@ -142,7 +142,7 @@ def _members(qi: int, qj: int, diag: bool, mask) -> int:
     return n
 
 
-@njit(**_JIT)
+@njit(**_JIT, inline="always")
 def _stencil_add(i, j, share, label, st_n, st_dy, st_dx, st_w, regs, wts, nr) -> int:
     """Add site (i, j)'s stencil weights, times ``share``, to the site's regions
     (``regs[:nr]``, ``wts[:nr]``); the new ``nr``."""
