@@ -257,7 +257,7 @@ def masked_site_shares(
     q, r, wq = site[hit], row[hit], weight[hit]
     qy, qx = np.divmod(q, w)
     diag = cell[qy % 2, qx % 2] == cell[(qy + 1) % 2, (qx + 1) % 2]
-    members = []  # (k, flat index, ok) for the 4 neighbours
+    members = []  # (flat index, whole pair available) of the 4 neighbours
     n_ok = np.zeros(q.size)
     for p in range(2):
         both = np.ones(q.size, bool)
