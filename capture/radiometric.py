@@ -344,10 +344,9 @@ def _end_curvature(t: NDArray, I: NDArray, first: bool) -> NDArray[np.float64]:
 
 def _second_difference(t: NDArray, I: NDArray, k: int) -> NDArray[np.float64]:
     """``I[t_k, t_k+1, t_k+2]``, the signed second divided difference (half the
-    curvature of the parabola through the three groups)."""
-    d1 = (I[k + 1] - I[k]) / (t[k + 1] - t[k])
-    d2 = (I[k + 2] - I[k + 1]) / (t[k + 2] - t[k + 1])
-    return (d2 - d1) / (t[k + 2] - t[k])
+    curvature of the parabola through the three groups), through the weights the
+    estimate's type A uses (one formula for both)."""
+    return _second_difference_weights(t, k) @ I
 
 
 def drift_model(

@@ -364,11 +364,7 @@ def error_model(
         angles (rad); None: the stated ``budget["stray"]`` column.
     """
     from gonio.capture.budget import local_log_gradient
-    from gonio.fitting.geometric_uncertainty import (
-        CORRELATED_TERMS,
-        STRAY_ALBEDO_NODES,
-        stray_effect,
-    )
+    from gonio.fitting.geometric_uncertainty import CORRELATED_TERMS
 
     ok = np.asarray(samples.valid)
     std = np.asarray(samples.brdf_std, dtype=np.float64)
@@ -406,7 +402,7 @@ def error_model(
                 cols.append(np.where(here, G[:, :, j], 0.0))
                 names.append(f"pose {int(p)}: {mnames[j]}")
         var_shared += np.asarray(budget["geometry"], dtype=np.float64)[ok] ** 2
-    shaped = _shaped_stray(samples, ok, f_ref, albedo, STRAY_ALBEDO_NODES, stray_effect)
+    shaped = _shaped_stray(samples, ok, f_ref, albedo)
     for term in CORRELATED_TERMS:
         if term in budget:
             v = np.nan_to_num(np.asarray(budget[term], dtype=np.float64)[ok])
@@ -426,9 +422,12 @@ def error_model(
     return ErrorModel(indep, U, names)
 
 
-def _shaped_stray(samples, ok, f_ref, albedo, nodes, effect) -> np.ndarray | None:
+def _shaped_stray(samples, ok, f_ref, albedo) -> np.ndarray | None:
     """The usable samples' stray column shaped by ``albedo`` (see :func:`error_model`),
     or None when the samples or the albedo cannot say."""
+    from gonio.fitting.geometric_uncertainty import STRAY_ALBEDO_NODES as nodes
+    from gonio.fitting.geometric_uncertainty import stray_effect
+
     gain = getattr(samples, "stray_gain", None)
     attrs = getattr(samples, "attrs", None) or {}
     if albedo is None or gain is None or "stray_fraction" not in attrs:
@@ -442,7 +441,7 @@ def _shaped_stray(samples, ok, f_ref, albedo, nodes, effect) -> np.ndarray | Non
     g_ref = np.broadcast_to(
         np.asarray(attrs.get("stray_reference_gain", 1.0), dtype=np.float64), (f_ref.shape[1],)
     )
-    return effect(
+    return stray_effect(
         float(attrs["stray_fraction"]), np.asarray(gain, dtype=np.float64)[ok], g_ref,
         np.asarray(samples.wo)[ok], rho, nodes, f_ref,
     )  # fmt: skip
