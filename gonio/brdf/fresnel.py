@@ -77,9 +77,12 @@ def fresnel_complex(
     s = s.real + 1j * np.abs(s.imag)
     rs = (c - s) / (c + s)
     u = n2 * c
-    rp = (u - s) / (u + s)
-    # n = 0 (eta = k = 0, allowed by the bounds): rp -> -1, its limit, instead of 0/0.
-    rp = np.where(n2 == 0.0, -1.0, rp)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # replaced below
+        rp = (u - s) / (u + s)
+    # n = 0 (eta = k = 0, allowed by the bounds): rp -> -1, its limit, instead of 0/0;
+    # so too for n^2 below the smallest normal (eta = 0, k ~ 1e-156): u underflows to a
+    # subnormal, s rounds to 0, and the complex division u / u gives NaN.
+    rp = np.where(np.abs(n2) < np.finfo(np.float64).tiny, -1.0, rp)
     F = 0.5 * (np.abs(rs) ** 2 + np.abs(rp) ** 2)
     if not grad:
         return F, None, None

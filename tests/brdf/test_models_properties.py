@@ -315,3 +315,20 @@ def test_sum_is_the_sum_of_its_lobes():
         + get_model("ggx").albedo(0.4, {"ks": 0.4, "alpha": 0.5})
     )
     assert m.albedo(0.4, p) == pytest.approx(a_ref, rel=1e-14)
+
+
+def test_conductor_fresnel_is_continuous_down_to_a_vanishing_index():
+    """eta = 0 with k so small that n^2 is subnormal (hypothesis found k = 6.1e-156 at
+    normal incidence): the reflectance is the n = 0 limit, 1, not NaN from 0/0, and the
+    BRDF is continuous in k down to 0."""
+    from gonio.brdf.fresnel import fresnel_complex
+
+    for k in (6.149631732925564e-156, 1e-160, 1e-150, 0.0):
+        F, _, _ = fresnel_complex(np.array([1.0, 0.5, 0.0]), np.array(0.0), np.array(k))
+        np.testing.assert_allclose(F, 1.0, rtol=1e-12)
+    m = get_model("beckmann", fresnel="conductor")
+    n = np.array([0.0, 0.0, 1.0])
+    p = {"ks": 0.5, "alpha": 1.0, "eta": 0.0}
+    vals = [float(m.eval(n, n, p | {"k": k})) for k in (0.0, 6.149631732925564e-156, 1e-3)]
+    assert all(np.isfinite(vals))
+    np.testing.assert_allclose(vals, vals[0], rtol=1e-9)
