@@ -99,6 +99,47 @@ def _retention_lines(ret: dict | None) -> list[str]:
     return [*lines, ""]
 
 
+def _budget_lines(summary: dict | None) -> list[str]:
+    """``reduction.json``'s radiometric calibration and uncertainty budget as Markdown: what
+    the session shot to calibrate the light and the sensor, how far the light drifted
+    between its reference groups, and the budget's terms, largest first."""
+    if not summary or not summary.get("budget"):
+        return []
+    lines = ["## Radiometric calibration and uncertainty budget", ""]
+    rad = summary.get("radiometric") or {}
+    groups = rad.get("reference_groups") or []
+    shot = [
+        f"{rad.get('dark_frames', 0)} dark frames",
+        f"{rad.get('flat_frames', 0)} flat frames",
+        f"{len(groups)} reference group{'s' if len(groups) != 1 else ''}",
+    ]
+    lines.append(f"The session shot {', '.join(shot)}.")
+    if len(groups) > 1:
+        # the light's output between the first and the last group, as the reduction saw it
+        first = np.asarray(groups[0]["light_radiance_camera_units"], float)
+        last = np.asarray(groups[-1]["light_radiance_camera_units"], float)
+        change = ", ".join(f"{c} {v:+.2%}" for c, v in zip("RGB", last / first - 1, strict=True))
+        span = (groups[-1]["time"] - groups[0]["time"]) / 60.0
+        lines.append(
+            f"The light's output changed by {change} over {span:.1f} min of rig time "
+            "between the first and the last reference group; the reduction follows it "
+            "from group to group."
+        )
+    for w in [*(summary.get("warnings") or []), *(summary["budget"].get("warnings") or [])]:
+        lines += ["", f"Warning: {w}"]
+    lines += [
+        "",
+        "| term | scope | median std / f | share of variance |",
+        "|---|---|---|---|",
+    ]
+    for r in summary["budget"].get("terms", []):
+        if not r.get("share"):
+            continue
+        med = "-" if r.get("median_rel_std") is None else f"{r['median_rel_std']:.3%}"
+        lines.append(f"| {r['term']} | {r.get('scope', '')} | {med} | {r['share']:.1%} |")
+    return [*lines, ""]
+
+
 def write_report(
     out: Path,
     session: Path,
@@ -168,6 +209,7 @@ def write_report(
     if calibration is not None:
         lines += _calibration_lines(calibration, out)
     lines += _retention_lines(red.summary.get("retention") if red.summary else None)
+    lines += _budget_lines(red.summary)
     lines += ["## Rejected samples", ""]
     if red.rejected:
         lines += ["| reason | count |", "|---|---|"]

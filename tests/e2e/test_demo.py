@@ -116,6 +116,16 @@ def test_realistic_demo_shoots_the_labs_radiometric_calibration(tmp_path):
     # reference groups spread over the session, not only at its start
     refs = [i for i, k in enumerate(kinds) if k == "reference"]
     assert refs and refs[-1] > len(kinds) // 2, (refs, len(kinds))
+    # the report says what was shot and lists the budget's terms, as reduction.json has them
+    summary = json.loads((out / "session" / "reduction.json").read_text())
+    text = (out / "report.md").read_text()
+    groups = len(summary["radiometric"]["reference_groups"])
+    assert groups >= 3 and f"{groups} reference groups" in text, groups
+    assert "## Radiometric calibration and uncertainty budget" in text
+    for row in summary["budget"]["terms"]:
+        if row["share"]:
+            assert f"| {row['term']} | {row['scope']} |" in text, row
+    assert "Warning:" not in text  # nothing missing: no warning about flats, darks, drift
 
 
 @pytest.mark.slow
