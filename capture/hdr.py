@@ -13,6 +13,17 @@ likelihood estimate under pure shot noise).  The merge is then
 over frames where the pixel is not saturated.  colour_hdri's ``image_stack_to_HDRI``
 does the same weighted sum with a fixed weighting function of the normalised data and no
 variance; the tests compare both.
+
+A frame is also left out where its *expected* value comes within
+:data:`CLIP_GUARD_SIGMAS` standard deviations of its clip level
+(:meth:`~gonio.capture.raw.RawFrame.clip_region`): a frame judged saturated by its own
+reading keeps only the draws that read low, so a pixel whose mean sits near the clip
+merged low (on a realistic world a whole pose's G channel 0.13 % low, where the long
+frame's sample sat at the clip).  The expectation is the merged value of the pixel's
+same-channel neighbours in its row, so whether a frame is kept depends on none of the
+pixel's own readings (a prediction from its other frames would select their noise
+instead: the long frame dropped where the short one read high leaves a high value).
+Frames are judged from the longest down, and the last one is always kept.
 """
 
 from __future__ import annotations
@@ -26,6 +37,11 @@ from numpy.typing import NDArray
 from gonio.capture.noise import NoiseModel
 from gonio.capture.raw import RawFrame
 from gonio.errors import ReductionError
+
+#: A frame is left out of a pixel's merge where its value predicted from the other
+#: frames lies within this many standard deviations (its own noise and the prediction's)
+#: of its clip level: P(a kept frame clips) < 3e-5, so censoring no longer biases the merge.
+CLIP_GUARD_SIGMAS = 4.0
 
 
 @dataclass(frozen=True)
@@ -82,6 +98,7 @@ def merge_bracket(
     noise: NoiseModel,
     dark_variance: float | NDArray[np.float64] = 0.0,
     region: tuple[slice, slice] | None = None,
+    mask: NDArray[np.bool_] | None = None,
 ) -> MergedFrame:
     """Inverse-variance merge of one pose's bracket.
 
@@ -98,6 +115,9 @@ def merge_bracket(
     region
         Optional ``(row_slice, col_slice)`` to merge only a crop (the sample's ROI box),
         which saves time on large sensors.
+    mask
+        Optional (H, W) hot/dead pixels of the full frame: merged like the others, but
+        never a neighbour's prediction in the clip guard (module docstring).
 
     Returns
     -------
@@ -129,6 +149,10 @@ def merge_bracket(
         n_ok += ok_k
     dv = np.asarray(dark_variance, dtype=np.float64)
     dv = dv[sl] if dv.ndim == 2 else dv
+    clips = [f.clip_region(sl) for f in frames]
+    if len(frames) > 1 and all(c is not None for c in clips):
+        usable = np.ones(shape, bool) if mask is None else ~np.asarray(mask, bool)[sl]
+        _guard_clips(crops, e, frames, clips, oks, sum_s, sum_e, n_ok, noise, dv, usable)
     wsum = np.zeros(shape)
     vsum = np.zeros(shape)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -144,3 +168,62 @@ def merge_bracket(
     value[allsat] = np.nan
     variance[allsat] = np.nan
     return MergedFrame(value, variance, allsat, n_ok, crops[0][1], tuple(f.name for f in frames))
+
+
+def _guard_clips(
+    crops: list,
+    e: NDArray[np.float64],
+    frames: Sequence[RawFrame],
+    clips: list,
+    oks: list[NDArray[np.bool_]],
+    sum_s: NDArray[np.float64],
+    sum_e: NDArray[np.float64],
+    n_ok: NDArray[np.int64],
+    noise: NoiseModel,
+    dv: NDArray[np.float64],
+    usable: NDArray[np.bool_],
+) -> None:
+    """Leave out, in place, each frame whose expected value comes within
+    :data:`CLIP_GUARD_SIGMAS` of its clip (module docstring); the kernel
+    :func:`gonio.capture.pose_kernel.pose_sums` does the same arithmetic per site.
+
+    The expected value is the pooled estimate of the pixel's same-channel neighbours in
+    its row (``j - 2`` and ``j + 2``, those in the crop and ``usable``: not a hot or dead
+    pixel), not the pixel's own: a decision made on the pixel's own readings selects
+    their noise.  A neighbour saturated in every frame predicts +inf; a pixel without a
+    neighbour is not guarded."""
+    models = [noise.at_iso(f.iso) for f in frames]
+    quant = 1.0 / 12.0 if noise.quantisation else 0.0
+
+    def var(k: int, signal: NDArray[np.float64]) -> NDArray[np.float64]:
+        m = models[k]
+        return m.gain * np.maximum(signal, 0.0) + m.read_noise**2 + quant + dv
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r0 = sum_s / sum_e
+        acc = np.zeros_like(r0)
+        for k in range(len(frames)):
+            acc = acc + np.where(oks[k], var(k, r0 * e[k]), 0.0)
+        v_r0 = np.where(n_ok > 0, acc / (sum_e * sum_e), 0.0)
+        r0 = np.where(n_ok > 0, r0, np.inf)
+        rl, rr = np.zeros_like(r0), np.zeros_like(r0)
+        vl, vr = np.zeros_like(r0), np.zeros_like(r0)
+        al, ar = np.zeros(r0.shape, bool), np.zeros(r0.shape, bool)
+        rl[:, 2:], vl[:, 2:], al[:, 2:] = r0[:, :-2], v_r0[:, :-2], usable[:, :-2]
+        rr[:, :-2], vr[:, :-2], ar[:, :-2] = r0[:, 2:], v_r0[:, 2:], usable[:, 2:]
+        both = al & ar
+        r_nb = np.where(both, (rl + rr) / 2.0, np.where(al, rl, np.where(ar, rr, np.nan)))
+        v_nb = np.where(both, (vl + vr) / 4.0, np.where(al, vl, np.where(ar, vr, 0.0)))
+        for k in range(len(frames) - 1, -1, -1):
+            cand = oks[k] & (n_ok >= 2) & (al | ar)
+            if not cand.any():
+                continue
+            e_k = e[k]
+            p = np.maximum(r_nb * e_k, 0.0)
+            spread = np.sqrt(var(k, p) + (e_k * e_k) * v_nb)
+            drop = cand & (p + CLIP_GUARD_SIGMAS * spread >= clips[k])
+            if drop.any():
+                oks[k] &= ~drop
+                sum_s[drop] -= crops[k][0][drop]
+                sum_e[drop] -= e_k
+                n_ok[drop] -= 1

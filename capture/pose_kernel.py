@@ -36,6 +36,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from gonio.capture.hdr import CLIP_GUARD_SIGMAS
+
 _JIT = {"cache": True, "fastmath": False, "error_model": "numpy", "nogil": True}
 
 #: Columns of the per-(region, channel) sums: weight, weight * L, weight^2 * var(L),
@@ -319,6 +321,9 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
     has_profile = has_normal and profile_n != 0.0
     has_disk = light_radius > 0.0
     lin = np.empty((F, w))
+    clipv = np.empty((F, w))
+    g_r0 = np.empty(w)
+    g_v = np.empty(w)
     oks = np.empty((F, w), np.bool_)
     sum_s = np.empty(w)
     sum_e = np.empty(w)
@@ -355,17 +360,70 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
                 if has_gain:
                     sk /= gain[k, i, j]
                 ok = q < (s1 if odd else s0)
+                # the clip in the same units, as RawFrame.clip_region computes it
+                cl = (s1 if odd else s0) - (b1 if odd else b0)
+                if has_offset:
+                    cl -= offset[k, i, j]
+                if has_gain:
+                    cl /= gain[k, i, j]
+                clipv[k, j] = cl
                 lin[k, j] = sk
                 oks[k, j] = ok
                 sum_s[j] += sk if ok else 0.0
                 sum_e[j] += e_k if ok else 0.0
                 n_ok[j] += 1 if ok else 0
-        for j in range(w):
-            r0e[j] = sum_s[j] / sum_e[j]
         if has_dark:
             row_dv[:] = dark_var[i]
         else:
             row_dv[:] = dark_var0
+        if F > 1:
+            # merge_bracket's clip guard (hdr._guard_clips), the same arithmetic per site:
+            # a frame whose value expected from the site's same-channel neighbours in the
+            # row comes near its clip is left out
+            for j in range(w):
+                if n_ok[j] > 0:
+                    rj = sum_s[j] / sum_e[j]
+                    acc = 0.0
+                    for k in range(F):
+                        if oks[k, j]:
+                            sj = rj * expo[k]
+                            if sj < 0.0:
+                                sj = 0.0
+                            acc += noise_gain[k] * sj + noise_read2[k] + noise_quant + row_dv[j]
+                    g_r0[j] = rj
+                    g_v[j] = acc / (sum_e[j] * sum_e[j])
+                else:
+                    g_r0[j] = math.inf
+                    g_v[j] = 0.0
+            for k in range(F - 1, -1, -1):
+                e_k = expo[k]
+                for j in range(w):
+                    if not oks[k, j] or n_ok[j] < 2:
+                        continue
+                    left = j >= 2 and not (has_mask and mask[i, j - 2])
+                    right = j + 2 < w and not (has_mask and mask[i, j + 2])
+                    if left and right:
+                        rn = (g_r0[j - 2] + g_r0[j + 2]) / 2.0
+                        vn = (g_v[j - 2] + g_v[j + 2]) / 4.0
+                    elif left:
+                        rn = g_r0[j - 2]
+                        vn = g_v[j - 2]
+                    elif right:
+                        rn = g_r0[j + 2]
+                        vn = g_v[j + 2]
+                    else:
+                        continue
+                    p = rn * e_k
+                    if p < 0.0:
+                        p = 0.0
+                    vk = noise_gain[k] * p + noise_read2[k] + noise_quant + row_dv[j]
+                    if p + CLIP_GUARD_SIGMAS * math.sqrt(vk + (e_k * e_k) * vn) >= clipv[k, j]:
+                        oks[k, j] = False
+                        sum_s[j] = sum_s[j] - lin[k, j]
+                        sum_e[j] = sum_e[j] - e_k
+                        n_ok[j] -= 1
+        for j in range(w):
+            r0e[j] = sum_s[j] / sum_e[j]
         wsum[:] = 0.0
         vsum[:] = 0.0
         for k in range(F):

@@ -509,7 +509,7 @@ def _pose_sums_numpy(
         dist=setup.dist,
         inner_margin=region_margins(cam, lp, setup),
     )
-    merged = merge_bracket(frames, setup.noise, dark_variance, region=regions.box)
+    merged = merge_bracket(frames, setup.noise, dark_variance, region=regions.box, mask=mask)
     n, nc = regions.n_regions, len(CHANNELS)
     # flat indices of the ROI's pixels, found once (each boolean-mask index searches again)
     inside = np.flatnonzero(regions.label >= 0)

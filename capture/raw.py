@@ -178,6 +178,21 @@ class RawFrame:
             lin /= gain[box]
         return lin, self._tile(self._cell_channel, box), sat
 
+    def clip_region(self, box: tuple[slice, slice] | None = None) -> NDArray[np.float64] | None:
+        """The linear value (as :meth:`region` gives it: dark offset and flat gain applied)
+        from which each pixel of a crop counts as saturated; None for a frame given as
+        linear values (its saturation rule is not known)."""
+        if self._raw is None or self._cell_sat is None:
+            return None
+        box = box if box is not None else (slice(None), slice(None))
+        # the same operations in the same order as region()'s on the raw value
+        clip = self._tile(self._cell_sat, box) - self._tile(self._cell_black, box)
+        if (off := self.extra.get("_offset")) is not None:
+            clip = clip - off[box]
+        if (gain := self.extra.get("_gain")) is not None:
+            clip = clip / gain[box]
+        return clip
+
     @property
     def linear(self) -> NDArray[np.float64]:
         if self._linear is None:
