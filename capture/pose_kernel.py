@@ -395,8 +395,27 @@ def pose_sums(bracket: Bracket, stencils: Stencils, view: View):
                 else:
                     g_r0[j] = math.inf
                     g_v[j] = 0.0
+            # a bound over the row: a frame whose largest possible expected value and
+            # spread stay below its smallest clip is left out nowhere in the row (the
+            # bound is >= every site's value, each operation being monotone)
+            rmax = -math.inf
+            vmax = 0.0
+            dvmax = 0.0
+            for j in range(w):
+                rmax = max(rmax, g_r0[j])
+                vmax = max(vmax, g_v[j])
+                dvmax = max(dvmax, row_dv[j])
             for k in range(F - 1, -1, -1):
                 e_k = expo[k]
+                pmax = rmax * e_k
+                if pmax < 0.0:
+                    pmax = 0.0
+                cmin = math.inf
+                for j in range(w):
+                    cmin = min(cmin, clipv[k, j])
+                vb = noise_gain[k] * pmax + noise_read2[k] + noise_quant + dvmax
+                if pmax + CLIP_GUARD_SIGMAS * math.sqrt(vb + (e_k * e_k) * vmax) < cmin:
+                    continue
                 for j in range(w):
                     if not oks[k, j] or n_ok[j] < 2:
                         continue
