@@ -67,11 +67,16 @@ class Material:
     model: str | None = None
     params: dict[str, list[float]] = field(default_factory=dict)
     file: Path | None = None
+    #: ``get_model`` options (``fresnel``, ``g1``), as in ``lambert+ggx[fresnel=schlick]``
+    options: dict[str, str] = field(default_factory=dict)
 
     def scene_brdf(self) -> dict[str, Any]:
         if self.file is not None:
             return {"file": str(self.file)}
-        return {"model": self.model, "params": self.params}
+        brdf: dict[str, Any] = {"model": self.model, "params": self.params}
+        if self.options:
+            brdf["options"] = dict(self.options)
+        return brdf
 
     def truth(self) -> Any:
         """An object with ``eval(wi, wo) -> (..., 3)``."""
@@ -81,14 +86,35 @@ class Material:
             return load(self.file)
         from gonio.brdf import get_model
 
-        return get_model(self.model).bind(self.params)
+        return get_model(self.model, **self.options).bind(self.params)
+
+    def same_model(self, name: str, options: dict[str, Any]) -> bool:
+        """Whether a fit of model ``name`` with ``options`` has this truth's parameters
+        (a lobe's default option, e.g. ``fresnel = "none"``, written or not)."""
+        if self.model is None or name != self.model:
+            return False
+        from gonio.brdf import get_model
+
+        def lobe_options(opts: dict[str, Any]) -> list[dict[str, str]]:
+            return [dict(lobe.options) for lobe in get_model(name, **opts).lobes]
+
+        return lobe_options(options) == lobe_options(self.options)
+
+
+def _spec(result: Any) -> str:
+    """A fit's model as ``gonio fit --model`` spells it, options included."""
+    from gonio.brdf.registry import format_model_spec
+
+    return format_model_spec(result.model, result.model_options)
 
 
 def parse_material(spec: str) -> Material:
     """Parse ``--material``.
 
-    Forms: ``"MODEL k=v k=v1,v2,v3 ..."`` (an analytic model; omitted parameters take the
-    model's defaults; three comma-separated values are R, G, B), a path to a measured
+    Forms: ``"MODEL k=v k=v1,v2,v3 ..."`` (an analytic model, spelt as ``gonio fit
+    --model`` spells it, options included: ``lambert+ggx[fresnel=schlick] f0=0.04``;
+    omitted parameters take the model's defaults; three comma-separated values are R, G,
+    B), a path to a measured
     file (RGL ``.bsdf`` or MERL ``.binary``), or ``rgl:NAME`` for a file of the shared
     reference data (``$GONIO_REFDATA/rgl/NAME_rgb.bsdf``).
     """
@@ -118,8 +144,13 @@ def parse_material(spec: str) -> Material:
         load(tokens[0])  # fail now, with the reader's message, not mid-session
         return Material(spec, file=Path(tokens[0]).resolve())
     from gonio.brdf import get_model
+    from gonio.brdf.registry import parse_model_spec
 
-    model = get_model(tokens[0])
+    try:
+        name, options = parse_model_spec(tokens[0])
+        model = get_model(name, **options)
+    except GonioError as exc:
+        raise ConfigError(f"--material: {exc}") from None
     params: dict[str, list[float]] = {k: [float(v)] * 3 for k, v in model.defaults.items()}
     for tok in tokens[1:]:
         if "=" not in tok:
@@ -127,7 +158,7 @@ def parse_material(spec: str) -> Material:
         k, v = tok.split("=", 1)
         if k not in model.param_names:
             raise ConfigError(
-                f"--material: model {tokens[0]} has no parameter '{k}' "
+                f"--material: model {name} has no parameter '{k}' "
                 f"(it has {', '.join(model.param_names)})"
             )
         try:
@@ -138,7 +169,7 @@ def parse_material(spec: str) -> Material:
             raise ConfigError(f"--material: {k} takes one value or three (R,G,B), got {len(vals)}")
         params[k] = vals * 3 if len(vals) == 1 else vals
     model.check_params({k: np.asarray(v) for k, v in params.items()})
-    return Material(spec, model=tokens[0], params=params)
+    return Material(spec, model=name, params=params, options=options)
 
 
 # --------------------------------------------------------------------------------------
@@ -494,7 +525,7 @@ def _run_demo(
     truth = material.params if material.model else None
     rel_error: dict[str, list[float]] = {}
     z: dict[str, list[float]] = {}
-    if truth is not None and result.model == material.model:
+    if truth is not None and material.same_model(result.model, result.model_options):
         for k, tv in truth.items():
             if k in params:
                 f, s, tr = np.array(params[k]), np.array(sigma[k]), np.array(tv)
@@ -537,7 +568,7 @@ def _run_demo(
         session=session,
         poses=_count_poses(session),
         frames=frames,
-        model=result.model,
+        model=_spec(result),
         params=params,
         sigma=sigma,
         truth=truth,
@@ -586,7 +617,8 @@ REALISTIC_RESOLUTION = (480, 360)
     "--material",
     default=DEFAULT_MATERIAL,
     show_default=True,
-    help='Ground truth: "MODEL name=value ..." (three comma-separated values for R,G,B), '
+    help='Ground truth: "MODEL name=value ..." (three comma-separated values for R,G,B; '
+    'MODEL as for --model, options included: "lambert+ggx[fresnel=schlick] f0=0.04"), '
     "a measured file (.bsdf, .binary), or rgl:NAME from $GONIO_REFDATA/rgl.",
 )
 @click.option(
@@ -608,7 +640,8 @@ REALISTIC_RESOLUTION = (480, 360)
     "--model",
     default="auto",
     show_default=True,
-    help="Model to fit (auto: choose by information criterion and gloss).",
+    help="Model to fit, spelt as for gonio fit (e.g. lambert+ggx, "
+    "lambert+ggx[fresnel=schlick]; auto: choose by information criterion and gloss).",
 )
 @click.option(
     "--resolution",
@@ -678,6 +711,7 @@ def demo(
       gonio demo
       gonio demo --world realistic --world-seed 7
       gonio demo --material "lambert albedo=0.7" --poses 100
+      gonio demo --material "lambert+ggx[fresnel=schlick]" --model "lambert+ggx[fresnel=schlick]"
       gonio demo --material rgl:vch_golden_yellow --json
     Ctrl-C stops it with the servos parked and torque off; continue the capture with
     'gonio capture resume OUT/session'.
@@ -690,9 +724,17 @@ def demo(
     # Checked before the capture, which takes minutes, rather than at the fit.
     if model != "auto":
         from gonio.brdf import get_model
+        from gonio.brdf.registry import parse_model_spec
 
-        get_model(model)
-    say = (lambda s: None) if as_json else (lambda s: console.print(f"[bold cyan]>[/] {s}"))
+        try:
+            name, options = parse_model_spec(model)
+            get_model(name, **options)
+        except GonioError as exc:
+            raise ConfigError(f"--model: {exc}") from None
+    from rich.markup import escape
+
+    # escaped: a model spec's options ("[fresnel=schlick]") read as rich markup otherwise
+    say = (lambda s: None) if as_json else (lambda s: console.print(f"[bold cyan]>[/] {escape(s)}"))
     if world != "perfect" and world_seed is None:
         import secrets
 
@@ -768,11 +810,12 @@ def retention_table(ret: dict[str, Any]) -> Any:
 
 
 def _print_summary(console: Any, res: DemoResult) -> None:
+    from rich.markup import escape
     from rich.table import Table
 
     console.print(
         f"\n[bold]{res.poses}[/] poses, [bold]{res.frames}[/] frames; "
-        f"chosen model [bold]{res.model}[/] (truth: {res.material})"
+        f"chosen model [bold]{escape(res.model)}[/] (truth: {escape(res.material)})"
     )
     t = Table(
         "parameter",

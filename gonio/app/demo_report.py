@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from gonio.atomic import write_text_atomic
+from gonio.brdf.registry import format_model_spec
 
 
 def _sample_images(session: Path, out: Path, n: int = 3) -> list[tuple[Path, str]]:
@@ -185,7 +186,8 @@ def write_report(
         f"({frames} RAW frames). Samples: `{Path(red.path).relative_to(out)}` "
         f"({red.n_kept} kept of {red.n_samples}).",
         "",
-        f"Chosen model: **{result.model}** (cost {result.cost:.6g}, {result.n_samples} samples, "
+        f"Chosen model: **{format_model_spec(result.model, result.model_options)}** "
+        f"(cost {result.cost:.6g}, {result.n_samples} samples, "
         f"algorithm path {' -> '.join(result.algorithm)}).",
         "",
         "| parameter | channel | fitted | sigma | truth | rel. error | z |",
