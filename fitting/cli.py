@@ -396,12 +396,16 @@ def variance_split_rows(r) -> list[tuple[str, float, tuple[float, ...]]]:
 
 
 def _report(console, r, source: Path, kind: str, written: list[Path]) -> None:
+    from rich.markup import escape
     from rich.table import Table
 
     from gonio.fitting.select import format_model_spec
 
     spec = format_model_spec(r.model, r.model_options)
-    table = Table(title=f"{spec} fitted to {source.name} ({kind}, {r.n_samples} samples)")
+    # escaped: rich reads a spec's options ("[fresnel=schlick]") as markup and drops them
+    table = Table(
+        title=escape(f"{spec} fitted to {source.name} ({kind}, {r.n_samples} samples)")
+    )
     table.add_column("parameter")
     for c in r.channels:
         table.add_column(c, justify="right")
@@ -428,14 +432,14 @@ def _report(console, r, source: Path, kind: str, written: list[Path]) -> None:
         for row in sel:
             ic = row.get("criterion")
             st.add_row(
-                row["model"],
+                escape(row["model"]),
                 "failed" if ic is None else f"{ic:.1f}",
                 "" if row.get("cost") is None else f"{row['cost']:.4g}",
                 "" if row.get("gloss_60") is None else f"{row['gloss_60']:.1f}",
             )
         console.print(st)
         if r.diagnostics.get("selection_note"):
-            console.print(r.diagnostics["selection_note"])
+            console.print(r.diagnostics["selection_note"], markup=False)
     console.print(
         f"loss {r.loss}, cost {r.cost:.6g}, {'success' if r.success else 'FAILED'} "
         f"({r.message}); path {' -> '.join(r.algorithm)}; "

@@ -131,6 +131,9 @@ def test_cli_option_passes_model_options(tmp_path, make_samples):
     assert res2.exit_code == 0, res2.output
     d2 = json.loads((tmp_path / "b" / "fit.json").read_text())
     assert d2["model_options"] == {"fresnel": "schlick"}
+    # the table's title names the model as asked (rich read the brackets as markup)
+    title = " ".join(res2.output.split())  # however rich wraps the title
+    assert "lambert+ggx[fresnel=schlick] fitted to samples.h5" in title, res2.output
     res3 = _cli(
         src,
         "--candidates",
@@ -144,6 +147,7 @@ def test_cli_option_passes_model_options(tmp_path, make_samples):
     assert d3["model_options"] == {"fresnel": "schlick"}
     sel = [row["model"] for row in d3["diagnostics"]["selection"]]
     assert sel == ["lambert", "lambert+ggx", "lambert+ggx[fresnel=schlick]"]
+    assert "│ lambert+ggx[fresnel=schlick] │" in res3.output, res3.output  # selection table
 
 
 @pytest.mark.parametrize(
