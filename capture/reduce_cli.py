@@ -163,6 +163,7 @@ def reduce_cmd(
       gonio capture reduce runs/paper/ --texels 16
     """
     from rich.console import Console
+    from rich.markup import escape  # paths and plan tables ("[flats]") are not markup
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
     from rich.table import Table
 
@@ -231,7 +232,7 @@ def reduce_cmd(
     table.add_row("written", str(res.n_samples))
     table.add_row("kept (no flag)", str(res.n_kept))
     for reason, n in sorted(res.rejected.items()):
-        table.add_row(f"rejected: {reason}", str(n))
+        table.add_row(escape(f"rejected: {reason}"), str(n))
     console.print(table)
     budget = res.summary.get("budget") or {}
     if budget.get("terms"):
@@ -239,12 +240,14 @@ def reduce_cmd(
 
         console.print(budget_table(budget["terms"]))
         for w in budget.get("warnings", []):
-            console.print(f"[yellow]budget: {w}", soft_wrap=True)
+            console.print(f"[yellow]budget: {escape(w)}", soft_wrap=True)
     for fp in res.summary["failed_poses"]:
-        console.print(f"[yellow]pose {fp['pose']} ({fp['kind']}): {fp['reason']}", soft_wrap=True)
+        console.print(
+            f"[yellow]pose {fp['pose']} ({fp['kind']}): {escape(fp['reason'])}", soft_wrap=True
+        )
     for frame, why in res.summary.get("frame_problems", {}).items():
-        console.print(f"[yellow]frame {frame}: {why}", soft_wrap=True)
-    console.print(f"wrote {res.path}", soft_wrap=True)
+        console.print(f"[yellow]frame {escape(frame)}: {escape(why)}", soft_wrap=True)
+    console.print(f"wrote {res.path}", soft_wrap=True, markup=False)
     tex = res.summary.get("texels")
     if tex:
         per = tex["kept_per_texel"]
@@ -253,9 +256,10 @@ def reduce_cmd(
             f"{tex['texels'][1]} texels x {tex['poses']} poses; kept per texel "
             f"{per['min']}..{per['max']}, {tex['texels_without_samples']} texel(s) without)",
             soft_wrap=True,
+            markup=False,
         )
     if res.plot:
-        console.print(f"plot: {res.plot}", soft_wrap=True)
+        console.print(f"plot: {res.plot}", soft_wrap=True, markup=False)
     # What the session lacks and what it costs: printed even with --quiet (never silent),
     # plain text (the warnings name plan tables in brackets, which rich takes for markup).
     for w in getattr(res, "warnings", []):

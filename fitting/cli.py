@@ -308,7 +308,7 @@ def _write_outputs(console, r, samples, out: Path, plots: bool, worker=None) -> 
             names.append("material.xml")
         except FitError as exc:
             # (--force) the set replaces the old one whole: no old material.xml survives
-            console.print(f"[yellow]no Mitsuba export: {exc}[/yellow]")
+            console.print(f"no Mitsuba export: {exc}", style="yellow", markup=False)
         if plots:
             if worker is None or not worker.active:
                 from gonio.fitting import plots as fig
@@ -345,7 +345,7 @@ def _fit_and_write(
     n_steps = (len(cands) if cands else 4) + 3 if model == "auto" else 4
     with Progress(
         SpinnerColumn(),
-        TextColumn("{task.description}"),
+        TextColumn("{task.description}", markup=False),  # a spec's "[...]" is not markup
         BarColumn(),
         TimeElapsedColumn(),
         console=console,

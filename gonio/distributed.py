@@ -455,14 +455,18 @@ def rich_progress(total: int, description: str, console: Any = None) -> Iterator
     console
         A ``rich.console.Console`` (default: rich's own, on stdout).
     """
+    from rich.markup import escape
+
     from gonio.progress import task_progress
 
     with task_progress(console=console, transient=True) as bar:
-        task = bar.add_task(description, total=total)
+        task = bar.add_task(escape(description), total=total)
 
         def update(key: Hashable, outcome: Any, done: int, total_: int) -> None:
             mark = "failed" if isinstance(outcome, TaskFailure) else "done"
-            bar.update(task, completed=done, description=f"{description} ({key}: {mark})")
+            # escaped: a material's name may hold brackets, which rich reads as markup
+            shown = escape(f"{description} ({key}: {mark})")
+            bar.update(task, completed=done, description=shown)
 
         yield update
 

@@ -101,10 +101,12 @@ def _session_identity(session: Path, size: tuple[int, int]) -> tuple[dict[str, A
 
 def _print_result(cal: Any, out: Path, board_source: str) -> None:
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     con = Console()
-    t = Table("parameter", "value", "std", title=f"camera calibration ({board_source})")
+    # escaped: sources, labels and paths may hold brackets, which rich reads as markup
+    t = Table("parameter", "value", "std", title=escape(f"camera calibration ({board_source})"))
     for name, (v, s) in cal.parameters.items():
         unit = " px" if name in ("fx", "fy", "cx", "cy") else ""
         t.add_row(name, f"{v:.6g}{unit}", f"{s:.2g}{unit}")
@@ -116,13 +118,16 @@ def _print_result(cal: Any, out: Path, board_source: str) -> None:
     )
     worst = sorted(cal.view_errors.items(), key=lambda kv: -kv[1])[:3]
     if worst:
-        con.print("largest per-view RMS: " + ", ".join(f"{k} {e:.3f} px" for k, e in worst))
+        con.print(
+            "largest per-view RMS: " + ", ".join(f"{k} {e:.3f} px" for k, e in worst),
+            markup=False,
+        )
     if cal.rejected:
         r = Table("view", "reason", title=f"{len(cal.rejected)} views rejected")
         for rej in cal.rejected:
-            r.add_row(rej.label, rej.reason)
+            r.add_row(escape(rej.label), escape(rej.reason))
         con.print(r)
-    con.print(f"wrote {out}")
+    con.print(f"wrote {out}", markup=False)
 
 
 def plot_calibration(cal: Any, path: Path) -> None:

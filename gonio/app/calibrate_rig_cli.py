@@ -188,7 +188,8 @@ def plan_cmd(
         height=size[1],
     )
     console.print(
-        f"wrote {out}: {len(poses)} poses ({len(poses) - n_mirror} board, {n_mirror} mirror)"
+        f"wrote {out}: {len(poses)} poses ({len(poses) - n_mirror} board, {n_mirror} mirror)",
+        markup=False,
     )
 
 
@@ -385,6 +386,7 @@ def rig_cmd(
 ) -> None:
     """Calibrate the rig from a calibration session; write the calibrated configuration."""
     from rich.console import Console
+    from rich.markup import escape as esc
     from rich.table import Table
 
     from gonio.app.calibrate_cli import _board_from
@@ -436,15 +438,16 @@ def rig_cmd(
     check_camera_digest(camera.digest, session_digest, source=str(camera_calibration))
 
     board, board_source = _board_from(board_config, session_dir)
-    console.print(f"board: {board_source}")
+    # escaped: sources, labels, reasons and paths may hold brackets (rich markup)
+    console.print(f"board: {board_source}", markup=False)
     boards, spots, problems = calibration_observations(session_dir, board)
     boards, spots = _as_nominal_readings(boards, spots, session_rig, nominal)
     for p in problems:
-        console.print(f"[yellow]note[/]: {p.label}: no {p.what}: {p.reason}")
+        console.print(f"[yellow]note[/]: {esc(p.label)}: no {esc(p.what)}: {esc(p.reason)}")
     hx, hy = _mirror_half_size(manifest)
     near_edge = edge_problems(boards, spots, camera, (hx, hy))
     for label, why in near_edge.items():
-        console.print(f"[yellow]note[/]: {label}: spot not used: {why}")
+        console.print(f"[yellow]note[/]: {esc(label)}: spot not used: {esc(why)}")
     spots = [s for s in spots if s.label not in near_edge]
     if not boards:
         raise CalibrationError(f"{session_dir}: the board was not found in any frame")
@@ -468,15 +471,16 @@ def rig_cmd(
         worst = max(views, key=lambda v: v.max_px)
         console.print(
             f"{kind}: {len(views)} views, RMS {rms:.3f} px (sigma {cal.sigma_px[kind]:.3f} px), "
-            f"largest {worst.max_px:.3f} px in {worst.label}"
+            f"largest {worst.max_px:.3f} px in {worst.label}",
+            markup=False,
         )
     for label, why in cal.rejected.items():
-        console.print(f"[yellow]rejected[/] {label}: {why}")
+        console.print(f"[yellow]rejected[/] {esc(label)}: {esc(why)}")
     console.print("not observable (kept nominal):")
     for name, why in NOT_OBSERVABLE.items():
-        console.print(f"  {name}: {why}")
+        console.print(f"  {name}: {why}", markup=False)
     # the calibration first: a refused (ill-conditioned) one writes nothing, plot included
     write_calibrated_rig(out, cal, force=force)
-    console.print(f"wrote {out}")
+    console.print(f"wrote {out}", markup=False)
     if plot is not None:
         _plot_residuals(plot, cal)

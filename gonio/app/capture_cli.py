@@ -87,6 +87,7 @@ def plan_cmd(
       gonio capture plan examples/plan.toml --rig rig.toml --plot poses.png
     """
     from rich.console import Console
+    from rich.markup import escape as esc
     from rich.table import Table
 
     from gonio.capture.plan import load_plan
@@ -108,7 +109,8 @@ def plan_cmd(
         return
     n_sample, n_ref = summary["sample_poses"], summary["reference_poses"]
     con = Console()
-    con.print(f"[bold]{plan.name}[/]  ({plan_file})  rig: {cfg.name}")
+    # escaped: names, paths and messages may hold brackets, which rich reads as markup
+    con.print(f"[bold]{esc(plan.name)}[/]  ({esc(str(plan_file))})  rig: {esc(cfg.name)}")
     con.print(
         f"grid {ex.n_grid} poses, {ex.n_reduced} removed by symmetry, "
         f"{len(ex.excluded)} excluded -> [bold]{n_sample}[/] sample poses"
@@ -134,13 +136,13 @@ def plan_cmd(
             t.add_row(
                 *(f"{a[k]:.1f}" for k in ("theta_i_deg", "phi_i_deg", "theta_o_deg", "phi_o_deg")),
                 e.code,
-                e.reason,
+                esc(e.reason),
             )
         con.print(t)
     if sched.refused:
         t = Table("step", "code", "reason", title="refused in the visiting order (dry run)")
         for r in sched.refused:
-            t.add_row(str(r.step), r.code, r.message)
+            t.add_row(str(r.step), r.code, esc(r.message))
         con.print(t)
     if show_poses:
         t = Table("#", "kind", "theta_i", "phi_i", "theta_o", "phi_o", title="visiting order")
@@ -169,6 +171,7 @@ def plan_cmd(
 
 def _rounds_table(rounds):
     """An adaptive session's rounds: poses chosen, the winning fit's rel sigma, stop."""
+    from rich.markup import escape
     from rich.table import Table
 
     t = Table(
@@ -185,11 +188,11 @@ def _rounds_table(rounds):
             str(r.get("round")),
             str(r.get("poses")),
             str(r.get("poses_done", "")),
-            str(r.get("model") or ""),
+            escape(str(r.get("model") or "")),  # a spec's "[fresnel=schlick]" is not markup
             rel_s,
             f"{r['advise_s']:.2f}" if isinstance(r.get("advise_s"), int | float) else "",
             f"{r['batch_time_s']:.0f}" if isinstance(r.get("batch_time_s"), int | float) else "",
-            str(r.get("stop") or ""),
+            escape(str(r.get("stop") or "")),
         )
     return t
 
@@ -623,9 +626,14 @@ def inspect_cmd(session_dir: Path, verify: bool, as_json: bool) -> None:
         click.echo(json.dumps(info, indent=1))
     else:
         from rich.console import Console
+        from rich.markup import escape as esc
 
         con = Console()
-        con.print(f"[bold]{session_dir}[/]  plan {info['plan']!r}, camera {info['camera']}")
+        # escaped: paths and messages may hold brackets, which rich reads as markup
+        con.print(
+            f"[bold]{esc(str(session_dir))}[/]  plan {esc(repr(info['plan']))}, "
+            f"camera {esc(str(info['camera']))}"
+        )
         con.print(
             f"status: [bold]{info['status']}[/]; poses done {info['poses_done']}/"
             f"{info['poses_total']}"
@@ -636,23 +644,29 @@ def inspect_cmd(session_dir: Path, verify: bool, as_json: bool) -> None:
         if info["partial_poses"]:
             con.print(f"cut short (will be continued): poses {info['partial_poses']}")
         for r in info["skipped"]:
-            con.print(f"[yellow]skipped[/] pose {r['pose']}: {r['reason']}")
+            con.print(f"[yellow]skipped[/] pose {r['pose']}: {esc(str(r['reason']))}")
         for f in info["faults"]:
-            con.print(f"[red]fault[/] ({f.get('source')}): {f.get('error')}")
+            con.print(f"[red]fault[/] ({esc(str(f.get('source')))}): {esc(str(f.get('error')))}")
         for p in info["bad_files"]:
-            con.print(f"[red]bad file[/]: {p}")
+            con.print(f"[red]bad file[/]: {esc(str(p))}")
         if info["orphans"]:
-            con.print(f"orphan files (not journaled, redone on resume): {info['orphans']}")
+            con.print(
+                f"orphan files (not journaled, redone on resume): {info['orphans']}", markup=False
+            )
         if info["retaken"]:
-            con.print(f"shot again (--retake): {info['retaken']}")
+            con.print(f"shot again (--retake): {info['retaken']}", markup=False)
         if info["stale_temporaries"]:
             con.print(
                 "temporary files of an interrupted write (removed by the next run or "
-                f"resume): {info['stale_temporaries']}"
+                f"resume): {info['stale_temporaries']}",
+                markup=False,
             )
         left = info["poses_total"] - info["poses_done"]
         if left:
-            con.print(f"left: {left} poses; continue with 'gonio capture resume {session_dir}'")
+            con.print(
+                f"left: {left} poses; continue with 'gonio capture resume {session_dir}'",
+                markup=False,
+            )
         if info.get("rounds"):
             con.print(_rounds_table(info["rounds"]))
         if info.get("budget") and info["budget"]["terms"]:

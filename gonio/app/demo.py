@@ -769,7 +769,7 @@ def demo(
     except KeyboardInterrupt:
         console.print(
             f"[yellow]interrupted[/]: servos parked, torque off. Continue the capture with "
-            f"'gonio capture resume {out / 'session'}'."
+            f"'gonio capture resume {escape(str(out / 'session'))}'."
         )
         raise SystemExit(130) from None
     if as_json:
@@ -850,4 +850,6 @@ def _print_summary(console: Any, res: DemoResult) -> None:
     for k, v in res.seconds.items():
         st.add_row(k, f"{v:.1f}")
     console.print(st)
-    console.print(f"report: [bold]{res.report}[/]   session: {res.session}")
+    console.print(
+        f"report: [bold]{escape(str(res.report))}[/]   session: {escape(str(res.session))}"
+    )

@@ -24,6 +24,8 @@ class SessionProgress:
         self.skipped = 0
 
     def __call__(self, rec: dict[str, Any]) -> None:
+        from rich.markup import escape  # a reason or an error may hold brackets: not markup
+
         t = rec.get("type")
         if t == "start":
             self.progress.update(self.task, total=rec.get("poses"), completed=rec.get("done", 0))
@@ -36,10 +38,12 @@ class SessionProgress:
             if t == "pose_skipped":
                 self.skipped += 1
                 self.progress.console.print(
-                    f"[yellow]pose {rec.get('pose')} skipped: {rec.get('reason')}"
+                    f"[yellow]pose {rec.get('pose')} skipped: {escape(str(rec.get('reason')))}"
                 )
         elif t == "fault":
-            self.progress.console.print(f"[red]fault ({rec.get('source')}): {rec.get('error')}")
+            self.progress.console.print(
+                f"[red]fault ({escape(str(rec.get('source')))}): {escape(str(rec.get('error')))}"
+            )
 
     def __enter__(self) -> SessionProgress:
         self.progress.__enter__()

@@ -212,7 +212,7 @@ def render_cmd(
         f"{s.edge_pixels} edge pixels anti-aliased; {s.seconds:.2f} s; "
         f"saturated {sat:.1%}"
     )
-    console.print(f"wrote {out}" + (f" and {truth}" if truth else ""))
+    console.print(f"wrote {out}" + (f" and {truth}" if truth else ""), markup=False)
 
 
 def _preview(path: Path, result) -> None:

@@ -58,6 +58,7 @@ def info_cmd(file: Path, theta_i_deg: str) -> None:
       gonio brdf info paper_white_rgb.bsdf --theta-i-deg 0,45,75
     """
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     from gonio.brdf.measured import load
@@ -66,7 +67,7 @@ def info_cmd(file: Path, theta_i_deg: str) -> None:
     angles = _parse_angles(theta_i_deg)
     b = load(file)
     console = Console()
-    meta = Table(title=f"{file.name}", show_header=False)
+    meta = Table(title=escape(file.name), show_header=False)  # a name's brackets: not markup
     meta.add_column("key", style="bold")
     meta.add_column("value")
     meta.add_row("format", {"rgl": "RGL-EPFL tensor_file v1.0", "merl": "MERL binary"}[b.format])
@@ -125,6 +126,7 @@ def convert_cmd(src: Path, dst: Path, force: bool) -> None:
     Example:
       gonio brdf convert vch_golden_yellow_rgb.bsdf golden_yellow.binary
     """
+    from rich.markup import escape
     from rich.progress import Progress
 
     from gonio.brdf.measured import load
@@ -145,7 +147,7 @@ def convert_cmd(src: Path, dst: Path, force: bool) -> None:
         )
     b = load(src)
     with Progress(transient=True) as prog:
-        task = prog.add_task(f"resampling {src.name}", total=1.0)
+        task = prog.add_task(escape(f"resampling {src.name}"), total=1.0)
         m = resample(
             b, description=b.description, progress=lambda d, n: prog.update(task, completed=d / n)
         )

@@ -258,6 +258,7 @@ def albedo_cmd(
       gonio brdf albedo lambert+ggx -p albedo=0.8 -p ks=0.5 -p alpha=0.3
     """
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     from gonio.radiometry.photometry import luminous_reflectance
@@ -268,7 +269,8 @@ def albedo_cmd(
     if a.ndim == 1:
         a = a[:, None]
     grey = bool(np.allclose(a, a[:, :1]))
-    table = Table(title=f"directional albedo of {label}")
+    # escaped: a spec's "[fresnel=schlick]" or a file name's brackets are not markup
+    table = Table(title=escape(f"directional albedo of {label}"))
     table.add_column("θi (deg)", justify="right")
     names = ("albedo",) if grey else ("R", "G", "B")
     for n in names:

@@ -111,6 +111,20 @@ def test_a_session_without_darks_warns_and_states_the_dark_term(session, capsys)
         assert f"warning: {w}" in err
 
 
+def test_paths_and_warnings_are_printed_as_written_not_as_markup(session, capsys, monkeypatch):
+    """rich reads ``[word]`` as markup and drops it: a session folder named with brackets
+    and the warnings' plan tables (``[flats]``) must reach the terminal as they are."""
+    monkeypatch.setenv("COLUMNS", "400")  # no wrapping inside a long path
+    odd = _copy(session, "S[red] [flats]", lambda recs, d: recs)
+    assert run("capture", "reduce", str(odd), "--no-plot") == 0
+    err = capsys.readouterr().err  # the reduction's tables and lines go to stderr
+    assert f"wrote {odd / 'samples.h5'}" in err, err
+    assert "warning: no flat fields in this session ([flats] count = 0)" in err, err
+    assert run("capture", "inspect", str(odd)) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"{odd}  plan "), out
+
+
 def _flat_dng(template, level: float, dead: list[tuple[int, int]], seed: int, K) -> bytes:
     """A uniform panel over the lens: ``level`` DN through the reduction's cos^4, photon
     noise of the simulated sensor's gain, dead pixels at 2 % response."""
