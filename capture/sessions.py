@@ -598,7 +598,9 @@ def _run(
         "type": "start",
         "resumed": resumed,
         "software_version": __version__,
-        "poses": len(steps),
+        # an adaptive session's journaled rounds are poses of it too (resume: "done"
+        # counts theirs, so without them a progress bar read 8 of 5)
+        "poses": len(steps) + n_round_steps[0],
         "done": len(state.done),
         "shots": state.n_shots,
     }

@@ -40,6 +40,12 @@ class SessionProgress:
                 self.progress.console.print(
                     f"[yellow]pose {rec.get('pose')} skipped: {escape(str(rec.get('reason')))}"
                 )
+        elif t == "adaptive_round" and rec.get("steps"):
+            # an adaptive session's poses are chosen as it goes: each round adds its batch
+            # (the start document counted the seed design only; the bar read 50/26)
+            total = next(tk.total for tk in self.progress.tasks if tk.id == self.task)
+            if total is not None:
+                self.progress.update(self.task, total=total + len(rec["steps"]))
         elif t == "fault":
             self.progress.console.print(
                 f"[red]fault ({escape(str(rec.get('source')))}): {escape(str(rec.get('error')))}"

@@ -74,7 +74,7 @@ def _files(d: Path, plan: str = PLAN) -> tuple[Path, object]:
     return d / "plan.toml", load_rig_config(d / "rig.toml")
 
 
-def _run(d: Path, out: str, advisor, plan_text: str = PLAN):
+def _run(d: Path, out: str, advisor, plan_text: str = PLAN, subscribers=()):
     from gonio.app.simulation import simulated_run
     from gonio.capture.sessions import run_session
 
@@ -90,14 +90,17 @@ def _run(d: Path, out: str, advisor, plan_text: str = PLAN):
         simulation=sim.simulation,
         attachments=sim.attachments,
         advisor=advisor,
+        subscribers=subscribers,
     )
 
 
-def _resume(session: Path, advisor):
+def _resume(session: Path, advisor, subscribers=()):
     from gonio.app.devices import device_opener
     from gonio.capture.sessions import resume_session
 
-    return resume_session(session, device_opener(time_scale="virtual"), advisor=advisor)
+    return resume_session(
+        session, device_opener(time_scale="virtual"), advisor=advisor, subscribers=subscribers
+    )
 
 
 def _journal(session: Path) -> list[dict]:
@@ -240,6 +243,30 @@ def test_resume_replays_journaled_rounds_and_asks_only_for_the_rest(tmp_path):
     ref = round_records(_journal(tmp_path / "U"))
     assert [r["chosen_ids"] for r in after] == [r["chosen_ids"] for r in ref]
     assert [r["steps"] for r in after] == [r["steps"] for r in ref]
+
+
+def test_progress_bar_grows_with_the_rounds_and_ends_full(tmp_path):
+    """The start document counts the seed design only; each round adds its batch (the
+    bar read 50/26 at the end of an adaptive session).  Checked against the journal's
+    own pose_done records, through an interruption and its resume."""
+    from gonio.app.progress import SessionProgress
+    from gonio.capture.sessions import SessionStopped
+
+    def bar_of(prog):
+        return prog.progress.tasks[0]
+
+    with SessionProgress(quiet=True) as prog, pytest.raises(SessionStopped):
+        _run(tmp_path, "S", Stub(interrupt_at=1), subscribers=[prog])
+    S = tmp_path / "S"
+    recs = _journal(S)
+    done = sum(r["type"] == "pose_done" for r in recs)
+    assert [r["round"] for r in round_records(recs)] == [0]  # round 0's batch was shot
+    assert bar_of(prog).completed == bar_of(prog).total == done
+    with SessionProgress(quiet=True) as prog:
+        _resume(S, Stub(), subscribers=[prog])
+    done = sum(r["type"] == "pose_done" for r in _journal(S))
+    assert len(round_records(_journal(S))) >= 2
+    assert bar_of(prog).completed == bar_of(prog).total == done
 
 
 _TIMES = ("time", "advise_s", "timing", "created")
