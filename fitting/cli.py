@@ -443,10 +443,11 @@ def _report(console, r, source: Path, kind: str, written: list[Path]) -> None:
     console.print(
         f"loss {r.loss}, cost {r.cost:.6g}, {'success' if r.success else 'FAILED'} "
         f"({r.message}); path {' -> '.join(r.algorithm)}; "
-        f"condition number {r.diagnostics['condition_number']:.3g}"
+        f"condition number {r.diagnostics['condition_number']:.3g}",
+        markup=False,
     )
     if r.diagnostics["at_bounds"]:
-        console.print(f"at bounds: {', '.join(r.diagnostics['at_bounds'])}")
-    console.print("wrote " + ", ".join(str(p) for p in written))
+        console.print(f"at bounds: {', '.join(r.diagnostics['at_bounds'])}", markup=False)
+    console.print("wrote " + ", ".join(str(p) for p in written), markup=False)
     if not r.success:
         raise FitError(f"the fit did not converge: {r.message}")

@@ -8,6 +8,7 @@ import math
 import click
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from gonio.errors import RigError
@@ -85,7 +86,7 @@ def scan(port: str, baud: int, as_json: bool) -> None:
         return
     if not rows:
         raise RigError(f"no servo answered on {port} at {baud} baud; try another --baud")
-    t = Table(title=f"servos on {port} at {baud} baud")
+    t = Table(title=escape(f"servos on {port} at {baud} baud"))
     for c in ("ID", "model", "model number", "firmware"):
         t.add_column(c)
     for r in rows:

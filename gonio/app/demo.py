@@ -108,6 +108,21 @@ def _spec(result: Any) -> str:
     return format_model_spec(result.model, result.model_options)
 
 
+def _split_head(spec: str) -> tuple[str, str]:
+    """``spec`` split at its first blank outside brackets: a model spec's options may be
+    written with blanks (``lambert+ggx[fresnel=schlick, g1=rational]``), as ``--model``
+    takes them."""
+    depth = 0
+    for i, ch in enumerate(spec):
+        if ch == "[":
+            depth += 1
+        elif ch == "]":
+            depth = max(depth - 1, 0)
+        elif ch.isspace() and depth == 0:
+            return spec[:i], spec[i:]
+    return spec, ""
+
+
 def parse_material(spec: str) -> Material:
     """Parse ``--material``.
 
@@ -131,7 +146,11 @@ def parse_material(spec: str) -> Material:
                 "holding rgl/, or give the file's path)"
             )
         return Material(spec, file=path.resolve())
-    tokens = spec.split()
+    if Path(spec).is_file():  # a measured file, its name spaces and all
+        tokens = [spec]
+    else:
+        head, rest = _split_head(spec)
+        tokens = [head, *rest.split()]
     looks_like_file = "/" in tokens[0] or Path(tokens[0]).suffix.lower() in (".bsdf", ".binary")
     if looks_like_file and not Path(tokens[0]).is_file():
         raise ConfigError(

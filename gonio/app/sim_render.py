@@ -204,7 +204,8 @@ def render_cmd(
                 if li.penumbra_points
                 else ""
             )
-            + ("" if li.tolerance_met else " [tolerance NOT met]")
+            + ("" if li.tolerance_met else " [tolerance NOT met]"),
+            markup=False,  # rich took "[tolerance NOT met]" for a tag: the warning never showed
         )
     sat = float((frame.mosaic >= frame.white_level).mean())
     console.print(

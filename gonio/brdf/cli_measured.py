@@ -71,7 +71,7 @@ def info_cmd(file: Path, theta_i_deg: str) -> None:
     meta.add_column("key", style="bold")
     meta.add_column("value")
     meta.add_row("format", {"rgl": "RGL-EPFL tensor_file v1.0", "merl": "MERL binary"}[b.format])
-    meta.add_row("description", b.description)
+    meta.add_row("description", escape(b.description))
     if b.format == "rgl":
         md = b.metadata
         meta.add_row(

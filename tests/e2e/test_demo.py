@@ -188,6 +188,16 @@ def test_demo_with_a_measured_rgl_material(tmp_path, rgl_file):
     assert ok.any() and np.median(rel) < 0.02, (ok.sum(), np.median(rel))
 
 
+def test_material_options_may_be_written_with_blanks_as_model_takes_them():
+    from gonio.app.demo import parse_material
+
+    m = parse_material("lambert+beckmann[fresnel=schlick, g1=rational] f0=0.1 alpha=0.3")
+    assert (m.model, m.options) == ("lambert+beckmann", {"fresnel": "schlick", "g1": "rational"})
+    assert m.params["f0"] == [0.1] * 3 and m.params["alpha"] == [0.3] * 3
+    assert m.same_model("lambert+beckmann", {"g1": "rational", "fresnel": "schlick"})
+    assert not m.same_model("lambert+beckmann", {"fresnel": "schlick"})  # g1 "exact"
+
+
 def test_bad_material_and_existing_out_dir(tmp_path):
     r = run(["demo", "--out", str(tmp_path / "x"), "--material", "glass albedo=1"])
     assert r.returncode == 1 and "lambert" in r.stderr  # the known models are listed

@@ -406,6 +406,26 @@ def test_penumbra_of_rectangle_light_vs_visible_sub_rectangle():
     assert not st.tolerance_met
 
 
+def test_sim_render_says_when_a_light_misses_its_tolerance(tmp_path, capsys):
+    """``gonio sim render`` prints each light's line with "[tolerance NOT met]" when its
+    penumbra error exceeds the tolerance (rich took the brackets for markup and dropped
+    the words: the warning never showed).  The penumbra scene above, through the CLI."""
+    import tomli_w
+
+    from gonio.cli import run
+
+    light = dict(type="rectangle", position=[0, 0, 0.5], normal=[0, 0, -1], width=0.06,
+                 height=0.04, up=[0, 1, 0], radiance=1.0)  # fmt: skip
+    plate = dict(type="box", center=[0.5, 0, 0.2], size=[1.0, 1.0, 0.002])
+    d = _top_down(0.15, 30, lights=[light], occluders=[plate])
+    d["camera"]["resolution"] = [32, 32]
+    d.setdefault("render", {})["tolerance"] = 1e-4
+    (tmp_path / "scene.toml").write_text(tomli_w.dumps(d))
+    assert run("sim", "render", str(tmp_path / "scene.toml"), "--out", str(tmp_path / "a.dng")) == 0
+    err = " ".join(capsys.readouterr().err.split())  # the render's report is on stderr
+    assert "light rectangle:" in err and "[tolerance NOT met]" in err, err
+
+
 # --- issue 14.3: the renderer's memory is estimated before anything is allocated --------
 
 
