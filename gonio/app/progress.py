@@ -22,6 +22,7 @@ class SessionProgress:
         self.task = self.progress.add_task("poses", total=total, completed=done, shots=0)
         self.shots = 0
         self.skipped = 0
+        self._reduction_error: str | None = None
 
     def __call__(self, rec: dict[str, Any]) -> None:
         from rich.markup import escape  # a reason or an error may hold brackets: not markup
@@ -40,12 +41,21 @@ class SessionProgress:
                 self.progress.console.print(
                     f"[yellow]pose {rec.get('pose')} skipped: {escape(str(rec.get('reason')))}"
                 )
-        elif t == "adaptive_round" and rec.get("steps"):
+        elif t == "adaptive_round":
             # an adaptive session's poses are chosen as it goes: each round adds its batch
             # (the start document counted the seed design only; the bar read 50/26)
             total = next(tk.total for tk in self.progress.tasks if tk.id == self.task)
-            if total is not None:
+            if total is not None and rec.get("steps"):
                 self.progress.update(self.task, total=total + len(rec["steps"]))
+            # a round that could not reduce its poses chooses blind: say so (once a cause)
+            why = rec.get("reduction_error")
+            if why and why != self._reduction_error:
+                self._reduction_error = why
+                self.progress.console.print(
+                    f"[yellow]adaptive round {rec.get('round')}: the poses so far could not be "
+                    f"reduced, so nothing was fitted and the batch is chosen space-filling: "
+                    f"{escape(str(why))}"
+                )
         elif t == "fault":
             self.progress.console.print(
                 f"[red]fault ({escape(str(rec.get('source')))}): {escape(str(rec.get('error')))}"
