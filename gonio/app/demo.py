@@ -129,9 +129,8 @@ def parse_material(spec: str) -> Material:
     Forms: ``"MODEL k=v k=v1,v2,v3 ..."`` (an analytic model, spelt as ``gonio fit
     --model`` spells it, options included: ``lambert+ggx[fresnel=schlick] f0=0.04``;
     omitted parameters take the model's defaults; three comma-separated values are R, G,
-    B), a path to a measured
-    file (RGL ``.bsdf`` or MERL ``.binary``), or ``rgl:NAME`` for a file of the shared
-    reference data (``$GONIO_REFDATA/rgl/NAME_rgb.bsdf``).
+    B), a path to a measured file (RGL ``.bsdf`` or MERL ``.binary``), or ``rgl:NAME``
+    for a file of the shared reference data (``$GONIO_REFDATA/rgl/NAME_rgb.bsdf``).
     """
     spec = spec.strip()
     if not spec:
@@ -188,7 +187,8 @@ def parse_material(spec: str) -> Material:
             raise ConfigError(f"--material: {k} takes one value or three (R,G,B), got {len(vals)}")
         params[k] = vals * 3 if len(vals) == 1 else vals
     model.check_params({k: np.asarray(v) for k, v in params.items()})
-    return Material(spec, model=name, params=params, options=options)
+    # the canonical name ("Lambert+GGX" -> "lambert+ggx"), as the fit reports it
+    return Material(spec, model=model.name, params=params, options=options)
 
 
 # --------------------------------------------------------------------------------------

@@ -51,10 +51,10 @@ class SessionProgress:
             why = rec.get("reduction_error")
             if why and why != self._reduction_error:
                 self._reduction_error = why
+                batch = " and the batch is chosen space-filling" if rec.get("steps") else ""
                 self.progress.console.print(
                     f"[yellow]adaptive round {rec.get('round')}: the poses so far could not be "
-                    f"reduced, so nothing was fitted and the batch is chosen space-filling: "
-                    f"{escape(str(why))}"
+                    f"reduced, so nothing was fitted{batch}: {escape(str(why))}"
                 )
         elif t == "fault":
             self.progress.console.print(

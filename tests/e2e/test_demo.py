@@ -196,6 +196,8 @@ def test_material_options_may_be_written_with_blanks_as_model_takes_them():
     assert m.params["f0"] == [0.1] * 3 and m.params["alpha"] == [0.3] * 3
     assert m.same_model("lambert+beckmann", {"g1": "rational", "fresnel": "schlick"})
     assert not m.same_model("lambert+beckmann", {"fresnel": "schlick"})  # g1 "exact"
+    # a name as the user writes it is the model the fit reports
+    assert parse_material("Lambert+GGX ks=0.3").same_model("lambert+ggx", {})
 
 
 def test_bad_material_and_existing_out_dir(tmp_path):
