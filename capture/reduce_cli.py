@@ -240,13 +240,13 @@ def reduce_cmd(
 
         console.print(budget_table(budget["terms"]))
         for w in budget.get("warnings", []):
-            console.print(f"[yellow]budget: {escape(w)}", soft_wrap=True)
+            console.print(f"[yellow]budget: {escape(str(w))}", soft_wrap=True)
     for fp in res.summary["failed_poses"]:
         console.print(
-            f"[yellow]pose {fp['pose']} ({fp['kind']}): {escape(fp['reason'])}", soft_wrap=True
+            f"[yellow]pose {fp['pose']} ({fp['kind']}): {escape(str(fp['reason']))}", soft_wrap=True
         )
     for frame, why in res.summary.get("frame_problems", {}).items():
-        console.print(f"[yellow]frame {escape(frame)}: {escape(why)}", soft_wrap=True)
+        console.print(f"[yellow]frame {escape(str(frame))}: {escape(str(why))}", soft_wrap=True)
     console.print(f"wrote {res.path}", soft_wrap=True, markup=False)
     tex = res.summary.get("texels")
     if tex:
