@@ -47,6 +47,7 @@ from numpy.typing import NDArray
 from gonio.dataset import BUDGET_TERMS, SHARED_BUDGET_TERMS
 
 __all__ = [
+    "BUDGET_COLUMNS",
     "INTRINSICS",
     "MODE_WIDTH",
     "POSE_MODE_NAMES",
@@ -55,6 +56,7 @@ __all__ = [
     "CameraModes",
     "RigShifts",
     "SessionModes",
+    "budget_cells",
     "budget_rows",
     "budget_table",
     "camera_modes",
@@ -888,6 +890,22 @@ def budget_rows(
     return rows
 
 
+#: The columns of a budget term's row, as :func:`budget_cells` fills them.
+BUDGET_COLUMNS = ("term", "scope", "median std / f", "share of variance")
+
+
+def budget_cells(row: Mapping[str, Any]) -> tuple[str, str, str, str]:
+    """One term of :func:`budget_rows` as the text of :data:`BUDGET_COLUMNS` (the CLI's
+    table and the demo's report print the same)."""
+    med = row.get("median_rel_std")
+    return (
+        str(row["term"]),
+        str(row.get("scope", "")),
+        "-" if med is None else f"{med:.3%}",
+        f"{row['share']:.1%}",
+    )
+
+
 def budget_table(rows: Sequence[Mapping[str, Any]], *, top: int = 6) -> Any:
     """A ``rich`` table of the budget's largest terms (:func:`budget_rows`, as stored in
     ``reduction.json["budget"]["terms"]``): term, scope, median relative std, share of
@@ -895,18 +913,11 @@ def budget_table(rows: Sequence[Mapping[str, Any]], *, top: int = 6) -> Any:
     from rich.table import Table
 
     table = Table(title="Uncertainty budget (largest terms)")
-    table.add_column("term")
-    table.add_column("scope")
-    table.add_column("median std / f", justify="right")
-    table.add_column("share of variance", justify="right")
+    for k, col in enumerate(BUDGET_COLUMNS):
+        table.add_column(col, justify="right" if k >= 2 else "left")
     shown = [r for r in rows if r.get("share") and r["share"] > 0][:top]
     if not shown:
         table.caption = "no usable sample"
     for r in shown:
-        table.add_row(
-            str(r["term"]),
-            str(r.get("scope", "")),
-            "-" if r.get("median_rel_std") is None else f"{r['median_rel_std']:.3%}",
-            f"{r['share']:.1%}",
-        )
+        table.add_row(*budget_cells(r))
     return table

@@ -200,12 +200,9 @@ def _guard_clips(
     beside an unmasked dead pixel.  The brighter neighbour instead fixes the edge but lets
     every unmasked hot pixel take its neighbours' long frames (noise, not bias); the
     regions lie inside the sample, away from its edges, so the mean is kept."""
-    models = [noise.at_iso(f.iso) for f in frames]
-    quant = 1.0 / 12.0 if noise.quantisation else 0.0
 
     def var(k: int, signal: NDArray[np.float64]) -> NDArray[np.float64]:
-        m = models[k]
-        return m.gain * np.maximum(signal, 0.0) + m.read_noise**2 + quant + dv
+        return noise.variance(signal, iso=frames[k].iso) + dv
 
     with np.errstate(invalid="ignore", divide="ignore"):
         r0 = sum_s / sum_e

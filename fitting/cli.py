@@ -399,12 +399,9 @@ def _report(console, r, source: Path, kind: str, written: list[Path]) -> None:
     from rich.markup import escape
     from rich.table import Table
 
-    from gonio.fitting.select import format_model_spec
-
-    spec = format_model_spec(r.model, r.model_options)
     # escaped: rich reads a spec's options ("[fresnel=schlick]") as markup and drops them
     table = Table(
-        title=escape(f"{spec} fitted to {source.name} ({kind}, {r.n_samples} samples)")
+        title=escape(f"{r.spec} fitted to {source.name} ({kind}, {r.n_samples} samples)")
     )
     table.add_column("parameter")
     for c in r.channels:

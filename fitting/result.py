@@ -104,6 +104,14 @@ class FitResult:
     success: bool
     diagnostics: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def spec(self) -> str:
+        """The model as ``--model`` spells it, options included
+        (``lambert+ggx[fresnel=schlick]``)."""
+        from gonio.brdf.registry import format_model_spec
+
+        return format_model_spec(self.model, self.model_options)
+
     def params_for_channel(self, c: int | str) -> dict[str, float]:
         """Parameters of one channel (index or name) as plain floats."""
         i = self.channels.index(c) if isinstance(c, str) else int(c)

@@ -101,13 +101,6 @@ class Material:
         return lobe_options(options) == lobe_options(self.options)
 
 
-def _spec(result: Any) -> str:
-    """A fit's model as ``gonio fit --model`` spells it, options included."""
-    from gonio.brdf.registry import format_model_spec
-
-    return format_model_spec(result.model, result.model_options)
-
-
 def _split_head(spec: str) -> tuple[str, str]:
     """``spec`` split at its first blank outside brackets: a model spec's options may be
     written with blanks (``lambert+ggx[fresnel=schlick, g1=rational]``), as ``--model``
@@ -587,7 +580,7 @@ def _run_demo(
         session=session,
         poses=_count_poses(session),
         frames=frames,
-        model=_spec(result),
+        model=result.spec,
         params=params,
         sigma=sigma,
         truth=truth,

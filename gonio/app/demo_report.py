@@ -9,7 +9,6 @@ from typing import Any
 import numpy as np
 
 from gonio.atomic import write_text_atomic
-from gonio.brdf.registry import format_model_spec
 
 
 def _sample_images(session: Path, out: Path, n: int = 3) -> list[tuple[Path, str]]:
@@ -128,16 +127,12 @@ def _budget_lines(summary: dict | None) -> list[str]:
         )
     for w in [*(summary.get("warnings") or []), *(summary["budget"].get("warnings") or [])]:
         lines += ["", f"Warning: {w}"]
-    lines += [
-        "",
-        "| term | scope | median std / f | share of variance |",
-        "|---|---|---|---|",
-    ]
+    from gonio.capture.budget import BUDGET_COLUMNS, budget_cells
+
+    lines += ["", f"| {' | '.join(BUDGET_COLUMNS)} |", "|---|---|---|---|"]
     for r in summary["budget"].get("terms", []):
-        if not r.get("share"):
-            continue
-        med = "-" if r.get("median_rel_std") is None else f"{r['median_rel_std']:.3%}"
-        lines.append(f"| {r['term']} | {r.get('scope', '')} | {med} | {r['share']:.1%} |")
+        if r.get("share"):
+            lines.append(f"| {' | '.join(budget_cells(r))} |")
     return [*lines, ""]
 
 
@@ -186,7 +181,7 @@ def write_report(
         f"({frames} RAW frames). Samples: `{Path(red.path).relative_to(out)}` "
         f"({red.n_kept} kept of {red.n_samples}).",
         "",
-        f"Chosen model: **{format_model_spec(result.model, result.model_options)}** "
+        f"Chosen model: **{result.spec}** "
         f"(cost {result.cost:.6g}, {result.n_samples} samples, "
         f"algorithm path {' -> '.join(result.algorithm)}).",
         "",
